@@ -1,0 +1,3 @@
+from polarstripe.nodes.runtime.cli import main
+
+raise SystemExit(main())

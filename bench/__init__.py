@@ -1,0 +1,1 @@
+"""Benchmarks that print tables (``polarstripe bench NAME``, ``--json`` for machines)."""

@@ -1,0 +1,1 @@
+"""Imaging methods on frames: compositing, descattering, separation, quality measures (numpy in, numpy out)."""

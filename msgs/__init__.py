@@ -1,0 +1,1 @@
+"""The message vocabulary: typed messages, MessagePack codec, zero-copy arrays, JSON Schemas."""

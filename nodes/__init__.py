@@ -1,0 +1,1 @@
+"""The rig's nodes (emitter, grabber, polarizer, compositor, planner) and their runtime."""

@@ -1,0 +1,1 @@
+"""The node runtime: bus, Node base class, launcher, recorder/replayer, command line."""

@@ -1,0 +1,1 @@
+"""The light-transport model (scenes, single scattering, polarization, sensor) and the simulator."""
