@@ -1,1 +1,4 @@
-"""Imaging methods on frames: compositing, descattering, separation, quality measures (numpy in, numpy out)."""
+"""Imaging methods on frames: compositing, descattering, separation, quality measures.
+
+Numpy in, numpy out; bad input raises :class:`polarstripe.imaging.validation.ImagingError`.
+"""

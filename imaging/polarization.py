@@ -1,0 +1,275 @@
+"""Polarization descattering on frames: eqs. 4-6, partially polarized objects, Stokes, DoLP/AoLP, p.
+
+Conventions: E_b is the frame through the analyzer crossed to the backscatter polarization (least
+backscatter), E_w the co-polarized one. p is the backscatter's degree of polarization. Angles in degrees at
+the boundary of :func:`least_backscatter_angle` and :func:`stokes`, radians for AoLP.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from polarstripe.imaging.validation import (
+    ImagingError,
+    as_stack,
+    finite_array,
+    finite_param,
+    roi_slices,
+    same_shape,
+)
+
+
+def _p_value(p, shape: tuple[int, ...]) -> np.ndarray | float:
+    """Validate p: a scalar or an array broadcastable to ``shape``, finite, in (0, 1]."""
+    if np.ndim(p) == 0:
+        return finite_param("p", p, low=0.0, high=1.0, low_open=True)
+    arr = finite_array("p", p)
+    try:
+        np.broadcast_shapes(arr.shape, shape)
+    except ValueError:
+        raise ImagingError(f"p: shape {arr.shape} does not broadcast to the frames' shape {shape}") from None
+    if np.any(arr <= 0.0) or np.any(arr > 1.0):
+        raise ImagingError(f"p: values must lie in (0, 1], got min {arr.min()} max {arr.max()}")
+    return arr
+
+
+def polarized_pair(signal, backscatter, p) -> tuple[np.ndarray, np.ndarray]:
+    """Frames through the crossed and co-polarized analyzer (eqs. 4-5).
+
+    E_b = S/2 + B(1 - p)/2,  E_w = S/2 + B(1 + p)/2.
+
+    Parameters
+    ----------
+    signal, backscatter : array (h, w) or (n,)
+        S = D + A and B (any radiance or DN units, before the analyzer).
+    p : float or array
+        Backscatter degree of polarization in [0, 1].
+
+    Returns
+    -------
+    (E_b, E_w) : float64 arrays, same shape
+    """
+    s, b = finite_array("signal", signal), finite_array("backscatter", backscatter)
+    same_shape(signal=s, backscatter=b)
+    pp = finite_param("p", p, low=0.0, high=1.0) if np.ndim(p) == 0 else finite_array("p", p)
+    return 0.5 * s + 0.5 * b * (1.0 - pp), 0.5 * s + 0.5 * b * (1.0 + pp)
+
+
+def _pair(e_b, e_w):
+    for name, e in (("e_b", e_b), ("e_w", e_w)):
+        if np.asarray(e).dtype.kind not in "uif":
+            raise ImagingError(f"{name}: dtype {np.asarray(e).dtype} is not a real numeric type")
+        if np.size(e) == 0:
+            raise ImagingError(f"{name}: empty array")
+    same_shape(e_b=e_b, e_w=e_w)
+    if isinstance(e_b, np.ma.MaskedArray) or isinstance(e_w, np.ma.MaskedArray):
+        return np.ma.asarray(e_b).astype(np.float64), np.ma.asarray(e_w).astype(np.float64)
+    return np.asarray(e_b, np.float64), np.asarray(e_w, np.float64)
+
+
+def recover_signal(e_b, e_w, p, *, p_object: float = 0.0):
+    """Estimate of the signal S from the two polarized frames (eq. 6 and its partially polarized form).
+
+    Parameters
+    ----------
+    e_b, e_w : array (h, w) or (n,), or masked arrays
+        Best- and worst-polarized frames, dark offset already subtracted. Masks (saturation) propagate.
+    p : float or array
+        Backscatter DOP in (0, 1] (clamp an estimate away from 0 first, see :func:`estimate_p`).
+    p_object : float
+        DOP of the object's own light, in [0, p); 0 (unpolarized, the paper's assumption) gives eq. 6.
+
+    Returns
+    -------
+    float64 array (masked when an input was masked), same shape
+        Ŝ = [E_b (p + 1) + E_w (p - 1)] / (p - p_object); with p_object = 0 this is eq. 6,
+        Ŝ = E_b (1 + 1/p) + E_w (1 - 1/p).
+
+    Notes
+    -----
+    Treibitz & Schechner (2009) give the p_object form; it amplifies noise without bound as p_object -> p,
+    and independent per-frame noise σ grows to σ·sqrt(2(1 + 1/p²)) for p_object = 0 (see
+    :func:`recovered_signal_variance`).
+    """
+    eb, ew = _pair(e_b, e_w)
+    pp = _p_value(p, np.shape(eb))
+    po = finite_param("p_object", p_object, low=0.0)
+    if np.any(np.asarray(pp) <= po):
+        raise ImagingError(f"p_object: {po} must be below p (min p = {np.min(pp)})")
+    if po == 0.0:
+        return eb * (1.0 + 1.0 / pp) + ew * (1.0 - 1.0 / pp)  # eq. 6
+    return (ew * (pp - 1.0) + eb * (pp + 1.0)) / (pp - po)
+
+
+def recover_backscatter(e_b, e_w, p, *, p_object: float = 0.0):
+    """Estimate of the backscatter B: (E_w - E_b)/p, or [E_w(1 - p_obj) - E_b(1 + p_obj)]/(p - p_obj)."""
+    eb, ew = _pair(e_b, e_w)
+    pp = _p_value(p, np.shape(eb))
+    po = finite_param("p_object", p_object, low=0.0)
+    if np.any(np.asarray(pp) <= po):
+        raise ImagingError(f"p_object: {po} must be below p (min p = {np.min(pp)})")
+    return (ew * (1.0 - po) - eb * (1.0 + po)) / (pp - po)
+
+
+def recovered_signal_variance(var_b, var_w, p, *, p_object: float = 0.0):
+    """Variance of Ŝ for independent noise in E_b and E_w (refs/physics.md §4.2).
+
+    Var Ŝ = [(p + 1)² Var E_b + (p - 1)² Var E_w] / (p - p_object)²; with equal variance σ² and p_object = 0
+    the noise gain is σ_Ŝ/σ = sqrt(2 (1 + 1/p²)).
+    """
+    vb, vw = finite_array("var_b", var_b), finite_array("var_w", var_w)
+    pp = _p_value(p, np.broadcast_shapes(vb.shape, vw.shape))
+    po = finite_param("p_object", p_object, low=0.0)
+    if np.any(np.asarray(pp) <= po):
+        raise ImagingError(f"p_object: {po} must be below p (min p = {np.min(pp)})")
+    return ((pp + 1.0) ** 2 * vb + (pp - 1.0) ** 2 * vw) / (pp - po) ** 2
+
+
+def stokes(frames, angles_deg: Sequence[float], *, transmittances: tuple[float, float] = (1.0, 0.0)):
+    """Linear Stokes parameters per pixel from frames at three or more analyzer angles (Malus's law).
+
+    Least squares on I(θ) = ½(k1 + k2) S0 + ½(k1 - k2)(S1 cos 2θ + S2 sin 2θ).
+
+    Parameters
+    ----------
+    frames : array (k, h, w) or sequence of k (h, w) arrays
+        Frames through the analyzer, dark offset subtracted.
+    angles_deg : sequence of k floats
+        Analyzer angles in degrees; at least three distinct values modulo 180.
+    transmittances : (k1, k2)
+        Principal transmittances of the polarizer (ideal: 1, 0).
+
+    Returns
+    -------
+    (S0, S1, S2) : float64 arrays (h, w)
+    """
+    stack = as_stack("frames", frames)
+    ang = finite_array("angles_deg", angles_deg).ravel()
+    if ang.size != stack.shape[0]:
+        raise ImagingError(f"angles_deg: {ang.size} angles for {stack.shape[0]} frames")
+    if np.unique(np.round(np.mod(ang, 180.0), 9)).size < 3:
+        raise ImagingError(f"angles_deg: need at least three distinct angles modulo 180, got {list(ang)}")
+    k1 = finite_param("transmittances[0]", transmittances[0], low=0.0)
+    k2 = finite_param("transmittances[1]", transmittances[1], low=0.0)
+    if k1 <= k2:
+        raise ImagingError(f"transmittances: k1 = {k1} must exceed k2 = {k2}")
+    th = np.deg2rad(ang) * 2.0
+    a = np.column_stack([0.5 * (k1 + k2) * np.ones_like(th), 0.5 * (k1 - k2) * np.cos(th),
+                         0.5 * (k1 - k2) * np.sin(th)])
+    y = stack.reshape(stack.shape[0], -1).astype(np.float64)
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    s0, s1, s2 = (c.reshape(stack.shape[1:]) for c in coef)
+    return s0, s1, s2
+
+
+def dolp(s0, s1, s2, *, noise_std: float | None = None) -> np.ndarray:
+    """Degree of linear polarization sqrt(S1² + S2²)/S0 (0 where S0 <= 0), optionally debiased.
+
+    With ``noise_std`` = σ, the per-frame noise of 4 equally spaced frames, the Rician bias is removed:
+    DoLP² <- max(0, DoLP² - 2·(2σ²)/S0²) (refs/physics.md §4.3).
+    """
+    s0, s1, s2 = (np.asarray(x, np.float64) for x in (s0, s1, s2))
+    same_shape(s0=s0, s1=s1, s2=s2)
+    pol2 = s1 * s1 + s2 * s2
+    if noise_std is not None:
+        sig = finite_param("noise_std", noise_std, low=0.0)
+        pol2 = np.maximum(0.0, pol2 - 4.0 * sig * sig)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(s0 > 0, np.sqrt(pol2) / np.where(s0 > 0, s0, 1.0), 0.0)
+    return out
+
+
+def aolp(s1, s2) -> np.ndarray:
+    """Angle of linear polarization ½ atan2(S2, S1) in radians, in (-π/2, π/2]."""
+    s1, s2 = np.asarray(s1, np.float64), np.asarray(s2, np.float64)
+    same_shape(s1=s1, s2=s2)
+    return 0.5 * np.arctan2(s2, s1)
+
+
+def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
+               p_min: float = 0.05) -> float:
+    """Backscatter DOP p from an object-free region (S ≈ 0), robust to noise, offset and saturation.
+
+    p̂ = median(E_w - E_b) / median(E_w + E_b) over the region's valid pixels, clipped to [p_min, 1].
+
+    Parameters
+    ----------
+    e_b, e_w : array (h, w)
+        Crossed and co-polarized frames (raw DN or radiance).
+    roi : (row0, row1, col0, col1) or bool mask (h, w), optional
+        The object-free region; whole frame when None.
+    dark_offset : float
+        Black level subtracted from both frames first (an offset left in biases p̂ low).
+    saturation : float, optional
+        Pixels at or above this level in either frame are left out (E_w saturates first).
+    p_min : float
+        Lower clamp, in (0, 1]: eq. 6 divides by p.
+
+    Returns
+    -------
+    float
+
+    Notes
+    -----
+    Where S = 0 eqs. 4-5 give E_w - E_b = p (E_w + E_b) at every pixel, so the ratio of medians is exact
+    without noise even when B varies over the region (scaling preserves the order), and medians ignore
+    outliers. Raises when no valid pixel is left.
+    """
+    eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
+    for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
+        if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
+            raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
+    same_shape(e_b=eb_raw, e_w=ew_raw)
+    index = roi_slices("roi", roi, eb_raw.shape)
+    off = finite_param("dark_offset", dark_offset)
+    pmin = finite_param("p_min", p_min, low=0.0, high=1.0, low_open=True)
+    eb, ew = eb_raw[index].astype(np.float64), ew_raw[index].astype(np.float64)
+    valid = np.ones(eb.shape, bool)
+    if saturation is not None:
+        sat = finite_param("saturation", saturation)
+        valid &= (eb < sat) & (ew < sat)
+    eb, ew = eb[valid] - off, ew[valid] - off
+    if eb.size == 0:
+        raise ImagingError("roi: no unsaturated pixels left to estimate p from")
+    total = float(np.median(ew + eb))
+    if total <= 0.0:
+        raise ImagingError(f"roi: no backscatter above the dark offset (median E_w + E_b = {total:.3g})")
+    return float(np.clip(np.median(ew - eb) / total, pmin, 1.0))
+
+
+def least_backscatter_angle(angles_deg: Sequence[float], frames, roi=None, *, dark_offset: float = 0.0,
+                            saturation: float | None = None) -> float:
+    """Analyzer angle (degrees, [0, 180)) that transmits the least backscatter over an object-free region.
+
+    Fits Malus's law I(θ) = ½(S0 + S1 cos 2θ + S2 sin 2θ) to the region's mean intensity (pixels saturated
+    in any frame left out) and returns the angle of its minimum, AoLP + 90°. Called by the polarizer's
+    calibrate service. Raises when the region's light shows no measurable polarization.
+
+    Parameters
+    ----------
+    angles_deg : sequence of k floats
+        Analyzer angles, at least three distinct modulo 180.
+    frames : array (k, h, w) or sequence of k (h, w) arrays
+    roi : (row0, row1, col0, col1) or bool mask (h, w), optional
+    dark_offset : float
+        Black level subtracted first.
+    saturation : float, optional
+    """
+    stack = as_stack("frames", frames)
+    index = roi_slices("roi", roi, stack.shape[1:])
+    off = finite_param("dark_offset", dark_offset)
+    region = stack[(slice(None),) + (index if isinstance(index, tuple) else (index,))]
+    region = region.reshape(stack.shape[0], -1).astype(np.float64)
+    valid = np.ones(region.shape[1], bool)
+    if saturation is not None:
+        valid &= np.all(region < finite_param("saturation", saturation), axis=0)
+    if not valid.any():
+        raise ImagingError("roi: every pixel is saturated in some frame")
+    means = region[:, valid].mean(axis=1) - off
+    s0, s1, s2 = stokes(means.reshape(-1, 1, 1), angles_deg)
+    s0, s1, s2 = float(s0[0, 0]), float(s1[0, 0]), float(s2[0, 0])
+    if s0 <= 0.0 or np.hypot(s1, s2) <= 1e-6 * s0:
+        raise ImagingError(f"frames: the region's light is unpolarized (S0 = {s0:.3g}, "
+                           f"|S1, S2| = {np.hypot(s1, s2):.3g}); no least-backscatter angle")
+    return float(np.mod(np.rad2deg(0.5 * np.arctan2(s2, s1)) + 90.0, 180.0))
