@@ -145,7 +145,9 @@ def _edge_gradient(frame: np.ndarray, axis: int) -> np.ndarray:
     f = np.asarray(frame, np.float64)
     if axis == 0:
         f = f.T
-    p = np.pad(f, 1, mode="edge")
+    p = np.pad(f, ((1, 1), (0, 0)), mode="edge")
+    low = p.min(axis=1, keepdims=True)  # beyond the border the line is dark: a stripe touching it has an edge
+    p = np.concatenate([low, p, low], axis=1)
     smooth = p[:-2, :] + 2.0 * p[1:-1, :] + p[2:, :]
     g = (smooth[:, 2:] - smooth[:, :-2]) / 8.0
     return g.T if axis == 0 else g

@@ -19,8 +19,8 @@ class ImagingError(PolarstripeError, ValueError):
 
 
 def as_image(name: str, value, *, ndim: int = 2) -> np.ndarray:
-    """Return ``value`` as an array of ``ndim`` dimensions with a real numeric dtype, or raise."""
-    arr = np.asarray(value)
+    """Return ``value`` (masks kept) as an array of ``ndim`` dimensions and a real numeric dtype, or raise."""
+    arr = np.asanyarray(value)  # keeps a mask (saturated pixels)
     if arr.dtype.kind not in "uif":
         raise ImagingError(f"{name}: dtype {arr.dtype} is not a real numeric type")
     if arr.ndim != ndim:
