@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from polarstripe.imaging.composite import RunningComposite, StripeMosaic, delineate_stripe, max_composite
 from polarstripe.imaging.validation import ImagingError
 

@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from polarstripe.imaging.metrics import michelson_contrast, signal_error
 from polarstripe.imaging.validation import ImagingError
 

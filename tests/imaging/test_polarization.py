@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from polarstripe.imaging.polarization import (
     aolp,
     dolp,
@@ -87,7 +86,7 @@ def test_stokes_needs_three_distinct_angles():
 
 def test_estimate_p_under_noise_offset_and_saturation():
     rng = np.random.default_rng(7)
-    p, offset, gain = 0.8, 64.0, 1.0
+    p, offset = 0.8, 64.0
     b = rng.uniform(800, 1600, (60, 80))  # object-free: S = 0, backscatter varies over the region
     e_b = b * (1 - p) / 2
     e_w = b * (1 + p) / 2

@@ -2,8 +2,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy.stats import norm
-
 from polarstripe.imaging.quality import (
     cqm,
     gqm,
@@ -14,6 +12,7 @@ from polarstripe.imaging.quality import (
     snr_weight_from_noise,
 )
 from polarstripe.imaging.validation import ImagingError
+from scipy.stats import norm
 
 
 def test_cqm_gqm_plain_values():

@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from polarstripe.imaging.separation import separate_direct_global, separate_stack
 from polarstripe.imaging.validation import ImagingError
 
