@@ -70,10 +70,7 @@ class RunningComposite:
         return round(finite_param("angle_deg", angle_deg) % 180.0, 6)
 
     def reset(self) -> None:
-        """Forget all frames (the next scan starts afresh)."""
-        self._max.clear()
-        self._min.clear()
-        self._argmax.clear()
+        """Forget all frames; the buffers are kept and reused by the next scan (no new allocation)."""
         self._count.clear()
 
     def add(self, frame: np.ndarray, angle_deg: float | None = None) -> None:
@@ -84,15 +81,20 @@ class RunningComposite:
         if frame.dtype != self.dtype:
             raise ImagingError(f"frame: dtype {frame.dtype} does not match the composite dtype {self.dtype}")
         key = self._key(angle_deg)
-        mx = self._max.get(key)
-        if mx is None:
-            self._max[key] = frame.copy()
-            self._min[key] = frame.copy()
-            self._count[key] = 1
+        k = self._count.get(key, 0)
+        if k == 0:
+            if key not in self._max:
+                self._max[key] = np.empty(self.shape, self.dtype)
+                self._min[key] = np.empty(self.shape, self.dtype)
+                if self.track_argmax:
+                    self._argmax[key] = np.empty(self.shape, np.int32)
+            np.copyto(self._max[key], frame)
+            np.copyto(self._min[key], frame)
             if self.track_argmax:
-                self._argmax[key] = np.zeros(self.shape, np.int32)
+                self._argmax[key].fill(0)
+            self._count[key] = 1
             return
-        k = self._count[key]
+        mx = self._max[key]
         if self.track_argmax:
             np.copyto(self._argmax[key], k, where=frame > mx)
         np.maximum(mx, frame, out=mx)
@@ -102,12 +104,12 @@ class RunningComposite:
     @property
     def angles(self) -> list[float | None]:
         """Analyzer angles (degrees, or None) that have frames."""
-        return list(self._max)
+        return [key for key, n in self._count.items() if n > 0]
 
     def result(self, angle_deg: float | None = None) -> CompositeImage:
         """The max/min composite for one angle; saturated pixels are masked."""
         key = self._key(angle_deg)
-        if key not in self._max:
+        if self._count.get(key, 0) == 0:
             raise ImagingError(f"angle_deg: no frames were added at {angle_deg!r} (have {self.angles})")
         mx, mn = self._max[key].copy(), self._min[key].copy()
         if self.saturation is None:

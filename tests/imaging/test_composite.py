@@ -94,3 +94,16 @@ def test_mosaic_rebuilds_the_scene():
         cols = slice(k * width + 1, (k + 1) * width - 1)
         assert not out.mask[:, cols].any()
         np.testing.assert_allclose(out[:, cols], scene[:, cols])
+
+
+def test_reset_starts_a_new_scan_in_the_same_buffers():
+    comp = RunningComposite((4, 4), np.uint16)
+    comp.add(np.full((4, 4), 900, np.uint16), 0.0)
+    held = comp._max[0.0]
+    comp.reset()
+    assert comp.angles == []
+    comp.add(np.full((4, 4), 7, np.uint16), 0.0)
+    comp.add(np.full((4, 4), 3, np.uint16), 0.0)
+    out = comp.result(0.0)
+    assert comp._max[0.0] is held
+    assert out.maximum.max() == 7 and out.minimum.min() == 3 and out.n_frames == 2
