@@ -1,0 +1,307 @@
+"""The camera–source placement planner (the paper's §3): sweep d_LC, maximise CQM·W and GQM·W.
+
+The planner asks a :class:`PlanModel` for the light-transport components at a few observed points O only
+(never whole images) and turns them into the paper's objectives with the quality measures of
+:mod:`polarstripe.imaging.quality`. :class:`SceneModel` is the model of :mod:`polarstripe.sim` behind that
+interface. Scanning a stripe across the scene can rotate the source about one position, translate it with a
+fixed sheet angle, or both; :func:`compare_scans` says which wins.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from polarstripe.imaging.quality import (
+    LOGISTIC_PROBIT_SCALE,
+    log_cqm,
+    log_gqm,
+    log_snr_weight,
+    recovered_signal_noise_e,
+)
+from polarstripe.sim.scene import SceneError
+
+MODALITIES = ("flood", "stripes")
+SCAN_TYPES = ("rotate", "translate", "both")
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Model output at n observed points: radiance [W sr⁻¹ m⁻²] before the analyzer, and backscatter DOP."""
+
+    direct: np.ndarray
+    indirect: np.ndarray
+    backscatter: np.ndarray
+    dop: np.ndarray
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """What the SNR weight needs from the sensor (EMVA 1288), per frame.
+
+    ``electrons_per_radiance`` converts radiance [W sr⁻¹ m⁻²] at the pixel to mean photo-electrons;
+    :data:`IDEAL_SENSOR` (infinitely many electrons) makes W a step, the paper's ideal zero-noise case.
+    """
+
+    electrons_per_radiance: float
+    read_noise_e: float = 0.0
+    dark_e: float = 0.0
+    quantization_e: float = 0.0
+    full_well_e: float = math.inf
+
+
+
+IDEAL_SENSOR = SensorNoise(math.inf)  # unlimited light: W = 1 wherever S > 0 (the paper's zero-noise case)
+
+
+class PlanModel(Protocol):
+    """The interface the planner sweeps. Separations are in metres, pixels (n, 2) int (row, col)."""
+
+    noise: SensorNoise
+
+    def observed_pixels(self) -> np.ndarray: ...
+
+    def lateral_positions_m(self) -> np.ndarray: ...
+
+    def flood(self, d_lc_m: float) -> Samples: ...
+
+    def stripes(self, d_lc_m: float) -> Samples: ...
+
+
+@dataclass(frozen=True)
+class Objective:
+    """Per-point quality at one separation: the measure (CQM or GQM), W, their product, saturation."""
+
+    quality: np.ndarray
+    weight: np.ndarray
+    saturated: np.ndarray
+
+    @property
+    def value(self) -> np.ndarray:
+        return np.where(self.saturated, 0.0, self.quality * self.weight)
+
+
+def objective(samples: Samples, noise: SensorNoise, *, modality: str, polarized: bool,
+              k_detect: float = 3.0, p_min: float = 0.05) -> Objective:
+    """CQM·W (flood, eq. 8 × eq. 10) or GQM·W (stripes, eq. 9 × eq. 10) per observed point, in log space.
+
+    Without a polarizer p = 0 in eqs. 8-9 and the frame E = S + B is the estimate of S; with one, the best-
+    polarized frame sets the measure and Ŝ comes from eq. 6, whose noise sets W (refs/physics.md §7):
+    μ = k_detect·σ_S, z = σ_S/1.702. A point whose co-polarized (or unpolarized) frame exceeds the full
+    well carries no information and scores 0 (``saturated``).
+    """
+    if modality not in MODALITIES:
+        raise SceneError(f"modality must be one of {MODALITIES}, got {modality!r}")
+    d, a, b = (np.maximum(np.asarray(x, np.float64), 0.0) for x in (samples.direct, samples.indirect,
+                                                                       samples.backscatter))
+    p = np.clip(np.asarray(samples.dop, np.float64), p_min, 1.0) if polarized else np.zeros_like(d)
+    with np.errstate(divide="ignore"):
+        ld, la, lb = np.log(d), np.log(a), np.log(b)
+    ls = np.logaddexp(ld, la)
+    lq = log_cqm(ls, lb, p) if modality == "flood" else log_gqm(ld, la, lb, p)
+    e = noise.electrons_per_radiance
+    if math.isinf(e):
+        lw = np.where(np.exp(ls) > 0, 0.0, -np.inf)
+        sat = np.zeros(d.shape, bool)
+    else:
+        s_e, b_e = (d + a) * e, b * e
+        sigma = recovered_signal_noise_e(s_e, b_e, p if polarized else None, read_noise_e=noise.read_noise_e,
+                                         dark_e=noise.dark_e, quantization_e=noise.quantization_e)
+        lw = log_snr_weight(s_e, k_detect * sigma, sigma / LOGISTIC_PROBIT_SCALE)
+        brightest = 0.5 * s_e + 0.5 * b_e * (1.0 + p) if polarized else s_e + b_e
+        sat = brightest + noise.dark_e >= noise.full_well_e
+    return Objective(np.exp(lq), np.exp(lw), sat)
+
+
+@dataclass
+class Curve:
+    """One objective curve over the separations (mean over its observed points)."""
+
+    separations_m: np.ndarray
+    objective: np.ndarray
+    objective_noise_free: np.ndarray
+    quality: np.ndarray
+    weight: np.ndarray
+    saturated: np.ndarray
+
+    @property
+    def best_index(self) -> int:
+        return int(np.argmax(self.objective))
+
+    @property
+    def best_separation_m(self) -> float:
+        return float(self.separations_m[self.best_index])
+
+
+@dataclass
+class ModalityPlan:
+    """The plan for one modality and polarization: the mean curve, per-location curves (stripes) and scans."""
+
+    modality: str
+    polarized: bool
+    curve: Curve
+    locations: list[dict] = field(default_factory=list)
+    location_curves: list[Curve] = field(default_factory=list)
+    scan: dict | None = None
+
+
+def default_separations(n: int = 60, d_min_m: float = 0.01, d_max_m: float = 0.6) -> np.ndarray:
+    """An even grid of n separations [m] (d_LC = 0 is excluded: the co-located source diverges, refs §8)."""
+    if n < 2 or not (0.0 < d_min_m < d_max_m) or not (math.isfinite(d_min_m) and math.isfinite(d_max_m)):
+        raise SceneError(f"separations: need n >= 2 and 0 < d_min < d_max, got n={n}, d_min={d_min_m}, "
+                         f"d_max={d_max_m}")
+    return np.linspace(d_min_m, d_max_m, n)
+
+
+def _curve(seps: np.ndarray, objs: list[Objective], noise_free: list[Objective], cols=None) -> Curve:
+    pick = (lambda x: x) if cols is None else (lambda x: x[cols])
+    return Curve(
+        seps,
+        np.array([pick(o.value).mean() for o in objs]),
+        np.array([pick(o.value).mean() for o in noise_free]),
+        np.array([pick(o.quality).mean() for o in objs]),
+        np.array([pick(o.weight).mean() for o in objs]),
+        np.array([bool(np.any(pick(o.saturated))) for o in objs]),
+    )
+
+
+def compare_scans(seps: np.ndarray, curves: list[Curve], lateral_m: np.ndarray, *,
+                  tolerance: float = 0.02) -> dict:
+    """Score rotating, translating or both for a stripe scan over the stripe locations.
+
+    * rotate: one source position serves every stripe: max over d of mean_i Q_i(d);
+    * translate: the sheet keeps its angle and the source moves with the stripe, d_i = x_i + Δ (x_i the
+      lateral position of O_i): max over Δ of mean_i Q_i(x_i + Δ), Q_i interpolated on the grid;
+    * both: each stripe gets its own best source position: mean_i max_d Q_i(d) (an upper bound).
+
+    The winner is the best score, except that a simpler scan (rotate, then translate) within ``tolerance``
+    (relative) of the best wins, since it needs less motion.
+    """
+    q = np.array([c.objective for c in curves])
+    rotate_curve = q.mean(axis=0)
+    i_rot = int(np.argmax(rotate_curve))
+    scores = {"rotate": float(rotate_curve[i_rot])}
+    per_location = {"rotate": [float(seps[i_rot])] * len(curves)}
+    step = float(seps[1] - seps[0])
+    lo, hi = seps[0] - lateral_m.min(), seps[-1] - lateral_m.max()
+    if hi >= lo:
+        deltas = np.arange(lo, hi + 0.5 * step, step)
+        vals = np.array([np.mean([np.interp(x + dl, seps, qi) for x, qi in zip(lateral_m, q, strict=True)])
+                         for dl in deltas])
+        j = int(np.argmax(vals))
+        scores["translate"] = float(vals[j])
+        per_location["translate"] = [float(x + deltas[j]) for x in lateral_m]
+    else:
+        scores["translate"] = None
+        per_location["translate"] = None
+    scores["both"] = float(q.max(axis=1).mean())
+    per_location["both"] = [float(seps[int(np.argmax(qi))]) for qi in q]
+    best = max(v for v in scores.values() if v is not None)
+    winner = next(s for s in SCAN_TYPES if scores[s] is not None and scores[s] >= best * (1.0 - tolerance))
+    return {"winner": winner, "scores": scores, "separations_m": per_location, "tolerance": tolerance}
+
+
+def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,
+         k_detect: float = 3.0, p_min: float = 0.05, progress=None) -> dict[str, ModalityPlan]:
+    """Sweep the separations and build the plans keyed ``flood``, ``flood_polarized``, ``stripes``,
+    ``stripes_polarized`` (only the requested modalities). One model evaluation per separation and
+    modality serves both polarizations."""
+    seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
+    if seps.ndim != 1 or seps.size < 2 or np.any(~np.isfinite(seps)) or np.any(seps <= 0) or \
+            np.any(np.diff(seps) <= 0):
+        raise SceneError("separations: need an increasing 1-D grid of at least 2 positive separations [m]")
+    for m in modalities:
+        if m not in MODALITIES:
+            raise SceneError(f"modality must be one of {MODALITIES}, got {m!r}")
+    ideal = IDEAL_SENSOR
+    lateral = np.asarray(model.lateral_positions_m(), np.float64)
+    out: dict[str, ModalityPlan] = {}
+    for modality in modalities:
+        samples = []
+        for d in seps:
+            samples.append(model.flood(float(d)) if modality == "flood" else model.stripes(float(d)))
+            if progress is not None:
+                progress()
+        for polarized in (False, True):
+            kw = dict(modality=modality, polarized=polarized, k_detect=k_detect, p_min=p_min)
+            objs = [objective(s, model.noise, **kw) for s in samples]
+            ideal_objs = [objective(s, ideal, **kw) for s in samples]
+            mp = ModalityPlan(modality, polarized, _curve(seps, objs, ideal_objs))
+            if modality == "stripes":
+                pixels = np.asarray(model.observed_pixels())
+                mp.location_curves = [_curve(seps, objs, ideal_objs, cols=[i]) for i in range(len(pixels))]
+                mp.locations = [{"pixel": [int(r), int(c)], "lateral_position_m": float(x)}
+                                for (r, c), x in zip(pixels, lateral, strict=True)]
+                mp.scan = compare_scans(seps, mp.location_curves, lateral)
+            out[modality + ("_polarized" if polarized else "")] = mp
+    return out
+
+
+def _curve_json(c: Curve) -> dict:
+    return {
+        "separations": c.separations_m.tolist(),
+        "objective": c.objective.tolist(),
+        "objective_noise_free": c.objective_noise_free.tolist(),
+        "quality": c.quality.tolist(),
+        "weight": c.weight.tolist(),
+        "saturated": c.saturated.tolist(),
+        "best_separation": c.best_separation_m,
+    }
+
+
+def plan_to_json(plans: dict[str, ModalityPlan]) -> dict:
+    """The plan as plain JSON types (validates against :data:`PLAN_SCHEMA`). Separations in metres."""
+    out = {}
+    for key, mp in plans.items():
+        entry = {"modality": mp.modality, "polarized": mp.polarized,
+                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W", **_curve_json(mp.curve)}
+        if mp.modality == "stripes":
+            entry["locations"] = [{**loc, **_curve_json(c)}
+                                  for loc, c in zip(mp.locations, mp.location_curves, strict=True)]
+            entry["scan"] = mp.scan
+        out[key] = entry
+    return out
+
+
+_NUMS = {"type": "array", "items": {"type": "number"}, "minItems": 2}
+_CURVE = {
+    "separations": _NUMS, "objective": _NUMS, "objective_noise_free": _NUMS, "quality": _NUMS,
+    "weight": _NUMS,
+    "saturated": {"type": "array", "items": {"type": "boolean"}}, "best_separation": {"type": "number"},
+}
+_ENTRY = {
+    "type": "object",
+    "required": ["modality", "polarized", "separations", "objective", "objective_noise_free",
+                 "best_separation"],
+    "properties": {"modality": {"enum": list(MODALITIES)}, "polarized": {"type": "boolean"},
+                   "measure": {"type": "string"}, **_CURVE},
+}
+_STRIPE_ENTRY = {
+    **_ENTRY,
+    "required": _ENTRY["required"] + ["locations", "scan"],
+    "properties": {
+        **_ENTRY["properties"],
+        "locations": {"type": "array", "minItems": 1, "items": {
+            "type": "object", "required": ["pixel", "lateral_position_m", "separations", "objective",
+                                           "objective_noise_free", "best_separation"],
+            "properties": {"pixel": {"type": "array", "items": {"type": "integer"}, "minItems": 2,
+                                     "maxItems": 2},
+                           "lateral_position_m": {"type": "number"}, **_CURVE}}},
+        "scan": {"type": "object", "required": ["winner", "scores", "separations_m"],
+                 "properties": {"winner": {"enum": list(SCAN_TYPES)},
+                                "scores": {"type": "object", "required": list(SCAN_TYPES),
+                                           "additionalProperties": {"type": ["number", "null"]}},
+                                "separations_m": {"type": "object", "required": list(SCAN_TYPES)}}},
+    },
+}
+PLAN_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "polarstripe plan",
+    "type": "object",
+    "minProperties": 1,
+    "additionalProperties": False,
+    "properties": {"flood": _ENTRY, "flood_polarized": _ENTRY, "stripes": _STRIPE_ENTRY,
+                   "stripes_polarized": _STRIPE_ENTRY},
+}
