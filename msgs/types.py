@@ -1,0 +1,179 @@
+"""The rig's message types, each declared once. Units are in the field names (SI, degrees only for angles
+that a person types). Every message also has ``header`` (:class:`~polarstripe.msgs.base.Header`)."""
+
+from __future__ import annotations
+
+from dataclasses import field
+from typing import Any, Literal
+
+import numpy as np
+from polarstripe.msgs.base import Message, message
+
+
+@message("frame")
+class Frame(Message):
+    """One camera image and how it was taken.
+
+    ``image`` is (h, w) or (h, w, c), usually uint16 DN with ``bit_depth`` significant bits. ``pattern``
+    is the
+    emitter's tag of what was lit (e.g. ``"flood"``, ``"stripe:3/30"``); ``polarizer_deg`` is the
+    analyzer angle
+    [deg] or None without a polarizer; ``scan_id``/``step`` match the frame to the emitter's request.
+    """
+
+    image: np.ndarray
+    exposure_s: float
+    gain: float = 1.0
+    bit_depth: int = 12
+    pattern: str = ""
+    polarizer_deg: float | None = None
+    scan_id: int = 0
+    step: int = 0
+
+
+@message("pattern")
+class Pattern(Message):
+    """What the emitter lights now: flood, stripe ``index`` of ``count`` (``size`` px wide), a checker of
+    ``size`` px shifted by ``shift`` px, or nothing."""
+
+    kind: Literal["flood", "stripe", "checker", "off"]
+    index: int = 0
+    count: int = 0
+    size: int = 0
+    shift: int = 0
+    scan_id: int = 0
+    step: int = 0
+
+
+@message("scan_event")
+class ScanEvent(Message):
+    """A scan starts, is done, or stopped on a fault (``detail`` says why)."""
+
+    scan_id: int
+    event: Literal["start", "done", "fault"]
+    method: str = ""
+    stripes: int = 0
+    analyzer_deg: list[float] = field(default_factory=list)
+    detail: str = ""
+
+
+@message("polarizer_command")
+class PolarizerCommand(Message):
+    """Turn the analyzer to ``target_deg`` [deg]."""
+
+    target_deg: float
+
+
+@message("polarizer_state")
+class PolarizerState(Message):
+    """Where the analyzer is [deg], where it is going, whether it has settled, and a fault text ("" if
+    none)."""
+
+    angle_deg: float
+    target_deg: float
+    settled: bool
+    fault: str = ""
+
+
+@message("composite")
+class Composite(Message):
+    """The result of a scan: named images (e.g. ``"max"``, ``"min"``, ``"descattered"``) and quality
+    metrics."""
+
+    images: dict[str, np.ndarray]
+    method: str
+    scan_id: int = 0
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+@message("medium_estimate")
+class MediumEstimate(Message):
+    """The medium as measured in situ: backscatter degree of polarization ``p`` and, when known, the
+    extinction coefficient ``sigma_t_per_m`` [1/m]."""
+
+    p: float
+    sigma_t_per_m: float | None = None
+    scan_id: int = 0
+
+
+@message("plan")
+class Plan(Message):
+    """The planner's choice: modality, camera–source separation [m], scan type, per-stripe optima and the
+    quality curves it was chosen from (named arrays, e.g. ``"separation_m"``, ``"quality"``)."""
+
+    modality: Literal["flood", "stripes"]
+    separation_m: float
+    scan_type: str = ""
+    stripe_optima: list[float] = field(default_factory=list)
+    curves: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@message("log")
+class Log(Message):
+    """One log line of a node (``level`` is a Python logging level name)."""
+
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"]
+    node: str
+    text: str
+
+
+@message("heartbeat")
+class Heartbeat(Message):
+    """A node is alive: its name, process id, uptime [s] and counters (received, published, bad, gaps …)."""
+
+    node: str
+    pid: int
+    uptime_s: float
+    counters: dict[str, int] = field(default_factory=dict)
+
+
+# ---- service requests and replies ------------------------------------------------------------------------
+@message("empty")
+class Empty(Message):
+    """A request or reply with no content."""
+
+
+@message("ack")
+class Ack(Message):
+    """A service reply: did it work, and a short text."""
+
+    ok: bool
+    detail: str = ""
+
+
+@message("scan_request")
+class ScanRequest(Message):
+    """Ask the emitter for a scan: ``method`` (e.g. ``"flood"``, ``"stripes"``), the stripe count, and the
+    analyzer angles [deg] to scan at (empty: the current angle)."""
+
+    method: str
+    stripes: int = 0
+    analyzer_deg: list[float] = field(default_factory=list)
+
+
+@message("frame_request")
+class FrameRequest(Message):
+    """Ask the grabber (or simulator) for one frame of ``scan_id``/``step`` showing ``pattern``."""
+
+    scan_id: int = 0
+    step: int = 0
+    pattern: str = ""
+    exposure_s: float | None = None
+
+
+ALL_TYPES: tuple[type[Message], ...] = (
+    Frame,
+    Pattern,
+    ScanEvent,
+    PolarizerCommand,
+    PolarizerState,
+    Composite,
+    MediumEstimate,
+    Plan,
+    Log,
+    Heartbeat,
+    Empty,
+    Ack,
+    ScanRequest,
+    FrameRequest,
+)

@@ -1,0 +1,78 @@
+"""Two tiny nodes that show the runtime: a talker publishing a counter and a listener counting what it hears.
+
+``launch/sim.toml`` runs them until the simulated rig replaces it.
+"""
+
+from __future__ import annotations
+
+from polarstripe.msgs import Ack, Empty, Log
+from polarstripe.nodes.runtime.node import Node, Received, Stop, Tick
+from polarstripe.nodes.runtime.params import NodeParams
+
+
+class Talker(Node):
+    """Publishes ``"<text> <n>"`` on ``chatter`` at ``rate_hz``; stops by itself after ``count`` messages
+    (0: never). Serves ``talker/reset`` (sets n back to 0)."""
+
+    class Params(NodeParams):
+        rate_hz: float = 10.0
+        text: str = "hello"
+        count: int = 0
+
+        def validate(self):
+            super().validate()
+            if not self.rate_hz > 0:
+                raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
+            if self.count < 0:
+                raise ValueError(f"count must be >= 0, got {self.count}")
+
+    PUBLISHES = {"chatter": Log}
+    SERVES = {"talker/reset": (Empty, Ack)}
+
+    def setup(self):
+        self.n = 0
+        self.chatter = self.publisher("chatter")
+        self.every(1.0 / self.params.rate_hz, self.tick)
+        self.serve("talker/reset", self.reset)
+
+    def tick(self):
+        self.chatter.publish(Log(level="INFO", node=self.name, text=f"{self.params.text} {self.n}"))
+        self.n += 1
+        if self.params.count and self.n >= self.params.count:
+            self.stop(f"sent {self.n} messages")
+
+    def reset(self, request: Empty) -> Ack:
+        old, self.n = self.n, 0
+        return Ack(ok=True, detail=f"reset from {old}")
+
+
+class Listener(Node):
+    """Counts messages on ``chatter`` (every one: mode ``all``) and serves the count on ``listener/count``;
+    stops by itself after hearing ``count`` messages (0: never). A loop-style node: it matches events."""
+
+    class Params(NodeParams):
+        count: int = 0
+        report_s: float = 5.0
+
+    SUBSCRIBES = {"chatter": Log}
+    SERVES = {"listener/count": (Empty, Ack)}
+
+    def setup(self):
+        self.heard = 0
+        self.last = ""
+        self.subscribe("chatter", mode="all")
+        self.serve("listener/count", lambda req: Ack(ok=True, detail=str(self.heard)))
+        self.every(self.params.report_s, name="report")
+
+    def run(self):
+        for event in self.events():
+            match event:
+                case Received(topic="chatter", msg=msg):
+                    self.heard += 1
+                    self.last = msg.text
+                    if self.params.count and self.heard >= self.params.count:
+                        self.stop(f"heard {self.heard} messages")
+                case Tick(timer="report"):
+                    self.log.info("heard %d messages, last %r", self.heard, self.last)
+                case Stop(reason=reason):
+                    self.log.info("heard %d messages in all (%s)", self.heard, reason)

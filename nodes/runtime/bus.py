@@ -1,0 +1,557 @@
+"""The bus: publishers, subscribers and services over ZeroMQ, with explicit endpoints and no threads.
+
+Wire of a topic message: ``[topic, header, *buffers]`` (see :mod:`polarstripe.msgs.codec`). A node binds one
+PUB socket (all its topics) and one ROUTER socket (all its services) at endpoints the launcher assigns:
+``ipc://…`` on one host, ``tcp://host:port`` between hosts, optionally encrypted with CURVE.
+
+* :class:`PubSocket` binds; :meth:`PubSocket.publisher` gives a :class:`Publisher` for one topic and type.
+  It stamps ``seq`` (per topic, from 0) and ``stamp_ns``. Send never blocks; above ``hwm`` queued messages per
+  subscriber ZeroMQ drops, and the subscriber sees the gap in ``seq``.
+* :class:`Subscriber` connects to one or more PUB endpoints (it survives a publisher restart: ZeroMQ
+reconnects).
+  ``mode="latest"`` keeps only the newest message of what has arrived (live views); ``mode="all"`` delivers
+  every message and counts sequence gaps (recorders). A bad message is counted and returned as a
+  :class:`~polarstripe.msgs.MessageError`, never raised from :meth:`Subscriber.take`.
+* :class:`ServiceServer` (ROUTER) and :class:`ServiceClient` (DEALER) do request/reply with a timeout; after a
+  timeout the client drops its socket, so a late reply or a queued request cannot leak into the next call.
+
+Nothing here starts a thread: a node polls the sockets in its own loop (``Subscriber.socket``,
+``ServiceServer.socket``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import zmq
+from polarstripe.errors import PolarstripeError
+from polarstripe.msgs import DEFAULT_MAX_BYTES, Message, MessageError, decode, encode
+
+Mode = str  # "latest" | "all"
+MODES = ("latest", "all")
+
+
+class BusError(PolarstripeError):
+    """A bus failure: bad endpoint, a service that failed; the text names the endpoint, topic or service."""
+
+
+class BusTimeout(BusError, TimeoutError):
+    """Nothing arrived in time."""
+
+
+class ServiceTimeout(BusTimeout):
+    """A service call got no reply within its timeout."""
+
+
+class ServiceError(BusError):
+    """The service replied with an error (its handler raised, or it does not know the request)."""
+
+
+@dataclass(frozen=True)
+class CurveKeys:
+    """ZeroMQ CURVE keys (Z85 bytes, from ``zmq.curve_keypair()``).
+
+    A binding socket (PUB, ROUTER) needs ``secret`` (and ``public``); a connecting socket needs
+    ``server_public`` and gets its own ``public``/``secret`` (generated if empty). This encrypts the link;
+    clients are not authenticated (no ZAP handler), so keep the server's public key to the rig's hosts.
+    """
+
+    public: bytes = b""
+    secret: bytes = b""
+    server_public: bytes = b""
+
+    @staticmethod
+    def load(path: str) -> CurveKeys:
+        """Read ``public=…``/``secret=…``/``server_public=…`` lines (Z85) from a file."""
+        values = {}
+        with open(path, encoding="ascii") as f:
+            for line in f:
+                if "=" in line and not line.lstrip().startswith("#"):
+                    k, v = line.split("=", 1)
+                    values[k.strip()] = v.strip().encode()
+        unknown = set(values) - {"public", "secret", "server_public"}
+        if unknown:
+            raise BusError(f"curve key file {path}: unknown key {sorted(unknown)[0]!r}")
+        return CurveKeys(**values)
+
+
+def _apply_curve(sock: zmq.Socket, curve: CurveKeys | None, *, server: bool) -> None:
+    if curve is None:
+        return
+    if server:
+        if not curve.secret:
+            raise BusError("CURVE server socket needs a secret key")
+        sock.curve_secretkey = curve.secret
+        sock.curve_publickey = curve.public or zmq.curve_public(curve.secret)
+        sock.curve_server = True
+    else:
+        if not curve.server_public:
+            raise BusError("CURVE client socket needs the server's public key")
+        public, secret = (curve.public, curve.secret) if curve.secret else zmq.curve_keypair()
+        sock.curve_serverkey = curve.server_public
+        sock.curve_publickey = public
+        sock.curve_secretkey = secret
+
+
+def _bind(sock: zmq.Socket, endpoint: str) -> str:
+    if endpoint.startswith("ipc://"):
+        os.makedirs(os.path.dirname(endpoint[6:]) or ".", exist_ok=True)
+    try:
+        sock.bind(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(0)
+        raise BusError(f"cannot bind {endpoint}: {exc}") from None
+    return sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+
+def _connect(sock: zmq.Socket, endpoint: str) -> None:
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as exc:
+        raise BusError(f"cannot connect to {endpoint}: {exc}") from None
+
+
+class PubSocket:
+    """One bound PUB socket carrying any number of topics.
+
+    Parameters
+    ----------
+    endpoint : str
+        ``ipc:///path`` or ``tcp://host:port`` (port 0 or ``*`` picks a free port; see :attr:`endpoint`).
+    hwm : int
+        Messages queued per subscriber before ZeroMQ drops (the subscriber counts the gap).
+    curve : CurveKeys, optional
+        Encrypt with CURVE (server side).
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        hwm: int = 1000,
+        curve: CurveKeys | None = None,
+        ctx: zmq.Context | None = None,
+    ):
+        self.socket = (ctx or zmq.Context.instance()).socket(zmq.PUB)
+        self.socket.linger = 0
+        self.socket.sndhwm = hwm
+        _apply_curve(self.socket, curve, server=True)
+        self.endpoint = _bind(self.socket, endpoint)
+        self._topics: dict[str, Publisher] = {}
+
+    def publisher(self, topic: str, msg_type: type[Message]) -> Publisher:
+        """The publisher of ``topic`` (full name, e.g. ``/rig/camera/frame``) for messages of ``msg_type``."""
+        pub = self._topics.get(topic)
+        if pub is None:
+            pub = self._topics[topic] = Publisher(self, topic, msg_type)
+        elif pub.msg_type is not msg_type:
+            raise BusError(f"topic {topic!r} already publishes {pub.msg_type.TYPE!r}, not {msg_type.TYPE!r}")
+        return pub
+
+    @property
+    def topics(self) -> dict[str, type[Message]]:
+        return {t: p.msg_type for t, p in self._topics.items()}
+
+    def close(self) -> None:
+        self.socket.close(0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class Publisher:
+    """Publishes one topic. Made by :meth:`PubSocket.publisher`."""
+
+    def __init__(self, sock: PubSocket, topic: str, msg_type: type[Message]):
+        self.topic, self.msg_type = topic, msg_type
+        self._sock = sock.socket
+        self._topic_b = topic.encode()
+        self.seq = 0  # sequence number of the next message
+        self.published = 0
+
+    def publish(self, msg: Message, *, stamp_ns: int | None = None) -> int:
+        """Send ``msg`` (arrays without a copy); returns its sequence number.
+
+        ``stamp_ns`` defaults to the message header's stamp, or now if that is 0. Raises
+        :class:`MessageError` if ``msg`` is not a ``msg_type`` or a field does not match its type.
+        """
+        if type(msg) is not self.msg_type:
+            raise MessageError(
+                self.topic, "type", f"expected {self.msg_type.TYPE!r}, got {type(msg).__name__}"
+            )
+        seq = self.seq
+        frames = encode(msg, topic=self.topic, seq=seq, stamp_ns=stamp_ns)
+        self._sock.send_multipart([self._topic_b, *frames], copy=False)
+        self.seq = seq + 1
+        self.published += 1
+        return seq
+
+
+@dataclass
+class SubscriberStats:
+    received: int = 0  # good messages taken off the socket
+    delivered: int = 0  # messages handed to the caller (latest mode skips older ones)
+    skipped: int = 0  # older messages replaced by a newer one in latest mode (by design, not loss)
+    bad: int = 0  # messages that failed to decode
+    gaps: int = 0  # messages missing according to seq (lost in transit)
+    restarts: int = 0  # times seq went backwards (the publisher restarted)
+    last_error: str = ""
+
+    def as_dict(self) -> dict[str, int]:
+        return {k: v for k, v in self.__dict__.items() if isinstance(v, int)}
+
+
+class Subscriber:
+    """Receives one topic from one or more publishers' endpoints.
+
+    Parameters
+    ----------
+    endpoints : list of str
+        PUB endpoints to connect to (more can be added with :meth:`connect`).
+    topic : str
+        Full topic name; only this exact topic is delivered.
+    msg_type : type of Message, optional
+        The expected type; other types count as bad. None accepts any registered type.
+    mode : {"latest", "all"}
+        ``latest``: :meth:`take` returns only the newest arrived message. ``all``: every message, gaps
+        counted.
+    hwm : int, optional
+        Receive queue [messages]; default 4 for latest, unlimited (0) for all.
+    max_bytes : int
+        Messages larger than this are rejected (counted as bad).
+    """
+
+    def __init__(
+        self,
+        endpoints: list[str] | tuple[str, ...],
+        topic: str,
+        msg_type: type[Message] | None = None,
+        *,
+        mode: Mode = "latest",
+        hwm: int | None = None,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        curve: CurveKeys | None = None,
+        ctx: zmq.Context | None = None,
+    ):
+        if mode not in MODES:
+            raise BusError(f"topic {topic!r}: mode must be one of {MODES}, got {mode!r}")
+        self.topic, self.msg_type, self.mode, self.max_bytes = topic, msg_type, mode, max_bytes
+        self._topic_b = topic.encode()
+        self.socket = (ctx or zmq.Context.instance()).socket(zmq.SUB)
+        self.socket.linger = 0
+        self.socket.rcvhwm = (4 if mode == "latest" else 0) if hwm is None else hwm
+        self.socket.reconnect_ivl = 100
+        self.socket.reconnect_ivl_max = 1000
+        _apply_curve(self.socket, curve, server=False)
+        self.socket.setsockopt(zmq.SUBSCRIBE, self._topic_b)
+        self.endpoints: list[str] = []
+        for ep in endpoints:
+            self.connect(ep)
+        self.stats = SubscriberStats()
+        self._last_seq: int | None = None
+
+    def connect(self, endpoint: str) -> None:
+        if endpoint not in self.endpoints:
+            _connect(self.socket, endpoint)
+            self.endpoints.append(endpoint)
+
+    def _one(self, frames: list) -> Message | MessageError | None:
+        if frames[0].bytes != self._topic_b:  # a longer topic sharing our prefix
+            return None
+        try:
+            msg = decode(frames[1:], topic=self.topic, expect=self.msg_type, max_bytes=self.max_bytes)
+        except MessageError as exc:
+            self.stats.bad += 1
+            self.stats.last_error = str(exc)
+            return exc
+        st = self.stats
+        st.received += 1
+        seq, last = msg.header.seq, self._last_seq
+        if last is not None:
+            if seq > last + 1:
+                st.gaps += seq - last - 1
+            elif seq <= last:
+                st.restarts += 1
+        self._last_seq = seq
+        return msg
+
+    def take(self, limit: int = 1000) -> list[Message | MessageError]:
+        """Everything that has arrived, without waiting (at most ``limit`` messages read off the socket).
+
+        In ``latest`` mode only the newest good message is returned (older ones are counted as skipped).
+        Bad messages are returned as :class:`MessageError` (already counted in :attr:`stats`).
+        """
+        out: list = []
+        sock = self.socket
+        for _ in range(limit):
+            try:
+                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            item = self._one(frames)
+            if item is not None:
+                out.append(item)
+        if self.mode == "latest":
+            good = [m for m in out if not isinstance(m, MessageError)]
+            if len(good) > 1:
+                self.stats.skipped += len(good) - 1
+                out = [m for m in out if isinstance(m, MessageError)] + good[-1:]
+        self.stats.delivered += sum(1 for m in out if not isinstance(m, MessageError))
+        return out
+
+    def recv(self, timeout_s: float | None = None) -> Message:
+        """Wait for the next good message (``None`` waits forever). Bad messages are counted and skipped.
+
+        Raises :class:`BusTimeout` (a :class:`TimeoutError`) after ``timeout_s`` with nothing good received.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            for item in self.take(limit=1 if self.mode == "all" else 1000):
+                if not isinstance(item, MessageError):
+                    return item
+            if deadline is None:
+                self.socket.poll(None)
+                continue
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise BusTimeout(f"topic {self.topic!r}: nothing received within {timeout_s} s")
+            self.socket.poll(int(left * 1000) + 1)
+
+    def close(self) -> None:
+        self.socket.close(0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+Handler = Callable[[Message], Message]
+
+
+@dataclass
+class _Service:
+    name: str
+    req_type: type[Message]
+    resp_type: type[Message]
+    handler: Handler
+    calls: int = 0
+    errors: int = 0
+
+
+@dataclass
+class ServerStats:
+    requests: int = 0
+    bad: int = 0
+    errors: int = 0
+    last_error: str = ""
+    per_service: dict[str, int] = field(default_factory=dict)
+
+
+class ServiceServer:
+    """Serves any number of named services on one bound ROUTER socket.
+
+    Request frames (from a DEALER): ``[name, request_id, header, *buffers]``; reply:
+    ``[name, request_id, b"ok", header, *buffers]`` or ``[name, request_id, b"error", text]``.
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        curve: CurveKeys | None = None,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        ctx: zmq.Context | None = None,
+    ):
+        self.socket = (ctx or zmq.Context.instance()).socket(zmq.ROUTER)
+        self.socket.linger = 0
+        self.socket.router_mandatory = False
+        _apply_curve(self.socket, curve, server=True)
+        self.endpoint = _bind(self.socket, endpoint)
+        self.max_bytes = max_bytes
+        self.services: dict[str, _Service] = {}
+        self.stats = ServerStats()
+
+    def add(self, name: str, req_type: type[Message], resp_type: type[Message], handler: Handler) -> None:
+        """Serve ``name``: ``handler(request) -> reply``; an exception becomes an error reply with its
+        text."""
+        if name in self.services:
+            raise BusError(f"service {name!r} is already served here")
+        self.services[name] = _Service(name, req_type, resp_type, handler)
+
+    def handle_ready(self, limit: int = 100) -> list[MessageError | Exception]:
+        """Answer every waiting request (up to ``limit``); returns the problems met (already counted)."""
+        problems: list = []
+        for _ in range(limit):
+            try:
+                frames = self.socket.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            problem = self._handle(frames)
+            if problem is not None:
+                problems.append(problem)
+        return problems
+
+    def _handle(self, frames: list):
+        st = self.stats
+        st.requests += 1
+        if len(frames) < 4:
+            st.bad += 1
+            st.last_error = f"malformed request ({len(frames)} frames)"
+            return MessageError("<service>", "request", st.last_error)
+        ident, name_f, rid = frames[0].bytes, frames[1].bytes, frames[2].bytes
+        name = name_f.decode("utf-8", "replace")
+        svc = self.services.get(name)
+
+        def reply(status: bytes, payload: list) -> None:
+            self.socket.send_multipart([ident, name_f, rid, status, *payload], copy=False)
+
+        if svc is None:
+            st.bad += 1
+            st.last_error = f"service {name!r} is not served at {self.endpoint}"
+            reply(b"error", [st.last_error.encode()])
+            return BusError(st.last_error)
+        try:
+            req = decode(frames[3:], topic=name, expect=svc.req_type, max_bytes=self.max_bytes)
+        except MessageError as exc:
+            st.bad += 1
+            st.last_error = str(exc)
+            reply(b"error", [str(exc).encode()])
+            return exc
+        svc.calls += 1
+        st.per_service[name] = st.per_service.get(name, 0) + 1
+        try:
+            resp = svc.handler(req)
+            if type(resp) is not svc.resp_type:
+                raise MessageError(
+                    name, "reply", f"handler returned {type(resp).__name__}, expected {svc.resp_type.TYPE!r}"
+                )
+            payload = encode(resp, topic=name, seq=svc.calls - 1)
+        except Exception as exc:  # the handler's failure goes back to the caller, the node keeps serving
+            svc.errors += 1
+            st.errors += 1
+            st.last_error = f"service {name!r}: {type(exc).__name__}: {exc}"
+            reply(b"error", [st.last_error.encode()])
+            return exc
+        reply(b"ok", payload)
+        return None
+
+    def close(self) -> None:
+        self.socket.close(0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+_request_ids = itertools.count(1)
+
+
+class ServiceClient:
+    """Calls one service at one endpoint. Never wedges: every call has a timeout.
+
+    Parameters
+    ----------
+    endpoint : str
+        The serving node's ROUTER endpoint.
+    name : str
+        Service name (full, e.g. ``/rig/emitter/start_scan``).
+    req_type, resp_type : type of Message
+    timeout_s : float
+        Default timeout of :meth:`call` [s].
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        name: str,
+        req_type: type[Message],
+        resp_type: type[Message],
+        *,
+        timeout_s: float = 2.0,
+        curve: CurveKeys | None = None,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        ctx: zmq.Context | None = None,
+    ):
+        self.endpoint, self.name = endpoint, name
+        self.req_type, self.resp_type = req_type, resp_type
+        self.timeout_s, self.max_bytes = timeout_s, max_bytes
+        self._ctx, self._curve = ctx or zmq.Context.instance(), curve
+        self._name_b = name.encode()
+        self.socket: zmq.Socket | None = None
+        self.calls = self.timeouts = 0
+
+    def _open(self) -> zmq.Socket:
+        if self.socket is None:
+            s = self._ctx.socket(zmq.DEALER)
+            s.linger = 0
+            s.reconnect_ivl = 100
+            _apply_curve(s, self._curve, server=False)
+            _connect(s, self.endpoint)
+            self.socket = s
+        return self.socket
+
+    def call(self, request: Message, timeout_s: float | None = None) -> Message:
+        """Send ``request`` and wait for the reply.
+
+        Raises
+        ------
+        ServiceTimeout
+            No reply within ``timeout_s`` (default :attr:`timeout_s`); names the service and endpoint.
+        ServiceError
+            The server answered with an error.
+        MessageError
+            The request does not match ``req_type``, or the reply could not be decoded.
+        """
+        if type(request) is not self.req_type:
+            raise MessageError(
+                self.name, "type", f"expected {self.req_type.TYPE!r}, got {type(request).__name__}"
+            )
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        sock = self._open()
+        rid = next(_request_ids).to_bytes(8, "little")
+        self.calls += 1
+        sock.send_multipart(
+            [self._name_b, rid, *encode(request, topic=self.name, seq=self.calls - 1)], copy=False
+        )
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not sock.poll(max(1, int(left * 1000))):
+                self.timeouts += 1
+                self._drop()  # a late reply or our queued request must not leak into the next call
+                raise ServiceTimeout(
+                    f"service {self.name!r} at {self.endpoint}: no reply within {timeout_s} s"
+                )
+            frames = sock.recv_multipart(copy=False)
+            if len(frames) < 3 or frames[1].bytes != rid:
+                continue  # a reply to an earlier, abandoned call
+            status = frames[2].bytes
+            if status == b"ok":
+                return decode(frames[3:], topic=self.name, expect=self.resp_type, max_bytes=self.max_bytes)
+            text = frames[3].bytes.decode("utf-8", "replace") if len(frames) > 3 else "error"
+            raise ServiceError(f"service {self.name!r} at {self.endpoint}: {text}")
+
+    def _drop(self) -> None:
+        if self.socket is not None:
+            self.socket.close(0)
+            self.socket = None
+
+    def close(self) -> None:
+        self._drop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,139 @@
+"""Typed node parameters: a frozen dataclass per node, filled from defaults, the launch file and the
+command line.
+
+::
+
+    class Params(NodeParams):
+        rate_hz: float = 10.0
+        text: str = "hello"
+
+        def validate(self):
+            if self.rate_hz <= 0:
+                raise ValueError("must be > 0")   # reported as: node 'talker': param 'rate_hz' ...
+
+Values may arrive as strings (``--param rate_hz=5``, ``${arg}`` substitution in a launch file); they are
+coerced to the declared type. Supported types: bool, int, float, str, ``Literal[...]`` of str, ``X | None``
+and ``list[X]`` of those scalars.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from typing import Any, Literal
+
+from polarstripe.errors import PolarstripeError
+
+
+class ParamError(PolarstripeError, ValueError):
+    """A parameter that is unknown or has a bad value; the text names the node, the key and the value."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class NodeParams:
+    """Parameters every node has. Subclasses are made frozen keyword-only dataclasses automatically."""
+
+    heartbeat_s: float = 1.0  # period of the heartbeat message [s]; 0 turns it off
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        dataclasses.dataclass(frozen=True, kw_only=True)(cls)
+
+    def validate(self) -> None:
+        """Override to check values together; raise ``ValueError`` naming the problem."""
+        if self.heartbeat_s < 0:
+            raise ValueError(f"heartbeat_s must be >= 0, got {self.heartbeat_s}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+_TRUE, _FALSE = {"true", "yes", "on", "1"}, {"false", "no", "off", "0"}
+
+
+def _coerce(tp: Any, value: Any) -> Any:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType) and type(None) in args:
+        if value is None or (isinstance(value, str) and value.lower() in ("none", "null", "")):
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(inner[0], value)
+    if origin is Literal:
+        if value in args:
+            return value
+        raise ValueError(f"expected one of {', '.join(map(str, args))}")
+    if origin is list:
+        if isinstance(value, str):
+            try:
+                value = (
+                    json.loads(value) if value.strip().startswith("[") else [v for v in value.split(",") if v]
+                )
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"not a list ({exc})") from None
+        if not isinstance(value, list | tuple):
+            raise ValueError("expected a list")
+        return [_coerce(args[0], v) for v in value]
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in _TRUE | _FALSE:
+            return value.lower() in _TRUE
+        raise ValueError("expected a bool (true/false)")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, str):
+            return int(value.strip())
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ValueError("expected an int")
+    if tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):
+            return float(value.strip())
+        raise ValueError("expected a float")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, int | float | bool):
+            return str(value)
+        raise ValueError("expected a string")
+    raise ValueError(f"unsupported parameter type {tp!r}")
+
+
+def build_params(cls: type[NodeParams], values: dict[str, Any], *, node: str = "?") -> NodeParams:
+    """Make ``cls`` from ``values`` (strings are coerced), then run ``validate``.
+
+    Raises :class:`ParamError` for an unknown key, a value of the wrong type, or a failed validation.
+    """
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in values.items():
+        if key not in names:
+            raise ParamError(f"node {node!r}: unknown param {key!r} (known: {', '.join(sorted(names))})")
+        try:
+            kwargs[key] = _coerce(hints[key], value)
+        except ValueError as exc:
+            raise ParamError(f"node {node!r}: param {key!r}: bad value {value!r}: {exc}") from None
+    params = cls(**kwargs)
+    try:
+        params.validate()
+    except ValueError as exc:
+        raise ParamError(f"node {node!r}: params: {exc}") from None
+    return params
+
+
+def parse_assignments(items: list[str], *, what: str = "param") -> dict[str, str]:
+    """``["k=v", …]`` → ``{"k": "v"}``; raises :class:`ParamError` for an item without ``=``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ParamError(f"{what} {item!r}: expected KEY=VALUE")
+        out[key.strip()] = value
+    return out
