@@ -28,6 +28,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
                         help="separation range in metres (default 0.01 0.6)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
+    parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
+                        help="scene: the camera's exposure_s, saturated points score 0 (default); auto: one "
+                        "exposure per modality, the longest with no saturation over the sweep")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
 
@@ -38,7 +41,8 @@ def _print_tables(doc: dict) -> None:
             continue
         plain, pol = doc[modality], doc[modality + "_polarized"]
         measure = plain["measure"]
-        print(f"{modality}: best d_LC = {plain['best_separation'] * 100:.1f} cm without a polarizer "
+        print(f"{modality}: exposure ×{plain['exposure_scale']:.3g} of the scene's")
+        print(f"  best d_LC = {plain['best_separation'] * 100:.1f} cm without a polarizer "
               f"({measure} = {max(plain['objective']):.4g}), {pol['best_separation'] * 100:.1f} cm with one "
               f"({measure} = {max(pol['objective']):.4g})")
         if modality == "stripes":
@@ -103,7 +107,8 @@ def main(args: argparse.Namespace) -> int:
     seps = default_separations(args.separations, args.range[0], args.range[1])
     model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
-    doc = plan_to_json(plan(model, seps, modalities=modalities, k_detect=args.k_detect))
+    doc = plan_to_json(plan(model, seps, modalities=modalities, k_detect=args.k_detect,
+                            exposure=args.exposure))
     if args.plot:
         plot_plan(doc, args.plot)
     if args.json:

@@ -9,6 +9,7 @@ fixed sheet angle, or both; :func:`compare_scans` says which wins.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -41,11 +42,12 @@ class Samples:
 class SensorNoise:
     """What the SNR weight needs from the sensor (EMVA 1288), per frame.
 
-    ``electrons_per_radiance`` converts radiance [W sr⁻¹ m⁻²] at the pixel to mean photo-electrons;
+    ``electrons_per_radiance`` (scalar or per observed point) converts radiance [W sr⁻¹ m⁻²] to mean
+    photo-electrons; ``full_well_e`` is where the pixel saturates (full well or ADC full scale);
     :data:`IDEAL_SENSOR` (infinitely many electrons) makes W a step, the paper's ideal zero-noise case.
     """
 
-    electrons_per_radiance: float
+    electrons_per_radiance: float | np.ndarray
     read_noise_e: float = 0.0
     dark_e: float = 0.0
     quantization_e: float = 0.0
@@ -101,8 +103,8 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, polarized:
         ld, la, lb = np.log(d), np.log(a), np.log(b)
     ls = np.logaddexp(ld, la)
     lq = log_cqm(ls, lb, p) if modality == "flood" else log_gqm(ld, la, lb, p)
-    e = noise.electrons_per_radiance
-    if math.isinf(e):
+    e = np.asarray(noise.electrons_per_radiance, np.float64)
+    if np.all(np.isinf(e)):
         lw = np.where(np.exp(ls) > 0, 0.0, -np.inf)
         sat = np.zeros(d.shape, bool)
     else:
@@ -145,6 +147,93 @@ class ModalityPlan:
     locations: list[dict] = field(default_factory=list)
     location_curves: list[Curve] = field(default_factory=list)
     scan: dict | None = None
+    exposure_scale: float = 1.0
+
+
+class SceneModel:
+    """:class:`PlanModel` on the light-transport model of :mod:`polarstripe.sim` (render_components at the
+    observed pixels only).
+
+    Parameters
+    ----------
+    scene : Scene
+        The rig; the projector is moved along the front face by :func:`~polarstripe.sim.scene.with_separation`
+        and kept aimed at its look-at point (its stripes are vertical sheets through the source either way).
+    fidelity : str
+        Model fidelity (``preview``, ``standard``, ``reference`` or explicit counts).
+    n_stripes : int
+        Stripes per scan; at each separation the stripe lighting O_i is the one whose columns contain O_i's
+        projection.
+    pixels : (n, 2) int array, optional
+        Observed points O_i (row, col). Default: three points on the centre row at 1/4, 1/2 and 3/4 of the
+        width (the stripe locations O1, O2, O3 of the paper's Fig. 10); each must see an object.
+    """
+
+    def __init__(self, scene, fidelity: str = "standard", n_stripes: int = 30, pixels=None):
+        from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+        from polarstripe.sim.scene import with_separation
+        from polarstripe.sim.sensor import electrons_per_radiance
+
+        cam = scene.camera
+        w, h = cam.resolution
+        if pixels is None:
+            pixels = [[h // 2, int(w * f)] for f in (0.25, 0.5, 0.75)]
+        self.pixels = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
+        if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
+            raise SceneError(f"n_stripes must be a positive integer, got {n_stripes!r}")
+        self.scene, self.fidelity, self.n_stripes = scene, fidelity, int(n_stripes)
+        frame = pinhole_frame(cam.position, cam.look_at, cam.up, cam.fov_deg, cam.resolution)
+        hits = intersect(scene.objects, frame.position, pixel_rays(frame, self.pixels))
+        if not np.all(np.isfinite(hits.t)):
+            bad = self.pixels[~np.isfinite(hits.t)].tolist()
+            raise SceneError(f"planner pixels {bad} see no object: observed points must lie on an object")
+        self.points = hits.point
+        axis = np.subtract(with_separation(scene, 1.0).projector.position, cam.position)
+        self._lateral = (self.points - np.asarray(cam.position)) @ (axis / np.linalg.norm(axis))
+        gain = cam.gain_e_per_dn
+        self.noise = SensorNoise(electrons_per_radiance(cam, self.pixels), cam.read_noise_e,
+                                 cam.dark_current_e_s * cam.exposure_s, gain / math.sqrt(12.0),
+                                 min(cam.full_well_e, ((1 << cam.bits) - 1 - cam.offset_dn) * gain))
+
+    def observed_pixels(self) -> np.ndarray:
+        return self.pixels
+
+    def lateral_positions_m(self) -> np.ndarray:
+        """Position of each O_i along the direction the source moves [m], from the camera."""
+        return self._lateral
+
+    def _at(self, d_lc_m: float):
+        from polarstripe.sim.scene import with_separation
+
+        return with_separation(self.scene, d_lc_m, aim=True)
+
+    def flood(self, d_lc_m: float) -> Samples:
+        from polarstripe.sim.render import render_components
+
+        c = render_components(self._at(d_lc_m), "flood", self.fidelity, self.pixels)
+        return Samples(c.D, c.A, c.B, c.p)
+
+    def stripes(self, d_lc_m: float) -> Samples:
+        """Components at each O_i under the stripe that lights it (zeros where no stripe does)."""
+        from polarstripe.sim.geometry import pinhole_frame, projector_coords
+        from polarstripe.sim.render import render_components
+
+        scene = self._at(d_lc_m)
+        pr = scene.projector
+        frame = pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg, pr.resolution)
+        col, row, depth = projector_coords(frame, self.points)
+        inside = (depth > 0) & (col >= 0) & (col < frame.w) & (row >= 0) & (row < frame.h)
+        # stripe K lights columns floor(K·W/N) … floor((K+1)·W/N) − 1 (sim.patterns)
+        edges = (np.arange(self.n_stripes + 1) * frame.w) // self.n_stripes
+        cols = np.floor(np.clip(col, 0, frame.w - 1)).astype(int)
+        k = np.where(inside, np.searchsorted(edges, cols, side="right") - 1, -1)
+        out = [np.zeros(len(self.pixels)) for _ in range(4)]
+        for kk in np.unique(k[k >= 0]):
+            sel = np.nonzero(k == kk)[0]
+            c = render_components(scene, f"stripe:{kk}/{self.n_stripes}", self.fidelity, self.pixels[sel])
+            for arr, val in zip(out, (c.D, c.A, c.B, c.p), strict=True):
+                arr[sel] = val
+        return Samples(*out)
 
 
 def default_separations(n: int = 60, d_min_m: float = 0.01, d_max_m: float = 0.6) -> np.ndarray:
@@ -203,11 +292,29 @@ def compare_scans(seps: np.ndarray, curves: list[Curve], lateral_m: np.ndarray, 
     return {"winner": winner, "scores": scores, "separations_m": per_location, "tolerance": tolerance}
 
 
+def auto_exposure_scale(samples: list[Samples], noise: SensorNoise, fill: float = 0.9) -> float:
+    """Exposure multiplier that puts the brightest unpolarized observation of the sweep at ``fill`` × the
+    saturation level: one fixed exposure for the whole sweep, as an experimenter sets it once (the paper
+    compares separations "with the same exposure time")."""
+    e = np.asarray(noise.electrons_per_radiance, np.float64)
+    brightest = max(float(np.max((s.direct + s.indirect + s.backscatter) * e)) for s in samples)
+    if not math.isfinite(noise.full_well_e) or brightest <= 0.0:
+        return 1.0
+    return (fill * noise.full_well_e - noise.dark_e) / brightest
+
+
 def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,
-         k_detect: float = 3.0, p_min: float = 0.05, progress=None) -> dict[str, ModalityPlan]:
+         k_detect: float = 3.0, p_min: float = 0.05, exposure: str = "scene",
+         progress=None) -> dict[str, ModalityPlan]:
     """Sweep the separations and build the plans keyed ``flood``, ``flood_polarized``, ``stripes``,
     ``stripes_polarized`` (only the requested modalities). One model evaluation per separation and
-    modality serves both polarizations."""
+    modality serves both polarizations.
+
+    ``exposure="auto"`` sets one exposure per modality so that no observed point saturates anywhere in the
+    sweep (:func:`auto_exposure_scale`); ``"scene"`` keeps the camera's exposure, and saturated points
+    score 0."""
+    if exposure not in ("auto", "scene"):
+        raise SceneError(f"exposure must be 'auto' or 'scene', got {exposure!r}")
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     if seps.ndim != 1 or seps.size < 2 or np.any(~np.isfinite(seps)) or np.any(seps <= 0) or \
             np.any(np.diff(seps) <= 0):
@@ -224,11 +331,14 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
             samples.append(model.flood(float(d)) if modality == "flood" else model.stripes(float(d)))
             if progress is not None:
                 progress()
+        scale = auto_exposure_scale(samples, model.noise) if exposure == "auto" else 1.0
+        noise = dataclasses.replace(model.noise,
+                                    electrons_per_radiance=model.noise.electrons_per_radiance * scale)
         for polarized in (False, True):
             kw = dict(modality=modality, polarized=polarized, k_detect=k_detect, p_min=p_min)
-            objs = [objective(s, model.noise, **kw) for s in samples]
+            objs = [objective(s, noise, **kw) for s in samples]
             ideal_objs = [objective(s, ideal, **kw) for s in samples]
-            mp = ModalityPlan(modality, polarized, _curve(seps, objs, ideal_objs))
+            mp = ModalityPlan(modality, polarized, _curve(seps, objs, ideal_objs), exposure_scale=scale)
             if modality == "stripes":
                 pixels = np.asarray(model.observed_pixels())
                 mp.location_curves = [_curve(seps, objs, ideal_objs, cols=[i]) for i in range(len(pixels))]
@@ -256,7 +366,8 @@ def plan_to_json(plans: dict[str, ModalityPlan]) -> dict:
     out = {}
     for key, mp in plans.items():
         entry = {"modality": mp.modality, "polarized": mp.polarized,
-                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W", **_curve_json(mp.curve)}
+                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W",
+                 "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
         if mp.modality == "stripes":
             entry["locations"] = [{**loc, **_curve_json(c)}
                                   for loc, c in zip(mp.locations, mp.location_curves, strict=True)]
@@ -276,7 +387,8 @@ _ENTRY = {
     "required": ["modality", "polarized", "separations", "objective", "objective_noise_free",
                  "best_separation"],
     "properties": {"modality": {"enum": list(MODALITIES)}, "polarized": {"type": "boolean"},
-                   "measure": {"type": "string"}, **_CURVE},
+                   "measure": {"type": "string"}, "exposure_scale": {"type": "number", "exclusiveMinimum": 0},
+                   **_CURVE},
 }
 _STRIPE_ENTRY = {
     **_ENTRY,
