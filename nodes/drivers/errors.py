@@ -1,4 +1,4 @@
-"""The drivers' error tree: one root, :class:`DriverError`, under :class:`polarstripe.errors.PolarstripeError`.
+"""The drivers' error tree: :class:`DriverError` under :class:`polarstripe.errors.PolarstripeError`.
 
 Like python-can's ``can/exceptions.py``: a small tree, the timeout class is also a :class:`TimeoutError`, bad
 argument values are also :class:`ValueError`. Every message names the device, endpoint or field and the value.

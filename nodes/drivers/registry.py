@@ -1,8 +1,9 @@
-"""Backends by name: a role → name → ``"module:Class"`` table, extended by the ``polarstripe.drivers`` entry points.
+"""Backends by name: a role → name → ``"module:Class"`` table, plus the ``polarstripe.drivers`` entry points.
+points.
 
 Modules are imported only when a backend is asked for (like python-can's ``can/interfaces/__init__.py`` and
-``can/interface.py``), so a missing optional extra costs nothing until it is used, and then the error names the
-backend, the module and the extra to install.
+``can/interface.py``), so a missing optional extra costs nothing until it is used, and then the error names
+the backend, the module and the extra to install.
 
 Entry points: a distribution adds backends with names ``"<role>.<name>"``::
 
@@ -79,7 +80,9 @@ def load_backend(role: str, name: str) -> type:
     try:
         return getattr(module, class_name)
     except AttributeError as exc:
-        raise BackendUnavailable(f"{role} backend {name!r}: module {module_name} has no {class_name}") from exc
+        raise BackendUnavailable(
+            f"{role} backend {name!r}: module {module_name} has no {class_name}"
+        ) from exc
 
 
 def open_backend(role: str, name: str, **kwargs):

@@ -6,20 +6,21 @@ and the multi-process tests use this backend. It is registered as the python-can
     bus = can.Bus(interface="zmq", channel="ipc:///tmp/rig-can")
 
 Topology: a hub (an XSUB/XPUB forwarder) at two endpoints derived from the channel (``ipc://P`` gives
-``ipc://P.in`` and ``ipc://P.out``; ``tcp://H:N`` gives ports N and N+1). Every participant connects a PUB to the
-hub's input and a SUB to its output, so every participant sees every other participant's frames and, like a real
-controller, not its own (``receive_own_messages=True`` turns that on). With ``hub="auto"`` (default) the first
-participant hosts the hub in a thread (decided by a lock file for ``ipc``, by the bind for ``tcp``); the others
-only connect. If the host leaves, the others lose the segment until a new participant becomes the hub (ZeroMQ
-reconnects them). ``python -m polarstripe.nodes.drivers.zmqcan --channel …`` runs a hub by itself. Only
-``ipc://`` and loopback ``tcp://`` are meant; never multicast. A plain name (``rig``) means an ipc socket under
-``$XDG_RUNTIME_DIR`` (or the temp dir).
+``ipc://P.in`` and ``ipc://P.out``; ``tcp://H:N`` gives ports N and N+1). Every participant connects a PUB to
+the hub's input and a SUB to its output, so every participant sees every other participant's frames and, like
+a real controller, not its own (``receive_own_messages=True`` turns that on). With ``hub="auto"`` (default)
+the first participant hosts the hub in a thread (decided by a lock file for ``ipc``, by the bind for ``tcp``);
+the others only connect. If the host leaves, the others lose the segment until a new participant becomes the
+hub (ZeroMQ reconnects them). ``python -m polarstripe.nodes.drivers.zmqcan --channel …`` runs a hub by itself.
+Only ``ipc://`` and loopback ``tcp://`` are meant; never multicast. A plain name (``rig``) means an ipc socket
+under ``$XDG_RUNTIME_DIR`` (or the temp dir).
 
 What it models (like python-can's ``virtual.py``, it says what it does not): frames, ids, flags, DLC and data,
-error frames passed through as frames. A received bus-off error frame (class ``0x040``) puts the receiving bus in
-the bus-off state: ``send`` raises :class:`can.CanOperationError` until a "restarted" error frame (``0x100``)
-arrives, as socketcan does after ``ip link … restart``. Not modelled: arbitration, bit timing, ACK, error counters,
-bus load; frames are delivered in hub order, and a frame sent before the hub exists is lost.
+error frames passed through as frames. A received bus-off error frame (class ``0x040``) puts the receiving bus
+in the bus-off state: ``send`` raises :class:`can.CanOperationError` until a "restarted" error frame
+(``0x100``) arrives, as socketcan does after ``ip link … restart``. Not modelled: arbitration, bit timing,
+ACK, error counters, bus load; frames are delivered in hub order, and a frame sent before the hub exists is
+lost.
 """
 
 from __future__ import annotations
@@ -45,10 +46,12 @@ CAN_ERR_RESTARTED = 0x100
 
 
 def hub_endpoints(channel: str) -> tuple[str, str]:
-    """The hub's (input, output) endpoints for a channel: ``ipc://P`` → ``P.in, P.out``; ``tcp://H:N`` → N, N+1."""
+    """The hub's (input, output) endpoints: ``ipc://P`` → ``P.in``, ``P.out``; ``tcp://H:N`` → N, N+1."""
     if "://" not in channel:
         if not channel or "/" in channel:
-            raise ValueError(f"CAN channel {channel!r}: give ipc://PATH, tcp://127.0.0.1:PORT or a plain name")
+            raise ValueError(
+                f"CAN channel {channel!r}: give ipc://PATH, tcp://127.0.0.1:PORT or a plain name"
+            )
         base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
         channel = f"ipc://{os.path.join(base, f'polarstripe-can-{channel}')}"
     if channel.startswith("ipc://"):
@@ -61,9 +64,17 @@ def hub_endpoints(channel: str) -> tuple[str, str]:
     raise ValueError(f"CAN channel {channel!r}: only ipc:// and tcp:// endpoints are supported")
 
 
+class HubBusy(can.CanInitializationError):
+    """Another process already hosts the hub of this channel."""
+
+
 class ZmqCanHub:
     """The XSUB/XPUB forwarder of one segment, run in a thread (``start``/``stop``, a context manager).
 
+    For ``ipc`` channels the host holds an ``flock`` on ``PATH.lock`` (released when it stops or dies), so a
+    second would-be host cannot steal the socket path.
+
+    :raises HubBusy: on ``start`` when another process hosts this channel's hub.
     :raises can.CanInitializationError: on ``start`` when the endpoints cannot be bound (the text names them).
     """
 
@@ -75,14 +86,46 @@ class ZmqCanHub:
         self._control = f"inproc://zmqcan-hub-{uuid.uuid4().hex}"
         self._ready = threading.Event()
         self._error: Exception | None = None
+        self._lock_fd: int | None = None
+
+    def _claim(self) -> None:
+        front = self.endpoints[0]
+        if front.startswith("ipc://"):
+            fd = os.open(front[len("ipc://") : -len(".in")] + ".lock", os.O_CREAT | os.O_RDWR, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise HubBusy(f"zmq CAN hub {self.channel}: another process hosts it") from None
+            self._lock_fd = fd
+            return
+        probe = self._ctx.socket(zmq.XSUB)
+        probe.linger = 0
+        try:
+            probe.bind(front)
+        except zmq.ZMQError as exc:
+            if exc.errno == zmq.EADDRINUSE:
+                raise HubBusy(f"zmq CAN hub {self.channel}: {front} is in use") from None
+            raise can.CanInitializationError(
+                f"zmq CAN hub {self.channel}: cannot bind {front}: {exc}"
+            ) from exc
+        finally:
+            probe.close()
+
+    def _release(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     def start(self) -> ZmqCanHub:
+        self._claim()
         self._thread = threading.Thread(target=self._run, name=f"zmqcan-hub {self.channel}", daemon=True)
         self._thread.start()
         self._ready.wait(5.0)
         if self._error is not None:
             self._thread.join(1.0)
             self._thread = None
+            self._release()
             raise can.CanInitializationError(f"zmq CAN hub {self.channel}: {self._error}") from self._error
         return self
 
@@ -124,6 +167,7 @@ class ZmqCanHub:
         self._thread.join(5.0)
         ctl.close()
         self._thread = None
+        self._release()
 
     def __enter__(self) -> ZmqCanHub:
         return self.start()
@@ -142,11 +186,17 @@ class ZmqCanBus(can.BusABC):
     :raises can.CanInitializationError: no hub answered within ``join_timeout``, or the hub could not bind.
     """
 
-    def __init__(self, channel: str = "polarstripe", can_filters=None, hub: str | bool = "auto",
-                 receive_own_messages: bool = False, join_timeout: float = 2.0, **kwargs):
+    def __init__(
+        self,
+        channel: str = "polarstripe",
+        can_filters=None,
+        hub: str | bool = "auto",
+        receive_own_messages: bool = False,
+        join_timeout: float = 2.0,
+        **kwargs,
+    ):
         self._pub = self._sub = None
         self._hub: ZmqCanHub | None = None
-        self._lock_fd: int | None = None
         super().__init__(channel=channel, can_filters=can_filters, **kwargs)
         self.channel_info = f"zmq {channel}"
         self._channel = channel
@@ -157,8 +207,13 @@ class ZmqCanBus(can.BusABC):
         ctx = zmq.Context.instance()
         front, back = hub_endpoints(channel)
         try:
-            if hub is True or (hub == "auto" and self._claim_hub(front)):
+            if hub is True:
                 self._hub = ZmqCanHub(channel, ctx).start()
+            elif hub == "auto":
+                try:
+                    self._hub = ZmqCanHub(channel, ctx).start()
+                except HubBusy:
+                    self._hub = None
             self._pub, self._sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
             self._pub.linger = self._sub.linger = 0
             self._pub.connect(front)
@@ -169,26 +224,6 @@ class ZmqCanBus(can.BusABC):
             self._close_sockets()
             raise
 
-    def _claim_hub(self, front: str) -> bool:
-        if not front.startswith("ipc://"):
-            probe = zmq.Context.instance().socket(zmq.XSUB)
-            probe.linger = 0
-            try:
-                probe.bind(front)
-            except zmq.ZMQError:
-                return False
-            finally:
-                probe.close()
-            return True
-        fd = os.open(front[len("ipc://"):-len(".in")] + ".lock", os.O_CREAT | os.O_RDWR, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            return False
-        self._lock_fd = fd
-        return True
-
     def _join(self, timeout: float) -> None:
         """Send probes until one comes back: then both paths through the hub carry frames (no slow joiner)."""
         deadline = time.monotonic() + timeout
@@ -198,7 +233,7 @@ class ZmqCanBus(can.BusABC):
             if self._sub.poll(20):
                 while self._sub.poll(0):
                     raw = self._sub.recv()
-                    if raw[:16] == self._id and raw[24 + 4] & _PROBE:
+                    if raw[:16] == self._id and _HDR.unpack_from(raw)[3] & _PROBE:
                         return
         raise can.CanInitializationError(
             f"zmq CAN bus {self._channel}: no hub carried frames within {timeout:g} s; start one with "
@@ -219,13 +254,20 @@ class ZmqCanBus(can.BusABC):
         :raises can.CanOperationError: the bus is off, shut down, or the frame could not be queued in time.
         """
         if self._bus_off:
-            raise can.CanOperationError(f"zmq CAN bus {self._channel}: bus-off, frame 0x{msg.arbitration_id:X} "
-                                        "not sent", error_code=105)
+            raise can.CanOperationError(
+                f"zmq CAN bus {self._channel}: bus-off, frame 0x{msg.arbitration_id:X} not sent",
+                error_code=105,
+            )
         if self._pub is None or self._is_shutdown:
             raise can.CanOperationError(f"zmq CAN bus {self._channel}: bus is shut down")
-        flags = ((_EXT if msg.is_extended_id else 0) | (_RTR if msg.is_remote_frame else 0)
-                 | (_ERR if msg.is_error_frame else 0) | (_FD if msg.is_fd else 0)
-                 | (_BRS if msg.bitrate_switch else 0) | (_ESI if msg.error_state_indicator else 0))
+        flags = (
+            (_EXT if msg.is_extended_id else 0)
+            | (_RTR if msg.is_remote_frame else 0)
+            | (_ERR if msg.is_error_frame else 0)
+            | (_FD if msg.is_fd else 0)
+            | (_BRS if msg.bitrate_switch else 0)
+            | (_ESI if msg.error_state_indicator else 0)
+        )
         data = bytes(msg.data)
         frame = _HDR.pack(self._id, time.time(), msg.arbitration_id, flags, len(data)) + data
         with self._send_lock:
@@ -252,10 +294,18 @@ class ZmqCanBus(can.BusABC):
             if flags & _PROBE or (sender == self._id and not self._own):
                 continue
             msg = can.Message(
-                timestamp=stamp, arbitration_id=can_id, is_extended_id=bool(flags & _EXT),
-                is_remote_frame=bool(flags & _RTR), is_error_frame=bool(flags & _ERR), is_fd=bool(flags & _FD),
-                bitrate_switch=bool(flags & _BRS), error_state_indicator=bool(flags & _ESI),
-                dlc=length, data=raw[_HDR.size:_HDR.size + length], channel=self._channel, is_rx=sender != self._id,
+                timestamp=stamp,
+                arbitration_id=can_id,
+                is_extended_id=bool(flags & _EXT),
+                is_remote_frame=bool(flags & _RTR),
+                is_error_frame=bool(flags & _ERR),
+                is_fd=bool(flags & _FD),
+                bitrate_switch=bool(flags & _BRS),
+                error_state_indicator=bool(flags & _ESI),
+                dlc=length,
+                data=raw[_HDR.size : _HDR.size + length],
+                channel=self._channel,
+                is_rx=sender != self._id,
             )
             if msg.is_error_frame:
                 if can_id & CAN_ERR_BUSOFF:
@@ -272,9 +322,6 @@ class ZmqCanBus(can.BusABC):
         if self._hub is not None:
             self._hub.stop()
             self._hub = None
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)
-            self._lock_fd = None
 
     def shutdown(self) -> None:
         """Close the sockets and, if this bus hosts the hub, the hub; idempotent."""
@@ -286,8 +333,10 @@ class ZmqCanBus(can.BusABC):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m polarstripe.nodes.drivers.zmqcan",
-                                     description="Run the hub of a CAN segment carried over ZeroMQ until SIGINT.")
+    parser = argparse.ArgumentParser(
+        prog="python -m polarstripe.nodes.drivers.zmqcan",
+        description="Run the hub of a CAN segment carried over ZeroMQ until SIGINT.",
+    )
     parser.add_argument("--channel", required=True, help="ipc://PATH, tcp://127.0.0.1:PORT or a plain name")
     args = parser.parse_args(argv)
     stop = threading.Event()

@@ -1,0 +1,373 @@
+"""A rotation stage on a CANopen CiA 402 drive in profile position mode, through ``canopen`` on python-can.
+
+Setup (SDO): check the device type (0x1000, profile 402), set the producer heartbeat time (0x1017), the mode
+of operation (0x6060 = 1, profile position), the profile velocity (0x6081) and the drive's own software
+position limit (0x607D) from this stage's limits; then NMT start and walk the state machine to OPERATION
+ENABLED. Runtime (PDO): RPDO1 carries controlword + target position, TPDO1 statusword + position actual value
++ mode display. A move writes the target, raises controlword bit 4 (new set-point, bit 5 change immediately),
+waits for the set-point acknowledge (statusword bit 12), lowers bit 4; "settled" is target reached (bit 10)
+after that acknowledge, with the position inside the tolerance.
+
+Faults become text in :attr:`fault`, never a wrong angle: an EMCY, the FAULT state, internal limit active (bit
+11), a lost heartbeat (consumer heartbeat timeout), an NMT state other than OPERATIONAL, stale TPDOs, CAN
+error frames (bus-off, no ACK, TX timeout, bus error), a receive error and a failed send. :meth:`reset_fault`
+runs the drive's fault reset: NMT start if needed, controlword bit 7 rising edge (transition 15), then
+shutdown → switch on → enable operation (2, 3, 4), holding the current position.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoError
+from polarstripe.nodes.drivers import cia402_states as cia
+from polarstripe.nodes.drivers.cia402_states import EDS_PATH, State
+from polarstripe.nodes.drivers.errors import DriverError, DriverTimeout, StageFault
+from polarstripe.nodes.drivers.stage import RotationStage
+
+#: CAN error classes (linux/can/error.h) that are a fault for the stage; others are only counted.
+FAULT_ERROR_CLASSES = {
+    0x001: "TX timeout",
+    0x020: "no ACK (no other node on the bus)",
+    0x040: "bus-off",
+    0x080: "bus error",
+}
+CAN_ERR_RESTARTED = 0x100
+
+
+class _BusWatch(can.Listener):
+    """Sees what canopen's listener drops: error frames, and receive errors (a Notifier without ``on_error``
+    would die silently)."""
+
+    def __init__(self, stage: Cia402Stage):
+        self.stage = stage
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.stage._on_error_frame(msg.arbitration_id)
+
+    def on_error(self, exc: Exception) -> None:
+        self.stage._latch_fault(f"CAN receive failed: {exc}")
+
+    def stop(self) -> None:
+        pass
+
+
+class Cia402Stage(RotationStage):
+    """A polarizer rotation stage on a CiA 402 drive (see the module docstring).
+
+    :param channel, interface: the python-can bus (``zmq`` for the simulator, ``socketcan`` on ``can0``), or
+        pass an open ``bus``.
+    :param node_id: the drive's CANopen node id.
+    :param counts_per_deg: encoder counts per degree of the polarizer (gear included).
+    :param min_deg, max_deg: software limits [deg], also written to the drive (0x607D).
+    :param speed_deg_s: profile velocity [deg/s] written to 0x6081, or None to keep the drive's.
+    :param heartbeat_ms: the drive's producer heartbeat time; the consumer timeout is ``heartbeat_timeout_s``.
+    :param tolerance_deg: how far from the target a settled stage may be.
+    """
+
+    def __init__(
+        self,
+        channel: str = "polarstripe",
+        node_id: int = 5,
+        *,
+        interface: str = "zmq",
+        bus: can.BusABC | None = None,
+        eds: str = EDS_PATH,
+        counts_per_deg: float = 1000.0,
+        min_deg: float = -360.0,
+        max_deg: float = 360.0,
+        speed_deg_s: float | None = 180.0,
+        heartbeat_ms: int = 50,
+        heartbeat_timeout_s: float = 0.3,
+        pdo_timeout_s: float = 0.3,
+        sdo_timeout_s: float = 0.3,
+        tolerance_deg: float = 0.01,
+        connect_timeout_s: float = 3.0,
+        **bus_kwargs,
+    ):
+        super().__init__(min_deg=min_deg, max_deg=max_deg, name=f"CiA 402 node {node_id} on {channel}")
+        if not counts_per_deg > 0:
+            raise ValueError(f"{self.name}: counts_per_deg={counts_per_deg} must be positive")
+        self.counts_per_deg, self.tolerance_deg = float(counts_per_deg), float(tolerance_deg)
+        self.heartbeat_timeout_s, self.pdo_timeout_s = heartbeat_timeout_s, pdo_timeout_s
+        self.error_frames = 0
+        self._lock = threading.RLock()
+        self._sw: int | None = None
+        self._pos: int | None = None
+        self._pdo_at = self._hb_at = -math.inf
+        self._nmt_state: int | None = None
+        self._awaiting_ack = False
+        self._acked = threading.Event()
+        self._target_counts: int | None = None
+        self._stop = threading.Event()
+        self._own_bus = bus is None
+        self.network = canopen.Network(bus or can.Bus(interface=interface, channel=channel, **bus_kwargs))
+        try:
+            self.network.connect()
+            self.network.notifier.add_listener(_BusWatch(self))
+            self.node = canopen.RemoteNode(node_id, eds)
+            self.network.add_node(self.node)
+            self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+            self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
+            self.node.emcy.add_callback(self._on_emcy)
+            self._configure(heartbeat_ms, speed_deg_s)
+            self._watchdog = threading.Thread(
+                target=self._watch, name=f"cia402 {node_id} watchdog", daemon=True
+            )
+            self._watchdog.start()
+            self._enable(connect_timeout_s)
+        except BaseException:
+            self._close()
+            raise
+
+    # -- setup
+    # ------------------------------------------------------------------------------------------------
+    def _configure(self, heartbeat_ms: int, speed_deg_s: float | None) -> None:
+        sdo = self.node.sdo
+        try:
+            device_type = sdo[0x1000].raw
+            if device_type & 0xFFFF != 402:
+                raise DriverError(f"{self.name}: device type 0x{device_type:08X} is not a CiA 402 drive")
+            sdo[0x1017].raw = heartbeat_ms
+            sdo[0x6060].raw = 1  # profile position
+            if speed_deg_s is not None:
+                sdo[0x6081].raw = int(round(speed_deg_s * self.counts_per_deg))
+            lo = max(-(2**31), math.floor(self.min_deg * self.counts_per_deg))
+            hi = min(2**31 - 1, math.ceil(self.max_deg * self.counts_per_deg))
+            sdo[0x607D][1].raw, sdo[0x607D][2].raw = lo, hi
+        except (SdoError, can.CanError) as exc:
+            raise DriverError(f"{self.name}: drive setup over SDO failed: {exc}") from exc
+        self.node.tpdo.read(from_od=True)
+        self.node.rpdo.read(from_od=True)
+        self.node.tpdo[1].subscribe()
+        self.node.tpdo[1].add_callback(self._on_tpdo)
+
+    def _enable(self, timeout: float) -> None:
+        """NMT start, then walk the state machine to OPERATION ENABLED holding the current position."""
+        self._send(lambda: self.node.nmt.send_command(0x01), "NMT start")
+        deadline = time.monotonic() + timeout
+        while self._pos is None:
+            if time.monotonic() > deadline:
+                raise DriverTimeout(
+                    f"{self.name}: no TPDO1 from the drive within {timeout:g} s after NMT start"
+                )
+            time.sleep(0.005)
+        self._target_counts = self._pos
+        while True:
+            state = self.drive_state
+            if state is State.OPERATION_ENABLED:
+                return
+            number = cia.PATH_TO_OPERATION_ENABLED.get(state)
+            if time.monotonic() > deadline:
+                raise DriverTimeout(f"{self.name}: drive stuck in {state.value} while enabling")
+            if number == 15:
+                self._controlword(cia.CW_DISABLE_VOLTAGE)
+                self._wait_pdo()
+            if number is not None:
+                self._controlword(cia.TRANSITIONS[number][2])
+            self._wait_pdo(until=lambda s=state: self.drive_state is not s, timeout=0.2)
+
+    # -- callbacks (canopen's notifier thread)
+    # ----------------------------------------------------------------
+    def _on_tpdo(self, pdo_map) -> None:
+        sw = pdo_map["Statusword"].raw
+        with self._lock:
+            self._sw, self._pos = sw, pdo_map["Position actual value"].raw
+            self._pdo_at = time.monotonic()
+            if self._awaiting_ack and sw & cia.SW_SETPOINT_ACK:
+                self._acked.set()
+        try:
+            state = cia.decode_statusword(sw)
+        except ValueError:
+            self._latch_fault(f"statusword 0x{sw:04X} matches no CiA 402 state")
+            return
+        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self._latch_fault(f"drive in {state.value} (statusword 0x{sw:04X})")
+        if sw & cia.SW_INTERNAL_LIMIT and self._target_counts is not None:
+            self._latch_fault(
+                f"drive internal limit active: target {self._target_deg}° is beyond the drive's "
+                "own position limit (0x607D)"
+            )
+
+    def _on_heartbeat(self, nmt_state: int) -> None:
+        self._hb_at = time.monotonic()
+        self._nmt_state = nmt_state
+        if nmt_state != 5 and self._pos is not None:
+            name = canopen.nmt.NMT_STATES.get(nmt_state, str(nmt_state))
+            self._latch_fault(f"drive left NMT OPERATIONAL (heartbeat reports {name})")
+
+    def _on_emcy(self, emcy) -> None:
+        if emcy.code & 0xFF00 == 0:
+            return  # "error reset / no error"
+        self._latch_fault(
+            f"EMCY 0x{emcy.code:04X} ({emcy.get_desc() or 'no description'}), "
+            f"error register 0x{emcy.register:02X}"
+        )
+
+    def _on_error_frame(self, error_class: int) -> None:
+        self.error_frames += 1
+        for bit, text in FAULT_ERROR_CLASSES.items():
+            if error_class & bit:
+                self._latch_fault(f"CAN {text} (error frame class 0x{error_class:03X})")
+
+    def _watch(self) -> None:
+        """Consumer heartbeat timeout and TPDO staleness, checked every 10 ms."""
+        while not self._stop.wait(0.01):
+            now = time.monotonic()
+            if self._pos is None:
+                continue
+            if now - self._hb_at > self.heartbeat_timeout_s:
+                self._latch_fault(
+                    f"heartbeat of node {self.node.id} lost (none for more than "
+                    f"{self.heartbeat_timeout_s:g} s)"
+                )
+            if now - self._pdo_at > self.pdo_timeout_s:
+                self._latch_fault(f"no TPDO1 from node {self.node.id} for more than {self.pdo_timeout_s:g} s")
+
+    # -- sending
+    # ----------------------------------------------------------------------------------------------
+    def _send(self, action, what: str) -> None:
+        try:
+            action()
+        except (can.CanError, OSError) as exc:
+            self._latch_fault(f"send failed ({what}): {exc}")
+            raise StageFault(f"{self.name}: send failed ({what}): {exc}") from exc
+
+    def _controlword(self, cw: int) -> None:
+        rpdo = self.node.rpdo[1]
+
+        def send():
+            rpdo["Controlword"].raw = cw
+            rpdo["Target position"].raw = self._target_counts or 0
+            rpdo.transmit()
+
+        self._send(send, f"controlword 0x{cw:04X}")
+
+    def _wait_pdo(self, until=None, timeout: float | None = None) -> bool:
+        """Wait for the next TPDO1 (or until ``until()`` holds); True if it came in time."""
+        timeout = self.pdo_timeout_s if timeout is None else timeout
+        deadline, start = time.monotonic() + timeout, self._pdo_at
+        while time.monotonic() < deadline:
+            if until() if until else self._pdo_at > start:
+                return True
+            time.sleep(0.002)
+        return False
+
+    # -- RotationStage
+    # ----------------------------------------------------------------------------------------
+    @property
+    def drive_state(self) -> State | None:
+        """The drive's CiA 402 state from the last statusword, or None before the first TPDO."""
+        sw = self._sw
+        return None if sw is None else cia.decode_statusword(sw)
+
+    def _start_move(self, angle_deg: float) -> None:
+        counts = int(round(angle_deg * self.counts_per_deg))
+        with self._lock:
+            self._target_counts = counts
+            self._acked.clear()
+            self._awaiting_ack = True
+        self._controlword(cia.CW_ENABLE_OPERATION)
+        self._controlword(cia.CW_ENABLE_OPERATION | cia.CW_NEW_SETPOINT | cia.CW_CHANGE_SET_IMMEDIATELY)
+        acked = self._acked.wait(self.pdo_timeout_s)
+        self._awaiting_ack = False
+        self._controlword(cia.CW_ENABLE_OPERATION)
+        if not acked:
+            text = f"set-point {angle_deg}° not acknowledged within {self.pdo_timeout_s:g} s"
+            self._latch_fault(text)
+            raise StageFault(f"{self.name}: {text}")
+
+    def _read_angle(self) -> float | None:
+        with self._lock:
+            fresh = time.monotonic() - self._pdo_at <= self.pdo_timeout_s
+            return self._pos / self.counts_per_deg if fresh and self._pos is not None else None
+
+    def _is_settled(self) -> bool:
+        with self._lock:
+            sw, pos, target = self._sw, self._pos, self._target_counts
+            if sw is None or pos is None or target is None or self._awaiting_ack:
+                return False
+            return (
+                bool(sw & cia.SW_TARGET_REACHED)
+                and cia.decode_statusword(sw) is State.OPERATION_ENABLED
+                and abs(pos - target) <= self.tolerance_deg * self.counts_per_deg
+            )
+
+    def _reset(self) -> None:
+        if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
+            # give a recovering drive one heartbeat period to show up
+            self._wait_pdo(
+                until=lambda: time.monotonic() - self._hb_at <= self.heartbeat_timeout_s,
+                timeout=2 * self.heartbeat_timeout_s,
+            )
+        if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
+            raise StageFault(f"{self.name}: cannot reset, the drive's heartbeat is still missing")
+        if self._nmt_state != 5:
+            self._send(lambda: self.node.nmt.send_command(0x01), "NMT start")
+        if not self._wait_pdo():
+            raise StageFault(f"{self.name}: cannot reset, no TPDO1 from the drive")
+        self.node.emcy.reset()
+        with self._lock:
+            self._target_counts = self._pos
+        try:
+            self._enable(timeout=2.0)
+        except DriverTimeout as exc:
+            raise StageFault(f"{self.name}: fault reset failed: {exc}") from exc
+        # the fault is cleared only when a fresh statusword says so
+        self._wait_pdo()
+        state = self.drive_state
+        if state is not State.OPERATION_ENABLED:
+            raise StageFault(f"{self.name}: fault reset failed, drive in {state.value if state else None}")
+        # a new set-point at the present position drops whatever set-point the drive still holds (limited
+        # ones)
+        with self._fault_lock:
+            self._faults.clear()
+        self._target_deg = self._pos / self.counts_per_deg
+        self._start_move(self._target_deg)
+        if not self._wait_pdo(until=lambda: not (self._sw or 0) & cia.SW_INTERNAL_LIMIT):
+            raise StageFault(
+                f"{self.name}: fault reset failed, the drive still reports internal limit active"
+            )
+
+    def _home(self, timeout: float) -> None:
+        sdo = self.node.sdo
+        try:
+            sdo[0x6060].raw = 6  # homing
+            self._controlword(cia.CW_ENABLE_OPERATION)
+            with self._lock:
+                self._target_counts = 0
+                self._awaiting_ack = True  # until homing attained
+            self._controlword(cia.CW_ENABLE_OPERATION | cia.CW_NEW_SETPOINT)
+            homed = self._wait_pdo(
+                until=lambda: (
+                    (self._sw or 0) & cia.SW_SETPOINT_ACK and (self._sw or 0) & cia.SW_TARGET_REACHED
+                ),
+                timeout=timeout,
+            )
+            self._awaiting_ack = False
+            self._controlword(cia.CW_ENABLE_OPERATION)
+            sdo[0x6060].raw = 1
+        except (SdoError, can.CanError) as exc:
+            self._latch_fault(f"homing failed: {exc}")
+            raise StageFault(f"{self.name}: homing failed: {exc}") from exc
+        if not homed:
+            self._latch_fault(f"homing not attained within {timeout:g} s")
+            raise DriverTimeout(f"{self.name}: homing not attained within {timeout:g} s")
+
+    def _close(self) -> None:
+        self._stop.set()
+        try:
+            if getattr(self, "node", None) is not None and self._pos is not None and self.fault is None:
+                self._controlword(cia.CW_SHUTDOWN)  # leave the drive disabled (transition 8)
+        except StageFault:
+            pass
+        if self._own_bus:
+            self.network.disconnect()
+        else:
+            if self.network.notifier is not None:
+                self.network.notifier.stop(1.0)
