@@ -15,7 +15,6 @@ import sys
 import time
 
 import zmq
-
 from polarstripe.msgs import MessageError, describe
 from polarstripe.nodes.runtime.graph import find_graph, load_graph, pub_endpoints, resolve
 

@@ -2,9 +2,10 @@
 
 The launcher checks the whole file first (:mod:`.launch_file`), makes the run directory, assigns every node
 its endpoints, writes ``graph.json``, then starts each node as ``python -m polarstripe node …`` in its own
-session (output to ``logs/<node>.log``) and supervises: respawn with a delay up to ``max_respawns``; a ``required``
-node's exit ends the launch. Ctrl-C/SIGTERM stop the children in reverse start order: SIGINT, then SIGTERM,
-then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher itself dies.
+session (output to ``logs/<node>.log``) and supervises: respawn with a delay up to ``max_respawns``; a
+``required`` node's exit ends the launch. Ctrl-C/SIGTERM stop the children in reverse start order: SIGINT,
+then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher
+itself dies.
 
 Recording hook: ``--record FILE`` adds a node ``recorder`` running ``polarstripe.nodes.runtime.bag:Recorder``
 with param ``path = FILE``; until that class exists the flag says recording is not available.
