@@ -1,0 +1,209 @@
+"""Geometry: pinhole rays exactly as issue 3 states, box clipping, object hits, projector pixel coordinates.
+
+Conventions (right-handed metres): forward f = normalize(look_at − position), right r = normalize(f × up),
+image up u = r × f. Pixel (row i, column j) of a w×h image looks along
+normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u), s = 2·tan(fov_deg/2)/w (horizontal fov).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
+
+_BIG = 1e30
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A pinhole's pose: position (3,), orthonormal f, r, u (3,), pixel pitch s [1/px] and size (w, h)."""
+
+    position: np.ndarray
+    f: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    s: float
+    w: int
+    h: int
+
+
+def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> Frame:
+    """The pinhole frame of a camera or projector (issue 3 convention)."""
+    p = np.asarray(position, dtype=float)
+    f = np.asarray(look_at, dtype=float) - p
+    f /= np.linalg.norm(f)
+    r = np.cross(f, np.asarray(up, dtype=float))
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    w, h = int(resolution[0]), int(resolution[1])
+    return Frame(p, f, r, u, 2.0 * np.tan(np.radians(fov_deg) / 2.0) / w, w, h)
+
+
+def pixel_rays(frame: Frame, pixels: np.ndarray | None = None) -> np.ndarray:
+    """Unit ray directions through pixel centres.
+
+    Parameters
+    ----------
+    frame : Frame
+    pixels : (n, 2) int array of (row, col), or None for the whole image.
+
+    Returns
+    -------
+    (n, 3) float64 directions; n = h·w in row-major order when ``pixels`` is None.
+    """
+    if pixels is None:
+        ii, jj = np.meshgrid(np.arange(frame.h), np.arange(frame.w), indexing="ij")
+        ii, jj = ii.ravel(), jj.ravel()
+    else:
+        pixels = np.asarray(pixels)
+        ii, jj = pixels[:, 0], pixels[:, 1]
+    a = ((jj + 0.5) - frame.w / 2.0) * frame.s
+    b = ((ii + 0.5) - frame.h / 2.0) * frame.s
+    d = frame.f[None, :] + a[:, None] * frame.r[None, :] - b[:, None] * frame.u[None, :]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def box_interval(origin: np.ndarray, dirs: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Slab test: parameter interval [t0, t1] (t0 ≥ 0) of rays origin + t·dir inside the box.
+
+    origin (3,) or (n, 3), dirs (n, 3) unit. Empty intervals have t1 < t0 (no NaN for axis-parallel rays).
+    """
+    o = np.broadcast_to(origin, dirs.shape)
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs
+        ta, tb = (lo - o) * inv, (hi - o) * inv
+    tmin, tmax = np.minimum(ta, tb), np.maximum(ta, tb)
+    par = dirs == 0.0
+    inside = (o >= lo) & (o <= hi)
+    tmin = np.where(par, np.where(inside, -_BIG, _BIG), tmin)
+    tmax = np.where(par, np.where(inside, _BIG, -_BIG), tmax)
+    t0 = np.maximum(tmin.max(axis=1), 0.0)
+    t1 = tmax.min(axis=1)
+    return t0, t1
+
+
+def segment_length_in_box(a: np.ndarray, b: np.ndarray, lo, hi) -> np.ndarray:
+    """Length [m] of each segment a→b (arrays (..., 3)) inside the box."""
+    shape = np.broadcast_shapes(np.shape(a), np.shape(b))
+    a3 = np.broadcast_to(a, shape).reshape(-1, 3)
+    b3 = np.broadcast_to(b, shape).reshape(-1, 3)
+    v = b3 - a3
+    length = np.linalg.norm(v, axis=1)
+    d = v / np.where(length > 0, length, 1.0)[:, None]
+    t0, t1 = box_interval(a3, d, lo, hi)
+    out = np.clip(np.minimum(t1, length) - t0, 0.0, None)
+    return out.reshape(shape[:-1])
+
+
+def point_in_box(p: np.ndarray, lo, hi, tol: float = 1e-12) -> np.ndarray:
+    p = np.asarray(p, float)
+    return np.all((p >= np.asarray(lo) - tol) & (p <= np.asarray(hi) + tol), axis=-1)
+
+
+@dataclass
+class Hits:
+    """Nearest surface hit per ray: t [m] (inf = none), object index (−1), unit normal (3,), point (3,)."""
+
+    t: np.ndarray
+    index: np.ndarray
+    normal: np.ndarray
+    point: np.ndarray
+
+
+def plane_axes(obj: PlaneObject) -> tuple[np.ndarray, np.ndarray]:
+    """Texture axes (right, up) of a plane as seen from its front (looking along −normal)."""
+    n = np.asarray(obj.normal)
+    right = np.cross(-n, np.asarray(obj.up))
+    right /= np.linalg.norm(right)
+    return right, np.cross(right, -n)
+
+
+def _hit_plane(o, d, obj: PlaneObject):
+    n = np.asarray(obj.normal)
+    dn = d @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((np.asarray(obj.point) - o) @ n) / dn if o.ndim == 1 else np.einsum(
+            "ij,j->i", np.asarray(obj.point) - o, n) / dn
+    ok = (dn < 0) & (t > 1e-12)  # one-sided: only the face whose normal faces the ray origin
+    if obj.size is not None:
+        p = o + np.where(ok, t, 0.0)[:, None] * d
+        ra, ua = plane_axes(obj)
+        rel = p - np.asarray(obj.point)
+        ok &= (np.abs(rel @ ra) <= obj.size[0] / 2) & (np.abs(rel @ ua) <= obj.size[1] / 2)
+    t = np.where(ok, t, np.inf)
+    return t, np.broadcast_to(n, d.shape)
+
+
+def _hit_sphere(o, d, obj: SphereObject):
+    c = np.asarray(obj.center)
+    oc = o - c
+    b = (oc * d).sum(-1) if oc.ndim == 2 else d @ oc
+    cc = (oc * oc).sum(-1) - obj.radius ** 2
+    disc = b * b - cc
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t = -b - sq
+    ok = (disc > 0) & (t > 1e-12)
+    t = np.where(ok, t, np.inf)
+    p = o + np.where(ok, t, 0.0)[:, None] * d
+    n = (p - c) / obj.radius
+    return t, n
+
+
+def _hit_box(o, d, obj: BoxObject):
+    lo, hi = np.asarray(obj.min), np.asarray(obj.max)
+    ob = np.broadcast_to(o, d.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        ta, tb = (lo - ob) * inv, (hi - ob) * inv
+    tmin = np.where(d == 0, np.where((ob >= lo) & (ob <= hi), -_BIG, _BIG), np.minimum(ta, tb))
+    tmax = np.where(d == 0, np.where((ob >= lo) & (ob <= hi), _BIG, -_BIG), np.maximum(ta, tb))
+    axis = tmin.argmax(axis=1)
+    t0, t1 = tmin.max(axis=1), tmax.min(axis=1)
+    ok = (t0 <= t1) & (t0 > 1e-12)  # seen from outside only
+    n = np.zeros_like(d)
+    rows = np.arange(d.shape[0])
+    n[rows, axis] = -np.sign(d[rows, axis])
+    return np.where(ok, t0, np.inf), n
+
+
+def intersect(objects, origin: np.ndarray, dirs: np.ndarray) -> Hits:
+    """Nearest hit of rays origin + t·dir (origin (3,) or (n, 3)) with the scene objects."""
+    n = dirs.shape[0]
+    t_best = np.full(n, np.inf)
+    idx = np.full(n, -1, dtype=np.int64)
+    normal = np.zeros((n, 3))
+    fns = {PlaneObject: _hit_plane, SphereObject: _hit_sphere, BoxObject: _hit_box}
+    for k, obj in enumerate(objects):
+        t, nn = fns[type(obj)](origin, dirs, obj)
+        better = t < t_best
+        t_best = np.where(better, t, t_best)
+        idx = np.where(better, k, idx)
+        normal = np.where(better[:, None], nn, normal)
+    hit = np.isfinite(t_best)
+    point = origin + np.where(hit, t_best, 0.0)[:, None] * dirs
+    return Hits(t_best, idx, normal, point)
+
+
+def occluded(objects, a: np.ndarray, b: np.ndarray, skip: np.ndarray | None = None) -> np.ndarray:
+    """True where the segment a (3,) → b (n, 3) is blocked by an object before reaching b."""
+    v = b - a
+    dist = np.linalg.norm(v, axis=1)
+    d = v / np.where(dist > 0, dist, 1.0)[:, None]
+    hits = intersect(objects, a, d)
+    return hits.t < dist * (1.0 - 1e-9) - 1e-9
+
+
+def projector_coords(frame: Frame, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Continuous pattern coordinates (col, row) of 3-D points and the depth along the projector axis.
+
+    col ∈ [j, j+1) is pattern column j (row likewise); depth ≤ 0 means behind the projector.
+    """
+    v = points - frame.position
+    vf, vr, vu = v @ frame.f, v @ frame.r, v @ frame.u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        col = frame.w / 2.0 + (vr / vf) / frame.s
+        row = frame.h / 2.0 - (vu / vf) / frame.s
+    bad = vf <= 0
+    return np.where(bad, -1.0, col), np.where(bad, -1.0, row), vf

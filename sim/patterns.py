@@ -1,0 +1,152 @@
+"""Projector patterns and the analytic clipping of rays to the lit part of the projector's frustum.
+
+``flood`` lights every pattern pixel; ``stripe:K/N`` lights columns floor(K·W/N) … floor((K+1)·W/N) − 1;
+``checker:SIZE:SHIFT`` lights SIZE×SIZE-pixel squares where (floor((col − SHIFT)/SIZE) + floor(row/SIZE))
+is even: lit fraction 1/2, SHIFT in projector pixels along the columns (SHIFT = SIZE swaps lit and dark).
+A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
+Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (refs/physics.md §2.3).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+from polarstripe.sim.geometry import Frame
+from polarstripe.sim.scene import SceneError
+
+_PAR_EPS = 1e-13
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """A parsed pattern: kind ``flood``, ``stripe`` (k of n) or ``checker`` (size, shift px)."""
+
+    kind: str
+    k: int = 0
+    n: int = 1
+    size: int = 0
+    shift: int = 0
+
+    def __str__(self) -> str:
+        if self.kind == "stripe":
+            return f"stripe:{self.k}/{self.n}"
+        if self.kind == "checker":
+            return f"checker:{self.size}:{self.shift}"
+        return "flood"
+
+
+def parse_pattern(spec: str | Pattern) -> Pattern:
+    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N) or ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels)."""
+    if isinstance(spec, Pattern):
+        return spec
+    s = str(spec).strip().lower()
+    if s == "flood":
+        return Pattern("flood")
+    m = re.fullmatch(r"stripe:(\d+)/(\d+)", s)
+    if m:
+        k, n = int(m.group(1)), int(m.group(2))
+        if n < 1 or not 0 <= k < n:
+            raise SceneError(f"pattern {spec!r}: stripe:K/N needs N >= 1 and 0 <= K < N")
+        return Pattern("stripe", k=k, n=n)
+    m = re.fullmatch(r"checker:(\d+):(\d+)", s)
+    if m:
+        size, shift = int(m.group(1)), int(m.group(2))
+        if size < 1:
+            raise SceneError(f"pattern {spec!r}: checker SIZE must be >= 1 pixel")
+        return Pattern("checker", size=size, shift=shift)
+    raise SceneError(f"pattern {spec!r} is not flood, stripe:K/N or checker:SIZE:SHIFT")
+
+
+def stripe_columns(pattern: Pattern, width: int) -> tuple[int, int]:
+    """Lit column edges [c0, c1) of a stripe (c1 exclusive) on a projector ``width`` pixels wide."""
+    return (pattern.k * width) // pattern.n, ((pattern.k + 1) * width) // pattern.n
+
+
+def _halfspaces(frame: Frame, c0: float, c1: float) -> np.ndarray:
+    """Normals (4, 3) of the pyramid columns [c0, c1) × rows [0, H) through the projector centre."""
+    a0, a1 = (c0 - frame.w / 2.0) * frame.s, (c1 - frame.w / 2.0) * frame.s
+    b = frame.h / 2.0 * frame.s
+    f, r, u = frame.f, frame.r, frame.u
+    return np.stack([r - a0 * f, a1 * f - r, b * f - u, b * f + u])
+
+
+def clip_halfspaces(origin: np.ndarray, dirs: np.ndarray, x0: np.ndarray, x1: np.ndarray, apex: np.ndarray,
+                    normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Clip [x0, x1] of rays origin + x·dir to ∩ {n·(P − apex) ≥ 0}; a ray parallel to a plane is kept
+    or dropped whole (|n·d| below 1e−13·|n|), so grazing rays give no 0/0."""
+    rel = np.broadcast_to(origin - apex, dirs.shape)
+    for n in normals:
+        a = rel @ n
+        b = dirs @ n
+        par = np.abs(b) <= _PAR_EPS * np.linalg.norm(n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            root = np.where(par, 0.0, -a / np.where(par, 1.0, b))
+        x0 = np.where(~par & (b > 0), np.maximum(x0, root), x0)
+        x1 = np.where(~par & (b < 0), np.minimum(x1, root), x1)
+        x1 = np.where(par & (a < 0), -np.inf, x1)
+    return x0, x1
+
+
+def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dirs: np.ndarray,
+                  x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-intervals of each ray's [x0, x1] that the pattern lights.
+
+    Parameters
+    ----------
+    pattern : Pattern
+    frame : projector Frame, or None for the isotropic point source (everything lit).
+    origin : (3,) or (n, 3); dirs (n, 3) unit; x0, x1 (n,) the in-medium interval.
+
+    Returns
+    -------
+    ray : (m,) int index of the ray each interval belongs to; lo, hi : (m,) interval ends (lo < hi).
+    """
+    n = dirs.shape[0]
+    if frame is None:
+        keep = x1 > x0
+        return np.nonzero(keep)[0], x0[keep], x1[keep]
+    if pattern.kind in ("flood", "stripe"):
+        c0, c1 = (0, frame.w) if pattern.kind == "flood" else stripe_columns(pattern, frame.w)
+        lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, c0, c1))
+        keep = hi > lo
+        return np.nonzero(keep)[0], lo[keep], hi[keep]
+    # checker: clip to the frustum, then split at every column/row boundary the ray crosses
+    lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, 0, frame.w))
+    keep = np.nonzero(hi > lo)[0]
+    rays, los, his = [], [], []
+    size, shift = pattern.size, pattern.shift % (2 * pattern.size)
+    cb = np.arange(shift % size, frame.w + 1, size, dtype=float)
+    rb = np.arange(size, frame.h, size, dtype=float)
+    rel_all = np.broadcast_to(origin - frame.position, dirs.shape)
+    for start in range(0, keep.size, 4096):
+        idx = keep[start:start + 4096]
+        rel, d, a, b = rel_all[idx], dirs[idx], lo[idx], hi[idx]
+        vf0, vr0, vu0 = rel @ frame.f, rel @ frame.r, rel @ frame.u
+        df, dr, du = d @ frame.f, d @ frame.r, d @ frame.u
+        ac = (cb - frame.w / 2.0) * frame.s  # vr = ac·vf on a column boundary
+        ar = (frame.h / 2.0 - rb) * frame.s  # vu = ar·vf on a row boundary
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = (ac[None] * vf0[:, None] - vr0[:, None]) / (dr[:, None] - ac[None] * df[:, None])
+            xr = (ar[None] * vf0[:, None] - vu0[:, None]) / (du[:, None] - ar[None] * df[:, None])
+        br = np.concatenate([a[:, None], xc, xr, b[:, None]], axis=1)
+        br = np.where(np.isfinite(br), br, np.inf)
+        br = np.clip(br, a[:, None], b[:, None])
+        br.sort(axis=1)
+        s0, s1 = br[:, :-1], br[:, 1:]
+        mid = 0.5 * (s0 + s1)
+        p = rel[:, None, :] + mid[..., None] * d[:, None, :]
+        pf, pr, pu = p @ frame.f, p @ frame.r, p @ frame.u
+        with np.errstate(divide="ignore", invalid="ignore"):
+            col = frame.w / 2.0 + (pr / pf) / frame.s
+            row = frame.h / 2.0 - (pu / pf) / frame.s
+        lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
+        r_i, c_i = np.nonzero(lit)
+        rays.append(idx[r_i])
+        los.append(s0[r_i, c_i])
+        his.append(s1[r_i, c_i])
+    if not rays:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    del n
+    return np.concatenate(rays), np.concatenate(los), np.concatenate(his)

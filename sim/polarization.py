@@ -1,0 +1,82 @@
+"""Polarization: the depolarized-Rayleigh Mueller model of the backscatter DOP and the linear analyzer.
+
+Mueller model (paper appendix eq. 15; refs/physics.md §5): Hansen & Travis' depolarized Rayleigh reduced
+matrix with depolarization factor δ, in the scattering-plane frame with Q = I_∥ − I_⊥ (Bohren–Huffman),
+scaled by the phase function for the intensity. δ = 0.2 gives DOP_B = 0.8 at backscatter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rayleigh_mueller(one_minus_mu, one_plus_mu, depolarization: float):
+    """Reduced Mueller elements (m11, m12 = m21, m22, m33) of depolarized Rayleigh scattering.
+
+    Δ = (1 − δ)/(1 + δ/2);  m11 = Δ·¾(1 + μ²) + 1 − Δ;  m12 = −Δ·¾(1 − μ²);  m22 = Δ·¾(1 + μ²);
+    m33 = Δ·(3/2)·μ.  Inputs are 1 − μ and 1 + μ (μ = cos θ_s) so that 1 − μ² keeps its precision.
+    """
+    d = float(depolarization)
+    big = (1.0 - d) / (1.0 + d / 2.0)
+    omm, opm = np.asarray(one_minus_mu, float), np.asarray(one_plus_mu, float)
+    mu = 0.5 * (opm - omm)
+    sin2 = omm * opm
+    m22 = big * 0.75 * (1.0 + mu * mu)
+    return m22 + (1.0 - big), -big * 0.75 * sin2, m22, big * 1.5 * mu
+
+
+def dop_backscatter(theta_s_rad, dop_l: float = 1.0, psi_rad: float = np.pi / 2, depolarization: float = 0.2):
+    """DOP of singly scattered light vs scattering angle (paper eq. 15 generalised; Fig. 11).
+
+    Parameters
+    ----------
+    theta_s_rad : array, scattering angle [rad] (π = backscatter).
+    dop_l : source degree of polarization.
+    psi_rad : angle between the source polarization and the scattering plane [rad] (π/2: perpendicular).
+    depolarization : δ.
+
+    Returns
+    -------
+    DOP in [0, 1], same shape as ``theta_s_rad``.
+    """
+    th = np.asarray(theta_s_rad, float)
+    m11, m12, m22, m33 = rayleigh_mueller(1.0 - np.cos(th), 1.0 + np.cos(th), depolarization)
+    q_in, u_in = dop_l * np.cos(2 * psi_rad), dop_l * np.sin(2 * psi_rad)
+    i_out = m11 + m12 * q_in
+    return np.hypot(m12 + m22 * q_in, m33 * u_in) / i_out
+
+
+def polarizer_transmittances(extinction_ratio: float) -> tuple[float, float]:
+    """Principal transmittances (k1, k2) of a real linear polarizer: k1 = 1, k2 = 1/extinction_ratio."""
+    return 1.0, 1.0 / float(extinction_ratio)
+
+
+def analyzer(components, angle_deg: float | None, extinction_ratio: float | None = None) -> np.ndarray:
+    """Radiance [W sr⁻¹ m⁻²] through a linear analyzer at ``angle_deg`` (Malus; paper eqs. 4–5).
+
+    I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ): object light unpolarized, backscatter with
+    DOP p and angle χ (``components.p``, ``components.chi_rad``, camera frame: from image right toward
+    image up). ``angle_deg=None`` means no analyzer: D + A + B. The extinction ratio defaults to the scene's.
+    """
+    total = components.D + components.A + components.B
+    if angle_deg is None:
+        return total
+    er = components.scene.camera.polarizer.extinction_ratio if extinction_ratio is None else extinction_ratio
+    k1, k2 = polarizer_transmittances(er)
+    phi = np.radians(float(angle_deg))
+    return 0.5 * (k1 + k2) * total + 0.5 * (k1 - k2) * components.B * components.p * np.cos(
+        2.0 * (phi - components.chi_rad))
+
+
+def least_backscatter_angle(components, mask: np.ndarray | None = None) -> float:
+    """The one analyzer angle [deg, in [0, 180)] that passes the least backscatter over the image.
+
+    From the B-weighted Stokes sums Σ B p (cos 2χ, sin 2χ) (optionally over ``mask``): the angle crossed to
+    the mean backscatter polarization. Per pixel it is χ + 90°.
+    """
+    w = components.B * components.p
+    if mask is not None:
+        w = np.where(mask, w, 0.0)
+    chi = components.chi_rad
+    s1, s2 = float(np.sum(w * np.cos(2 * chi))), float(np.sum(w * np.sin(2 * chi)))
+    return float((np.degrees(0.5 * np.arctan2(s2, s1)) + 90.0) % 180.0)

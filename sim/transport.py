@@ -1,0 +1,316 @@
+"""Physical single scattering: the paper's D, A, B (eqs. 11–13 in their physical form, DESIGN.md §4).
+
+B along a ray C + x·d over a lit interval [x0, x1] (eq. 13 with σ_s and the point-source falloff):
+
+    B = ∫ σ_s P(θ_s) I0 e^{−σ_t (ℓ_L(Y) + ℓ_C(Y))} / (d_LY² + r_s²) dx
+
+with ℓ the path lengths inside the medium box and r_s the source radius (softens the true 1/d² divergence of a
+source on the ray; r_s = 0 is the printed form). The substitution u = x − x_c = h_e·tan θ, h_e² = h² + r_s²
+(Sun et al. 2005; refs/physics.md §2.2, θ = 2ξ − π/2) turns dx/(d² + r_s²) into dθ/h_e, so a Gauss–Legendre
+sum in θ is exact to 1e−8 with 32 nodes for any σ_t. On one side of the source it is written in the
+complementary angle φ = atan2(h_e, |u|), which stays accurate when the source is on or behind the ray
+(h → 0). The interval is truncated where the excess optical path reaches 50 and the sum is done in log space.
+The scattering-plane polarization (Mueller model) is accumulated on the same nodes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from polarstripe.sim import phase as phase_fn
+from polarstripe.sim.geometry import Frame, pinhole_frame, point_in_box, segment_length_in_box
+from polarstripe.sim.patterns import Pattern
+from polarstripe.sim.polarization import rayleigh_mueller
+from polarstripe.sim.scene import Scene
+
+_TRUNC = 50.0
+_CHUNK_NODES = 1 << 21
+
+
+@dataclass(frozen=True)
+class Source:
+    """Everything the line integral needs about the light, the medium and the pattern."""
+
+    position: np.ndarray
+    intensity: float
+    radius: float
+    frame: Frame | None          # None: isotropic point source
+    pattern: Pattern
+    sigma_t: float
+    sigma_s: float
+    phase: object
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    inside: bool                 # source inside (or on) the medium box: exact truncation applies
+    e_field: np.ndarray          # unit source polarization vector
+    dop_l: float
+    dop_model: object
+
+
+def make_source(scene: Scene, pattern: Pattern) -> Source:
+    pr, m = scene.projector, scene.medium
+    frame = None if pr.model == "point" else pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg,
+                                                           pr.resolution)
+    if frame is None:
+        fr = pinhole_frame(pr.position, pr.look_at, pr.up, 60.0, (2, 2))
+    else:
+        fr = frame
+    a = np.radians(pr.polarization.angle_deg)
+    lo, hi = np.array(m.extent.min), np.array(m.extent.max)
+    pos = np.array(pr.position, float)
+    return Source(pos, pr.intensity_w_sr, pr.source_radius_m, frame, pattern, m.sigma_t, m.sigma_s, m.phase,
+                  lo, hi, bool(point_in_box(pos, lo, hi, tol=1e-12)), np.cos(a) * fr.r + np.sin(a) * fr.u,
+                  pr.polarization.dop, m.dop)
+
+
+def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes and weights of n-point Gauss–Legendre on [−1, 1]."""
+    return np.polynomial.legendre.leggauss(int(n))
+
+
+def _light_path(src: Source, y: np.ndarray, d_ly: np.ndarray) -> np.ndarray:
+    """Path length [m] of L→Y inside the medium."""
+    if src.inside:
+        return d_ly
+    return segment_length_in_box(src.position, y, src.box_lo, src.box_hi)
+
+
+def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
+                  lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False):
+    """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
+
+    Parameters
+    ----------
+    src : Source
+    origin : (3,) or (n, 3) viewer positions; dirs : (n, 3) unit ray directions.
+    view_start : (n,) ray parameter where the view path enters the medium (attenuation σ_t·(x − view_start)).
+    ray, lo, hi : (m,) interval → ray index and interval ends (from :func:`patterns.lit_intervals`).
+    nodes : Gauss–Legendre nodes per interval.
+    polarization : also return the B-weighted Stokes (q, u) per ray in the scattering-plane frame.
+
+    Returns
+    -------
+    B : (n,) radiance [W sr⁻¹ m⁻²]; with ``polarization`` also q, u : (n,) B-weighted sums (divide by B).
+    """
+    n = dirs.shape[0]
+    b_out = np.zeros(n)
+    q_out = np.zeros(n) if polarization else None
+    u_out = np.zeros(n) if polarization else None
+    if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
+        return (b_out, q_out, u_out) if polarization else b_out
+    t, w = gauss_legendre(nodes)
+    chunk = max(1, _CHUNK_NODES // nodes)
+    for s in range(0, ray.size, chunk):
+        sl = slice(s, s + chunk)
+        res = _intervals(src, origin, dirs, view_start, ray[sl], lo[sl], hi[sl], t, w, polarization)
+        b_out += np.bincount(ray[sl], res[0], minlength=n)
+        if polarization:
+            q_out += np.bincount(ray[sl], res[1], minlength=n)
+            u_out += np.bincount(ray[sl], res[2], minlength=n)
+    return (b_out, q_out, u_out) if polarization else b_out
+
+
+def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization):
+    d = dirs[ray]
+    c = origin if np.ndim(origin) == 1 else origin[ray]
+    lv = src.position - c                                       # C → L
+    xc = (lv * d).sum(-1) if lv.ndim == 2 else d @ lv           # foot of the perpendicular from L
+    hvec = lv - xc[:, None] * d                                 # perpendicular offset of L from the ray
+    h2 = (hvec * hvec).sum(-1)
+    he = np.maximum(np.sqrt(h2 + src.radius ** 2), 1e-200)
+    vs = view_start[ray]
+    st = src.sigma_t
+    # truncate where the excess optical path reaches _TRUNC (refs/physics.md §2.2 step 2)
+    if st > 0:
+        u0 = x0 - xc
+        d0 = np.sqrt(u0 * u0 + h2)
+        if src.inside:
+            s0 = np.where(u0 >= 0, d0 + u0, h2 / np.maximum(d0 - u0, 1e-300))   # d_LY + u at x0, stable
+            q = s0 + _TRUNC / st
+            x_tr = xc + (q * q - h2) / (2.0 * q)
+        else:
+            y0 = c + x0[:, None] * d if c.ndim == 2 else c[None] + x0[:, None] * d
+            x_tr = x0 + _light_path(src, y0, d0) + _TRUNC / st
+        x1 = np.minimum(x1, np.maximum(x_tr, x0))
+    u0, u1 = x0 - xc, x1 - xc
+    # node positions: θ form when the interval straddles the source's foot, φ form on one side
+    side = np.where(u0 >= 0, 1.0, np.where(u1 <= 0, -1.0, 0.0))
+    a_lo = np.where(side > 0, np.arctan2(he, u1), np.where(side < 0, np.arctan2(he, -u0), np.arctan2(u0, he)))
+    a_hi = np.where(side > 0, np.arctan2(he, u0), np.where(side < 0, np.arctan2(he, -u1), np.arctan2(u1, he)))
+    half = 0.5 * (a_hi - a_lo)
+    ang = (0.5 * (a_hi + a_lo))[:, None] + half[:, None] * t[None, :]
+    sd = side[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(sd == 0, he[:, None] * np.tan(ang), sd * he[:, None] * np.cos(ang) / np.sin(ang))
+    u = np.where(np.isfinite(u), u, 0.0)
+    x = xc[:, None] + u
+    d_ly = np.sqrt(u * u + h2[:, None])
+    dsafe = np.maximum(d_ly, 1e-300)
+    one_plus = np.where(u > 0, h2[:, None] / (dsafe * (d_ly + u) + 1e-300), (d_ly - u) / dsafe)
+    one_minus = np.where(u < 0, h2[:, None] / (dsafe * (d_ly - u) + 1e-300), (d_ly + u) / dsafe)
+    zero = d_ly <= 0
+    one_plus, one_minus = np.where(zero, 1.0, one_plus), np.where(zero, 1.0, one_minus)
+    pf = phase_fn.evaluate(src.phase, one_minus, one_plus)
+    if st > 0:
+        if src.inside:
+            light = d_ly
+        else:
+            y = (c[None] if c.ndim == 1 else c[:, None, :]) + x[..., None] * d[:, None, :]
+            light = _light_path(src, y, d_ly)
+        expo = st * (light + (x - vs[:, None]))
+        m = expo.min(axis=1)
+        rel = np.exp(-(expo - m[:, None]))
+    else:
+        m = np.zeros(ray.size)
+        rel = 1.0
+    wk = w[None, :] * pf * rel
+    log_pref = np.log(src.sigma_s * src.intensity) - np.log(he) + np.log(np.abs(half) + 1e-300) - m
+    total = wk.sum(axis=1)
+    with np.errstate(under="ignore"):
+        b = np.exp(log_pref) * total
+    if not polarization:
+        return (b,)
+    q, uu = _stokes_nodes(src, d, hvec, u, d_ly, one_minus, one_plus)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        qa = np.where(total > 0, (wk * q).sum(1) / total, 0.0) * b
+        ua = np.where(total > 0, (wk * uu).sum(1) / total, 0.0) * b
+    return b, qa, ua
+
+
+def scattering_frame(src_position: np.ndarray, origin: np.ndarray, dirs: np.ndarray):
+    """Per-ray unit vectors (e_perp, e_par_out): normal of the plane (L, C, ray) and the in-plane axis of the
+    light leaving toward the viewer (e_par = e_perp × k_out, k_out = −d). Degenerate (L on the ray): any ⊥."""
+    lv = src_position - origin
+    n = np.cross(lv, dirs)
+    nn = np.linalg.norm(n, axis=-1)
+    alt = np.cross(dirs, np.where(np.abs(dirs[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    alt /= np.linalg.norm(alt, axis=-1, keepdims=True)
+    scale = np.linalg.norm(np.broadcast_to(lv, dirs.shape), axis=-1)
+    ok = (nn > 1e-12 * np.maximum(scale, 1e-300))[:, None]
+    e_perp = np.where(ok, n / np.maximum(nn, 1e-300)[:, None], alt)
+    e_par = np.cross(e_perp, -dirs)
+    return e_perp, e_par
+
+
+def _stokes_nodes(src: Source, d, hvec, u, d_ly, one_minus, one_plus):
+    """Normalized outgoing Stokes (q, u) at each node in the (e_par_out, e_perp) frame (paper eq. 15)."""
+    if src.dop_model.model == "constant":
+        return np.zeros_like(u), np.zeros_like(u)
+    lv = hvec + 0.0  # L − C projected ⊥ d plus xc d: only the ⊥ part matters for the plane normal
+    e_perp, _ = scattering_frame(np.zeros(3), -lv, d)
+    e = src.e_field
+    b = e_perp @ e                                                  # E·e_perp, constant along the ray
+    wv = np.cross(e[None, :], e_perp)                               # E × e_perp
+    # k_in = (Y − L)/d_LY = (−hvec + u d)/d_LY ;  E·e_par_in = k_in·(E × e_perp)
+    a = (-(hvec * wv).sum(-1)[:, None] + u * (d * wv).sum(-1)[:, None]) / np.maximum(d_ly, 1e-300)
+    nrm = a * a + b[:, None] ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c2 = np.where(nrm > 0, (a * a - b[:, None] ** 2) / nrm, 0.0)
+        s2 = np.where(nrm > 0, 2 * a * b[:, None] / nrm, 0.0)
+    q_in, u_in = src.dop_l * c2, src.dop_l * s2
+    m11, m12, m22, m33 = rayleigh_mueller(one_minus, one_plus, src.dop_model.depolarization)
+    i_out = m11 + m12 * q_in
+    return (m12 + m22 * q_in) / i_out, m33 * u_in / i_out
+
+
+def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, normals: np.ndarray,
+           albedo: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """D = (ρ cos φ / π)·I0·e^{−σ_t (ℓ_LO + ℓ_CO)} / (d_LO² + r_s²) at lit surface points (paper eq. 11).
+
+    ``lit`` marks points the pattern lights and the source sees (shadowing tested by the caller);
+    cos φ is clamped at 0 (a point facing away gets no direct light).
+    """
+    v = src.position - points
+    d2 = (v * v).sum(-1)
+    dist = np.sqrt(d2)
+    cos_phi = np.clip((normals * v).sum(-1) / np.maximum(dist, 1e-300), 0.0, None)
+    tau = src.sigma_t * (segment_length_in_box(src.position, points, src.box_lo, src.box_hi)
+                         + segment_length_in_box(camera_pos, points, src.box_lo, src.box_hi))
+    with np.errstate(under="ignore"):
+        falloff = np.maximum(d2 + src.radius ** 2, 1e-300)
+        val = albedo * cos_phi / np.pi * src.intensity * np.exp(-tau) / falloff
+    return np.where(lit, val, 0.0)
+
+
+_SPLITS = (0.0, 0.02, 0.12, 0.5, np.pi)
+
+
+def hemisphere_directions(normals: np.ndarray, to_source: np.ndarray, n_theta: int, n_phi: int):
+    """Quadrature over the visible hemisphere in polar coordinates about the direction to the source.
+
+    The forward-scattering peak of L_a sits at θ' = 0 (toward the source), so θ' is split at
+    (0.02, 0.12, 0.5) rad with ``n_theta`` Gauss–Legendre nodes per piece, and for each of ``n_phi`` azimuths
+    (midpoint rule) θ' is clipped analytically to the horizon n·ω ≥ 0 (no kink inside a piece).
+
+    Returns
+    -------
+    dirs : (m, k, 3) unit directions; w : (m, k) weights with Σ w f ≈ ∫_{n·ω≥0} f(ω) (n·ω) dω.
+    """
+    m = normals.shape[0]
+    z = to_source
+    helper = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    x = np.cross(z, helper)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    e = np.cos(phi)[None, :, None] * x[:, None, :] + np.sin(phi)[None, :, None] * y[:, None, :]   # (m, P, 3)
+    a = (normals * z).sum(-1)[:, None]                                  # n·z
+    b = (normals[:, None, :] * e).sum(-1)                               # n·e(φ)
+    delta = np.arctan2(b, np.broadcast_to(a, b.shape))
+    lo = np.clip(delta - np.pi / 2, 0.0, np.pi)
+    hi = np.clip(delta + np.pi / 2, 0.0, np.pi)
+    t, w = gauss_legendre(n_theta)
+    dirs, wts = [], []
+    for s0, s1 in zip(_SPLITS[:-1], _SPLITS[1:], strict=True):
+        a0, a1 = np.clip(s0, lo, hi), np.clip(s1, lo, hi)               # (m, P)
+        half = 0.5 * (a1 - a0)
+        th = (0.5 * (a1 + a0))[..., None] + half[..., None] * t          # (m, P, T)
+        om = np.cos(th)[..., None] * z[:, None, None, :] + np.sin(th)[..., None] * e[:, :, None, :]
+        cosn = np.clip((om * normals[:, None, None, :]).sum(-1), 0.0, None)
+        dirs.append(om.reshape(m, -1, 3))
+        wts.append((half[..., None] * w * np.sin(th) * cosn * (2 * np.pi / n_phi)).reshape(m, -1))
+    return np.concatenate(dirs, axis=1), np.concatenate(wts, axis=1)
+
+
+def surface_scatter(src: Source, camera_pos: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                    albedo: np.ndarray, nodes: int, n_theta: int, n_phi: int) -> np.ndarray:
+    """A at surface points: (ρ/π) e^{−σ_t ℓ_CO} ∫_{Ω+} L_a(O, ω)(n·ω) dω (paper eq. 12, physical form).
+
+    The paper's printed eq. 12 omits σ_s and the 1/d_XO² falloff; here L_a is the single-scattered radiance
+    arriving at O along −ω (the eq. 13 line integral with O as the viewer, clipped to the medium and the lit
+    pattern), so dV = d_XO² dd dω cancels the 1/d_XO² singularity. Occlusion of the hemisphere by other
+    objects is not modelled.
+
+    Parameters
+    ----------
+    points, normals : (m, 3); albedo : (m,); nodes : ξ nodes; n_theta × n_phi hemisphere directions.
+
+    Returns
+    -------
+    (m,) radiance [W sr⁻¹ m⁻²] toward the camera, before the analyzer.
+    """
+    from polarstripe.sim.geometry import box_interval
+    from polarstripe.sim.patterns import lit_intervals
+
+    m = points.shape[0]
+    out = np.zeros(m)
+    if m == 0 or src.sigma_s <= 0.0 or src.intensity <= 0.0:
+        return out
+    k = (len(_SPLITS) - 1) * n_theta * n_phi
+    per = max(1, 200000 // k)
+    for s in range(0, m, per):
+        sl = slice(s, s + per)
+        mm = points[sl].shape[0]
+        to_src = src.position - points[sl]
+        to_src /= np.maximum(np.linalg.norm(to_src, axis=1, keepdims=True), 1e-300)
+        dirs, wd = hemisphere_directions(normals[sl], to_src, n_theta, n_phi)
+        dirs = dirs.reshape(-1, 3)
+        orig = np.repeat(points[sl], k, axis=0)
+        x0, x1 = box_interval(orig, dirs, src.box_lo, src.box_hi)
+        ray, lo, hi = lit_intervals(src.pattern, src.frame, orig, dirs, x0, x1)
+        la = line_radiance(src, orig, dirs, x0, ray, lo, hi, nodes)
+        out[sl] = (la.reshape(mm, k) * wd).sum(1)
+    view = src.sigma_t * segment_length_in_box(camera_pos, points, src.box_lo, src.box_hi)
+    with np.errstate(under="ignore"):
+        return albedo / np.pi * np.exp(-view) * out
