@@ -107,6 +107,7 @@ class Cia402Stage(RotationStage):
         self._stop = threading.Event()
         self._own_bus = bus is None
         self.network = canopen.Network(bus or can.Bus(interface=interface, channel=channel, **bus_kwargs))
+        self.network.NOTIFIER_CYCLE = 0.05  # the receive poll; a short one makes close() quick
         try:
             self.network.connect()
             self.network.notifier.add_listener(_BusWatch(self))

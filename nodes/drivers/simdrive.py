@@ -123,6 +123,7 @@ class SimCia402Drive:
         inner = can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs)
         self._gate = _GatedBus(inner)
         self.network = canopen.Network(self._gate)
+        self.network.NOTIFIER_CYCLE = 0.05
         self.network.add_node(self.node)
         self.network.connect()
         self.node.add_write_callback(self._on_write)
@@ -163,6 +164,7 @@ class SimCia402Drive:
             self._target = None
             self.node.data_store.setdefault(0x603F, {})[0] = struct.pack("<H", code)
             self.node.data_store.setdefault(0x1001, {})[0] = struct.pack("<B", register)
+            self._send_tpdo()
         self.node.emcy.send(code, register)
 
     def inject_heartbeat_stop(self, duration_s: float | None = None) -> None:
