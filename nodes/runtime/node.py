@@ -178,7 +178,12 @@ class Node:
             raise NodeError(f"node {self.name!r}: already subscribed to {topic!r}")
         full = self._resolve(topic)
         self._subs[topic] = _Sub(
-            topic, full, msg_type, callback, mode, self._bus.subscribe(full, msg_type, mode)
+            topic,
+            full,
+            msg_type,
+            callback,
+            mode,
+            self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes),
         )
 
     def serve(self, service: str, handler: Callable[[Message], Message]) -> None:

@@ -37,6 +37,7 @@ class NodeParams:
 
     heartbeat_s: float = 1.0  # period of the heartbeat message [s]; 0 turns it off
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    max_message_bytes: int = 128 * 2**20  # larger received messages are dropped as bad [bytes]
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -46,6 +47,8 @@ class NodeParams:
         """Override to check values together; raise ``ValueError`` naming the problem."""
         if self.heartbeat_s < 0:
             raise ValueError(f"heartbeat_s must be >= 0, got {self.heartbeat_s}")
+        if self.max_message_bytes <= 0:
+            raise ValueError(f"max_message_bytes must be > 0, got {self.max_message_bytes}")
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

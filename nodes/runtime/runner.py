@@ -68,10 +68,10 @@ class ZmqNodeBus:
     def publisher(self, topic: str, msg_type: type[Message]):
         return self.pub_socket.publisher(topic, msg_type)
 
-    def subscribe(self, topic: str, msg_type: type[Message], mode: str) -> zbus.Subscriber:
+    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> zbus.Subscriber:
         endpoints = pub_endpoints(self.graph, topic) + self.connect
         client_curve = zbus.CurveKeys(server_public=self.curve.public) if self.curve else None
-        sub = zbus.Subscriber(endpoints, topic, msg_type, mode=mode, curve=client_curve)
+        sub = zbus.Subscriber(endpoints, topic, msg_type, mode=mode, max_bytes=max_bytes, curve=client_curve)
         self.subscribers.append(sub)
         self.poller.register(sub.socket, zmq.POLLIN)
         return sub

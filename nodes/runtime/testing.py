@@ -106,7 +106,7 @@ class MockBus:
     def publisher(self, topic, msg_type):
         return _Pub(self, topic, msg_type)
 
-    def subscribe(self, topic, msg_type, mode):
+    def subscribe(self, topic, msg_type, mode, max_bytes):
         src = self.sources[topic] = _Source(topic, msg_type, mode)
         return src
 
