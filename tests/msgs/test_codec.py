@@ -80,11 +80,18 @@ def _messages(cls):
 def _same(a, b):
     """Deep equality where arrays must match in dtype, shape and every byte."""
     if isinstance(a, np.ndarray):
-        return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        return (
+            isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and a.tobytes() == b.tobytes()
+        )
     if isinstance(a, dict):
         return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, list | tuple):
-        return isinstance(b, list) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+        return (
+            isinstance(b, list) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+        )
     if isinstance(a, float):
         return type(b) is float and (a == b)
     return type(a) is type(b) and a == b
@@ -98,7 +105,9 @@ def _assert_roundtrip(msg, back):
 
 
 def _as_frames(msg):
-    return [bytes(memoryview(f).cast("B")) if not isinstance(f, bytes) else f for f in encode(msg, topic="/t")]
+    return [
+        bytes(memoryview(f).cast("B")) if not isinstance(f, bytes) else f for f in encode(msg, topic="/t")
+    ]
 
 
 @pytest.mark.parametrize("cls", ALL_TYPES, ids=lambda c: c.TYPE)
@@ -155,7 +164,7 @@ def test_publisher_stamps_seq_and_keeps_a_given_stamp():
     assert fresh.header.stamp_ns > 1_600_000_000 * 10**9
 
 
-# ---- every kind of bad message: one error class naming topic and field --------------------------------------
+# ---- every kind of bad message: one error class naming topic and field ------------------------------
 def _head(msg, **changes):
     frames = encode(msg, topic="/t")
     head = msgpack.unpackb(frames[0], raw=False)
@@ -172,6 +181,12 @@ def _head(msg, **changes):
 
 
 _DROP = object()
+
+
+def _desc(buf, dtype, shape):
+    return {"buf": buf, "dtype": dtype, "shape": shape}
+
+
 _frame = Frame(image=np.zeros((4, 6), np.uint16), exposure_s=0.01)
 
 
@@ -188,11 +203,11 @@ _frame = Frame(image=np.zeros((4, 6), np.uint16), exposure_s=0.01)
         (_head(_frame, **{"fields.exposure_s": "fast"}), "exposure_s", "expected float"),
         (_head(_frame, **{"fields.bit_depth": 1.5}), "bit_depth", "expected int"),
         (_head(_frame, **{"fields.color": "red"}), "color", "unknown field"),
-        (_head(_frame, **{"fields.image": {"buf": 0, "dtype": "<u2", "shape": [5, 6]}}), "image", "needs 60 bytes"),
-        (_head(_frame, **{"fields.image": {"buf": 0, "dtype": "<f8", "shape": [4, 6]}}), "image", "needs 192 bytes"),
-        (_head(_frame, **{"fields.image": {"buf": 0, "dtype": "|O", "shape": [4, 6]}}), "image", "bad dtype"),
-        (_head(_frame, **{"fields.image": {"buf": 3, "dtype": "<u2", "shape": [4, 6]}}), "image", "out of range"),
-        (_head(_frame, **{"fields.image": {"buf": 0, "dtype": "<u2", "shape": [-4, 6]}}), "image", "bad shape"),
+        (_head(_frame, **{"fields.image": _desc(0, "<u2", [5, 6])}), "image", "needs 60 bytes"),
+        (_head(_frame, **{"fields.image": _desc(0, "<f8", [4, 6])}), "image", "needs 192 bytes"),
+        (_head(_frame, **{"fields.image": _desc(0, "|O", [4, 6])}), "image", "bad dtype"),
+        (_head(_frame, **{"fields.image": _desc(3, "<u2", [4, 6])}), "image", "out of range"),
+        (_head(_frame, **{"fields.image": _desc(0, "<u2", [-4, 6])}), "image", "bad shape"),
         (_head(_frame) + [b"stray"], "buffers", "2 buffer frames but 1 used"),
         (_head(_frame, seq="x"), "seq", "expected int"),
         (_head(_frame, extra=1), "extra", "unknown header key"),

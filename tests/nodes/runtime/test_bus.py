@@ -147,8 +147,9 @@ def test_tcp_and_curve(ipc):
     with PubSocket("tcp://127.0.0.1:0", curve=server) as ps:
         assert ps.endpoint.startswith("tcp://127.0.0.1:") and not ps.endpoint.endswith(":0")
         pub = ps.publisher("/t/img", Frame)
-        with Subscriber([ps.endpoint], "/t/img", Frame, mode="all",
-                        curve=CurveKeys(server_public=server_public)) as sub:
+        with Subscriber(
+            [ps.endpoint], "/t/img", Frame, mode="all", curve=CurveKeys(server_public=server_public)
+        ) as sub:
             img = np.arange(64 * 1024, dtype=np.uint16)
             _joined(pub, sub, make=lambda i: Frame(image=img, exposure_s=0.1))
             pub.publish(Frame(image=img, exposure_s=0.2))
