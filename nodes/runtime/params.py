@@ -41,6 +41,9 @@ class NodeParams:
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
+        for key, value in list(vars(cls).items()):  # a list default is fine here: each instance gets a copy
+            if key in cls.__dict__.get("__annotations__", {}) and isinstance(value, list):
+                setattr(cls, key, dataclasses.field(default_factory=lambda v=value: list(v)))
         dataclasses.dataclass(frozen=True, kw_only=True)(cls)
 
     def validate(self) -> None:

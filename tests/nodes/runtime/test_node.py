@@ -1,0 +1,164 @@
+from typing import Literal
+
+import numpy as np
+import pytest
+from polarstripe.msgs import Ack, Empty, Frame, Log, PolarizerState, ScanEvent, ScanRequest, encode
+from polarstripe.nodes.demo import Listener, Talker
+from polarstripe.nodes.runtime.bus import BusTimeout, ServiceTimeout
+from polarstripe.nodes.runtime.node import Node, NodeError, Received, Stop, Tick
+from polarstripe.nodes.runtime.params import NodeParams, ParamError, build_params, parse_assignments
+from polarstripe.nodes.runtime.testing import NodeHarness
+
+
+class _Scanner(Node):
+    class Params(NodeParams):
+        mode: Literal["flood", "stripes"] = "flood"
+        angles: list[float] = [0.0, 90.0]
+        limit: int | None = None
+
+    PUBLISHES = {"emitter/scan": ScanEvent}
+    SUBSCRIBES = {"polarizer/state": PolarizerState, "camera/frame": Frame}
+    SERVES = {"emitter/start_scan": (ScanRequest, ScanEvent)}
+
+    def setup(self):
+        self.scan = self.publisher("emitter/scan")
+        self.subscribe("polarizer/state", mode="latest")
+        self.subscribe("camera/frame", self.on_frame, mode="all")
+        self.serve("emitter/start_scan", self.start)
+        self.frames = []
+
+    def on_frame(self, msg):
+        assert not msg.image.flags.writeable
+        self.frames.append(msg.step)
+
+    def start(self, req):
+        settled = self.wait_for("polarizer/state", lambda m: m.settled, timeout_s=1.0)
+        ev = ScanEvent(scan_id=7, event="start", method=req.method, analyzer_deg=[settled.angle_deg])
+        self.scan.publish(ev)
+        return ev
+
+
+def test_talker_timer_publishes_through_the_codec_and_stops_after_count():
+    h = NodeHarness(Talker, namespace="/rig", params={"rate_hz": "4", "count": 3, "text": "hey"})
+    assert h.advance(0.6) == ["tick", "tick"]  # at 0.25 s and 0.5 s
+    h.advance(10)
+    assert [m.text for m in h.published("chatter")] == ["hey 0", "hey 1", "hey 2"]
+    assert [m.header.seq for m in h.published("/rig/chatter")] == [0, 1, 2]
+    assert h.node.stopping and h.node.counters["published"] == 3
+
+
+def test_services_and_loop_style_node():
+    talker = NodeHarness(Talker)
+    talker.advance(0.35)
+    assert talker.call("talker/reset", Empty()).detail == "reset from 3"
+    listener = NodeHarness(Listener, params={"count": 2})
+    listener.deliver("chatter", Log(level="INFO", node="t", text="a"))
+    reply = listener.call("listener/count", Empty())
+    assert type(reply) is Ack and reply.ok and reply.detail == "1"
+    listener.feed(
+        [
+            Tick("report", 0),
+            Received("chatter", Log(level="INFO", node="t", text="b")),
+            Received("chatter", Log(level="INFO", node="t", text="c")),
+        ]
+    )
+    assert listener.node.heard == 2 and listener.node.stopping  # stopped at 2: "c" never delivered
+    assert ("INFO", "heard 1 messages, last 'a'") in listener.logs
+
+
+def test_bad_message_is_logged_once_counted_dropped_and_the_node_keeps_going():
+    h = NodeHarness(_Scanner)
+    good = Frame(image=np.zeros((2, 2), np.uint16), exposure_s=0.1, step=1)
+    h.deliver("camera/frame", good)
+    h.deliver_raw("camera/frame", [b"\xc1junk"])
+    h.deliver_raw("camera/frame", encode(Log(level="INFO", node="x", text="wrong type")))
+    h.deliver("camera/frame", Frame(image=np.zeros((2, 2), np.uint16), exposure_s=0.1, step=2))
+    assert h.node.frames == [1, 2]
+    assert h.node.counters["bad"] == 2
+    warnings = [t for lvl, t in h.logs if lvl == "WARNING"]
+    assert len(warnings) == 2
+    assert "topic '/camera/frame': field 'header'" in warnings[0]
+    assert "field 'type': expected 'frame', got 'log'" in warnings[1]
+
+
+def test_bad_message_logging_is_rate_limited():
+    h = NodeHarness(_Scanner)
+    for _ in range(250):
+        h.deliver_raw("camera/frame", [b"\xc1"])
+    assert h.node.counters["bad"] == 250
+    assert len(h.logs) == 5 + 2  # the first five, then the 100th and the 200th
+
+
+def test_wait_for_inside_a_service_handler_and_its_timeout():
+    h = NodeHarness(_Scanner, namespace="/rig")
+    h.queue("polarizer/state", PolarizerState(angle_deg=10.0, target_deg=45.0, settled=False))
+    h.queue("polarizer/state", PolarizerState(angle_deg=45.0, target_deg=45.0, settled=True))
+    ev = h.call("emitter/start_scan", ScanRequest(method="stripes"))
+    assert ev.analyzer_deg == [45.0] and h.published("emitter/scan")[0].scan_id == 7
+    with pytest.raises(BusTimeout, match="no matching message on '/rig/polarizer/state' within 1.0 s"):
+        h.call("emitter/start_scan", ScanRequest(method="stripes"))
+
+
+def test_client_calls_are_answered_by_the_harness_or_time_out():
+    class Caller(Node):
+        def setup(self):
+            self.c = self.client("emitter/start_scan", ScanRequest, ScanEvent, timeout_s=0.5)
+
+    h = NodeHarness(Caller, namespace="/rig")
+    with pytest.raises(ServiceTimeout):
+        h.node.c.call(ScanRequest(method="flood"))
+    h.on_call("emitter/start_scan", lambda r: ScanEvent(scan_id=1, event="start", method=r.method))
+    assert h.node.c.call(ScanRequest(method="flood")).method == "flood"
+
+
+def test_undeclared_interfaces_are_refused():
+    class Bare(Node):
+        pass
+
+    h = NodeHarness(Bare)
+    with pytest.raises(NodeError, match="'nope' is not in PUBLISHES"):
+        h.node.publisher("nope")
+    with pytest.raises(NodeError, match="'nope' is not in SUBSCRIBES"):
+        h.node.subscribe("nope")
+    with pytest.raises(NodeError, match="service 'nope' is not in SERVES"):
+        h.node.serve("nope", lambda r: r)
+    h.node.publisher("dynamic", Log).publish(Log(level="INFO", node="b", text="ok"))  # explicit type: fine
+    with pytest.raises(NodeError, match="period must be > 0"):
+        h.node.every(0, lambda: None)
+
+
+def test_names_resolve_in_the_namespace():
+    h = NodeHarness(Talker, namespace="/rig/")
+    assert h.full("chatter") == "/rig/chatter" and h.full("/abs/x") == "/abs/x"
+    assert NodeHarness(Talker).full("chatter") == "/chatter"
+
+
+def test_params_are_typed_coerced_and_validated():
+    p = build_params(
+        _Scanner.Params, {"mode": "stripes", "angles": "0,45,90", "limit": "none", "heartbeat_s": "2"}
+    )
+    assert (p.mode, p.angles, p.limit, p.heartbeat_s) == ("stripes", [0.0, 45.0, 90.0], None, 2.0)
+    assert build_params(_Scanner.Params, {"angles": "[1, 2]", "limit": "3"}).limit == 3
+    assert build_params(Talker.Params, {}).rate_hz == 10.0
+    with pytest.raises(
+        ParamError, match="node 'x': param 'mode': bad value 'checker': expected one of flood"
+    ):
+        build_params(_Scanner.Params, {"mode": "checker"}, node="x")
+    with pytest.raises(ParamError, match="unknown param 'speed'"):
+        build_params(Talker.Params, {"speed": 1}, node="x")
+    with pytest.raises(ParamError, match="param 'rate_hz': bad value 'fast'"):
+        build_params(Talker.Params, {"rate_hz": "fast"}, node="x")
+    with pytest.raises(ParamError, match="rate_hz must be > 0, got -1.0"):
+        build_params(Talker.Params, {"rate_hz": -1}, node="x")
+    with pytest.raises(ParamError, match="param 'count': bad value True"):
+        build_params(Talker.Params, {"count": True}, node="x")
+    with pytest.raises(ParamError, match="expected KEY=VALUE"):
+        parse_assignments(["novalue"])
+    assert parse_assignments(["a=b=c"]) == {"a": "b=c"}
+
+
+def test_stop_event_reaches_a_loop_style_node():
+    h = NodeHarness(Listener)
+    h.stop()
+    assert h.logs[-1] == ("INFO", "heard 0 messages in all (harness)")
+    assert isinstance(Stop("x"), Stop)
