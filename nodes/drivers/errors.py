@@ -33,5 +33,9 @@ class DeviceLost(DriverError):
     """The device disappeared while in use (a camera unplugged, a serial port closed)."""
 
 
+class EndOfFrames(DriverError):
+    """A file camera has no more frames (and does not loop)."""
+
+
 class StageFault(DriverError):
     """The rotation stage is faulted; the text is the fault. ``reset_fault()`` tries to clear it."""

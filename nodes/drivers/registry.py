@@ -54,6 +54,15 @@ def _table(role: str) -> dict[str, str]:
     return table
 
 
+def register_backend(role: str, name: str, target: str) -> None:
+    """Add backend ``name`` of ``role`` as ``"module:Class"`` (imported only when used), e.g. the simulator's
+    camera: ``register_backend("camera", "sim", "polarstripe.sim.camera:SimCamera")``."""
+    module, _, cls = target.partition(":")
+    if not module or not cls:
+        raise BackendUnavailable(f"backend target {target!r} is not 'module:Class'")
+    BACKENDS.setdefault(role, {})[name] = target
+
+
 def backend_names(role: str) -> list[str]:
     """The backend names available for ``role`` ("stage", "display", "camera"), built-in and entry points."""
     return sorted(_table(role))

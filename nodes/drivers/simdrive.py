@@ -118,7 +118,7 @@ class SimCia402Drive:
         self.node = canopen.LocalNode(node_id, eds)
         self._gate: _GatedBus | None = None
 
-    # -- life cycle ------------------------------------------------------------------------------------------
+    # -- life cycle ----------------------------------------------------------------------------------------
     def start(self) -> SimCia402Drive:
         inner = can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs)
         self._gate = _GatedBus(inner)
@@ -164,8 +164,9 @@ class SimCia402Drive:
             self._target = None
             self.node.data_store.setdefault(0x603F, {})[0] = struct.pack("<H", code)
             self.node.data_store.setdefault(0x1001, {})[0] = struct.pack("<B", register)
+            # EMCY (COB-ID 0x80+id) wins arbitration over TPDO1 (0x180+id): it is on the bus first
+            self.node.emcy.send(code, register)
             self._send_tpdo()
-        self.node.emcy.send(code, register)
 
     def inject_heartbeat_stop(self, duration_s: float | None = None) -> None:
         """Stop the heartbeat producer, for ``duration_s`` seconds or until :meth:`resume_heartbeat`."""

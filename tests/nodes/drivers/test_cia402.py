@@ -19,11 +19,12 @@ from polarstripe.nodes.drivers.simdrive import SimCia402Drive
 from polarstripe.nodes.drivers.zmqcan import ZmqCanBus
 
 
-def _wait_fault(stage, timeout=1.5):
+def _wait_fault(stage, text="", timeout=1.5):
+    """The stage's fault text once it contains ``text`` (or whatever it is after ``timeout``)."""
     deadline = time.monotonic() + timeout
-    while stage.fault is None and time.monotonic() < deadline:
+    while text not in (stage.fault or "") and time.monotonic() < deadline:
         time.sleep(0.005)
-    return stage.fault
+    return stage.fault or ""
 
 
 @pytest.fixture
@@ -99,7 +100,7 @@ def test_position_is_in_counts_per_degree(stage):
 
 def test_emcy_is_a_fault_naming_the_code(stage, drive_process):
     drive_process.cmd("emcy 0x8611")
-    assert "EMCY 0x8611" in _wait_fault(stage)
+    assert "EMCY 0x8611" in _wait_fault(stage, "EMCY 0x8611")
     assert stage.angle is None and not stage.settled
     stage.reset_fault()
     assert stage.fault is None and stage.drive_state is cia.State.OPERATION_ENABLED
@@ -126,7 +127,7 @@ def test_heartbeat_loss_is_a_fault_and_recovers(stage, drive_process):
     stage.wait_settled(2.0)
     drive_process.cmd("heartbeat_stop")
     start = time.monotonic()
-    assert "heartbeat of node 5 lost" in _wait_fault(stage)
+    assert "heartbeat of node 5 lost" in _wait_fault(stage, "heartbeat of node 5 lost")
     assert time.monotonic() - start < stage.heartbeat_timeout_s + 0.2
     assert stage.angle is None
     with pytest.raises(StageFault, match="heartbeat"):
@@ -140,7 +141,7 @@ def test_heartbeat_loss_is_a_fault_and_recovers(stage, drive_process):
 
 def test_bus_off_is_a_fault_sends_fail_and_reset_works_after_restart(stage, drive_process):
     drive_process.cmd("bus_off 0.5")
-    assert "bus-off" in _wait_fault(stage)
+    assert "bus-off" in _wait_fault(stage, "bus-off")
     with pytest.raises(StageFault):
         stage.move_to(10.0)
     with pytest.raises(StageFault):
@@ -180,7 +181,7 @@ def test_a_failed_send_is_a_fault_not_an_angle(drive_process):
 def test_the_drives_own_position_limit_is_a_fault(stage, drive_process):
     drive_process.cmd("position_limit -30000 30000")
     stage.move_to(60.0)  # inside this stage's limits, beyond the drive's
-    assert "internal limit active" in _wait_fault(stage)
+    assert "internal limit active" in _wait_fault(stage, "internal limit active")
     assert stage.angle is None and not stage.settled
     stage.reset_fault()  # holds where the drive stopped, never beyond its limit
     assert stage.wait_settled(1.0) <= 30.0 + 1e-9

@@ -39,7 +39,7 @@ def display(request, monkeypatch):
         yield WindowDisplay(64, 48, fullscreen=False)
 
 
-# -- the contract ----------------------------------------------------------------------------------
+# -- the contract ------------------------------------------------------------------------------------------
 def test_show_returns_when_and_remembers_what(display):
     with display:
         before = time.monotonic()
@@ -69,7 +69,7 @@ def test_close_is_idempotent_and_final(display):
         display.show("flood")
 
 
-# -- the image conventions (the model's) -----------------------------------------------------------
+# -- the image conventions (the model's) -------------------------------------------------------------------
 @pytest.mark.parametrize(("width", "n"), [(1280, 30), (640, 7), (97, 97), (10, 3)])
 def test_stripes_tile_the_width_without_overlap(width, n):
     total = np.zeros(width, int)
@@ -119,7 +119,7 @@ def test_patterns_come_from_messages_and_the_model():
     assert as_pattern(patterns.parse_pattern("checker:16:8")) == DisplayPattern("checker", size=16, shift=8)
 
 
-# -- backends --------------------------------------------------------------------------------------
+# -- backends ----------------------------------------------------------------------------------------------
 def test_null_display_keeps_history_and_image():
     d = NullDisplay(40, 10)
     d.show("stripe:1/4")
