@@ -12,7 +12,7 @@ from polarstripe.nodes.runtime.params import NodeParams
 
 class Talker(Node):
     """Publishes ``"<text> <n>"`` on ``chatter`` at ``rate_hz``; stops by itself after ``count`` messages
-    (0: never). Serves ``talker/reset`` (sets n back to 0)."""
+    (0: never). Serves ``~/reset`` (private: ``<namespace>/<node name>/reset``) (sets n back to 0)."""
 
     class Params(NodeParams):
         rate_hz: float = 10.0
@@ -27,13 +27,13 @@ class Talker(Node):
                 raise ValueError(f"count must be >= 0, got {self.count}")
 
     PUBLISHES = {"chatter": Log}
-    SERVES = {"talker/reset": (Empty, Ack)}
+    SERVES = {"~/reset": (Empty, Ack)}
 
     def setup(self):
         self.n = 0
         self.chatter = self.publisher("chatter")
         self.every(1.0 / self.params.rate_hz, self.tick)
-        self.serve("talker/reset", self.reset)
+        self.serve("~/reset", self.reset)
 
     def tick(self):
         self.chatter.publish(Log(level="INFO", node=self.name, text=f"{self.params.text} {self.n}"))
@@ -47,7 +47,7 @@ class Talker(Node):
 
 
 class Listener(Node):
-    """Counts messages on ``chatter`` (every one: mode ``all``) and serves the count on ``listener/count``;
+    """Counts messages on ``chatter`` (every one: mode ``all``) and serves the count on ``~/count``;
     stops by itself after hearing ``count`` messages (0: never). A loop-style node: it matches events."""
 
     class Params(NodeParams):
@@ -55,13 +55,13 @@ class Listener(Node):
         report_s: float = 5.0
 
     SUBSCRIBES = {"chatter": Log}
-    SERVES = {"listener/count": (Empty, Ack)}
+    SERVES = {"~/count": (Empty, Ack)}
 
     def setup(self):
         self.heard = 0
         self.last = ""
         self.subscribe("chatter", mode="all")
-        self.serve("listener/count", lambda req: Ack(ok=True, detail=str(self.heard)))
+        self.serve("~/count", lambda req: Ack(ok=True, detail=str(self.heard)))
         self.every(self.params.report_s, name="report")
 
     def run(self):

@@ -40,12 +40,17 @@ def runs_dir() -> Path:
     return Path(base) / f"polarstripe-{os.getuid()}" / "runs"
 
 
-def resolve(name: str, namespace: str) -> str:
-    """Full name of ``name`` in ``namespace``: ``resolve("camera/frame", "/rig") == "/rig/camera/frame"``;
-    a name starting with ``/`` is already full."""
+def resolve(name: str, namespace: str, node: str = "") -> str:
+    """Full name of ``name`` in ``namespace``: ``resolve("camera/frame", "/rig") == "/rig/camera/frame"``; a
+    name starting with ``/`` is already full; ``~/x`` is private to ``node``:
+    ``resolve("~/x", "/rig", "cam") == "/rig/cam/x"`` (two instances of one node class do not clash)."""
     if name.startswith("/"):
         return name
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if name.startswith("~/"):
+        if not node:
+            raise ValueError(f"private name {name!r} needs a node name")
+        return f"{ns}/{node}/{name[2:].strip('/')}"
     return f"{ns}/{name.strip('/')}"
 
 

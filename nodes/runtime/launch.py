@@ -41,6 +41,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--once", action="store_true", help="end when every required node has exited (status 1 if one failed)"
     )
     parser.add_argument("--record", metavar="FILE.mcap", help="also record every topic to FILE.mcap")
+    # KEY=VALUE may come after the flags (`launch f.toml --once n=3`): parse positionals intermixed
+    parser.parse_args = parser.parse_intermixed_args  # type: ignore[method-assign]
 
 
 def _free_port(host: str) -> int:
@@ -68,7 +70,7 @@ def build_graph(spec: LaunchSpec, run_dir: Path) -> dict:
             pub = f"tcp://{spec.host}:{_free_port(spec.host)}"
             srv = f"tcp://{spec.host}:{_free_port(spec.host)}"
         pub, srv = n.pub or pub, n.srv or srv
-        full = {t: resolve(t, spec.namespace) for t in (*cls.PUBLISHES, *cls.SUBSCRIBES, *cls.SERVES)}
+        full = {t: resolve(t, spec.namespace, n.name) for t in (*cls.PUBLISHES, *cls.SUBSCRIBES, *cls.SERVES)}
         publishes = {full[t]: m.TYPE for t, m in cls.PUBLISHES.items()}
         publishes[resolve("log", spec.namespace)] = "log"
         publishes[resolve("heartbeat", spec.namespace)] = "heartbeat"

@@ -112,7 +112,7 @@ class Node:
 
         self.name, self.namespace = name, namespace
         self.params = build_params(self.Params, params or {}, node=name)
-        self._resolve = lambda n: resolve(n, namespace)
+        self._resolve = lambda n: resolve(n, namespace, name)
         self.log = logging.getLogger(f"polarstripe.node.{name}")
         self.counters: dict[str, int] = {
             "published": 0,

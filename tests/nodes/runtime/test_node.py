@@ -50,10 +50,10 @@ def test_talker_timer_publishes_through_the_codec_and_stops_after_count():
 def test_services_and_loop_style_node():
     talker = NodeHarness(Talker)
     talker.advance(0.35)
-    assert talker.call("talker/reset", Empty()).detail == "reset from 3"
+    assert talker.call("~/reset", Empty()).detail == "reset from 3"
     listener = NodeHarness(Listener, params={"count": 2})
     listener.deliver("chatter", Log(level="INFO", node="t", text="a"))
-    reply = listener.call("listener/count", Empty())
+    reply = listener.call("~/count", Empty())
     assert type(reply) is Ack and reply.ok and reply.detail == "1"
     listener.feed(
         [
