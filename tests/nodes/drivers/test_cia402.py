@@ -89,7 +89,7 @@ def test_connect_configures_the_drive(stage):
     assert sdo[0x6060].raw == 1  # profile position
     assert sdo[0x607D][1].raw == -90_000 and sdo[0x607D][2].raw == 90_000
     assert sdo[0x6081].raw == 720_000
-    assert sdo[0x1017].raw == 50
+    assert sdo[0x1017].raw == 100
 
 
 def test_position_is_in_counts_per_degree(stage):
