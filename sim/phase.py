@@ -41,8 +41,8 @@ def tthg_parameters(mean_cosine: float) -> tuple[float, float, float]:
     def gb_of(gf):
         return -0.30614 + 1.0006 * gf - 0.01826 * gf ** 2 + 0.03644 * gf ** 3
 
-    lo = brentq(gb_of, 0.2, 0.5)  # g_F where g_B = 0 (isotropic end)
-    if g <= 0.0:
+    lo = brentq(gb_of, 0.2, 0.5, xtol=1e-15)  # g_F where g_B = 0 (isotropic end)
+    if g <= 1e-12:                             # isotropic to within 1e-12
         return lo, 0.0, 0.0
     g = min(g, _G_MAX)
 
@@ -50,7 +50,10 @@ def tthg_parameters(mean_cosine: float) -> tuple[float, float, float]:
         gb = gb_of(gf)
         return gf * gb / (1.0 + gb - gf) - g
 
-    gf = brentq(mean, lo, _G_MAX, xtol=1e-15, rtol=1e-15, maxiter=200)
+    a = lo
+    while mean(a) >= 0:                        # step off the root of g_B (round-off at tiny g)
+        a += 1e-12
+    gf = brentq(mean, a, _G_MAX, xtol=1e-15, rtol=1e-15, maxiter=200)
     gb = gb_of(gf)
     alpha = gb * (1.0 + gb) / ((gf + gb) * (1.0 + gb - gf))
     return gf, gb, alpha

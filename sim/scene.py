@@ -190,7 +190,7 @@ class Camera(_Part):
     full_well_e: float = 50000.0
     read_noise_e: float = 12.0
     dark_current_e_s: float = 1.0
-    gain_e_per_dn: float = 12.5
+    gain_e_per_dn: float = 12.0
     bits: int = 12
     offset_dn: float = 64.0
     aperture_m: float = 0.005

@@ -127,11 +127,11 @@ def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization):
         d0 = np.sqrt(u0 * u0 + h2)
         if src.inside:
             s0 = np.where(u0 >= 0, d0 + u0, h2 / np.maximum(d0 - u0, 1e-300))   # d_LY + u at x0, stable
-            q = s0 + _TRUNC / st
+            q = s0 + min(_TRUNC / st, 1e100)
             x_tr = xc + (q * q - h2) / (2.0 * q)
         else:
             y0 = c + x0[:, None] * d if c.ndim == 2 else c[None] + x0[:, None] * d
-            x_tr = x0 + _light_path(src, y0, d0) + _TRUNC / st
+            x_tr = x0 + _light_path(src, y0, d0) + min(_TRUNC / st, 1e100)
         x1 = np.minimum(x1, np.maximum(x_tr, x0))
     u0, u1 = x0 - xc, x1 - xc
     # node positions: θ form when the interval straddles the source's foot, φ form on one side
