@@ -122,12 +122,14 @@ class Cia402Stage(RotationStage):
             )
             self._watchdog.start()
             self._enable(connect_timeout_s)
+            # a drive found in FAULT was just reset by the enable walk (transition 15): say what it was
+            with self._fault_lock:
+                self.startup_faults, self._faults = list(self._faults), []
         except BaseException:
             self._close()
             raise
 
-    # -- setup
-    # ------------------------------------------------------------------------------------------------
+    # -- setup --------------------------------------------------------------------------------------------
     def _configure(self, heartbeat_ms: int, speed_deg_s: float | None) -> None:
         sdo = self.node.sdo
         try:
@@ -173,8 +175,7 @@ class Cia402Stage(RotationStage):
                 self._controlword(cia.TRANSITIONS[number][2])
             self._wait_pdo(until=lambda s=state: self.drive_state is not s, timeout=0.2)
 
-    # -- callbacks (canopen's notifier thread)
-    # ----------------------------------------------------------------
+    # -- callbacks (canopen's notifier thread) ------------------------------------------------------------
     def _on_tpdo(self, pdo_map) -> None:
         sw = pdo_map["Statusword"].raw
         with self._lock:
@@ -230,8 +231,7 @@ class Cia402Stage(RotationStage):
             if now - self._pdo_at > self.pdo_timeout_s:
                 self._latch_fault(f"no TPDO1 from node {self.node.id} for more than {self.pdo_timeout_s:g} s")
 
-    # -- sending
-    # ----------------------------------------------------------------------------------------------
+    # -- sending ------------------------------------------------------------------------------------------
     def _send(self, action, what: str) -> None:
         try:
             action()
@@ -259,8 +259,7 @@ class Cia402Stage(RotationStage):
             time.sleep(0.002)
         return False
 
-    # -- RotationStage
-    # ----------------------------------------------------------------------------------------
+    # -- RotationStage ------------------------------------------------------------------------------------
     @property
     def drive_state(self) -> State | None:
         """The drive's CiA 402 state from the last statusword, or None before the first TPDO."""

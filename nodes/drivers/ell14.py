@@ -110,8 +110,7 @@ class Ell14Stage(RotationStage):
             "pulses_per_rev": int(body[22:30], 16),
         }
 
-    # -- the wire
-    # ---------------------------------------------------------------------------------------------
+    # -- the wire -----------------------------------------------------------------------------------------
     def request(self, cmd: str, data: str = "", timeout_s: float | None = None) -> str:
         """Send ``<addr><cmd><data>`` and return the reply line (without CR LF); retries while busy.
 
@@ -152,8 +151,7 @@ class Ell14Stage(RotationStage):
         except serial.SerialException as exc:
             raise DriverError(f"{self.name}: serial port failed: {exc}") from exc
 
-    # -- RotationStage
-    # ----------------------------------------------------------------------------------------
+    # -- RotationStage ------------------------------------------------------------------------------------
     def _pulses_to_deg(self, pulses: int, near_deg: float) -> float:
         deg = pulses * 360.0 / self.pulses_per_rev
         return near_deg + ((deg - near_deg + 180.0) % 360.0 - 180.0)

@@ -155,8 +155,7 @@ class SimCia402Drive:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    # -- fault injection
-    # --------------------------------------------------------------------------------------
+    # -- fault injection ----------------------------------------------------------------------------------
     def inject_emcy(self, code: int = 0x8611, register: int = 0x01) -> None:
         """Enter FAULT (transitions 13, 14) and send EMCY ``code`` (default 0x8611, following error)."""
         with self._lock:
@@ -210,8 +209,7 @@ class SimCia402Drive:
             store = self.node.data_store.setdefault(0x607D, {})
             store[1], store[2] = struct.pack("<i", min_counts), struct.pack("<i", max_counts)
 
-    # -- CANopen callbacks
-    # ------------------------------------------------------------------------------------
+    # -- CANopen callbacks --------------------------------------------------------------------------------
     def _on_rpdo(self, pdo_map) -> None:
         # A LocalNode does not store RPDO data itself.
         self.node.data_store.setdefault(0x607A, {})[0] = struct.pack("<i", pdo_map["Target position"].raw)
@@ -277,8 +275,7 @@ class SimCia402Drive:
                 self._flags &= ~SW_SETPOINT_ACK
             self._send_tpdo()
 
-    # -- the motion model and the periodic TPDO
-    # ---------------------------------------------------------------
+    # -- the motion model and the periodic TPDO -----------------------------------------------------------
     def _step(self, dt: float) -> None:
         if self._target is None or self.state is not State.OPERATION_ENABLED:
             return

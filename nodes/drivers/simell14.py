@@ -44,8 +44,7 @@ class SimEll14(PtyDevice):
         self._buf = b""
         self.info = f"{address}IN0E{serial_number}20231400{0x168:04X}{ELL14_PULSES_PER_REV:08X}"
 
-    # -- injection
-    # --------------------------------------------------------------------------------------------
+    # -- injection ----------------------------------------------------------------------------------------
     def inject_busy(self, count: int) -> None:
         """Answer the next ``count`` commands with ``GS09`` (busy)."""
         self._busy_left = count
@@ -59,8 +58,7 @@ class SimEll14(PtyDevice):
         """Stop answering (a cut cable, a device without power)."""
         self._silent = on
 
-    # -- the device
-    # -------------------------------------------------------------------------------------------
+    # -- the device ---------------------------------------------------------------------------------------
     def feed(self, data: bytes) -> None:
         self._buf += data
         while True:

@@ -37,8 +37,7 @@ class RotationStage(ABC):
         self._target_deg: float | None = None
         self._closed = False
 
-    # -- the public interface
-    # ---------------------------------------------------------------------------------
+    # -- the public interface -----------------------------------------------------------------------------
     def move_to(self, angle_deg: float) -> None:
         """Start a move to ``angle_deg`` [deg] and return once the device accepted it.
 
@@ -138,8 +137,7 @@ class RotationStage(ABC):
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # -- for backends
-    # ------------------------------------------------------------------------------------------
+    # -- for backends -------------------------------------------------------------------------------------
     def _latch_fault(self, text: str) -> None:
         with self._fault_lock:
             if text not in self._faults:

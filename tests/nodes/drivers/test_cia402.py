@@ -193,3 +193,10 @@ def test_an_absent_drive_is_a_clear_error(drive_process):
     with pytest.raises(DriverError, match=r"CiA 402 node 9 .*SDO"):
         Cia402Stage(drive_process.channel, 9, sdo_timeout_s=0.2)
     assert time.monotonic() - start < 2.0
+
+
+def test_a_drive_found_in_fault_is_reset_on_connect_and_says_so(drive_process):
+    drive_process.cmd("emcy 0x2310")
+    with Cia402Stage(drive_process.channel, counts_per_deg=1000, min_deg=-90, max_deg=90) as stage:
+        assert stage.fault is None and stage.drive_state is cia.State.OPERATION_ENABLED
+        assert any("FAULT" in text for text in stage.startup_faults)
