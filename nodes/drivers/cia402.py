@@ -299,6 +299,8 @@ class Cia402Stage(RotationStage):
             )
 
     def _reset(self) -> None:
+        if self.network.bus is not None and self.network.bus.state is can.BusState.ERROR:
+            raise StageFault(f"{self.name}: cannot reset, the CAN bus is still off (no restart seen)")
         if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
             # give a recovering drive one heartbeat period to show up
             self._wait_pdo(

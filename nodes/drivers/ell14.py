@@ -169,9 +169,9 @@ class Ell14Stage(RotationStage):
         )
         self._mover.start()
 
-    def _move(self, cmd: str, data: str, target_deg: float) -> None:
+    def _move(self, cmd: str, data: str, target_deg: float, timeout_s: float | None = None) -> None:
         try:
-            reply = self.request(cmd, data, timeout_s=self.move_timeout_s)
+            reply = self.request(cmd, data, timeout_s=timeout_s or self.move_timeout_s)
             if reply[1:3] != "PO":
                 raise DeviceError(f"{self.name}: move answered {reply!r}, expected a PO position")
             self._pos_deg = self._pulses_to_deg(decode_s32(reply[3:11]), target_deg)
@@ -208,7 +208,7 @@ class Ell14Stage(RotationStage):
             self._mover.join(self.move_timeout_s + self.busy_timeout_s)
         self._target_deg = 0.0
         self._moving = True
-        self._move("ho", "0", 0.0)
+        self._move("ho", "0", 0.0, timeout_s=timeout)
         self._raise_if_faulted()
 
     def _close(self) -> None:

@@ -6,11 +6,15 @@ answers ``GS09`` (busy) to anything that arrives while it moves. Injectable: :me
 commands get ``GS09``, as after power-up), :meth:`inject_move_error` (the next move ends in ``GSxx``),
 :meth:`inject_silence`. Not modelled: velocity, jog and motor-tuning commands beyond ``gj``/``sj``, address
 changes, user data.
+
+As a process, for a manual run of a driver: ``python -m polarstripe.nodes.drivers.simell14`` prints the pty
+path to open and serves it until Ctrl-C.
 """
 
 from __future__ import annotations
 
 import re
+import signal
 import threading
 import time
 
@@ -127,3 +131,17 @@ class SimEll14(PtyDevice):
         body = f"GS{error:02X}" if error is not None else f"PO{encode_s32(self.position)}"
         if not self._silent:
             self.reply(f"{self.address}{body}\r\n".encode())
+
+
+def main() -> int:
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with SimEll14() as device:
+        print(device.port, flush=True)
+        stop.wait()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
