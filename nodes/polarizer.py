@@ -1,0 +1,371 @@
+"""The polarizer node: turns the analyzer with a :class:`~polarstripe.nodes.drivers.stage.RotationStage` and
+says where it is.
+
+Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can: ``interface``/``channel``,
+``zmq`` + ``ipc://…`` in simulation, ``socketcan`` + ``can0`` on a rig), ``ell14`` (Thorlabs ELL14 on serial
+``port``) and ``sim`` (an in-process motion model).
+
+* subscribes ``polarizer/cmd`` (:class:`PolarizerCommand`): move to ``target_deg``;
+* publishes ``polarizer/state`` (:class:`PolarizerState`) every ``1/rate_hz`` s and as soon as anything
+  changes (checked every ``poll_s``). While any fault stands, ``angle_deg`` is NaN and ``settled`` False: a
+  fault is published, never a wrong angle. Faults: the stage's own (EMCY, lost heartbeat, bus error frames and
+  bus-off, a failed send, the drive's limit), a target not reached within ``settle_timeout_s``, a rejected
+  command, a stage that cannot be opened (retried every ``connect_retry_s``);
+* recovers with the drive's fault-reset sequence: automatically (at most ``auto_resets`` tries, refilled by
+  every new command and every settle at the target), then re-commands the last target; and on request
+  (``polarizer/reset``, or a new command while faulted);
+* serves ``polarizer/calibrate`` (:class:`CalibrateRequest` → :class:`Calibration`): turns through analyzer
+  angles, has the grabber take a frame at each (``camera/trigger`` then the matching ``camera/frame``) and
+  fits Malus's law over a region (:func:`polarstripe.imaging.polarization.least_backscatter_angle`) for the
+  angle of least backscatter, E_b. Calibration frames carry negative scan ids (-1, -2, …).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import field
+from typing import Literal
+
+import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.msgs import (
+    Ack,
+    Empty,
+    Frame,
+    FrameRequest,
+    Message,
+    PolarizerCommand,
+    PolarizerState,
+    message,
+)
+from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.params import NodeParams
+
+
+@message("polarizer_calibrate_request")
+class CalibrateRequest(Message):
+    """Find E_b: ``angles_deg`` to sample (empty: the node's ``calibrate_angles_deg``), the object-free
+    ``roi`` (row0, row1, col0, col1; empty: the node's ``calibrate_roi``, or the whole frame), and whether to
+    turn the analyzer to the result afterwards."""
+
+    angles_deg: list[float] = field(default_factory=list)
+    roi: list[int] = field(default_factory=list)
+    apply: bool = True
+
+
+@message("polarizer_calibration")
+class Calibration(Message):
+    """The analyzer angle of least backscatter ``angle_deg`` [deg, within the stage's limits] or why not; the
+    measured angles and the region's mean [DN, offset subtracted] at each."""
+
+    ok: bool
+    angle_deg: float | None = None
+    detail: str = ""
+    angles_deg: list[float] = field(default_factory=list)
+    means_dn: list[float] = field(default_factory=list)
+
+
+class Polarizer(Node):
+    """The analyzer's rotation stage as a node (see the module docstring)."""
+
+    class Params(NodeParams):
+        backend: Literal["cia402", "ell14", "sim"] = "sim"
+        interface: str = "socketcan"  # python-can interface (cia402)
+        channel: str = "can0"  # python-can channel (cia402)
+        node_id: int = 5  # CANopen node id (cia402)
+        counts_per_deg: float = 1000.0  # encoder counts per analyzer degree (cia402)
+        heartbeat_timeout_s: float = 0.3  # CANopen consumer heartbeat timeout (cia402)
+        port: str = "/dev/ttyUSB0"  # serial port (ell14)
+        address: str = "0"  # device address on the line (ell14)
+        min_deg: float = -360.0
+        max_deg: float = 360.0
+        speed_deg_s: float = 180.0
+        start_deg: float | None = None  # move here once connected
+        rate_hz: float = 10.0  # steady publishing rate of polarizer/state
+        poll_s: float = 0.01  # how often a change is looked for
+        settle_timeout_s: float = 5.0
+        auto_resets: int = 3
+        reset_delay_s: float = 0.2  # wait before an automatic fault reset
+        connect_retry_s: float = 1.0
+        calibrate_angles_deg: list[float] = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0]
+        calibrate_roi: list[int] = []  # object-free region (row0, row1, col0, col1); empty: whole frame
+        calibrate_pattern: str = "flood"
+        frame_timeout_s: float = 5.0
+        dark_offset_dn: float = 0.0
+        saturation_dn: float | None = None  # None: 2**bit_depth - 1 of the frames
+
+        def validate(self):
+            super().validate()
+            if not self.min_deg < self.max_deg:
+                raise ValueError(f"min_deg={self.min_deg} must be below max_deg={self.max_deg}")
+            for key in ("rate_hz", "poll_s", "settle_timeout_s", "connect_retry_s", "frame_timeout_s"):
+                if not getattr(self, key) > 0:
+                    raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
+            if self.auto_resets < 0 or self.reset_delay_s < 0:
+                raise ValueError("auto_resets and reset_delay_s must be >= 0")
+            if self.calibrate_roi and len(self.calibrate_roi) != 4:
+                raise ValueError(f"calibrate_roi must be [row0, row1, col0, col1], got {self.calibrate_roi}")
+
+    PUBLISHES = {"polarizer/state": PolarizerState}
+    SUBSCRIBES = {"polarizer/cmd": PolarizerCommand, "camera/frame": Frame}
+    SERVES = {"polarizer/calibrate": (CalibrateRequest, Calibration), "polarizer/reset": (Empty, Ack)}
+
+    # ---- wiring ----------------------------------------------------------------------------------------
+    def setup(self):
+        self.stage = None
+        self.target_deg: float | None = None  # the last commanded target
+        self.least_backscatter_deg: float | None = None
+        self._connect_error = "not connected yet"
+        self._next_connect = -math.inf
+        self._node_fault = ""  # faults the node finds itself (settle timeout, rejected command)
+        self._node_fault_resettable = False
+        self._move_started: float | None = None
+        self._resets_left = self.params.auto_resets
+        self._next_reset: float | None = None
+        self._last_key = None
+        self._last_pub = -math.inf
+        self._calibrations = 0
+        self._trigger = None
+        for key in ("moves", "faults", "auto_resets", "resets_failed", "connects_failed"):
+            self.counters[key] = 0
+        self.state_pub = self.publisher("polarizer/state")
+        self.subscribe("polarizer/cmd", self.on_command, mode="all")
+        self.subscribe("camera/frame", mode="latest")  # only read by calibrate (wait_for)
+        self.serve("polarizer/calibrate", self.calibrate)
+        self.serve("polarizer/reset", self.on_reset)
+        self.every(self.params.poll_s, self.poll)
+        self._connect()
+        self.poll()
+
+    def teardown(self):
+        if self.stage is not None:
+            self.stage.close()
+            self.stage = None
+
+    def _open_stage(self):
+        from polarstripe.nodes.drivers.registry import open_backend
+
+        p = self.params
+        limits = {"min_deg": p.min_deg, "max_deg": p.max_deg}
+        if p.backend == "cia402":
+            return open_backend("stage", "cia402", channel=p.channel, node_id=p.node_id,
+                                interface=p.interface, counts_per_deg=p.counts_per_deg,
+                                speed_deg_s=p.speed_deg_s, heartbeat_timeout_s=p.heartbeat_timeout_s,
+                                **limits)
+        if p.backend == "ell14":
+            return open_backend("stage", "ell14", port=p.port, address=p.address, **limits)
+        return open_backend("stage", "sim", deg_per_s=p.speed_deg_s, **limits)
+
+    def _connect(self) -> None:
+        self._next_connect = self._bus.now() + self.params.connect_retry_s
+        try:
+            self.stage = self._open_stage()
+        except Exception as exc:  # any backend or bus failure: a published fault, retried
+            self.counters["connects_failed"] += 1
+            text = f"{self.params.backend} stage not connected: {type(exc).__name__}: {exc}"
+            if text != self._connect_error:
+                self.log.error("%s (retrying every %g s)", text, self.params.connect_retry_s)
+            self._connect_error = text
+            return
+        self._connect_error = ""
+        self.log.info("connected: %s", self.stage.name)
+        start = self.target_deg if self.target_deg is not None else self.params.start_deg
+        if start is not None:
+            self._move(start)
+
+    # ---- commands ------------------------------------------------------------------------------------------
+    def on_command(self, msg: PolarizerCommand) -> None:
+        self._resets_left = self.params.auto_resets
+        if self.stage is not None and self._fault_text():
+            self._reset("command while faulted")
+        self._move(msg.target_deg)
+
+    def on_reset(self, request: Empty) -> Ack:
+        self._resets_left = self.params.auto_resets
+        if self.stage is None:
+            return Ack(ok=False, detail=self._connect_error)
+        ok = self._reset("requested")
+        if ok and self.target_deg is not None:
+            self._move(self.target_deg)
+        self.poll()
+        return Ack(ok=ok and not self._fault_text(), detail=self._fault_text() or "fault cleared")
+
+    def _move(self, angle_deg: float) -> None:
+        from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
+
+        self.target_deg = float(angle_deg)
+        self._node_fault, self._node_fault_resettable = "", False
+        if self.stage is None:
+            return  # moved there once connected
+        try:
+            self.stage.move_to(angle_deg)
+        except DriverValueError as exc:
+            self._set_node_fault(f"command rejected: {exc}", resettable=False)
+            return
+        except DriverError as exc:  # the stage latched it (send failure, fault)
+            self.log.warning("move to %g° failed: %s", angle_deg, exc)
+            return
+        self.counters["moves"] += 1
+        self._move_started = self._bus.now()
+
+    def _set_node_fault(self, text: str, *, resettable: bool) -> None:
+        self._node_fault, self._node_fault_resettable = text, resettable
+        self.log.error("%s", text)
+
+    # ---- faults and recovery -------------------------------------------------------------------------
+    def _fault_text(self) -> str:
+        if self.stage is None:
+            return self._connect_error
+        parts = [t for t in (self.stage.fault, self._node_fault) if t]
+        return "; ".join(parts)
+
+    def _reset(self, why: str) -> bool:
+        """The drive's fault-reset sequence; True if the stage came back without a fault."""
+        from polarstripe.nodes.drivers.errors import DriverError
+
+        try:
+            self.stage.reset_fault()
+        except DriverError as exc:
+            self.counters["resets_failed"] += 1
+            self.log.warning("fault reset (%s) failed: %s", why, exc)
+            return False
+        if self._node_fault_resettable:
+            self._node_fault, self._node_fault_resettable = "", False
+        self._move_started = None
+        self.log.info("fault reset (%s) done", why)
+        return True
+
+    def _recover(self, now: float) -> None:
+        """Automatic recovery: a bounded number of fault resets, each followed by the last command again."""
+        if self._next_reset is None:
+            self._next_reset = now + self.params.reset_delay_s
+            return
+        if now < self._next_reset or self._resets_left <= 0:
+            return
+        if self._node_fault and not self._node_fault_resettable:
+            return  # a rejected command waits for a good one
+        self._resets_left -= 1
+        self.counters["auto_resets"] += 1
+        self._next_reset = now + self.params.reset_delay_s
+        if self._reset(f"automatic, {self._resets_left} left") and self.target_deg is not None:
+            self._move(self.target_deg)
+        if self._resets_left == 0 and self._fault_text():
+            self.log.error("giving up automatic fault resets; send a command or call polarizer/reset")
+
+    # ---- the state -----------------------------------------------------------------------------------------
+    def poll(self) -> None:
+        now = self._bus.now()
+        if self.stage is None and now >= self._next_connect:
+            self._connect()
+        stage = self.stage
+        if stage is not None and self._move_started is not None and not self._node_fault and not stage.fault:
+            if stage.settled:
+                self._move_started = None
+                self._resets_left = self.params.auto_resets
+            elif now - self._move_started > self.params.settle_timeout_s:
+                self._move_started = None
+                reading = stage.angle
+                self._set_node_fault(
+                    f"target {self.target_deg:g}° not reached within {self.params.settle_timeout_s:g} s "
+                    f"(last reading {'none' if reading is None else f'{reading:.3f}°'})", resettable=True)
+        fault = self._fault_text()
+        if fault and stage is not None:
+            self._recover(now)
+            fault = self._fault_text()
+        elif not fault:
+            self._next_reset = None
+        state = self.state()
+        key = (None if math.isnan(state.angle_deg) else round(state.angle_deg, 3), state.target_deg,
+               state.settled, state.fault)
+        if key != self._last_key or now - self._last_pub >= 1.0 / self.params.rate_hz:
+            if state.fault and (self._last_key is None or state.fault != self._last_key[3]):
+                self.counters["faults"] += 1
+            self.state_pub.publish(state)
+            self._last_key, self._last_pub = key, now
+
+    def state(self) -> PolarizerState:
+        """The state as it stands: NaN angle and not settled whenever a fault stands."""
+        fault = self._fault_text()
+        stage = self.stage
+        angle = None if fault or stage is None else stage.angle
+        target = self.target_deg if self.target_deg is not None else (stage.target if stage else None)
+        settled = bool(not fault and stage is not None and stage.settled and angle is not None
+                       and (self.target_deg is None
+                            or (stage.target is not None and abs(stage.target - self.target_deg) < 1e-9)))
+        nan = float("nan")
+        return PolarizerState(angle_deg=nan if angle is None else float(angle),
+                              target_deg=nan if target is None else float(target), settled=settled,
+                              fault=fault)
+
+    # ---- calibration ---------------------------------------------------------------------------------------
+    def in_range(self, angle_deg: float) -> float:
+        """The analyzer angle equivalent to ``angle_deg`` (modulo 180°) within the limits, nearest the
+        present target."""
+        here = self.target_deg if self.target_deg is not None else 0.0
+        options = [angle_deg + 180.0 * k for k in range(-8, 9)]
+        inside = [a for a in options if self.params.min_deg <= a <= self.params.max_deg]
+        if not inside:
+            raise PolarstripeError(f"node {self.name!r}: no angle equivalent to {angle_deg:g}° lies within "
+                                   f"[{self.params.min_deg:g}, {self.params.max_deg:g}]")
+        return min(inside, key=lambda a: abs(a - here))
+
+    def _wait_settled(self, timeout_s: float) -> float:
+        """Block (publishing the state) until settled at the target; the measured angle [deg]."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.poll()
+            fault = self._fault_text()
+            if fault:
+                raise PolarstripeError(f"stage fault: {fault}")
+            state = self.state()
+            if state.settled:
+                return state.angle_deg
+            if time.monotonic() > deadline:
+                raise PolarstripeError(f"target {self.target_deg:g}° not reached within {timeout_s:g} s")
+            time.sleep(min(self.params.poll_s, 0.01))
+
+    def calibrate(self, request: CalibrateRequest) -> Calibration:
+        from polarstripe.imaging.polarization import least_backscatter_angle
+        from polarstripe.imaging.validation import roi_slices
+        from polarstripe.nodes.runtime.bus import BusError
+
+        p = self.params
+        angles = list(request.angles_deg) or list(p.calibrate_angles_deg)
+        roi = list(request.roi) or list(p.calibrate_roi) or None
+        if self.stage is None:
+            return Calibration(ok=False, detail=self._connect_error)
+        self._calibrations += 1
+        scan_id = -self._calibrations
+        measured, frames = [], []
+        try:
+            if self._trigger is None:
+                self._trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.frame_timeout_s)
+            for step, angle in enumerate(angles):
+                self._move(self.in_range(angle))
+                measured.append(self._wait_settled(p.settle_timeout_s))
+                ask = FrameRequest(scan_id=scan_id, step=step, pattern=p.calibrate_pattern)
+                reply = self._trigger.call(ask)
+                if not reply.ok:
+                    raise PolarstripeError(f"camera/trigger refused step {step}: {reply.detail}")
+                frame = self.wait_for("camera/frame", lambda m, s=step: m.scan_id == scan_id and m.step == s,
+                                      timeout_s=p.frame_timeout_s)
+                frames.append(np.asarray(frame.image))
+            sat = p.saturation_dn if p.saturation_dn is not None else float((1 << frame.bit_depth) - 1)
+            best = least_backscatter_angle(measured, frames, roi, dark_offset=p.dark_offset_dn,
+                                           saturation=sat)
+            best = self.in_range(best)
+            index = roi_slices("roi", roi, frames[0].shape)
+            means = [float(np.mean(f[index])) - p.dark_offset_dn for f in frames]
+        except (PolarstripeError, BusError, TimeoutError) as exc:
+            self.log.error("calibration failed: %s", exc)
+            return Calibration(ok=False, detail=f"calibration failed: {exc}", angles_deg=measured)
+        self.least_backscatter_deg = best
+        if request.apply:
+            self._move(best)
+        self.log.info("least backscatter at %.2f° (from %d angles)", best, len(measured))
+        return Calibration(ok=True, angle_deg=best, detail=f"E_b at {best:.2f}°, E_w at {best + 90.0:.2f}°",
+                           angles_deg=measured, means_dn=means)
+
+
+NODE = Polarizer

@@ -1,0 +1,249 @@
+"""The polarizer node against the simulated CiA 402 drive in another process (over the ZeroMQ CAN bus), and
+its calibration against frames that follow Malus's law.
+
+The node runs in the harness (virtual clock for its timers) while the drive runs in real time, so the tests
+advance both together. Every fault must appear as a published fault with no angle, and nothing may hang.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import pytest
+from polarstripe.msgs import Ack, Empty, Frame, PolarizerCommand
+from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
+from polarstripe.nodes.polarizer import CalibrateRequest, Polarizer
+from polarstripe.nodes.runtime.testing import NodeHarness
+
+
+class Drive:
+    """``python -m polarstripe.nodes.drivers.simdrive`` in another process; fault commands on its stdin."""
+
+    def __init__(self, channel: str):
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "polarstripe.nodes.drivers.simdrive", "--channel", channel,
+             "--node-id", "5"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout.readline().strip() == "ready"
+
+    def cmd(self, text: str) -> None:
+        self.proc.stdin.write(text + "\n")
+        self.proc.stdin.flush()
+        assert self.proc.stdout.readline().strip() == f"ok {text}"
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.write("quit\n")
+            self.proc.stdin.flush()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture
+def drive():
+    folder = tempfile.mkdtemp(prefix="ps-pol-", dir="/tmp")
+    channel = f"ipc://{folder}/bus"
+    with ZmqCanHub(channel):
+        d = Drive(channel)
+        d.channel = channel
+        yield d
+        d.close()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def _node(drive, **params):
+    base = {"backend": "cia402", "interface": "zmq", "channel": drive.channel, "min_deg": -90.0,
+            "max_deg": 90.0, "speed_deg_s": 720.0, "rate_hz": 5.0, "settle_timeout_s": 1.0}
+    return NodeHarness(Polarizer, name="polarizer", namespace="/rig", params={**base, **params})
+
+
+def _run_until(h, predicate, timeout_s=3.0, step_s=0.01):
+    """Advance the harness clock in step with real time until a newly published state satisfies
+    ``predicate``; return that state (or None after the timeout)."""
+    seen = len(h.published("polarizer/state"))
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        time.sleep(step_s)
+        h.advance(step_s)
+        states = h.published("polarizer/state")
+        for s in states[seen:]:
+            if predicate(s):
+                return s
+        seen = len(states)
+    return None
+
+
+def _settled_at(target):
+    return lambda s: s.settled and not s.fault and abs(s.angle_deg - target) < 0.02
+
+
+def test_move_publishes_angle_target_and_settled(drive):
+    h = _node(drive)
+    try:
+        first = h.published("polarizer/state")[0]  # published on start-up
+        assert first.fault == "" and abs(first.angle_deg) < 0.02
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=30.0))
+        moving = _run_until(h, lambda s: s.target_deg == 30.0 and not s.settled, 1.0)
+        assert moving is not None
+        done = _run_until(h, _settled_at(30.0))
+        assert done is not None and done.target_deg == 30.0
+        # the steady rate: with nothing changing, a state every 1/rate_hz = 0.2 s of node time
+        n = len(h.published("polarizer/state"))
+        h.advance(1.0)
+        assert 4 <= len(h.published("polarizer/state")) - n <= 6
+    finally:
+        h.stop()
+
+
+def test_emcy_is_a_fault_without_angle_and_reset_service_recovers(drive):
+    h = _node(drive, auto_resets=0)
+    try:
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=-20.0))
+        assert _run_until(h, _settled_at(-20.0)) is not None
+        drive.cmd("emcy 0x8611")
+        fault = _run_until(h, lambda s: "EMCY 0x8611" in s.fault)
+        assert fault is not None and math.isnan(fault.angle_deg) and not fault.settled
+        # no automatic reset: the fault stands
+        assert _run_until(h, lambda s: not s.fault, 0.5) is None
+        reply = h.call("polarizer/reset", Empty())
+        assert isinstance(reply, Ack) and reply.ok, reply.detail
+        assert _run_until(h, _settled_at(-20.0)) is not None
+        assert h.node.counters["faults"] >= 1
+    finally:
+        h.stop()
+
+
+def test_automatic_fault_reset_returns_to_the_commanded_target(drive):
+    h = _node(drive, auto_resets=2, reset_delay_s=0.1)
+    try:
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=45.0))
+        assert _run_until(h, _settled_at(45.0)) is not None
+        drive.cmd("emcy 0x5530")
+        assert _run_until(h, lambda s: "EMCY 0x5530" in s.fault) is not None
+        assert _run_until(h, _settled_at(45.0)) is not None
+        assert h.node.counters["auto_resets"] >= 1
+    finally:
+        h.stop()
+
+
+def test_lost_heartbeat_is_a_fault_and_recovers_when_it_returns(drive):
+    h = _node(drive, auto_resets=3, reset_delay_s=0.2)
+    try:
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=10.0))
+        assert _run_until(h, _settled_at(10.0)) is not None
+        drive.cmd("heartbeat_stop 0.8")
+        lost = _run_until(h, lambda s: "heartbeat" in s.fault)
+        assert lost is not None and math.isnan(lost.angle_deg)
+        assert _run_until(h, _settled_at(10.0), 5.0) is not None
+    finally:
+        h.stop()
+
+
+def test_bus_off_is_a_fault_until_the_bus_restarts(drive):
+    h = _node(drive, auto_resets=0)
+    try:
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=5.0))
+        assert _run_until(h, _settled_at(5.0)) is not None
+        drive.cmd("bus_off 1.0")
+        off = _run_until(h, lambda s: "bus-off" in s.fault)
+        assert off is not None and math.isnan(off.angle_deg)
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=25.0))  # its reset and move fail while bus-off
+        during = h.node.state()
+        assert "bus-off" in during.fault and during.target_deg == 25.0 and math.isnan(during.angle_deg)
+        time.sleep(1.0)
+        assert h.call("polarizer/reset", Empty()).ok
+        assert _run_until(h, _settled_at(25.0)) is not None
+    finally:
+        h.stop()
+
+
+def test_never_settling_stage_is_a_clear_fault_after_the_timeout(drive):
+    h = _node(drive, auto_resets=0, settle_timeout_s=0.5)
+    try:
+        drive.cmd("never_settle on")
+        t0 = time.monotonic()
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=15.0))
+        fault = _run_until(h, lambda s: "not reached within 0.5 s" in s.fault, 3.0)
+        assert fault is not None and math.isnan(fault.angle_deg) and not fault.settled
+        assert time.monotonic() - t0 < 2.0
+        drive.cmd("never_settle off")
+        assert h.call("polarizer/reset", Empty()).ok
+        assert _run_until(h, _settled_at(15.0)) is not None
+    finally:
+        h.stop()
+
+
+def test_target_beyond_the_limits_is_rejected_as_a_fault():
+    h = NodeHarness(Polarizer, params={"backend": "sim", "min_deg": -90.0, "max_deg": 90.0})
+    h.deliver("polarizer/cmd", PolarizerCommand(target_deg=120.0))
+    state = h.node.state()
+    assert "command rejected" in state.fault and "120" in state.fault and math.isnan(state.angle_deg)
+    h.deliver("polarizer/cmd", PolarizerCommand(target_deg=5.0))
+    assert h.node.state().fault == ""
+    h.stop()
+
+
+def test_absent_drive_is_a_fault_not_a_hang():
+    folder = tempfile.mkdtemp(prefix="ps-pol-", dir="/tmp")
+    try:
+        t0 = time.monotonic()
+        h = NodeHarness(Polarizer, params={"backend": "cia402", "interface": "zmq",
+                                           "channel": f"ipc://{folder}/bus", "connect_retry_s": 0.5})
+        assert time.monotonic() - t0 < 5.0
+        state = h.published("polarizer/state")[-1]
+        assert "not connected" in state.fault and math.isnan(state.angle_deg)
+        reply = h.call("polarizer/calibrate", CalibrateRequest())
+        assert not reply.ok and "not connected" in reply.detail
+        h.stop()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_calibrate_finds_the_angle_of_least_backscatter():
+    """Backscatter polarized at chi = 20 deg with DOP 0.7 over an object-free region, plus an unpolarized
+    object elsewhere: Malus's law gives the least light at chi + 90 = 110 deg, i.e. -70 deg in [-90, 90]."""
+    chi, dop, b = 20.0, 0.7, 1000.0
+    h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
+                    params={"backend": "sim", "min_deg": -90.0, "max_deg": 90.0, "speed_deg_s": 1e5,
+                            "calibrate_angles_deg": [0.0, 45.0, 90.0, 135.0], "dark_offset_dn": 64.0,
+                            "calibrate_roi": [0, 8, 0, 16]})
+    rng = np.random.default_rng(1)
+
+    def trigger(req):
+        theta = h.node.stage.angle
+        level = 64.0 + 0.5 * b * (1.0 + dop * math.cos(2.0 * math.radians(theta - chi)))
+        img = np.full((16, 16), level) + rng.normal(0.0, 2.0, (16, 16))
+        img[8:, :] = 64.0 + 1500.0  # the object: unpolarized, outside the region
+        h.queue("camera/frame", Frame(image=np.round(img).astype(np.uint16), exposure_s=0.01,
+                                      polarizer_deg=theta, scan_id=req.scan_id, step=req.step))
+        return Ack(ok=True)
+
+    h.on_call("camera/trigger", trigger)
+    reply = h.call("polarizer/calibrate", CalibrateRequest())
+    assert reply.ok, reply.detail
+    assert abs(reply.angle_deg - (-70.0)) < 0.5
+    assert len(reply.angles_deg) == 4 and len(reply.means_dn) == 4
+    # the region's mean follows Malus's law at the measured angles
+    for theta, mean in zip(reply.angles_deg, reply.means_dn, strict=True):
+        assert abs(mean - 0.5 * b * (1 + dop * math.cos(2 * math.radians(theta - chi)))) < 2.0
+    assert h.node.target_deg == pytest.approx(reply.angle_deg)  # apply=True turned the analyzer there
+    h.stop()
+
+
+def test_calibrate_without_frames_fails_cleanly():
+    h = NodeHarness(Polarizer, params={"backend": "sim", "speed_deg_s": 1e5, "frame_timeout_s": 0.2})
+    h.on_call("camera/trigger", lambda req: Ack(ok=True))  # a frame is never published
+    t0 = time.monotonic()
+    reply = h.call("polarizer/calibrate", CalibrateRequest(angles_deg=[0.0, 60.0, 120.0]))
+    assert not reply.ok and "camera/frame" in reply.detail
+    assert time.monotonic() - t0 < 3.0
+    h.stop()
