@@ -36,6 +36,7 @@ BACKENDS: dict[str, dict[str, str]] = {
     "camera": {
         "v4l2": f"{_PKG}.v4l2_camera:V4l2Camera",
         "file": f"{_PKG}.file_camera:FileCamera",
+        "sim": f"{_PKG}.sim_camera:SimCamera",
     },
 }
 
