@@ -1,0 +1,355 @@
+"""The simulator node: projector, camera and polarizer stage of the default tank (or a scene file).
+
+It serves frames rendered by the light-transport model (:mod:`polarstripe.sim.render`) for the pattern asked
+for, at the analyzer angle of its simulated drive's *actual* position (or with no analyzer in the path),
+through the EMVA 1288 sensor; it serves the ground truth the compositor scores against; it hosts a simulated
+CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a python-can bus carried over
+ZeroMQ, which the polarizer node drives with its real CANopen code; and it moves the virtual source when a
+plan arrives (the in-situ loop of the paper's §4).
+
+Services (relative to the namespace):
+
+* ``simulator/render`` (:class:`RenderRequest` → :class:`~polarstripe.msgs.Frame`) — one frame.
+* ``simulator/truth`` (``Empty`` → ``Composite``) — images ``S`` (float64: flood D + A in DN above the dark
+  offset, no analyzer, same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart),
+  ``chart_high`` (bool, bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``.
+* ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m``; the same happens
+  for every ``planner/plan`` message.
+* ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
+
+Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only the
+analyzer and the sensor. With ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels
+wide) the model renders at a lower resolution and the radiance is resized bilinearly to the camera's size
+before the sensor (noise, quantisation and clipping at full size); the ground truth is always full size.
+``noise = "gaussian"`` (the preview default) draws shot and read noise as one normal variate with the EMVA
+mean and variance instead of Poisson + normal.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import OrderedDict
+
+import cv2
+import numpy as np
+from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, message
+from polarstripe.msgs.base import Message
+from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.render import render_components, resolve_fidelity
+from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
+from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn, mean_dn
+
+PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
+
+
+@message("sim_render_request")
+class RenderRequest(Message):
+    """Ask the simulator for one frame of ``pattern`` (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``,
+    ``off``); ``analyzer`` False takes it with no analyzer in the path; ``exposure_s`` None uses the
+    simulator's."""
+
+    pattern: str
+    analyzer: bool = True
+    scan_id: int = 0
+    step: int = 0
+    exposure_s: float | None = None
+
+
+@message("sim_fault")
+class SimFault(Message):
+    """A fault injection command for the simulator, e.g. ``"never_settle on"``, ``"camera_lost on"``."""
+
+    command: str
+
+
+#: command -> what it does (``simulator/fault`` and the ``faults`` param)
+FAULT_COMMANDS = {
+    "never_settle": "on|off: the drive hunts around its target and never reports target reached",
+    "emcy": "[CODE]: the drive faults and sends an EMCY (default 0x8611)",
+    "heartbeat_stop": "[SECONDS]: the drive's heartbeat stops (for SECONDS, or until heartbeat_resume)",
+    "heartbeat_resume": ": the heartbeat comes back",
+    "bus_off": "SECONDS: an error frame 'bus-off', silence, then 'restarted'",
+    "position_limit": "MIN MAX: the drive's software position limit [counts]",
+    "camera_lost": "on|off: simulator/render answers with an error (the camera is gone)",
+    "frame_delay": "SECONDS: each render waits this long first (a hung camera; 0 ends it)",
+}
+
+
+class SimulatorError(SceneError):
+    """A simulator request or parameter that cannot be served; the text names the field and the value."""
+
+
+def _parse_resolution(text: str) -> tuple[int, int] | None:
+    if not text:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"resolution {text!r} is not WxH, e.g. 320x240") from None
+    if w < 2 or h < 2:
+        raise ValueError(f"resolution {text!r}: need at least 2x2")
+    return w, h
+
+
+class Simulator(Node):
+    """Stands in for projector, camera and polarizer stage (see the module docstring)."""
+
+    class Params(NodeParams):
+        scene: str = ""  # scene TOML; "" = the paper's tank
+        resolution: str = ""  # camera "WxH"; "" = the scene's
+        fidelity: str = "preview"  # preview | standard | reference | "xi=..,theta=..,phi=..,grid=.."
+        render_scale: int = 0  # model resolution divisor; 0 = auto (preview: ~160 px wide, else 1)
+        noise: str = "auto"  # poisson | gaussian | auto (gaussian at preview)
+        exposure_s: float | None = None  # None: the scene's, scaled by (w/w_scene)^2 to keep the DN level
+        seed: int | None = None  # None: the scene camera's seed
+        cache_size: int = 80  # cached component sets (one per pattern and source pose)
+        analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
+        can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
+        can_node_id: int = 5
+        counts_per_deg: float = 1000.0
+        drive_speed_counts_s: float = 200_000.0
+        drive_settle_s: float = 0.02
+        faults: list[str] = []  # fault commands applied at start, e.g. ["never_settle on"]
+
+        def validate(self):
+            super().validate()
+            _parse_resolution(self.resolution)
+            if self.noise not in ("poisson", "gaussian", "auto"):
+                raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
+            if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
+                raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
+
+    SUBSCRIBES = {"planner/plan": Plan}
+    SERVES = {
+        "simulator/render": (RenderRequest, Frame),
+        "simulator/truth": (Empty, Composite),
+        "simulator/move_source": (Plan, Ack),
+        "simulator/fault": (SimFault, Ack),
+    }
+
+    def setup(self):
+        p = self.params
+        try:
+            base = load_scene(p.scene or None)
+            res = _parse_resolution(p.resolution)
+            cam = base.camera
+            if res is not None and res != cam.resolution:
+                exposure = cam.exposure_s * (res[0] / cam.resolution[0]) ** 2
+                cam = cam.replace(resolution=res, exposure_s=exposure)
+            if p.exposure_s is not None:
+                cam = cam.replace(exposure_s=p.exposure_s)
+            self.fidelity = resolve_fidelity(p.fidelity)
+        except SceneError as exc:
+            raise SimulatorError(f"node {self.name!r}: {exc}") from None
+        self.base = base.replace(camera=cam)
+        self.scene = self.base
+        w = cam.resolution[0]
+        self.scale = p.render_scale or (
+            max(1, w // PREVIEW_WIDTH) if self.fidelity.name == "preview" else 1)
+        self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
+        self._cache: OrderedDict = OrderedDict()
+        self._truth: dict = {}
+        self._e_map = electrons_per_radiance(cam)
+        self.camera_lost, self.frame_delay_s = False, 0.0
+        self.stats = {"frames": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0, "sensor_s": 0.0,
+                      "resize_s": 0.0, "busy_s": 0.0}
+        self.drive = None
+        if p.can_channel:
+            from polarstripe.nodes.drivers.simdrive import SimCia402Drive
+
+            self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
+                                        settle_s=p.drive_settle_s).start()
+        for command in p.faults:
+            self.inject(SimFault(command=command), strict=True)
+        self.subscribe("planner/plan", self.on_plan, mode="latest")
+        self.serve("simulator/render", self.render)
+        self.serve("simulator/truth", self.truth)
+        self.serve("simulator/move_source", self.move_source)
+        self.serve("simulator/fault", self.inject)
+        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %s noise, drive %s", w, cam.resolution[1],
+                      self.fidelity.name, self.scale, "gaussian" if self.gaussian else "poisson",
+                      p.can_channel or "none (fixed analyzer)")
+
+    def teardown(self):
+        if self.drive is not None:
+            self.drive.stop()
+            self.drive = None
+        self.log.info("stats %s", json.dumps({k: round(v, 4) for k, v in self.stats.items()}))
+
+    # ---- state ---------------------------------------------------------------------------------------------
+    def analyzer_angle(self) -> float:
+        """The analyzer angle [deg]: the simulated drive's actual position, or the ``analyzer_deg`` param."""
+        if self.drive is None:
+            return self.params.analyzer_deg
+        return float(self.drive.position) / self.params.counts_per_deg
+
+    def _pose(self) -> tuple:
+        return (self.scene.projector.position, self.scene.projector.look_at)
+
+    def components(self, pattern: str):
+        """Components of ``pattern`` at the current pose, at the model resolution (cached)."""
+        key = (pattern, self._pose())
+        comp = self._cache.get(key)
+        if comp is not None:
+            self._cache.move_to_end(key)
+            self.stats["cache_hits"] += 1
+            return comp
+        scene = self.scene
+        if self.scale > 1:
+            w, h = scene.camera.resolution
+            small = (max(2, round(w / self.scale)), max(2, round(h / self.scale)))
+            scene = scene.replace(camera=scene.camera.replace(resolution=small))
+        t0 = time.perf_counter()
+        comp = render_components(scene, pattern, self.fidelity)
+        self.stats["model_s"] += time.perf_counter() - t0
+        self.stats["renders"] += 1
+        self._cache[key] = comp
+        while len(self._cache) > self.params.cache_size:
+            self._cache.popitem(last=False)
+        return comp
+
+    def move_to(self, separation_m: float) -> Scene:
+        """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
+        if not (math.isfinite(separation_m) and separation_m > 0):
+            raise SimulatorError(f"plan: separation_m={separation_m} must be a positive number of metres")
+        self.scene = with_separation(self.base, separation_m)
+        return self.scene
+
+    # ---- handlers ------------------------------------------------------------------------------------------
+    def on_plan(self, plan: Plan) -> None:
+        try:
+            self.move_to(plan.separation_m)
+            self.log.info("plan: source moved to d_LC = %.3f m", plan.separation_m)
+        except SimulatorError as exc:
+            self.log.error("%s", exc)
+
+    def move_source(self, plan: Plan) -> Ack:
+        try:
+            self.move_to(plan.separation_m)
+        except SimulatorError as exc:
+            return Ack(ok=False, detail=str(exc))
+        pos = ", ".join(f"{v:.3f}" for v in self.scene.projector.position)
+        self.log.info("source moved to d_LC = %.3f m (projector at %s)", plan.separation_m, pos)
+        return Ack(ok=True, detail=f"separation_m={plan.separation_m:.6g} projector=({pos})")
+
+    def render(self, req: RenderRequest) -> Frame:
+        t_start = time.perf_counter()
+        if self.frame_delay_s > 0:
+            time.sleep(self.frame_delay_s)
+        if self.camera_lost:
+            raise SimulatorError("simulated camera lost (fault 'camera_lost on')")
+        cam = self.scene.camera
+        if req.exposure_s is not None:
+            if not (math.isfinite(req.exposure_s) and req.exposure_s > 0):
+                raise SimulatorError(f"exposure_s={req.exposure_s} must be a positive number of seconds")
+            cam = cam.replace(exposure_s=req.exposure_s)
+        pattern = req.pattern.strip().lower()
+        if pattern == "off":  # nothing lit: a dark frame
+            radiance = np.zeros((cam.resolution[1], cam.resolution[0]))
+            angle = self.analyzer_angle() if req.analyzer else None
+        else:
+            try:
+                comp = self.components(pattern)
+            except SceneError as exc:
+                raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
+            angle = self.analyzer_angle() if req.analyzer else None
+            t0 = time.perf_counter()
+            radiance = analyzer(comp, angle)
+            w, h = cam.resolution
+            if radiance.shape != (h, w):
+                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+            self.stats["resize_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        seed = self.params.seed if self.params.seed is not None else cam.seed
+        rng = np.random.default_rng([seed, req.scan_id, req.step, self.stats["frames"]])
+        e_map = self._e_map if cam.exposure_s == self.scene.camera.exposure_s else (
+            self._e_map * cam.exposure_s / self.scene.camera.exposure_s)
+        image = expose_fast(radiance, e_map, cam, rng, gaussian=self.gaussian)
+        self.stats["sensor_s"] += time.perf_counter() - t0
+        self.stats["frames"] += 1
+        self.stats["busy_s"] += time.perf_counter() - t_start
+        return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
+                     polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
+
+    def truth(self, req: Empty) -> Composite:
+        key = self._pose()
+        if key not in self._truth:
+            comp = render_components(self.scene, "flood", self.fidelity, need=("D", "A"))
+            cam = self.scene.camera
+            signal = mean_dn(comp.D + comp.A, cam) - dark_offset_dn(cam)
+            self._truth[key] = Composite(
+                images={"S": signal.astype(np.float64),
+                        "chart_band": comp.surface.chart_band.astype(np.int32),
+                        "chart_high": comp.surface.chart_high.astype(bool)},
+                method="truth",
+                metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
+                         "dark_offset_dn": dark_offset_dn(cam)},
+            )
+        return self._truth[key]
+
+    def inject(self, req: SimFault, strict: bool = False) -> Ack:
+        words = req.command.split()
+        try:
+            if not words or words[0] not in FAULT_COMMANDS:
+                known = ", ".join(FAULT_COMMANDS)
+                raise ValueError(f"unknown fault command {req.command!r} (known: {known})")
+            name, args = words[0], words[1:]
+            if name == "camera_lost":
+                self.camera_lost = (args or ["on"])[0] == "on"
+            elif name == "frame_delay":
+                self.frame_delay_s = float(args[0])
+            else:
+                if self.drive is None:
+                    raise ValueError(f"fault {name!r} needs the simulated drive (param can_channel)")
+                d = self.drive
+                {"never_settle": lambda: d.inject_never_settle((args or ["on"])[0] == "on"),
+                 "emcy": lambda: d.inject_emcy(int(args[0], 0) if args else 0x8611),
+                 "heartbeat_stop": lambda: d.inject_heartbeat_stop(float(args[0]) if args else None),
+                 "heartbeat_resume": d.resume_heartbeat,
+                 "bus_off": lambda: d.inject_bus_off(float(args[0])),
+                 "position_limit": lambda: d.inject_position_limit(int(args[0]), int(args[1])),
+                 }[name]()
+        except (ValueError, IndexError) as exc:
+            if strict:
+                raise SimulatorError(f"node {self.name!r}: param 'faults': {exc}") from None
+            return Ack(ok=False, detail=f"fault {req.command!r}: {exc}")
+        self.log.warning("fault injected: %s", req.command)
+        return Ack(ok=True, detail=req.command)
+
+
+def expose_fast(radiance: np.ndarray, e_map: np.ndarray, camera, rng: np.random.Generator,
+                *, gaussian: bool = False) -> np.ndarray:
+    """One exposure like :func:`polarstripe.sim.sensor.expose`, with the electrons map precomputed.
+
+    Parameters
+    ----------
+    radiance : (h, w) radiance at the sensor [W sr⁻¹ m⁻²].
+    e_map : (h, w) mean photo-electrons per unit radiance
+        (:func:`~polarstripe.sim.sensor.electrons_per_radiance`).
+    camera : the scene's Camera (dark current, exposure, read noise, full well, gain, offset, bits).
+    rng : Generator.
+    gaussian : draw shot + read noise as one normal variate of the EMVA 1288 variance σ_r² + μ_e (mean and
+        variance exact, shape approximate below ~20 e⁻) instead of Poisson + normal.
+
+    Returns
+    -------
+    uint16 DN (h, w), clipped to [0, 2^bits − 1].
+    """
+    lam = np.clip(np.nan_to_num(radiance, nan=0.0, posinf=0.0), 0.0, None) * e_map
+    lam += camera.dark_current_e_s * camera.exposure_s
+    np.minimum(lam, 1e12, out=lam)
+    if gaussian:
+        z = rng.standard_normal(lam.shape, dtype=np.float32)
+        e = np.minimum(lam + z * np.sqrt(lam + camera.read_noise_e ** 2), camera.full_well_e)
+    else:
+        e = np.minimum(rng.poisson(lam).astype(float), camera.full_well_e)
+        e += rng.normal(0.0, camera.read_noise_e, size=e.shape)
+    y = np.round(e / camera.gain_e_per_dn + camera.offset_dn)
+    return np.clip(y, 0, full_scale_dn(camera)).astype(np.uint16)
+
+
+NODE = "Simulator"
