@@ -64,6 +64,8 @@ class Message:
     TYPE: ClassVar[str] = ""
     VERSION: ClassVar[int] = 0
     FIELDS: ClassVar[tuple[tuple[str, Kind], ...]] = ()
+    FAST_FIELDS: ClassVar[tuple[tuple[str, Kind, type], ...]] = ()  # (name, kind, type accepted as is)
+    FIELD_NAMES: ClassVar[frozenset[str]] = frozenset()
 
     header: Header = field(default_factory=Header)
 
@@ -95,6 +97,8 @@ def message(type_name: str, *, version: int = 1):
             except TypeError as exc:
                 raise TypeError(f"{cls.__name__}.{f.name}: {exc}; allowed: {FIELD_TYPES}") from None
         cls.FIELDS = tuple(kinds)
+        cls.FAST_FIELDS = tuple((name, kind, _exact_type(kind)) for name, kind in kinds)
+        cls.FIELD_NAMES = frozenset(name for name, _ in kinds)
         old = REGISTRY.get(type_name)
         if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
             raise TypeError(
@@ -280,6 +284,32 @@ _ARRAY_KINDS = (
 )
 
 
+_DTYPES: dict[str, np.dtype] = {}
+
+
+def _dtype(text: Any) -> np.dtype:
+    """A plain numeric dtype from its ``dtype.str``, cached; ``ValueError`` for anything else."""
+    try:
+        dt = np.dtype(text) if isinstance(text, str) else None
+    except TypeError:
+        dt = None
+    if dt is None or dt.kind not in _ARRAY_KINDS or dt.hasobject:
+        raise ValueError(f"bad dtype {text!r:.40}")
+    if len(_DTYPES) < 64:
+        _DTYPES[text] = dt
+    return dt
+
+
+class Buffers(list):
+    """The buffer frames of one message; array fields record which ones they used (stray frames are an error)."""
+
+    __slots__ = ("used",)
+
+    def __init__(self, frames=()):
+        super().__init__(frames)
+        self.used: set[int] = set()
+
+
 class _Array(Kind):
     """An ndarray: on the wire a descriptor ``{"buf": i, "dtype": "<u2", "shape": [h, w]}`` plus raw
     frame i."""
@@ -295,24 +325,25 @@ class _Array(Kind):
         return {"buf": len(bufs) - 1, "dtype": v.dtype.str, "shape": list(v.shape)}
 
     def dec(self, v, bufs):
-        if not isinstance(v, dict) or set(v) != {"buf", "dtype", "shape"}:
-            raise ValueError("expected an array descriptor {buf, dtype, shape}")
-        i, dtype, shape = v["buf"], v["dtype"], v["shape"]
+        try:
+            if type(v) is not dict or len(v) != 3:
+                raise KeyError
+            i, dtype, shape = v["buf"], v["dtype"], v["shape"]
+        except KeyError:
+            raise ValueError("expected an array descriptor {buf, dtype, shape}") from None
         if type(i) is not int or not 0 <= i < len(bufs):
             raise ValueError(f"buffer index {i!r} out of range (message has {len(bufs)} buffers)")
-        try:
-            dt = np.dtype(dtype) if isinstance(dtype, str) else None
-        except TypeError:
-            dt = None
-        if dt is None or dt.kind not in _ARRAY_KINDS:
-            raise ValueError(f"bad dtype {dtype!r:.40}")
-        if not isinstance(shape, list) or not all(type(n) is int and n >= 0 for n in shape):
+        dt = _DTYPES.get(dtype) if type(dtype) is str else None
+        if dt is None:
+            dt = _dtype(dtype)
+        if type(shape) is not list or not all(type(n) is int and n >= 0 for n in shape):
             raise ValueError(f"bad shape {shape!r:.60}")
         buf = bufs[i]
+        bufs.used.add(i)
         n = math.prod(shape) * dt.itemsize
         if n != buf.nbytes:
             raise ValueError(f"dtype {dt.str} shape {tuple(shape)} needs {n} bytes, buffer has {buf.nbytes}")
-        arr = np.frombuffer(buf, dtype=dt).reshape(shape)
+        arr = np.ndarray(shape, dt, buffer=buf)
         arr.flags.writeable = False  # a view of the received frame: never write into it
         return arr
 
@@ -362,6 +393,18 @@ class _Any(Kind):
 
     def schema(self):
         return {}
+
+
+class _Never:
+    """No value has this type: fields without a fast path always go through their kind."""
+
+
+def _exact_type(kind: Kind) -> type:
+    """The wire type a value may have to be taken without further checks (decoding's fast path)."""
+    for cls, typ in ((_Bool, bool), (_Int, int), (_Float, float), (_Str, str), (_Bytes, bytes)):
+        if type(kind) is cls:
+            return typ
+    return type(None) if isinstance(kind, _Optional) else _Never
 
 
 _SCALARS: dict[Any, Kind] = {bool: _Bool(), int: _Int(), float: _Float(), str: _Str(), bytes: _Bytes()}

@@ -22,7 +22,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from polarstripe.msgs.base import REGISTRY, Header, Message, MessageError
+from polarstripe.msgs.base import REGISTRY, Buffers, Header, Message, MessageError
 
 DEFAULT_MAX_BYTES = 128 * 2**20
 """Largest message (header plus buffers) a decoder accepts by default [bytes]."""
@@ -43,9 +43,14 @@ def encode(msg: Message, *, topic: str = "", seq: int | None = None, stamp_ns: i
         raise MessageError(topic, "type", f"{cls.__name__} is not a declared message type")
     bufs: list = []
     fields: dict[str, Any] = {}
-    for name, kind in cls.FIELDS:
+    values = msg.__dict__
+    for name, kind, exact in cls.FAST_FIELDS:
+        v = values[name]
+        if type(v) is exact:  # a plain value of the declared scalar type goes as it is
+            fields[name] = v
+            continue
         try:
-            fields[name] = kind.enc(getattr(msg, name), bufs)
+            fields[name] = kind.enc(v, bufs)
         except ValueError as exc:
             raise MessageError(topic, name, str(exc)) from None
     h = msg.header
@@ -70,6 +75,8 @@ def _load_header(topic: str, raw: Any) -> dict:
         raise MessageError(topic, "header", f"not a MessagePack header ({why})") from None
     if not isinstance(head, dict):
         raise MessageError(topic, "header", f"expected a map, got {type(head).__name__}")
+    if head.keys() == _HEADER_KEYS:
+        return head
     missing = _HEADER_KEYS - head.keys()
     if missing:
         raise MessageError(topic, sorted(missing)[0], "missing from the header")
@@ -94,22 +101,28 @@ def _build(topic: str, head: dict, bufs: list, expect: type[Message] | None) -> 
             f"unknown schema version {version!r:.20} of {tname!r} (this build reads version {cls.VERSION})",
         )
     stamp_ns, seq, frame_id = head["stamp_ns"], head["seq"], head["frame_id"]
-    for key, value, typ in (("stamp_ns", stamp_ns, int), ("seq", seq, int), ("frame_id", frame_id, str)):
-        if type(value) is not typ:
-            raise MessageError(topic, key, f"expected {typ.__name__}, got {type(value).__name__}")
+    if type(stamp_ns) is not int or type(seq) is not int or type(frame_id) is not str:
+        for key, value, typ in (("stamp_ns", stamp_ns, int), ("seq", seq, int), ("frame_id", frame_id, str)):
+            if type(value) is not typ:
+                raise MessageError(topic, key, f"expected {typ.__name__}, got {type(value).__name__}")
     wire = head["fields"]
-    if not isinstance(wire, dict):
+    if type(wire) is not dict:
         raise MessageError(topic, "fields", f"expected a map, got {type(wire).__name__}")
-    values: dict[str, Any] = {}
-    for name, kind in cls.FIELDS:
-        if name not in wire:
-            raise MessageError(topic, name, f"missing (a {tname!r} needs it)")
-        try:
-            values[name] = kind.dec(wire[name], bufs)
-        except ValueError as exc:
-            raise MessageError(topic, name, str(exc)) from None
-    if len(wire) != len(values):
-        extra = sorted(set(map(str, wire)) - set(values))
+    fast = cls.FAST_FIELDS
+    if len(wire) == len(fast) and wire.keys() == cls.FIELD_NAMES:
+        values = dict(wire)  # then check each value; scalars of the declared type pass as they are
+        for name, kind, exact in fast:
+            v = values[name]
+            if type(v) is not exact:
+                try:
+                    values[name] = kind.dec(v, bufs)
+                except ValueError as exc:
+                    raise MessageError(topic, name, str(exc)) from None
+    else:
+        for name, _kind, _exact in fast:
+            if name not in wire:
+                raise MessageError(topic, name, f"missing (a {tname!r} needs it)")
+        extra = sorted(set(map(str, wire)) - cls.FIELD_NAMES)
         raise MessageError(topic, extra[0] if extra else "fields", f"unknown field of {tname!r}")
     values["header"] = Header(stamp_ns, seq, frame_id)
     msg = cls.__new__(cls)  # every field was validated above: skip the frozen __init__ (2 µs per message)
@@ -133,12 +146,11 @@ def decode(
     total = sum(v.nbytes for v in views)
     if total > max_bytes:
         raise MessageError(topic, "size", f"{total} bytes exceeds the limit of {max_bytes} bytes")
-    bufs = views[1:]
+    bufs = Buffers(views[1:])
     head = _load_header(topic, views[0])
-    used: list = []
-    msg = _build(topic, head, _Tracking(bufs, used), expect)
-    if len(set(used)) != len(bufs):
-        raise MessageError(topic, "buffers", f"{len(bufs)} buffer frames but {len(set(used))} used by fields")
+    msg = _build(topic, head, bufs, expect)
+    if len(bufs.used) != len(bufs):
+        raise MessageError(topic, "buffers", f"{len(bufs)} buffer frames but {len(bufs.used)} used by fields")
     return msg
 
 
@@ -146,18 +158,6 @@ def _bytes_view(f: Any) -> memoryview:
     """A flat byte view of a frame (``zmq.Frame``, bytes, memoryview or a contiguous ndarray)."""
     v = f.buffer if hasattr(f, "buffer") else memoryview(f)
     return v if v.ndim == 1 and v.itemsize == 1 else v.cast("B")
-
-
-class _Tracking(list):
-    """A list of buffers that records which indices the array fields read (to reject stray frames)."""
-
-    def __init__(self, bufs: list, used: list):
-        super().__init__(bufs)
-        self._used = used
-
-    def __getitem__(self, i):
-        self._used.append(i)
-        return super().__getitem__(i)
 
 
 def pack(msg: Message, *, topic: str = "") -> bytes:
@@ -191,7 +191,7 @@ def unpack(
     if len(blob) > max_bytes:
         raise MessageError(topic, "size", f"{len(blob)} bytes exceeds the limit of {max_bytes} bytes")
     head = _load_header(topic, blob)
-    bufs: list = []
+    bufs = Buffers()
     cls = REGISTRY.get(head["type"]) if isinstance(head["type"], str) else None
     if isinstance(head["fields"], dict) and cls is not None:
         head["fields"] = {k: _outline(v, bufs) for k, v in head["fields"].items()}

@@ -313,9 +313,16 @@ class Subscriber:
         """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
-            for item in self.take(limit=1 if self.mode == "all" else 1000):
-                if not isinstance(item, MessageError):
+            if self.mode == "latest":
+                for item in self.take():
+                    if not isinstance(item, MessageError):
+                        return item
+            elif deadline is None or self.socket.poll(0):  # all mode: one at a time, blocking if no deadline
+                item = self._one(self.socket.recv_multipart(copy=False))
+                if item is not None and not isinstance(item, MessageError):
+                    self.stats.delivered += 1
                     return item
+                continue
             if deadline is None:
                 self.socket.poll(None)
                 continue

@@ -1,0 +1,354 @@
+"""``polarstripe bench transport``: the bus between two processes vs raw pyzmq vs memcpy, in one run.
+
+For each payload (a 1280x1024 uint16 frame = 2.62 MB, 64 KiB, 100 B) and each transport:
+
+* **bus**: ``PubSocket``/``Subscriber(mode="all")`` carrying a :class:`~polarstripe.msgs.Frame` whose
+``image`` is
+  the payload (full validation on receive, a read-only zero-copy view).
+* **pyzmq**: raw PUB/SUB ``send_multipart([topic, msgpack(seq, t, flag, dtype, shape), ndarray],
+copy=False)``,
+  ``recv_multipart(copy=False)`` and ``np.frombuffer``: the floor any layer on pyzmq adds to.
+* **memcpy**: ``np.copyto`` of the same buffer in one process (the physical limit; cache-hot).
+
+Method (as in refs/transport.md): latency = paced sends, one-way = receiver's ``perf_counter_ns`` (CLOCK_MONOTONIC,
+valid across processes) after reading one element, minus the sender's stamp. Throughput = sends for
+``--seconds`` limited by a window of un-acknowledged messages (the receiver acks the highest seq it has seen
+over a side PUSH/PULL channel), so a lossy path cannot count messages it dropped. ``lost`` = sent - received
+in that phase (must be 0: ``all`` mode never drops silently). Both transports use ipc and the same HWMs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import statistics
+import tempfile
+import time
+
+import msgpack
+import numpy as np
+import zmq
+
+HELP = "bus throughput and latency vs raw pyzmq and memcpy"
+
+SIZES = {  # name -> (shape, dtype, latency rate [Hz], latency count, window)
+    "frame 2.6 MB": ((1024, 1280), np.uint16, 100, 100, 4),
+    "64 KiB": ((65536,), np.uint8, 500, 300, 64),
+    "100 B": ((100,), np.uint8, 1000, 500, 1000),
+}
+TOPIC = "/bench/frame"
+HWM = 5000  # publisher queue [messages] for both transports: above every window, so flow control, not HWM,
+# bounds what is in flight (a loss would be a real one)
+_END, _DATA, _PING, _QUIT = 2, 0, 1, 3
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seconds", type=float, default=1.0, help="throughput phase per size and transport")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds (alternating order); medians are shown")
+    parser.add_argument(
+        "--quick", action="store_true", help="short run (0.5 s phases, fewer latency samples)"
+    )
+    parser.add_argument(
+        "--sizes", default=",".join(SIZES), help="comma-separated subset of: " + ", ".join(SIZES)
+    )
+
+
+# ---- the two transports, sender and receiver sides
+# ----------------------------------------------------------
+class _BusTx:
+    def __init__(self, endpoint, ctx):
+        from polarstripe.msgs import Frame
+        from polarstripe.nodes.runtime.bus import PubSocket
+
+        self.Frame = Frame
+        self.sock = PubSocket(endpoint, hwm=HWM, ctx=ctx)
+        self.pub = self.sock.publisher(TOPIC, Frame)
+
+    def send(self, payload, t_ns, flag):
+        return self.pub.publish(self.Frame(image=payload, exposure_s=0.0, step=flag), stamp_ns=t_ns)
+
+    def close(self):
+        self.sock.close()
+
+
+class _BusRx:
+    def __init__(self, endpoint, ctx):
+        from polarstripe.msgs import Frame
+        from polarstripe.nodes.runtime.bus import Subscriber
+
+        self.sub = Subscriber([endpoint], TOPIC, Frame, mode="all", ctx=ctx)
+        self.socket = self.sub.socket
+
+    def recv(self):
+        """-> (seq, t_send_ns, flag, first element) of the next message (blocks)."""
+        m = self.sub.recv()
+        return m.header.seq, m.header.stamp_ns, m.step, m.image.flat[0]
+
+    def close(self):
+        self.sub.close()
+
+
+class _RawTx:
+    def __init__(self, endpoint, ctx):
+        self.sock = ctx.socket(zmq.PUB)
+        self.sock.linger = 0
+        self.sock.sndhwm = HWM
+        self.sock.bind(endpoint)
+        self.seq = 0
+        self.topic = TOPIC.encode()
+
+    def send(self, payload, t_ns, flag):
+        hdr = msgpack.packb((self.seq, t_ns, flag, payload.dtype.str, payload.shape))
+        self.sock.send_multipart([self.topic, hdr, payload], copy=False)
+        self.seq += 1
+        return self.seq - 1
+
+    def close(self):
+        self.sock.close(0)
+
+
+class _RawRx:
+    def __init__(self, endpoint, ctx):
+        self.socket = ctx.socket(zmq.SUB)
+        self.socket.linger = 0
+        self.socket.rcvhwm = 0
+        self.socket.setsockopt(zmq.SUBSCRIBE, TOPIC.encode())
+        self.socket.connect(endpoint)
+
+    def recv(self):
+        frames = self.socket.recv_multipart(copy=False)
+        seq, t_ns, flag, dtype, shape = msgpack.unpackb(frames[1].bytes)
+        arr = np.frombuffer(frames[2].buffer, dtype=dtype).reshape(shape)
+        return seq, t_ns, flag, arr.flat[0]
+
+    def close(self):
+        self.socket.close(0)
+
+
+TRANSPORTS = {"bus": (_BusTx, _BusRx), "pyzmq": (_RawTx, _RawRx)}
+
+
+def _receiver(kind: str, endpoint: str, ack_endpoint: str) -> None:
+    """Child process: receive until an END message; ack pings and throughput seqs; report latencies/counts."""
+    ctx = zmq.Context()
+    rx = TRANSPORTS[kind][1](endpoint, ctx)
+    ack = ctx.socket(zmq.PUSH)
+    ack.linger = 1000
+    ack.connect(ack_endpoint)
+    try:
+        while True:  # one phase per loop: until END
+            lat, received, first_seq, last_seq = [], 0, None, None
+            ack_every = 1
+            while True:
+                seq, t_ns, flag, _ = rx.recv()
+                now = time.perf_counter_ns()
+                if flag == _PING:
+                    ack.send(msgpack.packb(("ping", seq)))
+                    continue
+                if flag == _QUIT:
+                    return
+                if flag == _END:
+                    ack.send(msgpack.packb(("end", received, first_seq, last_seq, lat)))
+                    break
+                if flag >= 100:  # throughput message; flag - 100 = ack interval
+                    ack_every = flag - 100
+                    received += 1
+                    first_seq = seq if first_seq is None else first_seq
+                    last_seq = seq
+                    if received % ack_every == 0:
+                        ack.send(msgpack.packb(("ack", received)))
+                else:
+                    received += 1
+                    first_seq = seq if first_seq is None else first_seq
+                    last_seq = seq
+                    lat.append(now - t_ns)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rx.close()
+        ack.close()
+        ctx.term()
+
+
+def _run_transport(kind, size_names, seconds, quick, tmp):
+    ctx = zmq.Context()
+    endpoint, ack_ep = f"ipc://{tmp}/{kind}.pub", f"ipc://{tmp}/{kind}.ack"
+    tx = TRANSPORTS[kind][0](endpoint, ctx)
+    acks = ctx.socket(zmq.PULL)
+    acks.linger = 0
+    acks.bind(ack_ep)
+    child = mp.get_context("fork").Process(target=_receiver, args=(kind, endpoint, ack_ep), daemon=True)
+    child.start()
+    results = {}
+    try:
+        ping = np.zeros(1, np.uint8)
+        while True:  # slow joiner: ping until the receiver answers
+            tx.send(ping, time.perf_counter_ns(), _PING)
+            if acks.poll(20):
+                acks.recv()
+                break
+        time.sleep(0.05)
+        while acks.poll(50):
+            acks.recv()
+        for name in size_names:
+            shape, dtype, rate, count, window = SIZES[name]
+            payload = (np.arange(int(np.prod(shape))) % 251).astype(dtype).reshape(shape)
+            if quick:
+                count = max(20, count // 4)
+            # latency: paced
+            period = 1.0 / rate
+            t_next = time.perf_counter()
+            for _ in range(count):
+                while time.perf_counter() < t_next:
+                    pass
+                tx.send(payload, time.perf_counter_ns(), _DATA)
+                t_next += period
+            tx.send(ping, time.perf_counter_ns(), _END)
+            _, n_lat, _, _, lat = msgpack.unpackb(_recv(acks, 10))
+            lat_us = np.array(lat) / 1e3
+            # throughput: windowed
+            ack_every = max(1, window // 4)
+            sent, acked = 0, 0  # acked = messages the receiver has confirmed
+            t0 = time.perf_counter()
+            t_end = t0 + seconds
+            while time.perf_counter() < t_end:
+                while acks.poll(0):
+                    acked = max(acked, msgpack.unpackb(acks.recv())[1])
+                if sent - acked >= window:
+                    if acks.poll(1000):
+                        acked = max(acked, msgpack.unpackb(acks.recv())[1])
+                    continue
+                tx.send(payload, time.perf_counter_ns(), 100 + ack_every)
+                sent += 1
+            tx.send(ping, time.perf_counter_ns(), _END)
+            reply = None
+            while reply is None or reply[0] != "end":
+                reply = msgpack.unpackb(_recv(acks, 10))
+            _, received, rx_first, rx_last, _ = reply
+            elapsed = time.perf_counter() - t0
+            nbytes = payload.nbytes
+            results[name] = {
+                "msgs_per_s": received / elapsed,
+                "MB_per_s": received * nbytes / elapsed / 1e6,
+                "p50_us": float(np.percentile(lat_us, 50)),
+                "p99_us": float(np.percentile(lat_us, 99)),
+                "latency_samples": n_lat,
+                "latency_sent": count,
+                "sent": sent,
+                "received": received,
+                "lost": sent - received + (count - n_lat),
+            }
+        tx.send(ping, time.perf_counter_ns(), _QUIT)
+    finally:
+        tx.close()
+        child.join(3)
+        if child.is_alive():
+            child.kill()
+            child.join()
+        acks.close()
+        ctx.term()
+    return results
+
+
+def _recv(sock, timeout_s):
+    if not sock.poll(int(timeout_s * 1000)):
+        raise TimeoutError("benchmark receiver did not answer")
+    return sock.recv()
+
+
+def _memcpy(size_names):
+    out = {}
+    for name in size_names:
+        shape, dtype, *_ = SIZES[name]
+        src = (np.arange(int(np.prod(shape))) % 251).astype(dtype).reshape(shape)
+        dst = np.empty_like(src)
+        reps = max(50, int(2e8 // max(src.nbytes, 1000)) // 10)
+        per = []
+        for _ in range(3):
+            t0 = time.perf_counter_ns()
+            for _ in range(reps):
+                np.copyto(dst, src)
+            per.append((time.perf_counter_ns() - t0) / reps)
+        samples = []
+        for _ in range(200):
+            t0 = time.perf_counter_ns()
+            np.copyto(dst, src)
+            samples.append(time.perf_counter_ns() - t0)
+        best = min(per) / 1e9
+        out[name] = {
+            "msgs_per_s": 1 / best,
+            "MB_per_s": src.nbytes / best / 1e6,
+            "p50_us": statistics.median(samples) / 1e3,
+            "p99_us": float(np.percentile(samples, 99)) / 1e3,
+            "lost": 0,
+        }
+    return out
+
+
+def _median(results: list[dict]) -> dict:
+    """Median of each figure over rounds; ``lost`` is summed (any loss must show)."""
+    out = {k: float(np.median([r[k] for r in results])) for k in results[0]}
+    for k in ("lost", "sent", "received", "latency_sent", "latency_samples"):
+        out[k] = int(sum(r[k] for r in results))
+    out["rounds"] = len(results)
+    return out
+
+
+def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = None, rounds: int = 3) -> dict:
+    """Measure everything; returns ``{size: {transport: figures}}`` (medians over rounds) with ratios."""
+    sizes = sizes or list(SIZES)
+    if quick:
+        seconds, rounds = min(seconds, 0.5), 1
+    runs: dict[str, list[dict]] = {kind: [] for kind in TRANSPORTS}
+    with tempfile.TemporaryDirectory(prefix="ps-bench-") as tmp:
+        for r in range(rounds):  # alternate the order: the machine's load drifts
+            for kind in list(TRANSPORTS) if r % 2 == 0 else list(TRANSPORTS)[::-1]:
+                runs[kind].append(_run_transport(kind, sizes, seconds, quick, tmp))
+    per = {kind: {name: _median([one[name] for one in rs]) for name in sizes} for kind, rs in runs.items()}
+    per["memcpy"] = _memcpy(sizes)
+    table = {}
+    for name in sizes:
+        row = {k: per[k][name] for k in ("memcpy", "pyzmq", "bus")}
+        m = row["memcpy"]
+        for k, r in row.items():
+            r["bw_vs_memcpy"] = r["MB_per_s"] / m["MB_per_s"]
+            r["p50_vs_memcpy"] = r["p50_us"] / m["p50_us"]
+        row["bus"]["bw_vs_pyzmq"] = row["bus"]["msgs_per_s"] / row["pyzmq"]["msgs_per_s"]
+        row["bus"]["p50_vs_pyzmq"] = row["bus"]["p50_us"] / row["pyzmq"]["p50_us"]
+        table[name] = row
+    return table
+
+
+def main(args: argparse.Namespace) -> int:
+    from polarstripe.errors import PolarstripeError
+
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    unknown = [s for s in sizes if s not in SIZES]
+    if unknown:
+        raise PolarstripeError(f"--sizes: unknown size {unknown[0]!r} (choose from {', '.join(SIZES)})")
+    table = run(seconds=args.seconds, quick=args.quick, sizes=sizes, rounds=args.rounds)
+    if args.json:
+        print(json.dumps({"cpus": os.cpu_count(), "results": table}, indent=1))
+        return 0
+    rounds = next(iter(table.values()))["bus"]["rounds"]
+    print(
+        f"transport between two processes (ipc, {os.cpu_count()} CPUs), median of {rounds} round(s); "
+        "ratios from this run\n"
+    )
+    head = (
+        f"| {'size':<12} | {'transport':<9} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} | {'p50
+        us':>8} " f"| {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'bus/pyzmq msgs/s':>16} |"
+    )
+    print(head)
+    print("|" + "|".join("-" * (len(c)) for c in head.split("|")[1:-1]) + "|")
+    for name, row in table.items():
+        for k, r in row.items():
+            vs = f"{r['bw_vs_pyzmq']:.2f} (p50 {r['p50_vs_pyzmq']:.2f})" if k == "bus" else ""
+            print(
+                f"| {name:<12} | {k:<9} | {r['msgs_per_s']:>10,.0f} | {r['MB_per_s']:>9,.0f} | "
+                f"{r['bw_vs_memcpy']:>9.3f} | {r['p50_us']:>8.1f} | {r['p99_us']:>8.1f} | "
+                f"{r['p50_vs_memcpy']:>10.1f} | {r.get('lost', 0):>4} | {vs:>16} |"
+            )
+    return 0
