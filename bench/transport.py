@@ -10,11 +10,12 @@ copy=False)``,
   ``recv_multipart(copy=False)`` and ``np.frombuffer``: the floor any layer on pyzmq adds to.
 * **memcpy**: ``np.copyto`` of the same buffer in one process (the physical limit; cache-hot).
 
-Method (as in refs/transport.md): latency = paced sends, one-way = receiver's ``perf_counter_ns`` (CLOCK_MONOTONIC,
-valid across processes) after reading one element, minus the sender's stamp. Throughput = sends for
-``--seconds`` limited by a window of un-acknowledged messages (the receiver acks the highest seq it has seen
-over a side PUSH/PULL channel), so a lossy path cannot count messages it dropped. ``lost`` = sent - received
-in that phase (must be 0: ``all`` mode never drops silently). Both transports use ipc and the same HWMs.
+Method (as in refs/transport.md): latency = paced sends, one-way = receiver's ``perf_counter_ns``
+(CLOCK_MONOTONIC, valid across processes) after reading one element, minus the sender's stamp.
+Throughput = sends for ``--seconds`` limited by a window of un-acknowledged messages (the receiver acks
+how many it has received over a side PUSH/PULL channel), so a lossy path cannot count messages it dropped.
+``lost`` = sent - received over both phases (must be 0: ``all`` mode never drops silently). Both
+transports use ipc and the same HWMs. Figures are medians over ``--rounds`` rounds run in alternating order.
 """
 
 from __future__ import annotations
@@ -312,7 +313,7 @@ def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = Non
     for name in sizes:
         row = {k: per[k][name] for k in ("memcpy", "pyzmq", "bus")}
         m = row["memcpy"]
-        for k, r in row.items():
+        for r in row.values():
             r["bw_vs_memcpy"] = r["MB_per_s"] / m["MB_per_s"]
             r["p50_vs_memcpy"] = r["p50_us"] / m["p50_us"]
         row["bus"]["bw_vs_pyzmq"] = row["bus"]["msgs_per_s"] / row["pyzmq"]["msgs_per_s"]
@@ -338,8 +339,8 @@ def main(args: argparse.Namespace) -> int:
         "ratios from this run\n"
     )
     head = (
-        f"| {'size':<12} | {'transport':<9} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} | {'p50
-        us':>8} " f"| {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'bus/pyzmq msgs/s':>16} |"
+        f"| {'size':<12} | {'transport':<9} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} "
+        f"| {'p50 us':>8} | {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'bus/pyzmq msgs/s':>16} |"
     )
     print(head)
     print("|" + "|".join("-" * (len(c)) for c in head.split("|")[1:-1]) + "|")

@@ -301,7 +301,8 @@ def _dtype(text: Any) -> np.dtype:
 
 
 class Buffers(list):
-    """The buffer frames of one message; array fields record which ones they used (stray frames are an error)."""
+    """The buffer frames of one message; array fields record which ones they used (stray frames are an
+    error)."""
 
     __slots__ = ("used",)
 
