@@ -106,7 +106,12 @@ class Cia402Stage(RotationStage):
         self._target_counts: int | None = None
         self._stop = threading.Event()
         self._own_bus = bus is None
-        self.network = canopen.Network(bus or can.Bus(interface=interface, channel=channel, **bus_kwargs))
+        if bus is None:
+            try:
+                bus = can.Bus(interface=interface, channel=channel, **bus_kwargs)
+            except (can.CanError, OSError, ImportError) as exc:
+                raise DriverError(f"{self.name}: cannot open CAN interface {interface!r}: {exc}") from exc
+        self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.05  # the receive poll; a short one makes close() quick
         try:
             self.network.connect()

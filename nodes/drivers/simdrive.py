@@ -190,11 +190,15 @@ class SimCia402Drive:
 
         def restart():
             gate.silent = False
-            gate.send_raw(
-                can.Message(
-                    arbitration_id=CAN_ERR_RESTARTED, is_error_frame=True, is_extended_id=False, data=bytes(8)
-                )
+            if self._stop.is_set():
+                return
+            frame = can.Message(
+                arbitration_id=CAN_ERR_RESTARTED, is_error_frame=True, is_extended_id=False, data=bytes(8)
             )
+            try:
+                gate.send_raw(frame)
+            except can.CanError:
+                pass  # the drive was stopped meanwhile
 
         threading.Timer(duration_s, restart).start()
 

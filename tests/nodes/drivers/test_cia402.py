@@ -200,3 +200,8 @@ def test_a_drive_found_in_fault_is_reset_on_connect_and_says_so(drive_process):
     with Cia402Stage(drive_process.channel, counts_per_deg=1000, min_deg=-90, max_deg=90) as stage:
         assert stage.fault is None and stage.drive_state is cia.State.OPERATION_ENABLED
         assert any("FAULT" in text for text in stage.startup_faults)
+
+
+def test_an_unreachable_bus_is_a_driver_error(can_channel):
+    with pytest.raises(DriverError, match=r"cannot open CAN interface 'zmq'.*no hub"):
+        Cia402Stage(can_channel, hub=False, join_timeout=0.2)

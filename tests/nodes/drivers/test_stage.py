@@ -29,10 +29,10 @@ class Rig:
 @pytest.fixture(params=["sim", "cia402", "ell14"])
 def rig(request):
     if request.param == "sim":
-        stage = SimStage(deg_per_s=180.0, min_deg=-90, max_deg=90)
+        stage = SimStage(deg_per_s=720.0, min_deg=-90, max_deg=90)
         yield Rig(
             stage,
-            180.0,
+            720.0,
             1e-9,
             lambda: stage.inject_fault("injected"),
             stage.inject_never_settle,
@@ -42,14 +42,14 @@ def rig(request):
     elif request.param == "cia402":
         drive = request.getfixturevalue("drive_process")
         stage = Cia402Stage(
-            drive.channel, drive.node_id, counts_per_deg=1000, speed_deg_s=180.0, min_deg=-90, max_deg=90
+            drive.channel, drive.node_id, counts_per_deg=1000, speed_deg_s=720.0, min_deg=-90, max_deg=90
         )
 
         def heal():
             drive.cmd("never_settle off")
 
         yield Rig(
-            stage, 180.0, 0.001, lambda: drive.cmd("emcy 0x8611"), lambda: drive.cmd("never_settle on"), heal
+            stage, 720.0, 0.001, lambda: drive.cmd("emcy 0x8611"), lambda: drive.cmd("never_settle on"), heal
         )
         heal()
         stage.close()
