@@ -162,8 +162,7 @@ class SceneModel:
     fidelity : str
         Model fidelity (``preview``, ``standard``, ``reference`` or explicit counts).
     n_stripes : int
-        Stripes per scan; at each separation the stripe lighting O_i is the one whose columns contain O_i's
-        projection.
+        Stripes per scan; sets the angular width of the light sheet (see :meth:`stripes`).
     pixels : (n, 2) int array, optional
         Observed points O_i (row, col). Default: three points on the centre row at 1/4, 1/2 and 3/4 of the
         width (the stripe locations O1, O2, O3 of the paper's Fig. 10); each must see an object.
@@ -214,25 +213,28 @@ class SceneModel:
         return Samples(c.D, c.A, c.B, c.p)
 
     def stripes(self, d_lc_m: float) -> Samples:
-        """Components at each O_i under the stripe that lights it (zeros where no stripe does)."""
-        from polarstripe.sim.geometry import pinhole_frame, projector_coords
+        """Components at each O_i lit by a light sheet centred on it (zeros where the sheet misses O_i).
+
+        The sheet has the angular width of one of ``n_stripes`` stripes of the scene's projector and passes
+        through the source and O_i (the paper's Fig. 8c): the projector is aimed at O_i and narrowed to three
+        columns of that width, of which the middle one is lit. This keeps O_i at the centre of its stripe at
+        every separation, so the curves do not jitter with where a fixed projector's stripe edges happen to
+        fall.
+        """
         from polarstripe.sim.render import render_components
 
-        scene = self._at(d_lc_m)
-        pr = scene.projector
-        frame = pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg, pr.resolution)
-        col, row, depth = projector_coords(frame, self.points)
-        inside = (depth > 0) & (col >= 0) & (col < frame.w) & (row >= 0) & (row < frame.h)
-        # stripe K lights columns floor(K·W/N) … floor((K+1)·W/N) − 1 (sim.patterns)
-        edges = (np.arange(self.n_stripes + 1) * frame.w) // self.n_stripes
-        cols = np.floor(np.clip(col, 0, frame.w - 1)).astype(int)
-        k = np.where(inside, np.searchsorted(edges, cols, side="right") - 1, -1)
+        base = self._at(d_lc_m).projector
+        tan_half = math.tan(math.radians(base.fov_deg) / 2.0)
+        pitch = 2.0 * tan_half / self.n_stripes  # one stripe's width, tan units
+        rows = max(3, round(base.resolution[1] * 2.0 * tan_half / base.resolution[0] / pitch))
+        fov = math.degrees(2.0 * math.atan(1.5 * pitch))
         out = [np.zeros(len(self.pixels)) for _ in range(4)]
-        for kk in np.unique(k[k >= 0]):
-            sel = np.nonzero(k == kk)[0]
-            c = render_components(scene, f"stripe:{kk}/{self.n_stripes}", self.fidelity, self.pixels[sel])
+        for i, point in enumerate(self.points):
+            proj = base.replace(look_at=tuple(float(v) for v in point), resolution=(3, rows), fov_deg=fov)
+            c = render_components(self.scene.replace(projector=proj), "stripe:1/3", self.fidelity,
+                                  self.pixels[i:i + 1])
             for arr, val in zip(out, (c.D, c.A, c.B, c.p), strict=True):
-                arr[sel] = val
+                arr[i] = val[0]
         return Samples(*out)
 
 
