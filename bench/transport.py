@@ -198,12 +198,19 @@ def _run_transport(kind, size_names, seconds, quick, tmp):
             payload = (np.arange(int(np.prod(shape))) % 251).astype(dtype).reshape(shape)
             if quick:
                 count = max(20, count // 4)
+            # warm-up (first-run effects: page faults, allocator, caches), results discarded
+            for _ in range(max(10, count // 5)):
+                tx.send(payload, time.perf_counter_ns(), _DATA)
+                time.sleep(0.5 / rate)
+            tx.send(ping, time.perf_counter_ns(), _END)
+            _recv(acks, 10)
             # latency: paced
             period = 1.0 / rate
             t_next = time.perf_counter()
             for _ in range(count):
-                while time.perf_counter() < t_next:
-                    pass
+                delay = t_next - time.perf_counter()
+                if delay > 0:  # sleep, not spin: a spinning sender would steal the receiver's core
+                    time.sleep(delay)
                 tx.send(payload, time.perf_counter_ns(), _DATA)
                 t_next += period
             tx.send(ping, time.perf_counter_ns(), _END)
