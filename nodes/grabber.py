@@ -1,0 +1,168 @@
+"""The grabber node: takes one frame per ``camera/trigger`` and publishes it on ``camera/frame``.
+
+The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``file``, ``sim``), opened when the
+node starts. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one frame
+and publishes it tagged with the pattern, the scan and step, and the analyzer angle of the latest
+``polarizer/state`` (None while the analyzer is out of the path, see ``camera/analyzer``); the reply is sent
+after the frame is published, so a caller that then waits for the frame cannot miss it.
+
+Faults are published, never painted over: a grab that times out, a camera that disappears or a frame of the
+wrong scan is an ``Ack(ok=False, detail=…)`` reply naming the camera and what happened, an ERROR line on the
+``log`` topic, and a count in the heartbeat (``grab_faults``); no frame is published for it. After a lost
+camera the next trigger reopens it.
+
+Services: ``camera/trigger`` (FrameRequest → Ack), ``camera/analyzer`` (:class:`AnalyzerMount` → Ack: put
+the analyzer in or out of the optical path; in a lab rig a flip mount, in the simulator a flag per frame).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from polarstripe.msgs import Ack, Frame, FrameRequest, Message, PolarizerState, message
+from polarstripe.nodes.drivers.errors import DriverError
+from polarstripe.nodes.drivers.registry import open_backend
+from polarstripe.nodes.runtime.bus import BusTimeout
+from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.params import NodeParams
+
+
+@message("analyzer_mount")
+class AnalyzerMount(Message):
+    """Put the analyzer in the optical path (``inserted``) or take it out (unpolarized methods)."""
+
+    inserted: bool
+
+
+class Grabber(Node):
+    """Grabs a frame per trigger from a camera backend (see the module docstring)."""
+
+    class Params(NodeParams):
+        camera: str = "sim"  # backend name: sim | v4l2 | file (or an entry point)
+        device: str = ""  # v4l2: index or /dev/videoN; file: folder, glob or video
+        width: int = 0  # v4l2 requested size (0: the driver's)
+        height: int = 0
+        exposure_s: float | None = None  # None: the backend's (the simulator's scene)
+        gain: float | None = None
+        loop: bool = False  # file: start again at the end
+        grab_timeout_s: float = 10.0  # a grab that takes longer is a fault
+        render_service: str = "simulator/render"  # sim backend: the simulator's service
+
+        def validate(self):
+            super().validate()
+            if not self.grab_timeout_s > 0:
+                raise ValueError(f"grab_timeout_s must be > 0, got {self.grab_timeout_s}")
+            if self.exposure_s is not None and not (math.isfinite(self.exposure_s) and self.exposure_s > 0):
+                raise ValueError(f"exposure_s must be a positive number of seconds, got {self.exposure_s}")
+
+    PUBLISHES = {"camera/frame": Frame}
+    SUBSCRIBES = {"polarizer/state": PolarizerState}
+    SERVES = {"camera/trigger": (FrameRequest, Ack), "camera/analyzer": (AnalyzerMount, Ack)}
+
+    def setup(self):
+        self.frames = self.publisher("camera/frame")
+        self.subscribe("polarizer/state", self.on_state, mode="latest")
+        self.serve("camera/trigger", self.trigger)
+        self.serve("camera/analyzer", self.set_analyzer)
+        self.state: PolarizerState | None = None
+        self.analyzer_in = True
+        self.counters["grab_faults"] = 0
+        self.camera = None
+        self._render_client = None
+        try:
+            self.camera = self.open_camera()
+        except DriverError as exc:  # started without a camera: every trigger says so until one appears
+            self.log.error("camera %r: %s", self.params.camera, exc)
+
+    def teardown(self):
+        if self.camera is not None:
+            self.camera.close()
+            self.camera = None
+
+    # ---- camera --------------------------------------------------------------------------------------------
+    def open_camera(self):
+        """Open the backend named by the ``camera`` param with the node's params."""
+        p = self.params
+        kwargs: dict = {}
+        if p.camera == "sim":
+            from polarstripe.sim.simulator import RenderRequest
+
+            if self._render_client is None:
+                self._render_client = self.client(p.render_service, RenderRequest, Frame,
+                                                  timeout_s=p.grab_timeout_s)
+            kwargs["render"] = self._render_client.call
+            if p.exposure_s is not None:
+                kwargs.update(exposure_s=p.exposure_s, send_exposure=True)
+        elif p.camera == "v4l2":
+            kwargs["device"] = int(p.device) if p.device.isdigit() else (p.device or 0)
+            kwargs.update(width=p.width or None, height=p.height or None)
+        elif p.camera == "file":
+            kwargs.update(source=p.device, loop=p.loop)
+        if p.camera != "sim" and p.exposure_s is not None:
+            kwargs["exposure_s"] = p.exposure_s
+        cam = open_backend("camera", p.camera, **kwargs)
+        if p.gain is not None:
+            cam.gain = p.gain
+        self.log.info("camera %s open", cam.name)
+        return cam
+
+    # ---- handlers ------------------------------------------------------------------------------------------
+    def on_state(self, msg: PolarizerState) -> None:
+        self.state = msg
+
+    def set_analyzer(self, req: AnalyzerMount) -> Ack:
+        self.analyzer_in = req.inserted
+        return Ack(ok=True, detail="analyzer in" if req.inserted else "analyzer out")
+
+    def _fault(self, req: FrameRequest, text: str) -> Ack:
+        self.counters["grab_faults"] += 1
+        self.log.error("frame of scan %d step %d (%s): %s", req.scan_id, req.step, req.pattern, text)
+        return Ack(ok=False, detail=text)
+
+    def _latest_state(self) -> PolarizerState | None:
+        try:  # the newest state that arrived since the loop last looked (the emitter saw it settle)
+            self.state = self.wait_for("polarizer/state", timeout_s=0.0)
+        except BusTimeout:
+            pass
+        return self.state
+
+    def trigger(self, req: FrameRequest) -> Ack:
+        if self.camera is None:
+            try:
+                self.camera = self.open_camera()
+            except DriverError as exc:
+                return self._fault(req, f"camera {self.params.camera!r} unavailable: {exc}")
+        cam = self.camera
+        if hasattr(cam, "request"):
+            cam.request(req.pattern, analyzer=self.analyzer_in, scan_id=req.scan_id, step=req.step)
+        if req.exposure_s is not None:
+            try:
+                cam.exposure_s = req.exposure_s
+            except DriverError as exc:
+                return self._fault(req, str(exc))
+        t0 = time.monotonic()
+        try:
+            image, info = cam.grab(timeout=self.params.grab_timeout_s + 1.0)
+        except DriverError as exc:
+            if not isinstance(exc, TimeoutError):  # lost: reopen at the next trigger
+                cam.close()
+                self.camera = None
+            return self._fault(req, f"{type(exc).__name__}: {exc}")
+        extra = info.extra
+        if "scan_id" in extra and (extra["scan_id"], extra["step"]) != (req.scan_id, req.step):
+            return self._fault(req, f"camera delivered scan {extra['scan_id']} step {extra['step']}")
+        angle = None
+        if self.analyzer_in:
+            state = self._latest_state()
+            angle = state.angle_deg if state is not None else extra.get("polarizer_deg")
+        frame = Frame(image=np.ascontiguousarray(image), exposure_s=float(extra.get("exposure_s",
+                                                                                      info.exposure_s)),
+                      gain=info.gain, bit_depth=info.bit_depth, pattern=req.pattern, polarizer_deg=angle,
+                      scan_id=req.scan_id, step=req.step)
+        self.frames.publish(frame, stamp_ns=info.stamp_ns)
+        return Ack(ok=True, detail=f"{image.shape[1]}x{image.shape[0]} in {time.monotonic() - t0:.3f} s")
+
+
+NODE = "Grabber"

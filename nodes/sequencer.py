@@ -1,0 +1,154 @@
+"""The sequencer node: runs the demo of ``launch/sim.toml`` from start to end, then exits.
+
+1. Optionally ask the planner for a plan (``planner/plan``, Empty → Plan) and have the simulator move its
+   source there (``simulator/move_source``, Plan → Ack; its reply comes after the move); optionally measure
+   E_b, the analyzer angle of least backscatter (``polarizer/calibrate``), else take the ``eb_deg`` param.
+2. For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
+   ``fault`` on ``emitter/scan`` and, if ``wait_composite``, for the compositor's ``compositor/composite`` of
+   that scan.
+3. Stop with exit status 0 when every scan was done (and composited), 1 otherwise — so
+   ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
+
+Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
+of a failure names the service or topic and what happened.
+"""
+
+from __future__ import annotations
+
+import time
+
+from polarstripe.msgs import Ack, Composite, Empty, Plan, ScanEvent, ScanRequest
+from polarstripe.nodes.runtime.bus import BusError, BusTimeout
+from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.params import NodeParams
+
+DEFAULT_METHODS = ["flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"]
+
+
+class Sequencer(Node):
+    """Runs a fixed list of scans once (see the module docstring)."""
+
+    class Params(NodeParams):
+        methods: list[str] = list(DEFAULT_METHODS)
+        stripes: int = 30
+        eb_deg: float = 0.0  # analyzer angle of least backscatter E_b [deg]; E_w = E_b + 90
+        calibrate: bool = False  # measure E_b first with polarizer/calibrate (overrides eb_deg)
+        plan: bool = True  # ask planner/plan first
+        move_source: bool = True  # have the simulator move its source to the plan
+        wait_composite: bool = True  # wait for compositor/composite after each scan
+        startup_timeout_s: float = 30.0  # services may take this long to come up
+        scan_timeout_s: float = 600.0
+        composite_timeout_s: float = 60.0
+
+        def validate(self):
+            super().validate()
+            if not self.methods:
+                raise ValueError("methods must name at least one scan method")
+            if self.stripes < 1:
+                raise ValueError(f"stripes must be >= 1, got {self.stripes}")
+
+    SUBSCRIBES = {"emitter/scan": ScanEvent, "compositor/composite": Composite}
+
+    def setup(self):
+        self.subscribe("emitter/scan", mode="all")
+        self.subscribe("compositor/composite", mode="all")
+        self.results: dict[str, dict] = {}
+
+    def run(self) -> None:
+        try:
+            ok = self.sequence()
+        except SequenceError as exc:
+            self.log.error("%s", exc)
+            ok = False
+        if not self.stopping:
+            self.stop("sequence finished" if ok else "sequence failed", exit_code=0 if ok else 1)
+        for _ in self.events():  # ends with Stop
+            pass
+
+    # ---- steps ---------------------------------------------------------------------------------------------
+    def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
+        """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``."""
+        client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
+        deadline = time.monotonic() + self.params.startup_timeout_s
+        while True:
+            try:
+                return client.call(request)
+            except BusTimeout as exc:
+                if time.monotonic() >= deadline or self.stopping:
+                    raise SequenceError(f"{service}: {exc}") from None
+            except BusError as exc:
+                raise SequenceError(f"{service}: {exc}") from None
+
+    def sequence(self) -> bool:
+        p = self.params
+        if p.plan:
+            plan = self.call("planner/plan", Empty, Plan, Empty(), timeout_s=30.0)
+            self.log.info("plan: %s, d_LC = %.3f m, scan %s", plan.modality, plan.separation_m,
+                          plan.scan_type or "-")
+            if p.move_source:
+                ack = self.call("simulator/move_source", Plan, Ack, plan, timeout_s=30.0)
+                if not ack.ok:
+                    raise SequenceError(f"simulator/move_source: {ack.detail}")
+        self.eb_deg = p.eb_deg
+        if p.calibrate:
+            from polarstripe.nodes.polarizer import CalibrateRequest, Calibration
+
+            cal = self.call("polarizer/calibrate", CalibrateRequest, Calibration, CalibrateRequest(),
+                            timeout_s=60.0)
+            if not cal.ok or cal.angle_deg is None:
+                raise SequenceError(f"polarizer/calibrate: {cal.detail}")
+            self.eb_deg = cal.angle_deg
+            self.log.info("calibrated: E_b = %.2f deg", self.eb_deg)
+        ok = True
+        for method in p.methods:
+            if self.stopping:
+                return False
+            ok &= self.scan(method)
+        return ok
+
+    def scan(self, method: str) -> bool:
+        p = self.params
+        polarized = method.startswith("polarized")
+        req = ScanRequest(method=method, stripes=p.stripes if "stripes" in method else 0,
+                          analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
+        t0 = time.monotonic()
+        reply = self.call("emitter/start_scan", ScanRequest, ScanEvent, req, timeout_s=5.0)
+        if reply.event == "fault":
+            self.log.error("%s: emitter refused: %s", method, reply.detail)
+            self.results[method] = {"event": "fault", "detail": reply.detail}
+            return False
+        sid = reply.scan_id
+        try:
+            end = self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),
+                                timeout_s=p.scan_timeout_s)
+        except BusTimeout:
+            self.log.error("%s: scan %d: no done/fault on emitter/scan within %g s", method, sid,
+                           p.scan_timeout_s)
+            self.results[method] = {"event": "timeout"}
+            return False
+        scan_s = time.monotonic() - t0
+        self.results[method] = {"event": end.event, "detail": end.detail, "scan_s": scan_s}
+        if end.event == "fault":
+            self.log.error("%s: scan %d fault: %s", method, sid, end.detail)
+            return False
+        self.log.info("%s: scan %d done in %.2f s", method, sid, scan_s)
+        if not p.wait_composite:
+            return True
+        try:
+            comp = self.wait_for("compositor/composite", lambda c: c.scan_id == sid,
+                                 timeout_s=p.composite_timeout_s)
+        except BusTimeout:
+            self.log.error("%s: scan %d: no compositor/composite within %g s", method, sid,
+                           p.composite_timeout_s)
+            return False
+        shown = {k: v for k, v in comp.metrics.items() if isinstance(v, (int, float, str))}
+        self.log.info("%s: composite %s", method, shown)
+        self.results[method]["metrics"] = shown
+        return True
+
+
+class SequenceError(Exception):
+    """A step of the sequence failed; the text names the service and what happened."""
+
+
+NODE = "Sequencer"
