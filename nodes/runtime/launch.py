@@ -7,8 +7,9 @@ session (output to ``logs/<node>.log``) and supervises: respawn with a delay up 
 then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher
 itself dies.
 
-Recording hook: ``--record FILE`` adds a node ``recorder`` running ``polarstripe.nodes.runtime.bag:Recorder``
-with param ``path = FILE``; until that class exists the flag says recording is not available.
+Recording: ``--record FILE`` adds a node ``recorder`` running
+``polarstripe.nodes.runtime.record_cli:Recorder`` with param ``path = FILE``, started first and stopped last
+so it sees the whole run.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from polarstripe.nodes.runtime.launch_file import LaunchError, LaunchSpec, NodeS
 from polarstripe.nodes.runtime.params import parse_assignments
 
 HELP = "start a rig from a launch file"
-RECORDER = "polarstripe.nodes.runtime.bag:Recorder"
+RECORDER = "polarstripe.nodes.runtime.record_cli:Recorder"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -298,7 +299,8 @@ def _with_recorder(spec: LaunchSpec, path: str) -> None:
         cls = load_node_class(RECORDER)
     except Exception:
         raise LaunchError(f"--record: recording is not available in this build (needs {RECORDER})") from None
-    spec.nodes.append(NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls))
+    recorder = NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls)
+    spec.nodes.insert(0, recorder)  # first up, last down: it sees the whole run
 
 
 def main(args: argparse.Namespace) -> int:
