@@ -70,3 +70,17 @@ def drive_process():
         yield drive
         drive.close()
     shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def spawn_drive():
+    """Start ``DriveProcess(channel, node_id)`` objects on demand; all are stopped at teardown."""
+    started = []
+
+    def spawn(channel: str, node_id: int = 5) -> DriveProcess:
+        started.append(DriveProcess(channel, node_id))
+        return started[-1]
+
+    yield spawn
+    for drive in started:
+        drive.close()

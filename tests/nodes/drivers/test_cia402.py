@@ -205,3 +205,19 @@ def test_a_drive_found_in_fault_is_reset_on_connect_and_says_so(drive_process):
 def test_an_unreachable_bus_is_a_driver_error(can_channel):
     with pytest.raises(DriverError, match=r"cannot open CAN interface 'zmq'.*no hub"):
         Cia402Stage(can_channel, hub=False, join_timeout=0.2)
+
+
+def test_the_drive_process_can_host_the_hub_itself(can_channel, spawn_drive):
+    spawn_drive(can_channel, node_id=6)  # nobody hosts the hub yet: the drive does (hub="auto")
+    with Cia402Stage(can_channel, 6, counts_per_deg=500, min_deg=0, max_deg=180) as stage:
+        assert stage.network.bus._hub is None  # this side only connected
+        stage.move_to(90.0)
+        assert stage.wait_settled(2.0) == pytest.approx(90.0)
+        assert stage.node.sdo[0x6064].raw == 45_000
+
+
+def test_embedded_drive_and_stage_in_one_process_on_the_virtual_bus():
+    with SimCia402Drive("ps-embedded", 3, interface="virtual"):
+        with Cia402Stage("ps-embedded", 3, interface="virtual", counts_per_deg=100) as stage:
+            stage.move_to(-12.5)
+            assert stage.wait_settled(2.0) == pytest.approx(-12.5)
