@@ -1,0 +1,141 @@
+"""The planner node: the camera–source placement of the paper's §3 as a service, re-planned in situ.
+
+* serves ``planner/plan`` (``Empty`` → :class:`Plan`): the current plan (computed at start-up); every call
+  also publishes it on the topic ``planner/plan`` (the simulator moves its source when a plan arrives);
+* publishes ``planner/plan`` once on start-up (``publish_on_start``, after ``publish_delay_s`` so that
+  subscribers have joined);
+* subscribes ``medium/estimate``: when the measured p differs from the p the plan assumed by more than
+  ``p_tolerance`` (absolute), or σ_t by more than ``sigma_tolerance`` (relative), the scene's medium takes the
+  measured values (a constant DOP p, σ_t when given) and the plan is made again and published.
+
+The plan comes from :func:`polarstripe.sim.planner.plan` on :class:`~polarstripe.sim.planner.SceneModel`
+(``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``): modality
+``stripes`` (GQM·W) or ``flood`` (CQM·W), with or without the polarizer. :class:`Plan` carries the best
+separation of the mean curve, the scan type (``rotate``, ``translate`` or ``both``) and per-location optima
+for stripes, and the curves (``separation_m``, ``objective``, ``objective_noise_free``, ``quality``,
+``weight``, and ``objective_O1``… per observed location).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from polarstripe.msgs import Empty, MediumEstimate, Plan
+from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.params import NodeParams
+
+
+class Planner(Node):
+    """Serves and publishes the placement plan; re-plans when the medium estimate moves (module docstring)."""
+
+    class Params(NodeParams):
+        scene: str = ""  # scene TOML; "" = the paper's tank
+        resolution: str = ""  # camera "WxH"; "" = the scene's
+        fidelity: str = "preview"
+        modality: Literal["stripes", "flood"] = "stripes"
+        polarized: bool = True
+        stripes: int = 30
+        separations: int = 24
+        d_min_m: float = 0.02
+        d_max_m: float = 0.5
+        exposure: Literal["scene", "auto"] = "scene"
+        publish_on_start: bool = True
+        publish_delay_s: float = 1.0
+        replan: bool = True
+        p_tolerance: float = 0.05  # absolute
+        sigma_tolerance: float = 0.1  # relative
+
+        def validate(self):
+            super().validate()
+            if self.separations < 2 or not 0 < self.d_min_m < self.d_max_m:
+                raise ValueError(f"need separations >= 2 and 0 < d_min_m < d_max_m, got {self.separations}, "
+                                 f"{self.d_min_m}, {self.d_max_m}")
+            if self.p_tolerance < 0 or self.sigma_tolerance < 0:
+                raise ValueError("p_tolerance and sigma_tolerance must be >= 0")
+            if self.resolution:
+                _resolution(self.resolution)
+
+    PUBLISHES = {"planner/plan": Plan}
+    SUBSCRIBES = {"medium/estimate": MediumEstimate}
+    SERVES = {"planner/plan": (Empty, Plan)}
+
+    def setup(self):
+        from polarstripe.sim.scene import load_scene
+
+        scene = load_scene(self.params.scene or None)
+        if self.params.resolution:
+            scene = scene.replace(camera=scene.camera.replace(resolution=_resolution(self.params.resolution)))
+        self.scene = scene
+        self.counters["replans"] = 0
+        self.plan_pub = self.publisher("planner/plan")
+        self.subscribe("medium/estimate", self.on_estimate, mode="latest")
+        self.serve("planner/plan", self.on_request)
+        self.plan = self.make_plan()
+        if self.params.publish_on_start:
+            self.every(self.params.publish_delay_s, self._publish_once, name="publish_on_start")
+
+    def make_plan(self) -> Plan:
+        """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
+        from polarstripe.sim.planner import SceneModel, default_separations, plan
+
+        p = self.params
+        model = SceneModel(self.scene, fidelity=p.fidelity, n_stripes=p.stripes)
+        seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
+        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
+        mp = plans[p.modality + ("_polarized" if p.polarized else "")]
+        c = mp.curve
+        best = c.best_separation_m
+        samples = model.stripes(best) if p.modality == "stripes" else model.flood(best)
+        self.p_assumed = float(np.mean(samples.dop))
+        self.sigma_assumed = float(self.scene.medium.sigma_t)
+        curves = {"separation_m": c.separations_m, "objective": c.objective,
+                  "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight}
+        for i, lc in enumerate(mp.location_curves):
+            curves[f"objective_O{i + 1}"] = lc.objective
+        result = Plan(modality=p.modality, separation_m=best, scan_type=mp.scan["winner"] if mp.scan else "",
+                      stripe_optima=[lc.best_separation_m for lc in mp.location_curves],
+                      curves={k: np.asarray(v, np.float64) for k, v in curves.items()})
+        self.log.info("plan: %s%s, d_LC = %.3f m%s (assumes p = %.3f, sigma_t = %.3g /m)", p.modality,
+                      " polarized" if p.polarized else "", best,
+                      f", scan {result.scan_type}" if result.scan_type else "", self.p_assumed,
+                      self.sigma_assumed)
+        return result
+
+    def _publish_once(self):
+        self.cancel("publish_on_start")
+        self.plan_pub.publish(self.plan)
+
+    def on_request(self, request: Empty) -> Plan:
+        self.plan_pub.publish(self.plan)
+        return self.plan
+
+    def on_estimate(self, est: MediumEstimate) -> None:
+        from polarstripe.sim.scene import DopModel
+
+        p = self.params
+        dp = abs(est.p - self.p_assumed)
+        sigma = est.sigma_t_per_m
+        ds = abs(sigma - self.sigma_assumed) / max(self.sigma_assumed, 1e-12) if sigma is not None else 0.0
+        if not p.replan or (dp <= p.p_tolerance and ds <= p.sigma_tolerance):
+            return
+        medium = self.scene.medium.replace(dop=DopModel(model="constant", p=min(max(est.p, 0.0), 1.0)))
+        if sigma is not None:
+            medium = medium.replace(sigma_t=sigma)
+        self.log.info("medium estimate of scan %d (p %.3f, sigma_t %s) differs from the plan's (p %.3f, "
+                      "sigma_t %.3g): re-planning", est.scan_id, est.p, sigma, self.p_assumed,
+                      self.sigma_assumed)
+        self.scene = self.scene.replace(medium=medium)
+        self.plan = self.make_plan()
+        self.counters["replans"] += 1
+        self.plan_pub.publish(self.plan)
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    w, sep, h = text.lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+        raise ValueError(f"resolution must be WxH (e.g. 640x480), got {text!r}")
+    return int(w), int(h)
+
+
+NODE = Planner

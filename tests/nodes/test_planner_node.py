@@ -1,0 +1,72 @@
+"""The planner node through the harness: the plan as a service and a topic, re-planned when the medium
+estimate moves beyond the tolerance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from polarstripe.msgs import Empty, MediumEstimate, Plan
+from polarstripe.nodes.planner import Planner
+from polarstripe.nodes.runtime.params import ParamError
+from polarstripe.nodes.runtime.testing import NodeHarness
+
+FAST = {"fidelity": "preview", "separations": 6, "d_min_m": 0.05, "d_max_m": 0.45, "resolution": "160x120"}
+
+
+@pytest.fixture(scope="module")
+def harness():
+    return NodeHarness(Planner, name="planner", namespace="/rig", params=FAST)
+
+
+def test_plan_is_served_and_published(harness):
+    h = harness
+    assert h.published("planner/plan") == []
+    h.advance(1.05)  # publish_delay_s: once, after subscribers had time to join
+    h.advance(3.0)
+    assert len(h.published("planner/plan")) == 1
+    plan = h.call("planner/plan", Empty())
+    assert isinstance(plan, Plan) and plan.modality == "stripes"
+    seps = plan.curves["separation_m"]
+    np.testing.assert_allclose(seps, np.linspace(0.05, 0.45, 6))
+    assert plan.separation_m == seps[int(np.argmax(plan.curves["objective"]))]
+    assert plan.scan_type in ("rotate", "translate", "both")
+    assert len(plan.stripe_optima) == 3 and all(0.05 <= d <= 0.45 for d in plan.stripe_optima)
+    assert len(h.published("planner/plan")) == 2  # the call publishes it too (the simulator moves the source)
+
+
+def test_small_change_of_p_does_not_replan(harness):
+    h = harness
+    n = len(h.published("planner/plan"))
+    h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed + 0.03, scan_id=1))
+    assert len(h.published("planner/plan")) == n and h.node.counters["replans"] == 0
+
+
+def test_changed_p_replans_with_the_measured_medium(harness):
+    h = harness
+    before = h.call("planner/plan", Empty())
+    n = len(h.published("planner/plan"))
+    h.deliver("medium/estimate", MediumEstimate(p=0.2, scan_id=2))
+    assert h.node.counters["replans"] == 1 and len(h.published("planner/plan")) == n + 1
+    assert h.node.scene.medium.dop.model == "constant" and h.node.scene.medium.dop.p == pytest.approx(0.2)
+    assert h.node.p_assumed == pytest.approx(0.2)
+    after = h.published("planner/plan")[-1]
+    # eq. 9, GQM = (D + B(1 - p)) / (D + A + B(1 - p)), rises as p falls wherever A > 0 and B > 0: the
+    # re-plan used the measured p, not the model's
+    assert np.all(after.curves["quality"] > before.curves["quality"])
+
+
+def test_changed_sigma_replans():
+    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=5.2))  # within 10 %
+    assert h.node.counters["replans"] == 0
+    h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=9.0))
+    assert h.node.counters["replans"] == 1 and h.node.scene.medium.sigma_t == pytest.approx(9.0)
+    h.advance(5.0)
+    assert len(h.published("planner/plan")) == 1  # the re-plan only: nothing on start-up
+
+
+def test_bad_params_are_rejected_before_start():
+    with pytest.raises(ParamError, match="resolution"):
+        NodeHarness(Planner, params={"resolution": "640by480"})
+    with pytest.raises(ParamError, match="d_min_m"):
+        NodeHarness(Planner, params={"d_min_m": 0.5, "d_max_m": 0.1})
