@@ -272,11 +272,8 @@ class ZmqCanBus(can.BusABC):
         frame = _HDR.pack(self._id, time.time(), msg.arbitration_id, flags, len(data)) + data
         with self._send_lock:
             try:
-                if timeout is None:
-                    self._pub.send(frame)
-                else:
-                    self._pub.sndtimeo = max(0, int(timeout * 1000))
-                    self._pub.send(frame)
+                self._pub.send(frame)  # a PUB socket never blocks: at its high-water mark it drops, like a
+                # saturated bus loses arbitration, so ``timeout`` has nothing to wait for
             except zmq.ZMQError as exc:
                 raise can.CanOperationError(f"zmq CAN bus {self._channel}: send failed: {exc}") from exc
 
