@@ -337,8 +337,11 @@ class _Array(Kind):
         dt = _DTYPES.get(dtype) if type(dtype) is str else None
         if dt is None:
             dt = _dtype(dtype)
-        if type(shape) is not list or not all(type(n) is int and n >= 0 for n in shape):
+        if type(shape) is not list:
             raise ValueError(f"bad shape {shape!r:.60}")
+        for n in shape:
+            if type(n) is not int or n < 0:
+                raise ValueError(f"bad shape {shape!r:.60}")
         buf = bufs[i]
         bufs.used.add(i)
         n = math.prod(shape) * dt.itemsize

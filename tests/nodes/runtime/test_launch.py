@@ -391,3 +391,30 @@ def test_cli_rejects_before_anything_starts_and_dry_run_prints_the_graph(tmp_pat
         timeout=30,
     )
     assert rec.returncode == 0 or "recording is not available in this build" in rec.stderr
+
+
+def test_tcp_transport(tmp_path):
+    proc = _launch(
+        tmp_path,
+        """
+        [launch]
+        namespace = "/net"
+        transport = "tcp"
+        [[node]]
+        name = "talker"
+        module = "polarstripe.nodes.demo:Talker"
+        params = { rate_hz = 50 }
+        [[node]]
+        name = "listener"
+        module = "polarstripe.nodes.demo:Listener"
+        params = { count = 10 }
+        required = true
+    """,
+        "--once",
+    )
+    assert proc.wait(30) == 0, _output(tmp_path)
+    run = next((tmp_path / "runs").iterdir())
+    graph = json.loads((run / "graph.json").read_text())
+    assert graph["nodes"]["talker"]["pub"].startswith("tcp://127.0.0.1:")
+    assert graph["services"]["/net/talker/reset"]["endpoint"].startswith("tcp://127.0.0.1:")
+    assert "heard 10 messages in all" in (run / "logs" / "listener.log").read_text()
