@@ -38,6 +38,7 @@ class NodeParams:
     heartbeat_s: float = 1.0  # period of the heartbeat message [s]; 0 turns it off
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     max_message_bytes: int = 128 * 2**20  # larger received messages are dropped as bad [bytes]
+    pub_hwm: int = 100  # messages queued per subscriber before the publisher drops (seen as gaps)
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -50,6 +51,8 @@ class NodeParams:
         """Override to check values together; raise ``ValueError`` naming the problem."""
         if self.heartbeat_s < 0:
             raise ValueError(f"heartbeat_s must be >= 0, got {self.heartbeat_s}")
+        if self.pub_hwm < 1:
+            raise ValueError(f"pub_hwm must be >= 1, got {self.pub_hwm}")
         if self.max_message_bytes <= 0:
             raise ValueError(f"max_message_bytes must be > 0, got {self.max_message_bytes}")
 

@@ -51,10 +51,11 @@ class ZmqNodeBus:
         connect: list[str] = (),
         services: dict[str, str] | None = None,
         curve: zbus.CurveKeys | None = None,
+        pub_hwm: int = 100,
     ):
         self.name, self.graph, self.curve = name, graph or {}, curve
         self.ctx = zmq.Context.instance()
-        self.pub_socket = zbus.PubSocket(pub, curve=curve)
+        self.pub_socket = zbus.PubSocket(pub, hwm=pub_hwm, curve=curve)
         self._srv_endpoint = srv
         self.server: zbus.ServiceServer | None = None
         self.connect = list(connect)
@@ -163,7 +164,14 @@ def run_node(
         curve = zbus.CurveKeys.load(key_file)
     node = cls(name, namespace=namespace, params=params, bus=None)
     bus = ZmqNodeBus(
-        name, pub=pub, srv=srv, graph=graph, connect=list(connect), services=services, curve=curve
+        name,
+        pub=pub,
+        srv=srv,
+        graph=graph,
+        connect=list(connect),
+        services=services,
+        curve=curve,
+        pub_hwm=node.params.pub_hwm,
     )
     node._bus = bus
     install_logging(node)

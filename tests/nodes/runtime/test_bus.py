@@ -42,7 +42,7 @@ def ipc(tmp_path):
 
 
 def test_all_mode_delivers_every_message_in_order_with_no_gaps(ipc):
-    with PubSocket(ipc("a.pub")) as ps, Subscriber([ps.endpoint], "/t/x", Log, mode="all") as sub:
+    with PubSocket(ipc("a.pub"), hwm=1000) as ps, Subscriber([ps.endpoint], "/t/x", Log, mode="all") as sub:
         pub = ps.publisher("/t/x", Log)
         _joined(pub, sub)
         for i in range(500):
@@ -50,6 +50,23 @@ def test_all_mode_delivers_every_message_in_order_with_no_gaps(ipc):
         got = [sub.recv(timeout_s=2).text for _ in range(500)]
         assert got == [str(i) for i in range(500)]
         assert sub.stats.gaps == 0 and sub.stats.bad == 0
+
+
+def test_messages_over_the_publisher_hwm_are_dropped_but_never_silently(ipc):
+    with PubSocket(ipc("a.pub"), hwm=10) as ps, Subscriber([ps.endpoint], "/t/x", Log, mode="all") as sub:
+        pub = ps.publisher("/t/x", Log)
+        _joined(pub, sub)
+        first = pub.seq
+        for i in range(2000):  # a burst far beyond the queue
+            pub.publish(_log(i))
+        time.sleep(0.3)
+        pub.publish(_log("last"))  # a gap shows when the next message arrives
+        got = []
+        while not got or got[-1] != "last":
+            got.append(sub.recv(timeout_s=2).text)
+        assert sub.stats.gaps > 0
+        assert len(got) + sub.stats.gaps == pub.seq - first
+        assert [int(t) for t in got[:-1]] == sorted(int(t) for t in got[:-1])
 
 
 def test_latest_mode_keeps_only_the_newest(ipc):
