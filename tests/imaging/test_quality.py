@@ -70,3 +70,13 @@ def test_bad_parameters():
         cqm(-1.0, 1.0)
     with pytest.raises(ImagingError, match="backscatter: NaN"):
         cqm(np.ones(2), np.array([1.0, np.nan]))
+
+
+def test_recovered_noise_grows_like_sqrt2_over_p_as_p_goes_to_zero():
+    # refs §4.2/§8: sigma_S/sigma -> sqrt(2)/p for equal frame noise; read noise only (no light) isolates it
+    for p in (0.05, 0.01, 1e-3):
+        sigma = recovered_signal_noise_e(0.0, 0.0, p, read_noise_e=1.0)
+        assert math.isfinite(float(sigma))
+        assert float(sigma) == pytest.approx(math.sqrt(2 * (1 + 1 / p**2)), rel=1e-12)
+    with pytest.raises(ImagingError, match="clamp it away from 0"):
+        recovered_signal_noise_e(1.0, 1.0, 0.0, read_noise_e=1.0)
