@@ -3,7 +3,8 @@
 1. Optionally ask the planner for a plan (``planner/plan``, Empty → Plan) and have the simulator move its
    source there (``simulator/move_source``, Plan → Ack; its reply comes after the move); optionally measure
    E_b, the analyzer angle of least backscatter (``polarizer/calibrate``), else take the ``eb_deg`` param.
-2. For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
+2. Before polarized scans, wait until ``polarizer/state`` shows no fault (the stage may still be connecting).
+   For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
    ``fault`` on ``emitter/scan`` and, if ``wait_composite``, for the compositor's ``compositor/composite`` of
    that scan.
 3. Stop with exit status 0 when every scan was done (and composited), 1 otherwise — so
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import time
 
-from polarstripe.msgs import Ack, Composite, Empty, Plan, ScanEvent, ScanRequest
+from polarstripe.msgs import Ack, Composite, Empty, Plan, PolarizerState, ScanEvent, ScanRequest
 from polarstripe.nodes.runtime.bus import BusError, BusTimeout
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
@@ -47,11 +48,16 @@ class Sequencer(Node):
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
 
-    SUBSCRIBES = {"emitter/scan": ScanEvent, "compositor/composite": Composite}
+    SUBSCRIBES = {
+        "emitter/scan": ScanEvent,
+        "compositor/composite": Composite,
+        "polarizer/state": PolarizerState,
+    }
 
     def setup(self):
         self.subscribe("emitter/scan", mode="all")
         self.subscribe("compositor/composite", mode="all")
+        self.subscribe("polarizer/state", mode="latest")
         self.results: dict[str, dict] = {}
 
     def run(self) -> None:
@@ -90,6 +96,8 @@ class Sequencer(Node):
                 if not ack.ok:
                     raise SequenceError(f"simulator/move_source: {ack.detail}")
         self.eb_deg = p.eb_deg
+        if p.calibrate or any(m.startswith("polarized") for m in p.methods):
+            self.wait_stage_ready()
         if p.calibrate:
             from polarstripe.nodes.polarizer import CalibrateRequest, Calibration
 
@@ -105,6 +113,21 @@ class Sequencer(Node):
                 return False
             ok &= self.scan(method)
         return ok
+
+    def wait_stage_ready(self) -> None:
+        """Wait until the polarizer reports a state without a fault (it may still be connecting)."""
+        last: list[PolarizerState] = []
+
+        def ready(s: PolarizerState) -> bool:
+            last[:] = [s]
+            return not s.fault
+
+        try:
+            self.wait_for("polarizer/state", ready, timeout_s=self.params.startup_timeout_s)
+        except BusTimeout:
+            why = f"last fault: {last[0].fault}" if last else "no state at all"
+            raise SequenceError(f"polarizer/state: the analyzer stage was not ready within "
+                                f"{self.params.startup_timeout_s:g} s ({why})") from None
 
     def scan(self, method: str) -> bool:
         p = self.params
