@@ -22,7 +22,8 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from polarstripe.msgs.base import REGISTRY, Buffers, Header, Message, MessageError
+from polarstripe.msgs.base import REGISTRY, Header, Message, MessageError
+from polarstripe.msgs.fields import Buffers
 
 DEFAULT_MAX_BYTES = 128 * 2**20
 """Largest message (header plus buffers) a decoder accepts by default [bytes]."""
