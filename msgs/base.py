@@ -98,6 +98,45 @@ def message(type_name: str, *, version: int = 1):
                 f"message type {type_name!r} is already declared by {old.__module__}.{old.__name__}"
             )
         REGISTRY[type_name] = cls
+        if "__post_init__" not in cls.__dict__:
+            cls.__init__ = _fast_init(cls)
         return cls
 
     return wrap
+
+
+_EMPTY_HEADER = Header()
+_MISSING = object()
+
+
+def _fast_init(cls: type[Message]):
+    """The same keyword-only ``__init__`` the dataclass made, writing ``__dict__`` directly (a frozen
+    dataclass sets each field through ``object.__setattr__``: ~3 µs for a Frame, this takes ~1 µs). The
+    values are checked by the codec when the message is published."""
+    params, body = [], []
+    env: dict = {"_MISSING": _MISSING, "_EMPTY_HEADER": _EMPTY_HEADER}
+    for f in dataclasses.fields(cls):
+        n = f.name
+        if n == "header":
+            params.append("header=_EMPTY_HEADER")  # Header is frozen: one shared empty header is safe
+        elif f.default is not dataclasses.MISSING:
+            env[f"_d_{n}"] = f.default
+            params.append(f"{n}=_d_{n}")
+        elif f.default_factory is not dataclasses.MISSING:
+            env[f"_f_{n}"] = f.default_factory
+            params.append(f"{n}=_MISSING")
+            body.append(f"    if {n} is _MISSING:\n        {n} = _f_{n}()")
+        else:
+            params.append(n)
+    names = [f.name for f in dataclasses.fields(cls)]
+    src = (
+        f"def __init__(self, *, {', '.join(params)}):\n"
+        + "\n".join(body)
+        + ("\n" if body else "")
+        + f"    self.__dict__.update({', '.join(f'{n}={n}' for n in names)})\n"
+    )
+    exec(src, env)  # noqa: S102  (code generated from the dataclass's own field names)
+    init = env["__init__"]
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    init.__doc__ = cls.__init__.__doc__
+    return init
