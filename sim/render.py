@@ -24,6 +24,7 @@ from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stri
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.surface import SurfaceInfo, surface_info
+from polarstripe.sim.surface_term import surface_scatter_beams
 from polarstripe.sim.transport import (
     Source,
     direct,
@@ -36,33 +37,36 @@ from polarstripe.sim.transport import (
 
 @dataclass(frozen=True)
 class Fidelity:
-    """Sample counts: ξ nodes per lit interval, hemisphere θ nodes per piece × φ azimuths for A, and the A
-    grid (w, h) over the image (None: A at every pixel)."""
+    """Sample counts: ξ nodes per lit interval; for A the pattern-pixel rule's nodes per side (``a_side``,
+    pinhole flood/stripe: :mod:`surface_term`; 0 = always the hemisphere rule), the hemisphere rule's θ
+    nodes per piece × φ azimuths (point source, checkers), and the A grid (w, h) over the image (None: every
+    pixel)."""
 
     name: str
     xi_nodes: int
     hemi_theta: int
     hemi_phi: int
     a_grid: tuple[int, int] | None
+    a_side: int = 0
 
 
 FIDELITY = {
-    "preview": Fidelity("preview", 8, 2, 6, (16, 12)),
-    "standard": Fidelity("standard", 16, 4, 12, (32, 24)),
-    "reference": Fidelity("reference", 64, 16, 48, None),
+    "preview": Fidelity("preview", 8, 2, 6, (16, 12), 4),
+    "standard": Fidelity("standard", 12, 4, 12, (32, 24), 5),
+    "reference": Fidelity("reference", 64, 16, 48, None, 24),
 }
 
 
 def resolve_fidelity(fidelity: str | Fidelity) -> Fidelity:
     """A named level (``preview``, ``standard``, ``reference``), a :class:`Fidelity`, or
-    ``"xi=N,theta=N,phi=N,grid=WxH|none"`` (explicit sample counts, unspecified ones from ``standard``)."""
+    ``"xi=N,theta=N,phi=N,side=N,grid=WxH|none"`` (explicit counts, unspecified ones from ``standard``)."""
     if isinstance(fidelity, Fidelity):
         return fidelity
     if fidelity in FIDELITY:
         return FIDELITY[fidelity]
     base = FIDELITY["standard"]
     kw = {"xi_nodes": base.xi_nodes, "hemi_theta": base.hemi_theta, "hemi_phi": base.hemi_phi,
-          "a_grid": base.a_grid}
+          "a_grid": base.a_grid, "a_side": base.a_side}
     try:
         for part in str(fidelity).split(","):
             k, v = part.split("=")
@@ -70,14 +74,15 @@ def resolve_fidelity(fidelity: str | Fidelity) -> Fidelity:
             if k == "grid":
                 kw["a_grid"] = None if v.strip() == "none" else tuple(int(x) for x in v.lower().split("x"))
             else:
-                kw[{"xi": "xi_nodes", "theta": "hemi_theta", "phi": "hemi_phi"}[k]] = int(v)
+                kw[{"xi": "xi_nodes", "theta": "hemi_theta", "phi": "hemi_phi", "side": "a_side"}[k]] = int(v)
         fid = Fidelity(str(fidelity), **kw)
-        if min(fid.xi_nodes, fid.hemi_theta, fid.hemi_phi) < 1 or (fid.a_grid and min(fid.a_grid) < 2):
+        if min(fid.xi_nodes, fid.hemi_theta, fid.hemi_phi) < 1 or fid.a_side < 0 or (
+                fid.a_grid and min(fid.a_grid) < 2):
             raise ValueError
         return fid
     except (ValueError, KeyError, TypeError):
         raise SceneError(f"fidelity {fidelity!r} is not preview, standard, reference or "
-                         "'xi=N,theta=N,phi=N,grid=WxH|none'") from None
+                         "'xi=N,theta=N,phi=N,side=N,grid=WxH|none'") from None
 
 
 @dataclass
@@ -151,9 +156,16 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
     hit = surf.object_id >= 0
     cpos = np.asarray(scene.camera.position)
 
+    beams = fid.a_side > 0 and src.frame is not None and src.pattern.kind in ("flood", "stripe")
+
+    def a_at(points, normals, albedo):
+        if beams:
+            return surface_scatter_beams(src, scene.objects, cpos, points, normals, albedo, fid.xi_nodes,
+                                         fid.a_side)
+        return surface_scatter(src, cpos, points, normals, albedo, fid.xi_nodes, fid.hemi_theta, fid.hemi_phi)
+
     def at(idx):
-        return surface_scatter(src, cpos, hits.point[idx], hits.normal[idx], surf.albedo[idx], fid.xi_nodes,
-                               fid.hemi_theta, fid.hemi_phi)
+        return a_at(hits.point[idx], hits.normal[idx], surf.albedo[idx])
 
     if pixels is not None or fid.a_grid is None:
         idx = np.nonzero(hit)[0]
@@ -168,8 +180,7 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
     gval = np.zeros(gdirs.shape[0])
     gidx = np.nonzero(ghits.index >= 0)[0]
     # A/ρ is smooth across texture edges: interpolate the albedo-free part, multiply by the pixel's albedo
-    gval[gidx] = surface_scatter(src, cpos, ghits.point[gidx], ghits.normal[gidx], np.ones(gidx.size),
-                                 fid.xi_nodes, fid.hemi_theta, fid.hemi_phi)
+    gval[gidx] = a_at(ghits.point[gidx], ghits.normal[gidx], np.ones(gidx.size))
     gval, gobj = gval.reshape(gh, gw), ghits.index.reshape(gh, gw)
     idx = np.nonzero(hit)[0]
     rows, cols = idx // cam.w, idx % cam.w

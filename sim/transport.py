@@ -15,6 +15,7 @@ The scattering-plane polarization (Mueller model) is accumulated on the same nod
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,7 +78,8 @@ def _light_path(src: Source, y: np.ndarray, d_ly: np.ndarray) -> np.ndarray:
 
 
 def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
-                  lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False):
+                  lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False,
+                  facing: np.ndarray | None = None):
     """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
 
     Parameters
@@ -88,6 +90,9 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     ray, lo, hi : (m,) interval → ray index and interval ends (from :func:`patterns.lit_intervals`).
     nodes : Gauss–Legendre nodes per interval.
     polarization : also return the B-weighted Stokes (q, u) per ray in the scattering-plane frame.
+    facing : optional (n, 3) unit normals at the source point: multiplies the integrand by
+        max(0, n·(Y − L))/d_LY (the Lambertian cosine when the "source" is a surface point, for A).
+        ``src.position`` may then be (n, 3), one point per ray (inside the medium).
 
     Returns
     -------
@@ -99,11 +104,12 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     u_out = np.zeros(n) if polarization else None
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
         return (b_out, q_out, u_out) if polarization else b_out
+    ray, lo, hi = _split_forward_peak(src, origin, dirs, ray, lo, hi)
     t, w = gauss_legendre(nodes)
     chunk = max(1, _CHUNK_NODES // nodes)
     for s in range(0, ray.size, chunk):
         sl = slice(s, s + chunk)
-        res = _intervals(src, origin, dirs, view_start, ray[sl], lo[sl], hi[sl], t, w, polarization)
+        res = _intervals(src, origin, dirs, view_start, ray[sl], lo[sl], hi[sl], t, w, polarization, facing)
         b_out += np.bincount(ray[sl], res[0], minlength=n)
         if polarization:
             q_out += np.bincount(ray[sl], res[1], minlength=n)
@@ -111,10 +117,44 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     return (b_out, q_out, u_out) if polarization else b_out
 
 
-def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization):
+def forward_width(phase) -> float:
+    """Angular width [rad] of the phase function's forward lobe (1 − g of the most forward HG lobe)."""
+    if phase.model == "isotropic":
+        return np.pi
+    if phase.model == "hg":
+        return max(1.0 - abs(phase.g), 1e-6)
+    gf, gb, _ = phase_fn.tthg_parameters(phase.g)
+    return max(1.0 - max(gf, gb), 1e-6)
+
+
+def _split_forward_peak(src, origin, dirs, ray, lo, hi):
+    """Split intervals where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width, so the
+    Gauss–Legendre pieces resolve a forward peak (the source near or behind the viewer's ray; A's beams)."""
+    width = forward_width(src.phase)
+    alphas = np.array([f * width for f in (0.3, 1.0, 3.0, 9.0) if f * width < 1.2])
+    if alphas.size == 0 or ray.size == 0:
+        return ray, lo, hi
     d = dirs[ray]
     c = origin if np.ndim(origin) == 1 else origin[ray]
-    lv = src.position - c                                       # C → L
+    lv = (src.position if src.position.ndim == 1 else src.position[ray]) - c
+    xc = (lv * d).sum(-1)
+    he = np.sqrt(np.maximum((lv * lv).sum(-1) - xc * xc, 0.0) + src.radius ** 2)
+    xb = xc[:, None] - he[:, None] / np.tan(alphas)[None, :]        # u = −h cot α: scattering angle α
+    inside = (xb > lo[:, None]) & (xb < hi[:, None])
+    if not inside.any():
+        return ray, lo, hi
+    pts = np.sort(np.where(inside, xb, hi[:, None]), axis=1)
+    edges = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
+    a, b = edges[:, :-1], edges[:, 1:]
+    keep = b > a
+    r = np.broadcast_to(ray[:, None], a.shape)
+    return r[keep], a[keep], b[keep]
+
+
+def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization, facing=None):
+    d = dirs[ray]
+    c = origin if np.ndim(origin) == 1 else origin[ray]
+    lv = (src.position if src.position.ndim == 1 else src.position[ray]) - c      # C → L
     xc = (lv * d).sum(-1) if lv.ndim == 2 else d @ lv           # foot of the perpendicular from L
     hvec = lv - xc[:, None] * d                                 # perpendicular offset of L from the ray
     h2 = (hvec * hvec).sum(-1)
@@ -165,6 +205,10 @@ def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization):
         m = np.zeros(ray.size)
         rel = 1.0
     wk = w[None, :] * pf * rel
+    if facing is not None:
+        nf = facing[ray]
+        cos_f = (-(hvec * nf).sum(-1)[:, None] + u * (d * nf).sum(-1)[:, None]) / dsafe
+        wk = wk * np.clip(cos_f, 0.0, None)
     log_pref = np.log(src.sigma_s * src.intensity) - np.log(he) + np.log(np.abs(half) + 1e-300) - m
     total = wk.sum(axis=1)
     with np.errstate(under="ignore"):
@@ -299,6 +343,7 @@ def surface_scatter(src: Source, camera_pos: np.ndarray, points: np.ndarray, nor
         return out
     k = (len(_SPLITS) - 1) * n_theta * n_phi
     per = max(1, 200000 // k)
+    src = dataclasses.replace(src, radius=0.0)       # A: the exact point source (its 1/r peak is integrable)
     for s in range(0, m, per):
         sl = slice(s, s + per)
         mm = points[sl].shape[0]

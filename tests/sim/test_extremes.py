@@ -53,8 +53,8 @@ def test_grazing_rays_parallel_to_stripe_planes_sum_to_flood():
     cam = s.camera.replace(position=(0.2, 0.05, 0.0), look_at=(0.2, 0.05, 0.38), resolution=(64, 48))
     proj = s.projector.replace(position=(0.2, 0.0, 0.0), look_at=(0.2, 0.0, 0.38), resolution=(64, 48))
     sc = s.replace(camera=cam, projector=proj)
-    flood = render_components(sc, "flood", "xi=32,theta=2,phi=4,grid=none", need=("B",)).B
-    parts = sum(render_components(sc, f"stripe:{k}/8", "xi=32,theta=2,phi=4,grid=none", need=("B",)).B
+    flood = render_components(sc, "flood", "xi=32,theta=2,phi=4,side=0,grid=none", need=("B",)).B
+    parts = sum(render_components(sc, f"stripe:{k}/8", "xi=32,theta=2,phi=4,side=0,grid=none", need=("B",)).B
                 for k in range(8))
     assert np.isfinite(parts).all()
     np.testing.assert_allclose(parts, flood, rtol=1e-9, atol=1e-14)
