@@ -1,0 +1,214 @@
+"""``polarstripe bench fidelity``: time, memory and error of the light-transport model per fidelity level.
+
+One run measures, on the default tank (640×480 unless ``--resolution``):
+- seconds per frame (flood; one stripe of 30; σ = 0 flood) and peak traced memory, per level;
+- median / max relative error of D, A, B of full frames against ``reference`` evaluated at a sample of pixels
+  (relative error |x − r|/r over pixels with r > 1e-3·max r; pixels where both are 0 count as exact);
+- how time grows with resolution, stripe count and optical thickness (standard level);
+- the peer: plain ray marching of B (midpoint rule in x, the usual volume-sampling renderer) on the same
+  pixels, the steps it needs for the standard level's B error, and the time ratio.
+Targets (issue 3): standard ≤ 1e-3 on D, B, ≤ 1e-2 on A, ≥ 10 frames/s for a 640×480 stripe frame on one core;
+preview ≤ 2 % at ≥ 30 frames/s; σ = 0 and a stripe frame each cheaper than a turbid flood frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import tracemalloc
+
+import numpy as np
+
+LEVELS = ("preview", "standard", "reference")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--resolution", default="640x480", help="frame size WxH (default 640x480)")
+    parser.add_argument("--samples", type=int, default=150, help="pixels compared against the reference")
+    parser.add_argument("--repeat", type=int, default=2, help="timing repeats (best of)")
+    parser.add_argument("--quick", action="store_true", help="skip the scaling tables and the peer")
+
+
+def _timed(fn, repeat: int):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def _peak_mb(fn) -> float:
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1] / 1e6
+    finally:
+        tracemalloc.stop()
+
+
+def _rel_err(x, r):
+    x, r = np.asarray(x), np.asarray(r)
+    if r.max() <= 0:
+        return 0.0, 0.0
+    sel = r > 1e-3 * r.max()
+    e = np.abs(x[sel] - r[sel]) / r[sel]
+    return float(np.median(e)), float(np.max(e))
+
+
+def _march_b(scene, pixels, steps: int) -> np.ndarray:
+    """The peer: B by the midpoint rule in x along each ray (volume sampling), flood light."""
+    from polarstripe.sim import phase as phase_fn
+    from polarstripe.sim.geometry import box_interval, intersect, pinhole_frame, pixel_rays, projector_coords
+
+    c, m, pr = scene.camera, scene.medium, scene.projector
+    cam = pinhole_frame(c.position, c.look_at, c.up, c.fov_deg, c.resolution)
+    proj = pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg, pr.resolution)
+    d = pixel_rays(cam, pixels)
+    t0, t1 = box_interval(cam.position, d, m.extent.min, m.extent.max)
+    t1 = np.minimum(t1, intersect(scene.objects, cam.position, d).t)
+    L = np.asarray(pr.position)
+    out = np.zeros(d.shape[0])
+    for k in range(steps):
+        x = t0 + (k + 0.5) / steps * (t1 - t0)
+        y = cam.position + x[:, None] * d
+        v = y - L
+        dly = np.linalg.norm(v, axis=1)
+        mu = -(v * d).sum(1) / dly
+        col, row, depth = projector_coords(proj, y)
+        lit = (depth > 0) & (col >= 0) & (col < proj.w) & (row >= 0) & (row < proj.h)
+        f = m.sigma_s * phase_fn.evaluate(m.phase, 1 - mu, 1 + mu) * pr.intensity_w_sr * np.exp(
+            -m.sigma_t * (dly + x - t0)) / (dly ** 2 + pr.source_radius_m ** 2)
+        out += np.where(lit, f, 0.0) * (t1 - t0) / steps
+    return np.where(t1 > t0, out, 0.0)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from polarstripe.sim.render import render_components
+    from polarstripe.sim.scene import load_scene
+
+    w, h = (int(v) for v in args.resolution.lower().split("x"))
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
+    rng = np.random.default_rng(0)
+    probe = render_components(scene, "flood", "preview", need=("D",))
+    obj = np.argwhere(probe.object_mask)
+    free = np.argwhere(~probe.object_mask)
+    n_obj = min(len(obj), args.samples * 2 // 3)
+    px = np.concatenate([obj[rng.choice(len(obj), n_obj, replace=False)],
+                         free[rng.choice(len(free), min(len(free), args.samples - n_obj), replace=False)]])
+    stripe = "stripe:14/30"
+    ref = {p: render_components(scene, p, "reference", pixels=px) for p in ("flood", stripe)}
+    clear = scene.replace(medium=scene.medium.replace(sigma_t=0.0))
+    res: dict = {"resolution": [w, h], "samples": int(len(px)), "levels": {}}
+    for level in LEVELS:
+        row: dict = {}
+        for name, p in (("flood", "flood"), ("stripe", stripe)):
+            if level == "reference":
+                t = _timed(lambda p=p: render_components(scene, p, "reference", pixels=px), 1)[0]
+                row[f"{name}_s"] = t * (w * h) / len(px)        # extrapolated: reference is per pixel
+                row[f"{name}_extrapolated"] = True
+                continue
+            t, comp = _timed(lambda p=p, lv=level: render_components(scene, p, lv), args.repeat)
+            row[f"{name}_s"] = t
+            for k in "DAB":
+                got = getattr(comp, k)[px[:, 0], px[:, 1]]
+                med, mx = _rel_err(got, getattr(ref[p], k))
+                row[f"{name}_{k}_med"], row[f"{name}_{k}_max"] = med, mx
+            row[f"{name}_peak_mb"] = _peak_mb(lambda p=p, lv=level: render_components(scene, p, lv))
+        if level != "reference":
+            row["clear_s"] = _timed(lambda lv=level: render_components(clear, "flood", lv), args.repeat)[0]
+        res["levels"][level] = row
+    st, pv = res["levels"]["standard"], res["levels"]["preview"]
+    res["targets"] = {
+        "standard_err": max(st[f"{n}_{k}_max"] for n in ("flood", "stripe") for k in "DB") <= 1e-3
+        and max(st["stripe_A_max"], st["flood_A_max"]) <= 1e-2,
+        "standard_10fps_stripe": st["stripe_s"] <= 0.1,
+        "preview_2pct": max(pv[f"{n}_{k}_max"] for n in ("flood", "stripe") for k in "DAB") <= 0.02,
+        "preview_30fps_stripe": pv["stripe_s"] <= 1 / 30,
+        "clear_cheaper_than_flood": st["clear_s"] < st["flood_s"],
+        "stripe_cheaper_than_flood": st["stripe_s"] < st["flood_s"],
+    }
+    if not args.quick:
+        res["scaling"] = _scaling(scene, args.repeat)
+        res["peer"] = _peer(scene, px, ref["flood"].B, st["flood_B_max"], st["flood_s"], w * h)
+    return res
+
+
+def _scaling(scene, repeat):
+    from polarstripe.sim.render import render_components
+
+    out = {"resolution": [], "stripes": [], "thickness": []}
+    for w, h in ((160, 120), (320, 240), (640, 480)):
+        sc = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
+        out["resolution"].append([f"{w}x{h}", _timed(lambda sc=sc: render_components(sc, "flood", "standard"),
+                                                     repeat)[0]])
+    for n in (10, 30, 100):
+        pat = f"stripe:{n // 2}/{n}"
+        out["stripes"].append([n, _timed(lambda p=pat: render_components(scene, p, "standard"), repeat)[0]])
+    for tau in (0.5, 1.9, 10.0, 100.0):
+        sc = scene.replace(medium=scene.medium.replace(sigma_t=tau / 0.38))
+        out["thickness"].append([tau, _timed(lambda sc=sc: render_components(sc, "flood", "standard"),
+                                             repeat)[0]])
+    return out
+
+
+def _peer(scene, px, b_ref, target_err, ours_s, n_pixels):
+    from polarstripe.sim.render import render_components
+
+    rows = []
+    need = None
+    for steps in (16, 64, 256, 1024, 4096):
+        t, b = _timed(lambda s=steps: _march_b(scene, px, s), 1)
+        med, mx = _rel_err(b, b_ref)
+        rows.append([steps, med, mx, t * n_pixels / len(px)])
+        if need is None and mx <= max(target_err, 1e-3):
+            need = rows[-1]
+    ours_b = _timed(lambda: render_components(scene, "flood", "standard", need=("B",)), 1)[0]
+    return {"march": rows, "match": need, "ours_B_s": ours_b,
+            "ratio": None if need is None else need[3] / ours_b}
+
+
+def _table(res: dict) -> str:
+    w, h = res["resolution"]
+    lines = [f"light-transport model, default tank, {w}x{h}, errors vs reference at {res['samples']} pixels",
+             f"{'level':<10}{'flood s':>9}{'stripe s':>9}{'σ=0 s':>8}{'fps str':>8}{'MB':>7}"
+             f"{'D med/max':>18}{'A med/max':>18}{'B med/max':>18}  (stripe frame errors; flood in JSON)"]
+    for lv, r in res["levels"].items():
+        if lv == "reference":
+            lines.append(f"{lv:<10}{r['flood_s']:>9.1f}{r['stripe_s']:>9.1f}{'':>8}{'':>8}{'':>7}"
+                         "  (extrapolated from per-pixel cost; it is the reference)")
+            continue
+        errs = "".join(f"{r[f'stripe_{k}_med']:>9.1e}/{r[f'stripe_{k}_max']:<8.1e}" for k in "DAB")
+        lines.append(f"{lv:<10}{r['flood_s']:>9.3f}{r['stripe_s']:>9.3f}{r['clear_s']:>8.3f}"
+                     f"{1 / r['stripe_s']:>8.1f}{r['stripe_peak_mb']:>7.0f} {errs}")
+        ferrs = "".join(f"{r[f'flood_{k}_med']:>9.1e}/{r[f'flood_{k}_max']:<8.1e}" for k in "DAB")
+        lines.append(f"{'  flood':<10}{'':>41}{r['flood_peak_mb']:>0.0f} MB {ferrs}")
+    lines.append("targets: " + ", ".join(f"{k} {'met' if v else 'MISSED'}"
+                                         for k, v in res["targets"].items()))
+    if "scaling" in res:
+        sc = res["scaling"]
+        lines.append("time (standard flood) vs resolution: "
+                     + ", ".join(f"{r} {t:.3f} s" for r, t in sc["resolution"]))
+        lines.append("time (one standard stripe frame) vs stripe count N: "
+                     + ", ".join(f"N={n} {t:.3f} s" for n, t in sc["stripes"]))
+        lines.append("time (standard flood) vs optical thickness: "
+                     + ", ".join(f"τ={t:g} {s:.3f} s" for t, s in sc["thickness"]))
+        pe = res["peer"]
+        lines.append("peer: ray marching of B (midpoint in x), flood; steps: max rel. err, s/frame")
+        lines.append("  " + "; ".join(f"{s}: {mx:.1e}, {t:.2f} s" for s, _, mx, t in pe["march"]))
+        if pe["ratio"] is None:
+            lines.append("  no step count reached the standard B error; "
+                         f"ours (B only) {pe['ours_B_s']:.3f} s")
+        else:
+            lines.append(f"  at equal error the peer needs {pe['match'][0]} steps, "
+                         f"{pe['match'][3]:.2f} s/frame = {pe['ratio']:.1f}x our B-only standard frame "
+                         f"({pe['ours_B_s']:.3f} s)")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    res = run(args)
+    print(json.dumps(res) if getattr(args, "json", False) else _table(res))
+    return 0
