@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from polarstripe.imaging.polarization import (
     aolp,
     dolp,
@@ -138,3 +140,10 @@ def test_mismatched_shapes_and_dtypes():
         stokes([], [])
     with pytest.raises(ImagingError, match="p: nan is not finite"):
         recover_signal(np.ones(2), np.ones(2), float("nan"))
+
+
+@settings(max_examples=60, deadline=None)
+@given(p=st.floats(0.05, 1.0), s=st.floats(0.0, 1e3), b=st.floats(0.0, 1e4))
+def test_eq6_round_trip_any_p(p, s, b):
+    e_b, e_w = _frames_from_model(np.array([s]), np.array([b]), p)
+    assert abs(recover_signal(e_b, e_w, p)[0] - s) <= 1e-9 * (1 + s + b / p)

@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from polarstripe.imaging.separation import separate_direct_global, separate_stack
 from polarstripe.imaging.validation import ImagingError
 
@@ -48,3 +50,15 @@ def test_bad_parameters():
         separate_direct_global(np.ones(2), np.ones(2), black_level=float("nan"))
     with pytest.raises(ImagingError, match="l_min: shape"):
         separate_direct_global(np.ones(2), np.ones(3))
+
+
+@settings(max_examples=60, deadline=None)
+@given(alpha=st.floats(0.05, 0.95), b=st.floats(0.0, 0.5), direct=st.floats(0.0, 1e3),
+       glob=st.floats(0.0, 1e3))
+def test_separation_inverts_the_forward_model_for_any_alpha_and_b(alpha, b, direct, glob):
+    l_plus = direct + alpha * glob + b * (1 - alpha) * glob
+    l_minus = b * direct + (1 - alpha) * glob + alpha * b * glob
+    d, g = separate_direct_global(np.array([l_plus]), np.array([l_minus]), lit_fraction=alpha, black_level=b,
+                                  clip=False)
+    scale = 1e-9 * (1 + direct + glob) / (1 - alpha)
+    assert abs(d[0] - direct) <= scale and abs(g[0] - glob) <= scale
