@@ -190,9 +190,11 @@ class Compositor(Node):
             self._drain(scan)
             try:
                 self.finish(scan)
-            except PolarstripeError as exc:
+            except PolarstripeError as exc:  # published, so that nobody waits for a composite in vain
                 self.counters["scans_failed"] += 1
                 self.log.error("scan %d (%s): no composite: %s", scan.scan_id, scan.method, exc)
+                self.composite_pub.publish(Composite(images={}, method=scan.method, scan_id=scan.scan_id,
+                                                     metrics={"error": str(exc), "frames": scan.frames}))
 
     def _drain(self, scan: _Scan) -> None:
         """Take frames of ``scan`` still in flight when "done" arrived (they come on another socket)."""
@@ -235,6 +237,7 @@ class Compositor(Node):
 
     def finish(self, scan: _Scan) -> None:
         from polarstripe.imaging.metrics import michelson_contrast, signal_error
+        from polarstripe.imaging.validation import ImagingError
 
         if scan.frames == 0:
             raise PolarstripeError("no frames")
@@ -257,10 +260,14 @@ class Compositor(Node):
              "saturated_pixels": int(np.ma.count_masked(image)), "contrast": None, "error_vs_truth": None}
         if p is not None:
             m["p"] = p
-        if bright is not None:
-            m["contrast"] = michelson_contrast(image, bright, dim)
-        if truth is not None:
-            m["error_vs_truth"] = signal_error(image, truth.images["S"], fit_gain=True)
+        try:
+            if bright is not None:
+                m["contrast"] = michelson_contrast(image, bright, dim)
+            if truth is not None:
+                m["error_vs_truth"] = signal_error(image, truth.images["S"], fit_gain=True)
+        except ImagingError as exc:  # e.g. every bar pixel saturated: no number rather than a wrong one
+            m["metrics_error"] = str(exc)
+            self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, exc)
         images = {"composite": np.ma.filled(image, 0.0).astype(np.float32),
                   "saturated": np.ma.getmaskarray(image).astype(np.uint8)}
         images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in extra.items()})
@@ -280,7 +287,7 @@ class Compositor(Node):
         """(composite, extra images, p or None) for the scan's method; DN above the dark offset, masked."""
         from polarstripe.imaging.polarization import estimate_p, recover_signal
         from polarstripe.imaging.separation import separate_direct_global
-        from polarstripe.imaging.validation import roi_slices
+        from polarstripe.imaging.validation import ImagingError, roi_slices
 
         angles = rc.angles
         method = scan.method
@@ -291,9 +298,14 @@ class Compositor(Node):
             region = roi_slices("object_free_roi", free, rc.shape)
             if np.ma.median(a[region]) > np.ma.median(b[region]):
                 a, b = b, a  # E_b passes less backscatter
-            p = estimate_p(a.data, b.data, free, dark_offset=dark, saturation=rc.saturation,
-                           p_min=self.params.p_min)
             e_b, e_w = a.astype(np.float64) - dark, b.astype(np.float64) - dark
+            try:
+                p = estimate_p(a.data, b.data, free, dark_offset=dark, saturation=rc.saturation,
+                               p_min=self.params.p_min)
+            except ImagingError as exc:  # no usable object-free pixels: the crossed frame, unrecovered
+                self.log.warning("scan %d: p not estimated (%s): the composite is E_b without eq. 6",
+                                 scan.scan_id, exc)
+                return e_b, {"e_b": e_b, "e_w": e_w}, None
             return recover_signal(e_b, e_w, p), {"e_b": e_b, "e_w": e_w}, p
         result = rc.result(angles[0])
         if method == "hf_separation":

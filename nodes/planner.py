@@ -40,6 +40,7 @@ class Planner(Node):
         d_min_m: float = 0.02
         d_max_m: float = 0.5
         exposure: Literal["scene", "auto"] = "scene"
+        max_saturated_fraction: float = 0.02  # of a flood frame at the chosen separation; 1 = no check
         publish_on_start: bool = True
         publish_delay_s: float = 1.0
         replan: bool = True
@@ -51,6 +52,9 @@ class Planner(Node):
             if self.separations < 2 or not 0 < self.d_min_m < self.d_max_m:
                 raise ValueError(f"need separations >= 2 and 0 < d_min_m < d_max_m, got {self.separations}, "
                                  f"{self.d_min_m}, {self.d_max_m}")
+            if not 0.0 <= self.max_saturated_fraction <= 1.0:
+                raise ValueError(f"max_saturated_fraction must be in [0, 1], got "
+                                 f"{self.max_saturated_fraction}")
             if self.p_tolerance < 0 or self.sigma_tolerance < 0:
                 raise ValueError("p_tolerance and sigma_tolerance must be >= 0")
             if self.resolution:
@@ -64,8 +68,10 @@ class Planner(Node):
         from polarstripe.sim.scene import load_scene
 
         scene = load_scene(self.params.scene or None)
-        if self.params.resolution:
-            scene = scene.replace(camera=scene.camera.replace(resolution=_resolution(self.params.resolution)))
+        if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
+            (w, h), cam = _resolution(self.params.resolution), scene.camera
+            exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
+            scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
         self.scene = scene
         self.counters["replans"] = 0
         self.plan_pub = self.publisher("planner/plan")
@@ -85,12 +91,22 @@ class Planner(Node):
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
-        best = c.best_separation_m
+        saturated = np.array([self.saturated_fraction(d) for d in c.separations_m])
+        order = np.argsort(-c.objective, kind="stable")
+        usable = [i for i in order if saturated[i] <= p.max_saturated_fraction]
+        best = float(c.separations_m[usable[0] if usable else order[0]])
+        if not usable:
+            self.log.warning("every separation saturates more than %.0f %% of a flood frame: the plan keeps "
+                             "the best objective", 100 * p.max_saturated_fraction)
+        elif usable[0] != order[0]:
+            self.log.info("the best objective (d_LC = %.3f m) saturates %.0f %% of a flood frame: "
+                          "using %.3f m", c.separations_m[order[0]], 100 * saturated[order[0]], best)
         samples = model.stripes(best) if p.modality == "stripes" else model.flood(best)
         self.p_assumed = float(np.mean(samples.dop))
         self.sigma_assumed = float(self.scene.medium.sigma_t)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
-                  "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight}
+                  "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight,
+                  "flood_saturated_fraction": saturated}
         for i, lc in enumerate(mp.location_curves):
             curves[f"objective_O{i + 1}"] = lc.objective
         result = Plan(modality=p.modality, separation_m=best, scan_type=mp.scan["winner"] if mp.scan else "",
@@ -101,6 +117,28 @@ class Planner(Node):
                       f", scan {result.scan_type}" if result.scan_type else "", self.p_assumed,
                       self.sigma_assumed)
         return result
+
+    def saturated_fraction(self, d_lc_m: float, grid: int = 8) -> float:
+        """Fraction of a grid x grid sample of pixels that saturates in a flood frame without analyzer (the
+        brightest frame of any method) at separation ``d_lc_m``, from the model at those pixels only.
+
+        The planner's objective looks at a few observed points; a source near the camera can still fill the
+        rest of the frame with backscatter beyond full scale (the default tank saturates most of a flood
+        frame below d_LC ≈ 0.1 m), and every method of a scan uses the one separation."""
+        from polarstripe.sim.render import render_components
+        from polarstripe.sim.scene import with_separation
+        from polarstripe.sim.sensor import full_scale_dn, mean_dn
+
+        if self.params.max_saturated_fraction >= 1.0:
+            return 0.0
+        cam = self.scene.camera
+        w, h = cam.resolution
+        rows, cols = np.meshgrid(np.linspace(0, h - 1, grid).astype(int),
+                                 np.linspace(0, w - 1, grid).astype(int), indexing="ij")
+        pixels = np.stack([rows.ravel(), cols.ravel()], axis=1)
+        scene = with_separation(self.scene, float(d_lc_m))
+        c = render_components(scene, "flood", self.params.fidelity, pixels, need=("D", "A", "B"))
+        return float(np.mean(mean_dn(c.D + c.A + c.B, cam, pixels) >= full_scale_dn(cam)))
 
     def _publish_once(self):
         self.cancel("publish_on_start")

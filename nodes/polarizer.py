@@ -22,6 +22,7 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import field
@@ -159,6 +160,9 @@ class Polarizer(Node):
 
     def _connect(self) -> None:
         self._next_connect = self._bus.now() + self.params.connect_retry_s
+        sdo_log = logging.getLogger("canopen.sdo.client")  # one error line per failed try is ours, not its
+        level = sdo_log.level
+        sdo_log.setLevel(logging.CRITICAL)
         try:
             self.stage = self._open_stage()
         except Exception as exc:  # any backend or bus failure: a published fault, retried
@@ -168,6 +172,8 @@ class Polarizer(Node):
                 self.log.error("%s (retrying every %g s)", text, self.params.connect_retry_s)
             self._connect_error = text
             return
+        finally:
+            sdo_log.setLevel(level)
         self._connect_error = ""
         self.log.info("connected: %s", self.stage.name)
         start = self.target_deg if self.target_deg is not None else self.params.start_deg

@@ -225,3 +225,20 @@ def test_a_fault_ends_the_scan_without_a_composite():
     assert h.published("compositor/composite") == [] and h.node.counters["scans_failed"] == 1
     h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="stripes"))
     assert h.published("compositor/composite") == []
+
+
+def test_a_scan_without_usable_frames_publishes_a_failed_composite_at_once():
+    h = _harness()
+    h.deliver("emitter/scan", ScanEvent(scan_id=6, event="start", method="flood"))
+    h.deliver("emitter/scan", ScanEvent(scan_id=6, event="done", method="flood"))
+    comp = h.published("compositor/composite")[-1]
+    assert comp.scan_id == 6 and comp.images == {} and "no frames" in comp.metrics["error"]
+    assert h.node.counters["scans_failed"] == 1
+
+
+def test_saturated_bars_give_no_contrast_rather_than_a_wrong_one():
+    img = np.full((H, W), 4095, np.uint16)
+    h = _harness(chart_bright_roi=[4, 12, 8, 32], chart_dark_roi=[12, 24, 8, 32])
+    comp = _scan(h, 8, "flood", [(img, "flood", None)])
+    assert comp.metrics["contrast"] is None and "saturated" in comp.metrics["metrics_error"]
+    assert comp.images["saturated"].all()

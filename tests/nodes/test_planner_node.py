@@ -28,10 +28,28 @@ def test_plan_is_served_and_published(harness):
     assert isinstance(plan, Plan) and plan.modality == "stripes"
     seps = plan.curves["separation_m"]
     np.testing.assert_allclose(seps, np.linspace(0.05, 0.45, 6))
-    assert plan.separation_m == seps[int(np.argmax(plan.curves["objective"]))]
+    # the best objective among the separations that do not saturate a flood frame
+    ok = plan.curves["flood_saturated_fraction"] <= 0.02
+    assert ok.any() and plan.separation_m == seps[ok][int(np.argmax(plan.curves["objective"][ok]))]
     assert plan.scan_type in ("rotate", "translate", "both")
     assert len(plan.stripe_optima) == 3 and all(0.05 <= d <= 0.45 for d in plan.stripe_optima)
     assert len(h.published("planner/plan")) == 2  # the call publishes it too (the simulator moves the source)
+
+
+def test_the_chosen_separation_does_not_saturate_a_flood_frame(harness):
+    """The default tank saturates most of a flood frame with the source next to the camera; the plan must
+    move to a separation where a full flood frame (rendered here, independently) stays below full scale."""
+    from polarstripe.sim.render import render_frame
+    from polarstripe.sim.scene import with_separation
+
+    plan = harness.call("planner/plan", Empty())
+    scene = with_separation(harness.node.scene, plan.separation_m)
+    dn, _ = render_frame(scene, "flood", polarizer_deg=None, fidelity="preview", seed=3)
+    assert np.mean(dn >= 4095) < 0.05
+    near, _ = render_frame(with_separation(harness.node.scene, 0.05), "flood", fidelity="preview", seed=3)
+    assert np.mean(near >= 4095) > 0.5  # the check had something to avoid
+    fractions = plan.curves["flood_saturated_fraction"]
+    assert fractions[list(plan.curves["separation_m"]).index(plan.separation_m)] <= 0.02
 
 
 def test_small_change_of_p_does_not_replan(harness):
