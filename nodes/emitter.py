@@ -106,6 +106,22 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
                     stripes if family == "stripes" else 0)
 
 
+def wait_for_stoppable(node: Node, topic: str, match, timeout_s: float, slice_s: float = 0.2):
+    """:meth:`Node.wait_for` in slices of ``slice_s``, so a node told to stop (SIGINT) stops waiting within a
+    slice instead of at the end of a long timeout. Raises ``BusTimeout`` at the deadline or on stop."""
+    now = node._bus.now  # the node's clock (virtual in the harness)
+    deadline = now() + timeout_s
+    while True:
+        left = deadline - now()
+        try:
+            return node.wait_for(topic, match, timeout_s=max(0.0, min(slice_s, left)))
+        except BusTimeout:
+            if node.stopping or now() >= deadline or not slice_s < left:
+                why = " (stopping)" if node.stopping else ""
+                raise BusTimeout(f"node {node.name!r}: no matching message on {topic!r} within "
+                                 f"{timeout_s:g} s{why}") from None
+
+
 def pattern_message(tag: str, scan_id: int, step: int) -> Pattern:
     """The ``emitter/pattern`` message of a pattern tag."""
     p = as_pattern(tag)
@@ -246,8 +262,8 @@ class Emitter(Node):
                                      and abs(s.angle_deg - angle) <= tol)
 
         try:
-            state = self.wait_for("polarizer/state", settled_or_faulted,
-                                  timeout_s=self.params.settle_timeout_s)
+            state = wait_for_stoppable(self, "polarizer/state", settled_or_faulted,
+                                       self.params.settle_timeout_s)
         except BusTimeout:
             raise ScanFault(f"polarizer/state: analyzer not settled at {angle:g} deg within "
                             f"{self.params.settle_timeout_s:g} s") from None
@@ -268,8 +284,8 @@ class Emitter(Node):
         if not ack.ok:
             raise ScanFault(f"{where}: camera/trigger: {ack.detail}")
         try:
-            self.wait_for("camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
-                          timeout_s=self.params.frame_timeout_s)
+            wait_for_stoppable(self, "camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
+                               self.params.frame_timeout_s)
         except BusTimeout:
             raise ScanFault(f"{where}: camera/frame: no frame within {self.params.frame_timeout_s:g} s "
                             "after the trigger") from None

@@ -105,6 +105,7 @@ class Simulator(Node):
         render_scale: int = 0  # model resolution divisor; 0 = auto (preview: ~160 px wide, else 1)
         noise: str = "auto"  # poisson | gaussian | auto (gaussian at preview)
         exposure_s: float | None = None  # None: the scene's, scaled by (w/w_scene)^2 to keep the DN level
+        auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
         analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
@@ -153,7 +154,8 @@ class Simulator(Node):
         self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
         self._cache: OrderedDict = OrderedDict()
         self._truth: dict = {}
-        self._e_map = electrons_per_radiance(cam)
+        self._e_map_base = electrons_per_radiance(cam)
+        self._e_map = self._e_map_base
         self.camera_lost, self.frame_delay_s = False, 0.0
         self.stats = {"frames": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0, "sensor_s": 0.0,
                       "resize_s": 0.0, "busy_s": 0.0}
@@ -165,6 +167,7 @@ class Simulator(Node):
                                         settle_s=p.drive_settle_s).start()
         for command in p.faults:
             self.inject(SimFault(command=command), strict=True)
+        self._expose_for_flood()
         self.subscribe("planner/plan", self.on_plan, mode="latest")
         self.serve("simulator/render", self.render)
         self.serve("simulator/truth", self.truth)
@@ -189,6 +192,9 @@ class Simulator(Node):
 
     def _pose(self) -> tuple:
         return (self.scene.projector.position, self.scene.projector.look_at)
+
+    def _truth_key(self) -> tuple:
+        return (*self._pose(), self.scene.camera.exposure_s)
 
     def components(self, pattern: str):
         """Components of ``pattern`` at the current pose, at the model resolution (cached)."""
@@ -217,7 +223,31 @@ class Simulator(Node):
         if not (math.isfinite(separation_m) and separation_m > 0):
             raise SimulatorError(f"plan: separation_m={separation_m} must be a positive number of metres")
         self.scene = with_separation(self.base, separation_m)
+        self._expose_for_flood()
         return self.scene
+
+    def _expose_for_flood(self) -> None:
+        """Auto exposure (``auto_exposure``): the base exposure, shortened so that the 99.5th percentile of
+        the flood frame without analyzer stays at 85 % of the sensor's range (ADC or full well, above the dark
+        offset). The same exposure then serves every method and the ground truth."""
+        base = self.base.camera
+        factor = 1.0
+        if self.params.auto_exposure:
+            comp = self.components("flood")
+            radiance = comp.D + comp.A + comp.B
+            w, h = base.resolution
+            if radiance.shape != (h, w):
+                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+            peak = float(np.percentile(radiance * self._e_map_base, 99.5)) / base.gain_e_per_dn
+            span = min(full_scale_dn(base) - dark_offset_dn(base), base.full_well_e / base.gain_e_per_dn)
+            limit = 0.85 * span
+            if peak > limit:
+                factor = limit / peak
+        self.scene = self.scene.replace(camera=base.replace(exposure_s=base.exposure_s * factor))
+        self._e_map = self._e_map_base * factor
+        if factor < 1.0:
+            self.log.info("auto exposure: %.3g s (flood would clip at %.3g s)", self.scene.camera.exposure_s,
+                          base.exposure_s)
 
     # ---- handlers ------------------------------------------------------------------------------------------
     def on_plan(self, plan: Plan) -> None:
@@ -276,7 +306,7 @@ class Simulator(Node):
                      polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
 
     def truth(self, req: Empty) -> Composite:
-        key = self._pose()
+        key = self._truth_key()
         if key not in self._truth:
             comp = render_components(self.scene, "flood", self.fidelity, need=("D", "A"))
             cam = self.scene.camera
