@@ -2,7 +2,8 @@
 
 Prints the optimum and the curve per modality (flood: CQM·W, stripes: GQM·W), with and without a polarizer;
 ``--json`` prints one object keyed ``flood``, ``flood_polarized``, ``stripes``, ``stripes_polarized``;
-``--plot`` draws curves like the paper's Figs. 9a and 10d (noise-free beside noisy).
+``--plot`` draws curves like the paper's Figs. 9a and 10d (noise-free beside noisy). :func:`plan_to_json` and
+:data:`PLAN_SCHEMA` (JSON Schema 2020-12) define the JSON.
 """
 
 from __future__ import annotations
@@ -11,8 +12,79 @@ import argparse
 import json
 
 import numpy as np
+from polarstripe.sim.planner import MODALITIES, SCAN_TYPES, Curve
 
 HELP = "find the best camera-source separation and stripe scan (CQM*W for flood, GQM*W for stripes)"
+
+
+def _curve_json(c: Curve) -> dict:
+    return {
+        "separations": c.separations_m.tolist(),
+        "objective": c.objective.tolist(),
+        "objective_noise_free": c.objective_noise_free.tolist(),
+        "quality": c.quality.tolist(),
+        "weight": c.weight.tolist(),
+        "saturated": c.saturated.tolist(),
+        "best_separation": c.best_separation_m,
+    }
+
+
+def plan_to_json(plans: dict) -> dict:
+    """The plan as plain JSON types (validates against :data:`PLAN_SCHEMA`). Separations in metres."""
+    out = {}
+    for key, mp in plans.items():
+        entry = {"modality": mp.modality, "polarized": mp.polarized,
+                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W",
+                 "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
+        if mp.modality == "stripes":
+            entry["locations"] = [{**loc, **_curve_json(c)}
+                                  for loc, c in zip(mp.locations, mp.location_curves, strict=True)]
+            entry["scan"] = mp.scan
+        out[key] = entry
+    return out
+
+
+_NUMS = {"type": "array", "items": {"type": "number"}, "minItems": 2}
+_CURVE = {
+    "separations": _NUMS, "objective": _NUMS, "objective_noise_free": _NUMS, "quality": _NUMS,
+    "weight": _NUMS,
+    "saturated": {"type": "array", "items": {"type": "boolean"}}, "best_separation": {"type": "number"},
+}
+_ENTRY = {
+    "type": "object",
+    "required": ["modality", "polarized", "separations", "objective", "objective_noise_free",
+                 "best_separation"],
+    "properties": {"modality": {"enum": list(MODALITIES)}, "polarized": {"type": "boolean"},
+                   "measure": {"type": "string"}, "exposure_scale": {"type": "number", "exclusiveMinimum": 0},
+                   **_CURVE},
+}
+_STRIPE_ENTRY = {
+    **_ENTRY,
+    "required": _ENTRY["required"] + ["locations", "scan"],
+    "properties": {
+        **_ENTRY["properties"],
+        "locations": {"type": "array", "minItems": 1, "items": {
+            "type": "object", "required": ["pixel", "lateral_position_m", "separations", "objective",
+                                           "objective_noise_free", "best_separation"],
+            "properties": {"pixel": {"type": "array", "items": {"type": "integer"}, "minItems": 2,
+                                     "maxItems": 2},
+                           "lateral_position_m": {"type": "number"}, **_CURVE}}},
+        "scan": {"type": "object", "required": ["winner", "scores", "separations_m"],
+                 "properties": {"winner": {"enum": list(SCAN_TYPES)},
+                                "scores": {"type": "object", "required": list(SCAN_TYPES),
+                                           "additionalProperties": {"type": ["number", "null"]}},
+                                "separations_m": {"type": "object", "required": list(SCAN_TYPES)}}},
+    },
+}
+PLAN_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "polarstripe plan",
+    "type": "object",
+    "minProperties": 1,
+    "additionalProperties": False,
+    "properties": {"flood": _ENTRY, "flood_polarized": _ENTRY, "stripes": _STRIPE_ENTRY,
+                   "stripes_polarized": _STRIPE_ENTRY},
+}
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -31,6 +103,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="scene: the camera's exposure_s, saturated points score 0 (default); auto: one "
                         "exposure per modality, the longest with no saturation over the sweep")
+    parser.add_argument("--edge", choices=["eq9", "measured"], default="eq9",
+                        help="stripe measure: eq. 9 as printed (default), or the O/O' step rendered with the "
+                        "neighbouring sheet lit (3x the stripe cost)")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
 
@@ -100,12 +175,12 @@ def plot_plan(doc: dict, path: str) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from polarstripe.sim.planner import SceneModel, default_separations, plan, plan_to_json
+    from polarstripe.sim.planner import SceneModel, default_separations, plan
     from polarstripe.sim.scene import load_scene
 
     scene = load_scene(args.scene)
     seps = default_separations(args.separations, args.range[0], args.range[1])
-    model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes)
+    model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes, edge=args.edge)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     doc = plan_to_json(plan(model, seps, modalities=modalities, k_detect=args.k_detect,
                             exposure=args.exposure))

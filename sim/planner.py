@@ -36,6 +36,7 @@ class Samples:
     indirect: np.ndarray
     backscatter: np.ndarray
     dop: np.ndarray
+    neighbour: Samples | None = None  # stripes, edge="measured": O under the brighter adjacent sheet
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,18 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, polarized:
     with np.errstate(divide="ignore"):
         ld, la, lb = np.log(d), np.log(a), np.log(b)
     ls = np.logaddexp(ld, la)
-    lq = log_cqm(ls, lb, p) if modality == "flood" else log_gqm(ld, la, lb, p)
+    if modality == "flood":
+        lq = log_cqm(ls, lb, p)  # eq. 8
+    elif samples.neighbour is None:
+        lq = log_gqm(ld, la, lb, p)  # eq. 9
+    else:  # the step the paper describes in words: (E_O - E_O')/E_O through the best-polarized analyzer
+        nb = samples.neighbour
+        pn = np.clip(np.asarray(nb.dop, np.float64), p_min, 1.0) if polarized else 0.0
+        e_o = d + a + b * (1.0 - p)
+        e_n = np.maximum(nb.direct, 0.0) + np.maximum(nb.indirect, 0.0) + np.maximum(nb.backscatter, 0.0) * (
+            1.0 - pn)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lq = np.where(e_o > e_n, np.log(np.maximum(e_o - e_n, 1e-320)) - np.log(e_o), -np.inf)
     e = np.asarray(noise.electrons_per_radiance, np.float64)
     if np.all(np.isinf(e)):
         lw = np.where(np.exp(ls) > 0, 0.0, -np.inf)
@@ -166,9 +178,18 @@ class SceneModel:
     pixels : (n, 2) int array, optional
         Observed points O_i (row, col). Default: three points on the centre row at 1/4, 1/2 and 3/4 of the
         width (the stripe locations O1, O2, O3 of the paper's Fig. 10); each must see an object.
+    edge : {"eq9", "measured"}
+        The stripe measure: eq. 9 as printed (O' is assumed to receive only A), or the step the paper
+        describes in words, (E_O - E_O')/E_O, with E_O' rendered at O under the brighter adjacent sheet
+        (three times the stripe cost; it differs from eq. 9 where O' also sees the sheet's backscatter, as
+        when source and camera nearly coincide).
     """
 
-    def __init__(self, scene, fidelity: str = "standard", n_stripes: int = 30, pixels=None):
+    def __init__(self, scene, fidelity: str = "standard", n_stripes: int = 30, pixels=None,
+                 edge: str = "eq9"):
+        if edge not in ("eq9", "measured"):
+            raise SceneError(f"edge must be 'eq9' or 'measured', got {edge!r}")
+        self.edge = edge
         from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
         from polarstripe.sim.scene import with_separation
         from polarstripe.sim.sensor import electrons_per_radiance
@@ -229,13 +250,20 @@ class SceneModel:
         rows = max(3, round(base.resolution[1] * 2.0 * tan_half / base.resolution[0] / pitch))
         fov = math.degrees(2.0 * math.atan(1.5 * pitch))
         out = [np.zeros(len(self.pixels)) for _ in range(4)]
+        nb = [np.zeros(len(self.pixels)) for _ in range(4)]
         for i, point in enumerate(self.points):
-            proj = base.replace(look_at=tuple(float(v) for v in point), resolution=(3, rows), fov_deg=fov)
-            c = render_components(self.scene.replace(projector=proj), "stripe:1/3", self.fidelity,
-                                  self.pixels[i:i + 1])
+            scene = self.scene.replace(projector=base.replace(look_at=tuple(float(v) for v in point),
+                                                              resolution=(3, rows), fov_deg=fov))
+            c = render_components(scene, "stripe:1/3", self.fidelity, self.pixels[i:i + 1])
             for arr, val in zip(out, (c.D, c.A, c.B, c.p), strict=True):
                 arr[i] = val[0]
-        return Samples(*out)
+            if self.edge == "measured":  # O' = O with the neighbouring sheet lit instead (same albedo)
+                sides = [render_components(scene, f"stripe:{k}/3", self.fidelity, self.pixels[i:i + 1])
+                         for k in (0, 2)]
+                side = max(sides, key=lambda x: float(x.D[0] + x.A[0] + x.B[0]))
+                for arr, val in zip(nb, (side.D, side.A, side.B, side.p), strict=True):
+                    arr[i] = val[0]
+        return Samples(*out, neighbour=Samples(*nb) if self.edge == "measured" else None)
 
 
 def default_separations(n: int = 60, d_min_m: float = 0.01, d_max_m: float = 0.6) -> np.ndarray:
@@ -349,73 +377,3 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
                 mp.scan = compare_scans(seps, mp.location_curves, lateral)
             out[modality + ("_polarized" if polarized else "")] = mp
     return out
-
-
-def _curve_json(c: Curve) -> dict:
-    return {
-        "separations": c.separations_m.tolist(),
-        "objective": c.objective.tolist(),
-        "objective_noise_free": c.objective_noise_free.tolist(),
-        "quality": c.quality.tolist(),
-        "weight": c.weight.tolist(),
-        "saturated": c.saturated.tolist(),
-        "best_separation": c.best_separation_m,
-    }
-
-
-def plan_to_json(plans: dict[str, ModalityPlan]) -> dict:
-    """The plan as plain JSON types (validates against :data:`PLAN_SCHEMA`). Separations in metres."""
-    out = {}
-    for key, mp in plans.items():
-        entry = {"modality": mp.modality, "polarized": mp.polarized,
-                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W",
-                 "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
-        if mp.modality == "stripes":
-            entry["locations"] = [{**loc, **_curve_json(c)}
-                                  for loc, c in zip(mp.locations, mp.location_curves, strict=True)]
-            entry["scan"] = mp.scan
-        out[key] = entry
-    return out
-
-
-_NUMS = {"type": "array", "items": {"type": "number"}, "minItems": 2}
-_CURVE = {
-    "separations": _NUMS, "objective": _NUMS, "objective_noise_free": _NUMS, "quality": _NUMS,
-    "weight": _NUMS,
-    "saturated": {"type": "array", "items": {"type": "boolean"}}, "best_separation": {"type": "number"},
-}
-_ENTRY = {
-    "type": "object",
-    "required": ["modality", "polarized", "separations", "objective", "objective_noise_free",
-                 "best_separation"],
-    "properties": {"modality": {"enum": list(MODALITIES)}, "polarized": {"type": "boolean"},
-                   "measure": {"type": "string"}, "exposure_scale": {"type": "number", "exclusiveMinimum": 0},
-                   **_CURVE},
-}
-_STRIPE_ENTRY = {
-    **_ENTRY,
-    "required": _ENTRY["required"] + ["locations", "scan"],
-    "properties": {
-        **_ENTRY["properties"],
-        "locations": {"type": "array", "minItems": 1, "items": {
-            "type": "object", "required": ["pixel", "lateral_position_m", "separations", "objective",
-                                           "objective_noise_free", "best_separation"],
-            "properties": {"pixel": {"type": "array", "items": {"type": "integer"}, "minItems": 2,
-                                     "maxItems": 2},
-                           "lateral_position_m": {"type": "number"}, **_CURVE}}},
-        "scan": {"type": "object", "required": ["winner", "scores", "separations_m"],
-                 "properties": {"winner": {"enum": list(SCAN_TYPES)},
-                                "scores": {"type": "object", "required": list(SCAN_TYPES),
-                                           "additionalProperties": {"type": ["number", "null"]}},
-                                "separations_m": {"type": "object", "required": list(SCAN_TYPES)}}},
-    },
-}
-PLAN_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "polarstripe plan",
-    "type": "object",
-    "minProperties": 1,
-    "additionalProperties": False,
-    "properties": {"flood": _ENTRY, "flood_polarized": _ENTRY, "stripes": _STRIPE_ENTRY,
-                   "stripes_polarized": _STRIPE_ENTRY},
-}

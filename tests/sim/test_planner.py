@@ -6,9 +6,9 @@ import sys
 import jsonschema
 import numpy as np
 import pytest
+from polarstripe.sim.plan_cli import PLAN_SCHEMA, plan_to_json
 from polarstripe.sim.planner import (
     IDEAL_SENSOR,
-    PLAN_SCHEMA,
     Curve,
     Samples,
     SceneModel,
@@ -17,7 +17,6 @@ from polarstripe.sim.planner import (
     default_separations,
     objective,
     plan,
-    plan_to_json,
 )
 from polarstripe.sim.scene import SceneError, load_scene
 
@@ -165,3 +164,23 @@ def test_plan_command_bad_scene_is_one_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "polarstripe", "plan", str(bad)], capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 2 and "sigma_t" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_measured_edge_sees_the_backscatter_eq9_ignores():
+    # near-coaxial source: the neighbour O' also looks through the sheet's backscatter, so the rendered step
+    # (E_O - E_O')/E_O is well below eq. 9, which assumes O' receives only A
+    scene = load_scene(None)
+    w, h = scene.camera.resolution
+    pix = [[h // 2, w // 2]]
+    s_eq9 = SceneModel(scene, fidelity="preview", pixels=pix).stripes(0.03)
+    s_meas = SceneModel(scene, fidelity="preview", pixels=pix, edge="measured").stripes(0.03)
+    q9 = objective(s_eq9, IDEAL_SENSOR, modality="stripes", polarized=False).quality[0]
+    qm = objective(s_meas, IDEAL_SENSOR, modality="stripes", polarized=False).quality[0]
+    nb = s_meas.neighbour
+    assert nb.direct[0] == 0.0 and nb.backscatter[0] > 0  # O is not directly lit by the adjacent sheet
+    e_o = s_meas.direct[0] + s_meas.indirect[0] + s_meas.backscatter[0]
+    e_n = nb.direct[0] + nb.indirect[0] + nb.backscatter[0]
+    assert qm == pytest.approx((e_o - e_n) / e_o, rel=1e-9)
+    assert 0.0 <= qm < q9 <= 1.0
+    with pytest.raises(SceneError, match="edge"):
+        SceneModel(scene, edge="gradient")
