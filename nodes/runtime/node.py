@@ -272,12 +272,20 @@ class Node:
             if self._stop_reason is not None:
                 break
             next_due = min((t.next_s for t in self._timers.values()), default=now + 0.1)
-            for sub, items in bus.poll(list(self._subs.values()), min(max(0.0, next_due - bus.now()), 0.1)):
+            ready = bus.poll(list(self._subs.values()), min(max(0.0, next_due - bus.now()), 0.1))
+            batch = []
+            for sub, items in ready:
                 for item in items:
                     if isinstance(item, MessageError):
                         self._bad(sub.topic, item)
                     else:
-                        yield Received(sub.topic, item)
+                        batch.append((item.header.stamp_ns, sub.topic, item))
+            if len(ready) > 1:  # several topics at once: deliver in publication order, not topic by topic
+                batch.sort(key=lambda b: b[0])
+            for _, topic, item in batch:
+                yield Received(topic, item)
+                if self._stop_reason is not None:
+                    break
         yield Stop(self._stop_reason)
 
     def run(self) -> None:
