@@ -26,6 +26,7 @@ Display backends come from :mod:`polarstripe.nodes.drivers` (``null`` for the si
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -213,13 +214,17 @@ class Emitter(Node):
         self.log.info("scan %d (%s): %d patterns x %d analyzer angles", plan.scan_id, plan.method,
                       len(plan.patterns), len(plan.angles))
         unpolarized = plan.angles == (None,)
+        self.timing = {"analyzer_s": 0.0, "camera_s": 0.0, "frame_wait_s": 0.0, "frames": 0}
+        t_scan = time.monotonic()
         try:
             if unpolarized:
                 self._mount(False)
             step = 0
             for angle in plan.angles:
                 if angle is not None:
+                    t0 = time.monotonic()
                     self._set_analyzer(angle)
+                    self.timing["analyzer_s"] += time.monotonic() - t0
                 for tag in plan.patterns:
                     if self.stopping:
                         raise ScanFault(f"stopped ({self._stop_reason})")
@@ -242,7 +247,10 @@ class Emitter(Node):
         self.scan_pub.publish(final)
         self.results[plan.scan_id] = final
         if final.event == "done":
-            self.log.info("scan %d (%s) done", plan.scan_id, plan.method)
+            t = self.timing
+            self.log.info("scan %d (%s) done in %.3f s: %d frames, analyzer %.3f s, camera %.3f s, "
+                          "frame wait %.3f s", plan.scan_id, plan.method, time.monotonic() - t_scan,
+                          t["frames"], t["analyzer_s"], t["camera_s"], t["frame_wait_s"])
         return final
 
     def _mount(self, inserted: bool) -> None:
@@ -277,18 +285,23 @@ class Emitter(Node):
         except DriverError as exc:
             raise ScanFault(f"{where}: display: {exc}") from None
         self.pattern_pub.publish(pattern_message(tag, plan.scan_id, step))
+        t0 = time.monotonic()
         try:
             ack = self.trigger.call(FrameRequest(scan_id=plan.scan_id, step=step, pattern=tag))
         except (BusError, TimeoutError) as exc:
             raise ScanFault(f"{where}: camera/trigger: {exc}") from None
         if not ack.ok:
             raise ScanFault(f"{where}: camera/trigger: {ack.detail}")
+        t1 = time.monotonic()
         try:
             wait_for_stoppable(self, "camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
                                self.params.frame_timeout_s)
         except BusTimeout:
             raise ScanFault(f"{where}: camera/frame: no frame within {self.params.frame_timeout_s:g} s "
                             "after the trigger") from None
+        self.timing["camera_s"] += t1 - t0
+        self.timing["frame_wait_s"] += time.monotonic() - t1
+        self.timing["frames"] += 1
 
 
 NODE = "Emitter"

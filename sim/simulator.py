@@ -299,9 +299,12 @@ class Simulator(Node):
         e_map = self._e_map if cam.exposure_s == self.scene.camera.exposure_s else (
             self._e_map * cam.exposure_s / self.scene.camera.exposure_s)
         image = expose_fast(radiance, e_map, cam, rng, gaussian=self.gaussian)
-        self.stats["sensor_s"] += time.perf_counter() - t0
+        t_end = time.perf_counter()
+        self.stats["sensor_s"] += t_end - t0
         self.stats["frames"] += 1
-        self.stats["busy_s"] += time.perf_counter() - t_start
+        self.stats["busy_s"] += t_end - t_start
+        self.log.debug("frame scan %d step %d %s: %.4f s (sensor %.4f s)", req.scan_id, req.step, pattern,
+                       t_end - t_start, t_end - t0)
         return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
                      polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
 
