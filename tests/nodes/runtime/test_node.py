@@ -162,3 +162,45 @@ def test_stop_event_reaches_a_loop_style_node():
     h.stop()
     assert h.logs[-1] == ("INFO", "heard 0 messages in all (harness)")
     assert isinstance(Stop("x"), Stop)
+
+
+def test_real_loop_delivers_messages_of_several_topics_in_publication_order(tmp_path):
+    import time
+
+    from polarstripe.msgs import Log, PolarizerCommand
+    from polarstripe.nodes.runtime.bus import PubSocket
+    from polarstripe.nodes.runtime.runner import ZmqNodeBus
+
+    class Two(Node):
+        SUBSCRIBES = {"first": Log, "second": PolarizerCommand}
+
+        def setup(self):
+            self.subscribe("first", mode="all")
+            self.subscribe("second", mode="all")
+
+    with PubSocket(f"ipc://{tmp_path}/src.pub") as src:
+        bus = ZmqNodeBus(
+            "two", pub=f"ipc://{tmp_path}/two.pub", srv=f"ipc://{tmp_path}/two.srv", connect=[src.endpoint]
+        )
+        node = Two("two", bus=bus)
+        node.setup()
+        first, second = src.publisher("/first", Log), src.publisher("/second", PolarizerCommand)
+        deadline = time.monotonic() + 5
+        while not all(s.source.socket.poll(0) for s in node._subs.values()):  # slow joiner
+            assert time.monotonic() < deadline
+            first.publish(Log(level="INFO", node="x", text="join"))
+            second.publish(PolarizerCommand(target_deg=-1.0))
+            time.sleep(0.02)
+        for s in node._subs.values():
+            s.source.take()
+        second.publish(PolarizerCommand(target_deg=1.0), stamp_ns=100)  # published first ...
+        first.publish(
+            Log(level="INFO", node="x", text="later"), stamp_ns=200
+        )  # ... though "first" polls first
+        time.sleep(0.1)
+        events = node.events()
+        got = [next(events), next(events)]
+        node.stop("done")
+        assert [(e.topic, e.msg.header.stamp_ns) for e in got] == [("second", 100), ("first", 200)]
+        assert isinstance(next(events), Stop)
+        bus.close()
