@@ -140,7 +140,7 @@ class Replayer(Node):
         self.bag.close()
 
 
-# ---- the command --------------------------------------------------------------------------------------------
+# ---- the command -------------------------------------------------------------------------------------------
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE", help="the bag (MCAP) to replay")
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed (default 1: as recorded)")
