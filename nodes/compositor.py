@@ -99,6 +99,7 @@ class Compositor(Node):
         self.results: dict[str, np.ma.MaskedArray] = {}  # the last composite of each method
         self.metrics: dict[str, dict] = {}
         self._truth_client = None
+        self._draining = False
         self._truth_served = self.params.use_truth
         for key in (*_DROPS, "scans_done", "scans_failed"):
             self.counters[key] = 0
@@ -127,6 +128,8 @@ class Compositor(Node):
     def on_frame(self, frame: Frame) -> None:
         from polarstripe.imaging.composite import RunningComposite
 
+        if (self.scan is None or frame.scan_id != self.scan.scan_id) and not self._draining:
+            self._catch_up()  # scan events come on another socket: a "start" may wait behind the frames
         scan = self.scan
         if scan is None:
             return self._drop("frames_unexpected", frame, "no scan running")
@@ -154,6 +157,25 @@ class Compositor(Node):
         scan.steps.add(frame.step)
         scan.frames += 1
         scan.bit_depth = frame.bit_depth
+
+    def _take(self, topic: str, timeout_s: float) -> list:
+        """Every message already arrived on ``topic`` (waiting up to ``timeout_s`` for the first). Unlike
+        :meth:`Node.wait_for`, which keeps one message of what it takes, nothing is dropped."""
+        from polarstripe.msgs import MessageError
+
+        out = []
+        for item in self._bus.take(self._subs[topic].source, timeout_s):
+            if isinstance(item, MessageError):
+                self._bad(topic, item)
+            else:
+                out.append(item)
+        return out
+
+    def _catch_up(self) -> None:
+        """Handle the scan events that have already arrived, before judging a frame."""
+        while events := self._take("emitter/scan", 0.0):
+            for ev in events:
+                self.on_scan(ev)
 
     def _angle_key(self, angle: float | None, scan: _Scan):
         """The scan's nominal analyzer angle nearest ``angle`` (modulo 180), None without one, or False."""
@@ -201,15 +223,18 @@ class Compositor(Node):
         n_angles = max(1, len(scan.analyzer_deg))
         expected = {"stripes": scan.stripes * n_angles, "polarized_stripes": scan.stripes * n_angles,
                     "hf_separation": None}.get(scan.method, n_angles)
-        self.scan = scan
+        self.scan, self._draining = scan, True
         try:
             while expected is None or scan.frames + scan.dropped < expected:
-                self.on_frame(self.wait_for("camera/frame", timeout_s=self.params.done_grace_s))
-        except TimeoutError:
-            if expected is not None:
-                self.log.warning("scan %d: %d of %d frames", scan.scan_id, scan.frames, expected)
+                frames = self._take("camera/frame", self.params.done_grace_s)
+                if not frames:
+                    if expected is not None:
+                        self.log.warning("scan %d: %d of %d frames", scan.scan_id, scan.frames, expected)
+                    break
+                for frame in frames:
+                    self.on_frame(frame)
         finally:
-            self.scan = None
+            self.scan, self._draining = None, False
 
     # ---- the composite ---------------------------------------------------------------------------------
     def _truth(self, shape) -> Composite | None:

@@ -11,7 +11,8 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
   fault is published, never a wrong angle. Faults: the stage's own (EMCY, lost heartbeat, bus error frames and
   bus-off, a failed send, the drive's limit), a target not reached within ``settle_timeout_s``, a rejected
   command, a stage that cannot be opened (retried every ``connect_retry_s``);
-* recovers with the drive's fault-reset sequence: automatically (at most ``auto_resets`` tries, refilled by
+* recovers with the drive's fault-reset sequence: automatically (at most ``auto_resets`` tries, the wait
+  before each twice the one before, from ``reset_delay_s``; refilled by
   every new command and every settle at the target), then re-commands the last target; and on request
   (``polarizer/reset``, or a new command while faulted);
 * serves ``polarizer/calibrate`` (:class:`CalibrateRequest` → :class:`Calibration`): turns through analyzer
@@ -76,7 +77,9 @@ class Polarizer(Node):
         channel: str = "can0"  # python-can channel (cia402)
         node_id: int = 5  # CANopen node id (cia402)
         counts_per_deg: float = 1000.0  # encoder counts per analyzer degree (cia402)
-        heartbeat_timeout_s: float = 0.3  # CANopen consumer heartbeat timeout (cia402)
+        heartbeat_ms: int | None = None  # the drive's producer heartbeat (cia402); None: the driver's
+        heartbeat_timeout_s: float | None = None  # consumer heartbeat timeout (cia402); None: the driver's
+        pdo_timeout_s: float | None = None  # TPDO1 older than this is stale (cia402); None: the driver's
         port: str = "/dev/ttyUSB0"  # serial port (ell14)
         address: str = "0"  # device address on the line (ell14)
         min_deg: float = -360.0
@@ -86,8 +89,8 @@ class Polarizer(Node):
         rate_hz: float = 10.0  # steady publishing rate of polarizer/state
         poll_s: float = 0.01  # how often a change is looked for
         settle_timeout_s: float = 5.0
-        auto_resets: int = 3
-        reset_delay_s: float = 0.2  # wait before an automatic fault reset
+        auto_resets: int = 5
+        reset_delay_s: float = 0.2  # wait before the first automatic fault reset (then 2x, 4x, ...)
         connect_retry_s: float = 1.0
         calibrate_angles_deg: list[float] = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0]
         calibrate_roi: list[int] = []  # object-free region (row0, row1, col0, col1); empty: whole frame
@@ -150,10 +153,11 @@ class Polarizer(Node):
         p = self.params
         limits = {"min_deg": p.min_deg, "max_deg": p.max_deg}
         if p.backend == "cia402":
+            timing = {k: getattr(p, k) for k in ("heartbeat_ms", "heartbeat_timeout_s", "pdo_timeout_s")
+                      if getattr(p, k) is not None}
             return open_backend("stage", "cia402", channel=p.channel, node_id=p.node_id,
                                 interface=p.interface, counts_per_deg=p.counts_per_deg,
-                                speed_deg_s=p.speed_deg_s, heartbeat_timeout_s=p.heartbeat_timeout_s,
-                                **limits)
+                                speed_deg_s=p.speed_deg_s, **limits, **timing)
         if p.backend == "ell14":
             return open_backend("stage", "ell14", port=p.port, address=p.address, **limits)
         return open_backend("stage", "sim", deg_per_s=p.speed_deg_s, **limits)
@@ -246,6 +250,7 @@ class Polarizer(Node):
         """Automatic recovery: a bounded number of fault resets, each followed by the last command again."""
         if self._next_reset is None:
             self._next_reset = now + self.params.reset_delay_s
+            self._reset_wait = self.params.reset_delay_s
             return
         if now < self._next_reset or self._resets_left <= 0:
             return
@@ -253,7 +258,8 @@ class Polarizer(Node):
             return  # a rejected command waits for a good one
         self._resets_left -= 1
         self.counters["auto_resets"] += 1
-        self._next_reset = now + self.params.reset_delay_s
+        self._reset_wait *= 2.0  # a drive that needs longer (a restarting bus, a busy host) gets it
+        self._next_reset = now + self._reset_wait
         if self._reset(f"automatic, {self._resets_left} left") and self.target_deg is not None:
             self._move(self.target_deg)
         if self._resets_left == 0 and self._fault_text():

@@ -242,3 +242,17 @@ def test_saturated_bars_give_no_contrast_rather_than_a_wrong_one():
     comp = _scan(h, 8, "flood", [(img, "flood", None)])
     assert comp.metrics["contrast"] is None and "saturated" in comp.metrics["metrics_error"]
     assert comp.images["saturated"].all()
+
+
+def test_frames_ahead_of_their_start_event_are_kept():
+    """Scan events and frames come from two publishers: a busy compositor may see a scan's first frames
+    before its "start"; the pending start is taken first, so no frame is lost."""
+    s, b = _scene(), 100.0
+    h = _harness()
+    h.queue("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes", stripes=4))
+    for step, (img, pat, _) in enumerate(_stripe_frames(s, b, 4)):
+        h.deliver("camera/frame", Frame(image=img, exposure_s=0.01, pattern=pat, scan_id=4, step=step))
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="done", method="stripes", stripes=4))
+    comp = h.published("compositor/composite")[-1]
+    assert comp.metrics["frames"] == 4 and h.node.counters["frames_unexpected"] == 0
+    np.testing.assert_allclose(comp.images["composite"], s + b)

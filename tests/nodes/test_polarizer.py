@@ -159,8 +159,12 @@ def test_bus_off_is_a_fault_until_the_bus_restarts(drive):
         h.deliver("polarizer/cmd", PolarizerCommand(target_deg=25.0))  # its reset and move fail while bus-off
         during = h.node.state()
         assert "bus-off" in during.fault and during.target_deg == 25.0 and math.isnan(during.angle_deg)
-        time.sleep(1.0)
-        assert h.call("polarizer/reset", Empty()).ok
+        time.sleep(1.0)  # the bus restarts after 1 s; a loaded machine may need a second try
+        replies = [h.call("polarizer/reset", Empty())]
+        while not replies[-1].ok and len(replies) < 3:
+            time.sleep(0.5)
+            replies.append(h.call("polarizer/reset", Empty()))
+        assert replies[-1].ok, [r.detail for r in replies]
         assert _run_until(h, _settled_at(25.0)) is not None
     finally:
         h.stop()
