@@ -140,7 +140,7 @@ def _receiver(kind: str, endpoint: str, ack_endpoint: str) -> None:
     ack.connect(ack_endpoint)
     try:
         while True:  # one phase per loop: until END
-            lat, received, first_seq, last_seq = [], 0, None, None
+            lat, received, first_seq, last_seq, cpu0 = [], 0, None, None, None
             ack_every = 1
             while True:
                 seq, t_ns, flag, _ = rx.recv()
@@ -151,9 +151,12 @@ def _receiver(kind: str, endpoint: str, ack_endpoint: str) -> None:
                 if flag == _QUIT:
                     return
                 if flag == _END:
-                    ack.send(msgpack.packb(("end", received, first_seq, last_seq, lat)))
+                    cpu = time.process_time() - cpu0 if cpu0 is not None else 0.0
+                    ack.send(msgpack.packb(("end", received, first_seq, last_seq, lat, cpu)))
                     break
                 if flag >= 100:  # throughput message; flag - 100 = ack interval
+                    if cpu0 is None:
+                        cpu0 = time.process_time()
                     ack_every = flag - 100
                     received += 1
                     first_seq = seq if first_seq is None else first_seq
@@ -214,11 +217,12 @@ def _run_transport(kind, size_names, seconds, quick, tmp):
                 tx.send(payload, time.perf_counter_ns(), _DATA)
                 t_next += period
             tx.send(ping, time.perf_counter_ns(), _END)
-            _, n_lat, _, _, lat = msgpack.unpackb(_recv(acks, 10))
+            _, n_lat, _, _, lat, _ = msgpack.unpackb(_recv(acks, 10))
             lat_us = np.array(lat) / 1e3
             # throughput: windowed
             ack_every = max(1, window // 4)
             sent, acked = 0, 0  # acked = messages the receiver has confirmed
+            cpu0 = time.process_time()
             t0 = time.perf_counter()
             t_end = t0 + seconds
             while time.perf_counter() < t_end:
@@ -234,7 +238,8 @@ def _run_transport(kind, size_names, seconds, quick, tmp):
             reply = None
             while reply is None or reply[0] != "end":
                 reply = msgpack.unpackb(_recv(acks, 10))
-            _, received, rx_first, rx_last, _ = reply
+            tx_cpu = time.process_time() - cpu0
+            _, received, rx_first, rx_last, _, rx_cpu = reply
             elapsed = time.perf_counter() - t0
             nbytes = payload.nbytes
             results[name] = {
@@ -247,6 +252,8 @@ def _run_transport(kind, size_names, seconds, quick, tmp):
                 "sent": sent,
                 "received": received,
                 "lost": sent - received + (count - n_lat),
+                "tx_cpu_us": tx_cpu / max(sent, 1) * 1e6,  # CPU time per message: steady under load
+                "rx_cpu_us": rx_cpu / max(received, 1) * 1e6,
             }
         tx.send(ping, time.perf_counter_ns(), _QUIT)
     finally:
@@ -291,6 +298,8 @@ def _memcpy(size_names):
             "p50_us": statistics.median(samples) / 1e3,
             "p99_us": float(np.percentile(samples, 99)) / 1e3,
             "lost": 0,
+            "tx_cpu_us": best * 1e6,
+            "rx_cpu_us": 0.0,
         }
     return out
 
@@ -302,6 +311,42 @@ def _median(results: list[dict]) -> dict:
         out[k] = int(sum(r[k] for r in results))
     out["rounds"] = len(results)
     return out
+
+
+def _layer_cost(size_names) -> dict:
+    """In-process cost per message of what each layer adds around the socket (min of repeats: robust to load):
+    bus = Frame() + encode on send, decode (all checks, read-only view) on receive; pyzmq = msgpack header
+    pack on send, unpack + ``np.frombuffer`` on receive."""
+    from polarstripe.msgs import Frame, encode
+
+    out = {}
+    for name in size_names:
+        shape, dtype, *_ = SIZES[name]
+        payload = (np.arange(int(np.prod(shape))) % 251).astype(dtype).reshape(shape)
+        frames = [
+            bytes(f) if isinstance(f, bytes) else memoryview(f).cast("B")
+            for f in encode(Frame(image=payload, exposure_s=0.0, step=0), seq=1, stamp_ns=1)
+        ]
+        raw = [msgpack.packb((1, 1, 0, payload.dtype.str, payload.shape)), memoryview(payload).cast("B")]
+
+        out[name] = _layer_figures(payload, frames, raw)
+    return out
+
+
+def _layer_figures(payload, frames, raw) -> dict:
+    import timeit
+
+    from polarstripe.msgs import Frame, decode, encode
+
+    def best(fn, n=2000):
+        return min(timeit.repeat(fn, number=n, repeat=5)) / n * 1e6
+
+    return {
+        "bus_send_us": best(lambda: encode(Frame(image=payload, exposure_s=0.0, step=0), seq=1, stamp_ns=1)),
+        "bus_recv_us": best(lambda: decode(frames, expect=Frame).image.flat[0]),
+        "pyzmq_send_us": best(lambda: msgpack.packb((1, 1, 0, payload.dtype.str, payload.shape))),
+        "pyzmq_recv_us": best(lambda: np.frombuffer(raw[1], dtype=msgpack.unpackb(raw[0])[3]).flat[0]),
+    }
 
 
 def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = None, rounds: int = 3) -> dict:
@@ -326,6 +371,8 @@ def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = Non
         row["bus"]["bw_vs_pyzmq"] = row["bus"]["msgs_per_s"] / row["pyzmq"]["msgs_per_s"]
         row["bus"]["p50_vs_pyzmq"] = row["bus"]["p50_us"] / row["pyzmq"]["p50_us"]
         table[name] = row
+    for name, cost in _layer_cost(sizes).items():
+        table[name]["layer"] = cost
     return table
 
 
@@ -339,24 +386,43 @@ def main(args: argparse.Namespace) -> int:
     table = run(seconds=args.seconds, quick=args.quick, sizes=sizes, rounds=args.rounds)
     if args.json:
         print(json.dumps({"cpus": os.cpu_count(), "results": table}, indent=1))
-        return 0
+        print("\nwhat each layer adds around the socket, in-process, µs per message (min of 5 repeats):")
+    for name, row in table.items():
+        c = row["layer"]
+        print(
+            f"  {name:<12}  bus: send {c['bus_send_us']:5.1f}  receive {c['bus_recv_us']:5.1f}    "
+            f"pyzmq: send {c['pyzmq_send_us']:5.1f}  receive {c['pyzmq_recv_us']:5.1f}"
+        )
+    return 0
     rounds = next(iter(table.values()))["bus"]["rounds"]
     print(
         f"transport between two processes (ipc, {os.cpu_count()} CPUs), median of {rounds} round(s); "
-        "ratios from this run\n"
+        "ratios from this run.\nCPU us = CPU time per message in the sending / receiving process during the "
+        "throughput phase (steadier than wall-clock rates on a loaded machine).\n"
     )
     head = (
         f"| {'size':<12} | {'transport':<9} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} "
-        f"| {'p50 us':>8} | {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'bus/pyzmq msgs/s':>16} |"
+        f"| {'p50 us':>8} | {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'tx CPU us':>9} "
+        f"| {'rx CPU us':>9} | {'bus/pyzmq msgs/s':>16} |"
     )
     print(head)
     print("|" + "|".join("-" * (len(c)) for c in head.split("|")[1:-1]) + "|")
     for name, row in table.items():
         for k, r in row.items():
+            if k == "layer":
+                continue
             vs = f"{r['bw_vs_pyzmq']:.2f} (p50 {r['p50_vs_pyzmq']:.2f})" if k == "bus" else ""
             print(
                 f"| {name:<12} | {k:<9} | {r['msgs_per_s']:>10,.0f} | {r['MB_per_s']:>9,.0f} | "
                 f"{r['bw_vs_memcpy']:>9.3f} | {r['p50_us']:>8.1f} | {r['p99_us']:>8.1f} | "
-                f"{r['p50_vs_memcpy']:>10.1f} | {r.get('lost', 0):>4} | {vs:>16} |"
+                f"{r['p50_vs_memcpy']:>10.1f} | {r.get('lost', 0):>4} | {r['tx_cpu_us']:>9.1f} "
+                f"| {r['rx_cpu_us']:>9.1f} | {vs:>16} |"
             )
+    print("\nwhat each layer adds around the socket, in-process, µs per message (min of 5 repeats):")
+    for name, row in table.items():
+        c = row["layer"]
+        print(
+            f"  {name:<12}  bus: send {c['bus_send_us']:5.1f}  receive {c['bus_recv_us']:5.1f}    "
+            f"pyzmq: send {c['pyzmq_send_us']:5.1f}  receive {c['pyzmq_recv_us']:5.1f}"
+        )
     return 0
