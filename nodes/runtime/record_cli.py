@@ -180,6 +180,13 @@ class Recorder(Node):
         if self.params.split_size and self.writer.size >= self.params.split_size:
             self._rotate()
 
+    def _drain(self) -> None:
+        """Write what has already arrived when the loop stops (a stop must not drop queued messages)."""
+        for sub in self._subs.values():
+            for item in sub.source.take(limit=1_000_000):
+                if isinstance(item, Message):
+                    self.write(sub.full, item)
+
     def _housekeeping(self) -> None:
         self.writer.flush_stale()
         d = self.params.split_duration_s
@@ -216,6 +223,7 @@ class Recorder(Node):
         return int(self.counters.get("bad", 0))
 
     def teardown(self):
+        self._drain()
         self._close()
         total, gaps = sum(self.counts.values()), sum(self.gaps.values())
         for t in self.types:
