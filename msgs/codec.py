@@ -22,6 +22,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import zmq
 from polarstripe.msgs.base import REGISTRY, Header, Message, MessageError
 from polarstripe.msgs.fields import Buffers
 
@@ -157,7 +158,9 @@ def decode(
 
 def _bytes_view(f: Any) -> memoryview:
     """A flat byte view of a frame (``zmq.Frame``, bytes, memoryview or a contiguous ndarray)."""
-    v = f.buffer if hasattr(f, "buffer") else memoryview(f)
+    if type(f) is bytes:
+        return memoryview(f)
+    v = f.buffer if isinstance(f, zmq.Frame) else memoryview(f)
     return v if v.ndim == 1 and v.itemsize == 1 else v.cast("B")
 
 
