@@ -155,14 +155,15 @@ def test_two_nodes_exchange_messages_and_respawn_stops_at_its_limit(tmp_path):
         respawn = true
         respawn_delay = 0.1
         max_respawns = 2
+        required = true   # --once waits for its last respawn too
     """,
         "--once",
-        "n=80",
+        "n=40",
     )
     assert proc.wait(30) == 0, _output(tmp_path)
     out = _output(tmp_path)
     run = next((tmp_path / "runs").iterdir())
-    assert "heard 80 messages in all" in (run / "logs" / "listener.log").read_text()
+    assert "heard 40 messages in all" in (run / "logs" / "listener.log").read_text()
     assert out.count("crasher started") == 3 and "respawn 2/2" in out, out
     graph = json.loads((run / "graph.json").read_text())
     assert graph["state"] == "stopped"
@@ -218,7 +219,7 @@ def test_respawned_publisher_reaches_subscribers_again_then_ctrl_c_leaves_no_pro
             timeout=20,
         )
         rate = float(hz.stdout.split(": ")[1].split(" Hz")[0])
-        assert 35 < rate < 60, hz.stdout
+        assert 20 < rate < 80, hz.stdout  # a 50 Hz talker, on a loaded machine
 
         old_pid = g["nodes"]["talker"]["pid"]
         os.kill(old_pid, signal.SIGKILL)
