@@ -11,7 +11,7 @@ import tempfile
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Empty, Plan
+from polarstripe.msgs import Empty, Plan, ScanEvent
 from polarstripe.nodes.runtime.testing import NodeHarness
 from polarstripe.sim.scene import load_scene
 from polarstripe.sim.simulator import RenderRequest, SimFault, Simulator, SimulatorError, expose_fast
@@ -65,6 +65,15 @@ def test_a_plan_on_the_topic_moves_the_source_too():
     h = sim()
     h.deliver("planner/plan", Plan(modality="flood", separation_m=0.25))
     assert h.node.scene.separation_m() == pytest.approx(0.25)
+
+
+def test_a_plan_during_a_scan_waits_for_its_end():
+    h = sim()
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes"))
+    h.deliver("planner/plan", Plan(modality="stripes", separation_m=0.3))
+    assert h.node.scene.separation_m() == pytest.approx(0.2)  # not in the middle of scan 4
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="fault", method="stripes", detail="x"))
+    assert h.node.scene.separation_m() == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize("bad", [0.0, -0.1, float("nan")])
