@@ -386,14 +386,7 @@ def main(args: argparse.Namespace) -> int:
     table = run(seconds=args.seconds, quick=args.quick, sizes=sizes, rounds=args.rounds)
     if args.json:
         print(json.dumps({"cpus": os.cpu_count(), "results": table}, indent=1))
-        print("\nwhat each layer adds around the socket, in-process, µs per message (min of 5 repeats):")
-    for name, row in table.items():
-        c = row["layer"]
-        print(
-            f"  {name:<12}  bus: send {c['bus_send_us']:5.1f}  receive {c['bus_recv_us']:5.1f}    "
-            f"pyzmq: send {c['pyzmq_send_us']:5.1f}  receive {c['pyzmq_recv_us']:5.1f}"
-        )
-    return 0
+        return 0
     rounds = next(iter(table.values()))["bus"]["rounds"]
     print(
         f"transport between two processes (ipc, {os.cpu_count()} CPUs), median of {rounds} round(s); "
