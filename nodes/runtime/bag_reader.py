@@ -166,13 +166,38 @@ class BagReader:
     def duration_s(self) -> float:
         return (self.end_ns - self.start_ns) / 1e9
 
+    def resolve_topics(self, names, namespace: str = "") -> list[str]:
+        """Full topic names of the bag for ``names``: full names as they are, relative ones in ``namespace``
+        (default: the recorded launch's) or, failing that, the one topic of the bag ending in ``/name``.
+        Raises :class:`BagError` naming a topic the bag does not have."""
+        from polarstripe.nodes.runtime.graph import resolve
+
+        ns = namespace or self.metadata.get("launch", {}).get("namespace", "")
+        out = []
+        for name in names:
+            full = resolve(name, ns)
+            if full not in self.topics and not name.startswith("/"):
+                ends = [t for t in self.topics if t.endswith("/" + name.strip("/"))]
+                full = ends[0] if len(ends) == 1 else full
+            if full not in self.topics:
+                raise BagError(f"bag {self.path}: no topic {name!r} (has {', '.join(self.topics)})")
+            out.append(full)
+        return out
+
     def raw(self, topics=None, start_ns: int | None = None):
         """``(topic, log_time_ns, sequence, payload bytes)`` in log-time order."""
         if topics is not None:
             unknown = sorted(set(topics) - set(self.topics))
             if unknown:
                 raise BagError(f"bag {self.path}: no topic {unknown[0]!r} (has {', '.join(self.topics)})")
-        for _, ch, m in self._reader.iter_messages(topics=topics, start_time=start_ns):
+        import inspect
+
+        since = (
+            "starting_at"
+            if "starting_at" in inspect.signature(self._reader.iter_messages).parameters
+            else ("start_time")
+        )  # mcap >= 1.6 deprecates start_time
+        for _, ch, m in self._reader.iter_messages(topics=topics, **{since: start_ns}):
             yield ch.topic, m.log_time, m.sequence, m.data
 
     def messages(self, topics=None, start_ns: int | None = None):

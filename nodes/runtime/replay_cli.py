@@ -24,7 +24,7 @@ from pathlib import Path
 from polarstripe.msgs import Heartbeat
 from polarstripe.nodes.runtime.bag import BagError
 from polarstripe.nodes.runtime.bag_reader import BagReader
-from polarstripe.nodes.runtime.graph import resolve, runs_dir, write_graph
+from polarstripe.nodes.runtime.graph import runs_dir, write_graph
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
 
@@ -59,10 +59,7 @@ class Replayer(Node):
     def setup(self):
         p = self.params
         self.bag = BagReader(p.path)
-        chosen = [resolve(t, self.namespace) for t in p.topics] or list(self.bag.topics)
-        missing = [t for t in chosen if t not in self.bag.topics]
-        if missing:
-            raise BagError(f"bag {p.path}: no topic {missing[0]!r} (has {', '.join(self.bag.topics)})")
+        chosen = self.bag.resolve_topics(p.topics, self.namespace) or list(self.bag.topics)
         self.topics = chosen
         self.pubs = {}
         for t in chosen:
@@ -78,7 +75,7 @@ class Replayer(Node):
         self._seen: set[str] = set()
         if p.wait_for:
             self.subscribe("heartbeat", self._on_heartbeat, msg_type=Heartbeat, mode="all")
-        self._ready_at = time.monotonic() + p.delay_s
+        self._ready_at = self._bus.now() + p.delay_s  # the bus clock: monotonic [s], virtual in the harness
         self._t0: float | None = None
         self._done_at: float | None = None
         self._iter = self._next = None
@@ -88,10 +85,11 @@ class Replayer(Node):
     def _on_heartbeat(self, hb: Heartbeat) -> None:
         self._seen.add(hb.node)
 
-    def _begin(self, now: float) -> None:
+    def _begin(self) -> None:
         start_ns = self.bag.start_ns + int(self.params.start_s * 1e9)
         self._iter = self.bag.messages(self.topics, start_ns=start_ns)
-        self._t0, self._b0 = now, start_ns
+        self._next = next(self._iter, None)  # the first read may take a while: start the clock after it
+        self._t0, self._b0 = self._bus.now(), start_ns
         if self.params.progress:
             from tqdm import tqdm
 
@@ -101,7 +99,7 @@ class Replayer(Node):
                 self._bar.reset()
 
     def _pump(self) -> None:
-        now = time.monotonic()
+        now = self._bus.now()
         if self._done_at is not None:
             if self.params.exit_when_done and now - self._done_at >= self.params.linger_s:
                 self.stop(f"replayed {self.sent} messages")
@@ -109,7 +107,8 @@ class Replayer(Node):
         if self._t0 is None:
             if now < self._ready_at or not set(self.params.wait_for) <= self._seen:
                 return
-            self._begin(now)
+            self._begin()
+            now = self._bus.now()
             self.log.info(
                 "replaying %d messages of %s at rate %g", self.total, self.params.path, self.params.rate
             )
@@ -119,8 +118,9 @@ class Replayer(Node):
                 self._next = next(self._iter, None)
                 if self._next is None:
                     self.loops += 1
-                    if self.params.loop:
-                        self._begin(now)
+                    if self.params.loop and self.total:
+                        self._begin()
+                        now = self._bus.now()
                         continue
                     self._done_at = now
                     self.log.info("replay done: %d messages", self.sent)
@@ -206,11 +206,7 @@ def main(args: argparse.Namespace) -> int:
     from polarstripe.nodes.runtime.runner import run_node
 
     with BagReader(args.file) as bag:  # check the file (and the topics) before binding anything
-        ns = bag.metadata.get("launch", {}).get("namespace", "")
-        topics = [resolve(t, ns) for t in args.topics] or list(bag.topics)
-        missing = [t for t in topics if t not in bag.topics]
-        if missing:
-            raise BagError(f"bag {args.file}: no topic {missing[0]!r} (has {', '.join(bag.topics)})")
+        topics = bag.resolve_topics(args.topics) or list(bag.topics)
         if args.graph:
             graph_file = Path(args.graph)
             run_dir = graph_file.parent
