@@ -22,6 +22,7 @@ from polarstripe.msgs import (
     Plan,
     PolarizerCommand,
     decode,
+    describe,
     encode,
     json_schema,
     message,
@@ -263,3 +264,17 @@ def test_a_type_name_cannot_be_declared_twice():
         @message("frame")
         class Frame2(Message):
             x: int
+
+
+def test_describe_summarises_arrays_without_the_class():
+    msg = Composite(images={"max": np.zeros((3, 4), np.uint16)}, method="stripes", metrics={"contrast": 0.5})
+    d = describe(_as_frames(msg), topic="/t")
+    assert (d["type"], d["version"]) == ("composite", 1)
+    assert d["fields"] == {
+        "images": {"max": "array <u2[3, 4]"},
+        "method": "stripes",
+        "scan_id": 0,
+        "metrics": {"contrast": 0.5},
+    }
+    with pytest.raises(MessageError, match="field 'header'"):
+        describe([b"\xc1"], topic="/t")
