@@ -383,13 +383,16 @@ def main(args: argparse.Namespace) -> int:
     unknown = [s for s in sizes if s not in SIZES]
     if unknown:
         raise PolarstripeError(f"--sizes: unknown size {unknown[0]!r} (choose from {', '.join(SIZES)})")
+    load_before = os.getloadavg()[0]
     table = run(seconds=args.seconds, quick=args.quick, sizes=sizes, rounds=args.rounds)
+    load = (load_before, os.getloadavg()[0])  # other work on the machine skews wall-clock figures
     if args.json:
-        print(json.dumps({"cpus": os.cpu_count(), "results": table}, indent=1))
+        print(json.dumps({"cpus": os.cpu_count(), "load_avg_1min": load, "results": table}, indent=1))
         return 0
     rounds = next(iter(table.values()))["bus"]["rounds"]
     print(
-        f"transport between two processes (ipc, {os.cpu_count()} CPUs), median of {rounds} round(s); "
+        f"transport between two processes (ipc, {os.cpu_count()} CPUs, load average {load[0]:.1f} -> "
+        f"{load[1]:.1f}), median of {rounds} round(s); "
         "ratios from this run.\nCPU us = CPU time per message in the sending / receiving process during the "
         "throughput phase (steadier than wall-clock rates on a loaded machine).\n"
     )
