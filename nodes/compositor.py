@@ -19,7 +19,8 @@ method's composite, scores it and writes it out.
   ``.npy`` with ``image_format = "npy"``), ``<out>/metrics.json`` (method → metrics, rewritten after every
   scan) and ``<out>/comparison.png`` (the methods side by side, like the paper's Fig. 6).
 
-Frames that do not belong are dropped and counted (heartbeat counters ``frames_unexpected`` no scan running,
+Calibration frames of the polarizer (scan ids from 2**30) are ignored. Frames that do not belong are dropped
+and counted (heartbeat counters ``frames_unexpected`` no scan running,
 ``frames_mismatched`` another scan id, ``frames_bad`` shape/dtype/ndim, ``frames_duplicate`` a step seen
 twice, ``frames_bad_pattern`` a pattern the method does not use, ``frames_bad_angle`` an analyzer angle not in
 the scan).
@@ -101,7 +102,7 @@ class Compositor(Node):
         self._truth_client = None
         self._draining = False
         self._truth_served = self.params.use_truth
-        for key in (*_DROPS, "scans_done", "scans_failed"):
+        for key in (*_DROPS, "frames_calibration", "scans_done", "scans_failed"):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("medium/estimate")
@@ -127,6 +128,11 @@ class Compositor(Node):
 
     def on_frame(self, frame: Frame) -> None:
         from polarstripe.imaging.composite import RunningComposite
+        from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
+
+        if frame.scan_id >= CALIBRATION_SCAN_ID:
+            self.counters["frames_calibration"] += 1  # the polarizer's, not a scan's
+            return
 
         if (self.scan is None or frame.scan_id != self.scan.scan_id) and not self._draining:
             self._catch_up()  # scan events come on another socket: a "start" may wait behind the frames

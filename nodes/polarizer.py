@@ -18,7 +18,8 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
 * serves ``polarizer/calibrate`` (:class:`CalibrateRequest` → :class:`Calibration`): turns through analyzer
   angles, has the grabber take a frame at each (``camera/trigger`` then the matching ``camera/frame``) and
   fits Malus's law over a region (:func:`polarstripe.imaging.polarization.least_backscatter_angle`) for the
-  angle of least backscatter, E_b. Calibration frames carry negative scan ids (-1, -2, …).
+  angle of least backscatter, E_b. Calibration frames carry scan ids from :data:`CALIBRATION_SCAN_ID`
+  (2**30) up, apart from the emitter's scans (the compositor ignores them).
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
+
+#: scan ids of calibration frames start here (the emitter counts its scans from 1)
+CALIBRATION_SCAN_ID = 2**30
 
 
 @message("polarizer_calibrate_request")
@@ -312,9 +316,9 @@ class Polarizer(Node):
 
     # ---- calibration ---------------------------------------------------------------------------------------
     def in_range(self, angle_deg: float) -> float:
-        """The analyzer angle equivalent to ``angle_deg`` (modulo 180°) within the limits, nearest the
-        present target."""
-        here = self.target_deg if self.target_deg is not None else 0.0
+        """The analyzer angle equivalent to ``angle_deg`` (modulo 180°) within the limits: the one in [0, 180)
+        if the limits allow, else the nearest to it."""
+        here = angle_deg % 180.0
         options = [angle_deg + 180.0 * k for k in range(-8, 9)]
         inside = [a for a in options if self.params.min_deg <= a <= self.params.max_deg]
         if not inside:
@@ -348,7 +352,7 @@ class Polarizer(Node):
         if self.stage is None:
             return Calibration(ok=False, detail=self._connect_error)
         self._calibrations += 1
-        scan_id = -self._calibrations
+        scan_id = CALIBRATION_SCAN_ID + self._calibrations
         measured, frames = [], []
         try:
             if self._trigger is None:

@@ -256,3 +256,13 @@ def test_frames_ahead_of_their_start_event_are_kept():
     comp = h.published("compositor/composite")[-1]
     assert comp.metrics["frames"] == 4 and h.node.counters["frames_unexpected"] == 0
     np.testing.assert_allclose(comp.images["composite"], s + b)
+
+
+def test_the_polarizers_calibration_frames_are_ignored_quietly():
+    from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
+
+    h = _harness()
+    h.deliver("camera/frame", Frame(image=np.zeros((H, W), np.uint16), exposure_s=0.01, pattern="flood",
+                                    scan_id=CALIBRATION_SCAN_ID + 1))
+    assert h.node.counters["frames_calibration"] == 1 and h.node.counters["frames_unexpected"] == 0
+    assert not [text for level, text in h.logs if level == "WARNING"]
