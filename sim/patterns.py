@@ -103,7 +103,6 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
     -------
     ray : (m,) int index of the ray each interval belongs to; lo, hi : (m,) interval ends (lo < hi).
     """
-    n = dirs.shape[0]
     if frame is None:
         keep = x1 > x0
         return np.nonzero(keep)[0], x0[keep], x1[keep]
@@ -117,30 +116,48 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
     keep = np.nonzero(hi > lo)[0]
     rays, los, his = [], [], []
     size, shift = pattern.size, pattern.shift % (2 * pattern.size)
-    cb = np.arange(shift % size, frame.w + 1, size, dtype=float)
-    rb = np.arange(size, frame.h, size, dtype=float)
     rel_all = np.broadcast_to(origin - frame.position, dirs.shape)
-    for start in range(0, keep.size, 4096):
-        idx = keep[start:start + 4096]
+    for start in range(0, keep.size, 8192):
+        idx = keep[start:start + 8192]
         rel, d, a, b = rel_all[idx], dirs[idx], lo[idx], hi[idx]
         vf0, vr0, vu0 = rel @ frame.f, rel @ frame.r, rel @ frame.u
         df, dr, du = d @ frame.f, d @ frame.r, d @ frame.u
-        ac = (cb - frame.w / 2.0) * frame.s  # vr = ac·vf on a column boundary
-        ar = (frame.h / 2.0 - rb) * frame.s  # vu = ar·vf on a row boundary
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xc = (ac[None] * vf0[:, None] - vr0[:, None]) / (dr[:, None] - ac[None] * df[:, None])
-            xr = (ar[None] * vf0[:, None] - vu0[:, None]) / (du[:, None] - ar[None] * df[:, None])
-        br = np.concatenate([a[:, None], xc, xr, b[:, None]], axis=1)
-        br = np.where(np.isfinite(br), br, np.inf)
-        br = np.clip(br, a[:, None], b[:, None])
+        # pattern coordinates at both ends; along a ray in front of the projector they are monotone,
+        # so only the boundaries between the two ends can be crossed
+        ends = []
+        for x in (a, b):
+            vf = np.maximum(vf0 + x * df, 1e-300)
+            ends.append((frame.w / 2 + ((vr0 + x * dr) / vf) / frame.s,
+                         frame.h / 2 - ((vu0 + x * du) / vf) / frame.s))
+        cuts = [a[:, None], b[:, None]]
+        for axis, off in ((0, shift % size), (1, 0)):
+            lo_c = np.minimum(ends[0][axis], ends[1][axis])
+            hi_c = np.maximum(ends[0][axis], ends[1][axis])
+            k0 = np.ceil((lo_c - off) / size)
+            k1 = np.floor((hi_c - off) / size)
+            count = int(np.clip(k1 - k0 + 1, 0, None).max()) if idx.size else 0
+            if count == 0:
+                continue
+            j = np.arange(count)[None, :]
+            bound = off + (k0[:, None] + j) * size
+            valid = j <= (k1 - k0)[:, None]
+            if axis == 0:
+                coef = (bound - frame.w / 2) * frame.s              # vr = coef·vf on a column boundary
+                num, den = coef * vf0[:, None] - vr0[:, None], dr[:, None] - coef * df[:, None]
+            else:
+                coef = (frame.h / 2 - bound) * frame.s              # vu = coef·vf on a row boundary
+                num, den = coef * vf0[:, None] - vu0[:, None], du[:, None] - coef * df[:, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xb = num / den
+            cuts.append(np.where(valid & np.isfinite(xb), xb, b[:, None]))
+        br = np.clip(np.concatenate(cuts, axis=1), a[:, None], b[:, None])
         br.sort(axis=1)
         s0, s1 = br[:, :-1], br[:, 1:]
         mid = 0.5 * (s0 + s1)
-        p = rel[:, None, :] + mid[..., None] * d[:, None, :]
-        pf, pr, pu = p @ frame.f, p @ frame.r, p @ frame.u
+        pf = vf0[:, None] + mid * df[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
-            col = frame.w / 2.0 + (pr / pf) / frame.s
-            row = frame.h / 2.0 - (pu / pf) / frame.s
+            col = frame.w / 2.0 + ((vr0[:, None] + mid * dr[:, None]) / pf) / frame.s
+            row = frame.h / 2.0 - ((vu0[:, None] + mid * du[:, None]) / pf) / frame.s
         lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
         r_i, c_i = np.nonzero(lit)
         rays.append(idx[r_i])
@@ -148,5 +165,4 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
         his.append(s1[r_i, c_i])
     if not rays:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
-    del n
     return np.concatenate(rays), np.concatenate(los), np.concatenate(his)
