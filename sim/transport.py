@@ -26,7 +26,7 @@ from polarstripe.sim.polarization import rayleigh_mueller
 from polarstripe.sim.scene import Scene
 
 _TRUNC = 50.0
-_CHUNK_NODES = 1 << 21
+_CHUNK_NODES = 1 << 18
 
 
 @dataclass(frozen=True)
