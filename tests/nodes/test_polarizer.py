@@ -251,3 +251,23 @@ def test_calibrate_without_frames_fails_cleanly():
     assert not reply.ok and "camera/frame" in reply.detail
     assert time.monotonic() - t0 < 3.0
     h.stop()
+
+
+def test_ell14_backend_moves_and_a_failed_move_is_a_fault():
+    """The serial backend behind the same node: a fake ELL14 on a pty."""
+    from polarstripe.nodes.drivers.simell14 import SimEll14
+
+    with SimEll14(deg_per_s=2000.0) as dev:
+        h = NodeHarness(Polarizer, params={"backend": "ell14", "port": dev.port, "auto_resets": 0,
+                                           "min_deg": -90.0, "max_deg": 90.0})
+        try:
+            h.deliver("polarizer/cmd", PolarizerCommand(target_deg=40.0))
+            assert _run_until(h, lambda s: s.settled and abs(s.angle_deg - 40.0) < 0.01) is not None
+            dev.inject_move_error(0x02)  # mechanical timeout
+            h.deliver("polarizer/cmd", PolarizerCommand(target_deg=-10.0))
+            fault = _run_until(h, lambda s: "GS02" in s.fault)
+            assert fault is not None and math.isnan(fault.angle_deg)
+            assert h.call("polarizer/reset", Empty()).ok
+            assert _run_until(h, lambda s: s.settled and abs(s.angle_deg + 10.0) < 0.01) is not None
+        finally:
+            h.stop()
