@@ -149,6 +149,8 @@ class Launcher:
         self.graph = build_graph(spec, self.run_dir)
         self.graph_file = self.run_dir / "graph.json"
         self.children = [_Child(n) for n in spec.nodes]
+        if once and not any(n.required for n in spec.nodes):
+            raise LaunchError(f"{spec.path.name}: --once needs at least one node with required = true")
         self._stop: str | None = None
 
     def say(self, text: str) -> None:
@@ -215,8 +217,6 @@ class Launcher:
 
     def _supervise(self) -> int:
         required = [c for c in self.children if c.spec.required]
-        if self.once and not required:
-            raise LaunchError(f"{self.spec.path.name}: --once needs at least one node with required = true")
         while not self._stop:
             now = time.monotonic()
             for c in self.children:

@@ -384,6 +384,9 @@ def test_cli_rejects_before_anything_starts_and_dry_run_prints_the_graph(tmp_pat
     assert graph["nodes"]["a"]["params"] == {"rate_hz": 25.0}
     assert graph["services"]["/a/reset"]["node"] == "a"
     assert not (tmp_path / "runs").exists()
+    once = subprocess.run([*cmd, "--once"], capture_output=True, text=True, env=env, timeout=30)
+    assert once.returncode == 2 and "--once needs at least one node with required = true" in once.stderr
+    assert not (tmp_path / "runs").exists()
     rec = subprocess.run(
         [*cmd, "--record", str(tmp_path / "r.mcap"), "--dry-run"],
         capture_output=True,
