@@ -11,11 +11,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 
 import zmq
 from polarstripe.msgs import MessageError, describe
+from polarstripe.nodes.runtime.bus import CurveKeys
 from polarstripe.nodes.runtime.graph import find_graph, load_graph, pub_endpoints, resolve
 
 HELP = "list, echo or time the topics of a running launch"
@@ -44,6 +46,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _open(graph: dict, topic: str) -> zmq.Socket:
     sock = zmq.Context.instance().socket(zmq.SUB)
     sock.linger = 0
+    key_file = os.environ.get("POLARSTRIPE_CURVE_KEYS")  # the rig's keys when its links are encrypted
+    if key_file:
+        keys = CurveKeys.load(key_file)
+        sock.curve_serverkey = keys.public
+        sock.curve_publickey, sock.curve_secretkey = zmq.curve_keypair()
     sock.rcvhwm = 100
     sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
     for ep in pub_endpoints(graph, topic):

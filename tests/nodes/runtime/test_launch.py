@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zmq
 from polarstripe.msgs import Ack, Empty, Frame, Heartbeat, Log, encode
-from polarstripe.nodes.runtime.bus import ServiceClient, ServiceTimeout, Subscriber
+from polarstripe.nodes.runtime.bus import BusTimeout, ServiceClient, ServiceTimeout, Subscriber
 from polarstripe.nodes.runtime.graph import pub_endpoints
 from polarstripe.nodes.runtime.launch_file import LaunchError, load_launch
 
@@ -397,13 +397,16 @@ def test_cli_rejects_before_anything_starts_and_dry_run_prints_the_graph(tmp_pat
     assert rec.returncode == 0 or "recording is not available in this build" in rec.stderr
 
 
-def test_tcp_transport(tmp_path):
-    proc = _launch(
-        tmp_path,
-        """
+def test_tcp_transport_with_curve(tmp_path):
+    public, secret = zmq.curve_keypair()
+    keys = tmp_path / "rig.keys"
+    keys.write_text(f"public={public.decode()}\nsecret={secret.decode()}\n")
+    toml = """
         [launch]
         namespace = "/net"
         transport = "tcp"
+        [launch.env]
+        POLARSTRIPE_CURVE_KEYS = "@KEYFILE@"
         [[node]]
         name = "talker"
         module = "polarstripe.nodes.demo:Talker"
@@ -411,14 +414,28 @@ def test_tcp_transport(tmp_path):
         [[node]]
         name = "listener"
         module = "polarstripe.nodes.demo:Listener"
-        params = { count = 10 }
-        required = true
-    """,
-        "--once",
-    )
-    assert proc.wait(30) == 0, _output(tmp_path)
-    run = next((tmp_path / "runs").iterdir())
-    graph = json.loads((run / "graph.json").read_text())
-    assert graph["nodes"]["talker"]["pub"].startswith("tcp://127.0.0.1:")
-    assert graph["services"]["/net/talker/reset"]["endpoint"].startswith("tcp://127.0.0.1:")
-    assert "heard 10 messages in all" in (run / "logs" / "listener.log").read_text()
+    """
+    proc = _launch(tmp_path, toml.replace("@KEYFILE@", str(keys)))
+    try:
+        g = _graph(tmp_path)
+        assert g["nodes"]["talker"]["pub"].startswith("tcp://127.0.0.1:")
+        assert g["services"]["/net/talker/reset"]["endpoint"].startswith("tcp://127.0.0.1:")
+        with Subscriber([g["nodes"]["talker"]["pub"]], "/net/chatter", Log) as plain:  # no keys: nothing
+            with pytest.raises(BusTimeout):
+                plain.recv(timeout_s=1.0)
+        env = {**_env(tmp_path), "POLARSTRIPE_CURVE_KEYS": str(keys)}
+        echo = subprocess.run(
+            [sys.executable, "-m", "polarstripe", "topic", "echo", "chatter", "-n", "1", "--timeout", "10"],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=20,
+        )
+        assert "text='hello " in echo.stdout, echo.stderr
+        deadline = time.monotonic() + 10
+        while "heard" not in (Path(g["run_dir"]) / "logs" / "listener.log").read_text():
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+    finally:
+        assert _stop(proc) == 130
+    assert "heard" in (Path(g["run_dir"]) / "logs" / "listener.log").read_text()
