@@ -414,6 +414,7 @@ def test_tcp_transport_with_curve(tmp_path):
         [[node]]
         name = "listener"
         module = "polarstripe.nodes.demo:Listener"
+        params = { report_s = 0.3 }
     """
     proc = _launch(tmp_path, toml.replace("@KEYFILE@", str(keys)))
     try:
