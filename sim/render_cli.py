@@ -23,7 +23,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="scene TOML file (docs/scene-format.md); omitted: the paper's default tank")
     parser.add_argument("--pattern", default="flood", help="flood | stripe:K/N | checker:SIZE:SHIFT")
     parser.add_argument("--polarizer", type=float, default=None, metavar="DEG",
-                        help="analyzer angle [deg] from image right toward image up (default: no analyzer)")
+                        help="analyzer angle [deg] from image right toward image up "
+                             "(default: camera.polarizer.angle_deg of the scene; none there = no analyzer)")
     parser.add_argument("--fidelity", default="standard",
                         help="preview | standard | reference | 'xi=N,theta=N,phi=N,grid=WxH|none'")
     parser.add_argument("--components", action="store_true", help="also write D.npy, A.npy, B.npy")
@@ -56,7 +57,8 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    dn, comp = render_frame(scene, pattern, args.polarizer, fidelity, seed=args.seed)
+    angle = args.polarizer if args.polarizer is not None else scene.camera.polarizer.angle_deg
+    dn, comp = render_frame(scene, pattern, angle, fidelity, seed=args.seed)
     seconds = time.perf_counter() - t0
     if not cv2.imwrite(str(out / "image.png"), dn):
         raise OSError(f"cannot write {out / 'image.png'}")
@@ -67,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
         "scene": scene_to_dict(scene),
         "scene_file": None if args.scene is None else str(args.scene),
         "pattern": str(pattern),
-        "polarizer_deg": args.polarizer,
+        "polarizer_deg": angle,
         "fidelity": {"name": fidelity.name, "xi_nodes": fidelity.xi_nodes, "hemi_theta": fidelity.hemi_theta,
                      "hemi_phi": fidelity.hemi_phi, "a_grid": fidelity.a_grid},
         "seconds": seconds,
