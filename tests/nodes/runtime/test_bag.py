@@ -115,6 +115,19 @@ def test_mcap_reader_reads_every_message_intact(tmp_path, compression):
         _same(unpack(rec.data, topic=topic), sent)
 
 
+def test_uncompressed_chunk_crc_is_the_crc_of_its_records(tmp_path):
+    import zlib
+
+    from mcap.records import Chunk
+
+    path = _write(tmp_path / "crc.mcap", [("/rig/camera/frame", _frame(i)) for i in range(3)], crc=True)
+    with open(path, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert chunks and all(c.uncompressed_crc == zlib.crc32(c.data) != 0 for c in chunks)
+    with open(path, "rb") as f:
+        assert len(list(make_reader(f, validate_crcs=True).iter_messages())) == 3
+
+
 def test_payloads_validate_against_their_json_schema(tmp_path):
     jsonschema = pytest.importorskip("jsonschema")
 

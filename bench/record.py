@@ -1,0 +1,251 @@
+"""``polarstripe bench record``: how fast the recorder writes 1280×1024 uint16 frames, beside the disk.
+
+Measured in one run, on the file system of ``--dir`` (default: the system temp dir):
+
+* **plain write** — the same payload bytes (the frames' packed messages) with ``f.write``, then ``fsync``: the
+  limit of this disk (its page cache, really, for a short run; the ``fsync`` time is reported apart);
+* **BagWriter** — :class:`~polarstripe.nodes.runtime.bag.BagWriter` in this process (no bus), uncompressed
+  and zstd, beside the peer, ``mcap.Writer`` with the same payloads (it copies each payload three times);
+* **recorder over the bus** — ``polarstripe record`` in its own process, subscribed (``mode="all"``) to a
+  publisher in this process over ipc: frames sent as fast as the publisher can (the recorder's sustained
+  rate is the count over its first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no
+  gap, every frame written, and how far behind the recorder ran).
+
+The frames are 12-bit noise with a stripe (so zstd sees realistic entropy). Numbers vary with the page cache
+and with what else runs on the machine; compare rows of one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from polarstripe.msgs import Frame, decode, encode, pack
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", type=int, default=150, help="frames per measurement (default 150)")
+    parser.add_argument("--width", type=int, default=1280)
+    parser.add_argument("--height", type=int, default=1024)
+    parser.add_argument("--rate", type=float, default=100.0, help="paced rate over the bus [frames/s]")
+    parser.add_argument("--dir", default=None, help="where to write (default: the system temp dir)")
+    parser.add_argument("--no-bus", action="store_true", help="skip the over-the-bus measurements")
+
+
+def _frames(n: int, h: int, w: int) -> list[Frame]:
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 4096, size=(8, h, w), dtype=np.uint16)
+    out = []
+    for k in range(n):
+        img = base[k % 8].copy()
+        img[:, (k * 37) % w : (k * 37) % w + w // 30] |= 0x0800  # a lit stripe
+        # as the recorder gets it: decoded from wire frames (arrays are views of the received buffers)
+        out.append(
+            decode(
+                [
+                    bytes(b) if i == 0 else memoryview(b)
+                    for i, b in enumerate(encode(Frame(image=img, exposure_s=0.008, step=k)))
+                ]
+            )
+        )
+    return out
+
+
+def _plain(path: Path, blobs: list[bytes]) -> dict:
+    t0 = time.perf_counter()
+    with open(path, "wb") as f:
+        for b in blobs:
+            f.write(b)
+        f.flush()
+        t1 = time.perf_counter()
+        os.fsync(f.fileno())
+    t2 = time.perf_counter()
+    return {"s": t1 - t0, "fsync_s": t2 - t1, "bytes": os.path.getsize(path)}
+
+
+def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
+    from polarstripe.nodes.runtime.bag import BagWriter
+
+    t0 = time.perf_counter()
+    w = BagWriter(path, compression=compression).start()
+    for f in frames:
+        w.add_message("/rig/camera/frame", f)
+    w.finish(fsync=False)
+    t1 = time.perf_counter()
+    fd = os.open(path, os.O_RDONLY)
+    os.fsync(fd)
+    os.close(fd)
+    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path)}
+
+
+def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
+    from mcap.writer import CompressionType, Writer
+    from polarstripe.msgs import json_schema
+
+    t0 = time.perf_counter()
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.NONE, chunk_size=1 << 20)
+        w.start()
+        sid = w.register_schema("polarstripe/frame", "jsonschema", json.dumps(json_schema(Frame)).encode())
+        cid = w.register_channel("/rig/camera/frame", "msgpack", sid)
+        for f, b in zip(frames, blobs, strict=True):
+            w.add_message(cid, time.time_ns(), b, f.header.stamp_ns)
+        w.finish()
+        fh.flush()
+        t1 = time.perf_counter()
+        os.fsync(fh.fileno())
+    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path)}
+
+
+def _over_bus(tmp: Path, frames: list[Frame], compression: str, rate: float | None) -> dict:
+    """``polarstripe record`` in its own process; this process publishes ``frames`` (paced at ``rate``)."""
+    from polarstripe.nodes.runtime.bag_reader import BagReader
+    from polarstripe.nodes.runtime.bus import PubSocket
+
+    ep = f"ipc://{tmp}/bench-cam.pub"
+    graph = {
+        "launch": "bench",
+        "namespace": "/rig",
+        "pid": os.getpid(),
+        "run_dir": str(tmp),
+        "nodes": {"cam": {"module": "bench", "pub": ep, "srv": ""}},
+        "topics": {"/rig/camera/frame": {"type": "frame", "publishers": ["cam"], "subscribers": []}},
+    }
+    (tmp / "graph.json").write_text(json.dumps(graph))
+    bag = tmp / f"bus-{compression}.mcap"
+    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs")}
+    with PubSocket(ep, hwm=100_000) as ps:
+        pub = ps.publisher("/rig/camera/frame", Frame)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "polarstripe",
+                "record",
+                "-o",
+                str(bag),
+                "--graph",
+                str(tmp / "graph.json"),
+                "--compression",
+                compression,
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(2.0)  # the recorder starts and subscribes (ZeroMQ drops what is sent before)
+        t0 = time.perf_counter()
+        for k, f in enumerate(frames):
+            if rate:
+                wait = t0 + k / rate - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
+            pub.publish(f, stamp_ns=time.time_ns())
+        sent_s = time.perf_counter() - t0
+        last = -1
+        while (size := bag.stat().st_size if bag.exists() else 0) != last:  # until the recorder has caught up
+            last = size
+            time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    if proc.returncode:
+        raise RuntimeError(f"recorder failed: {err.strip().splitlines()[-1:]}")
+    with BagReader(bag) as b:
+        t = b.topics["/rig/camera/frame"]
+        gaps = int(b.metadata["recording"]["gaps"])
+        lags = [(log - m.header.stamp_ns) / 1e9 for _, log, m in b.messages()] if rate else [0.0]
+        size = b.size
+    bag.unlink()
+    return {
+        "recorded": t.count,
+        "sent": len(frames),
+        "gaps": gaps,
+        "s": (t.last_ns - t.first_ns) / 1e9,
+        "fps": (t.count - 1) / max((t.last_ns - t.first_ns) / 1e9, 1e-9),
+        "offered_fps": len(frames) / sent_s,
+        "lag_p99_s": float(np.percentile(lags, 99)),
+        "lag_max_s": float(max(lags)),
+        "bytes": size,
+    }
+
+
+def run(n: int, h: int, w: int, rate: float, directory: str | None, bus: bool) -> dict:
+    frames = _frames(n, h, w)
+    blobs = [pack(f) for f in frames]
+    mb = sum(len(b) for b in blobs) / 1e6
+    out: dict = {"frames": n, "frame_bytes": len(blobs[0]), "width": w, "height": h, "rows": {}}
+    with tempfile.TemporaryDirectory(dir=directory) as d:
+        tmp = Path(d)
+        rows = out["rows"]
+        rows["plain write"] = _plain(tmp / "plain.bin", blobs)
+        (tmp / "plain.bin").unlink()
+        for comp in ("none", "zstd"):
+            rows[f"BagWriter {comp}"] = _bagwriter(tmp / f"b-{comp}.mcap", frames, comp)
+            (tmp / f"b-{comp}.mcap").unlink()
+        rows["mcap.Writer none (peer)"] = _mcap_writer(tmp / "m.mcap", frames, blobs)
+        (tmp / "m.mcap").unlink()
+        for r in rows.values():
+            r["fps"] = n / r["s"]
+        if bus:
+            rows["recorder over bus, none, max"] = _over_bus(tmp, frames, "none", None)
+            rows["recorder over bus, zstd, max"] = _over_bus(tmp, frames, "zstd", None)
+            rows[f"recorder over bus, none, {rate:g}/s"] = _over_bus(tmp, frames, "none", rate)
+    plain = out["rows"]["plain write"]["fps"]
+    for r in out["rows"].values():
+        r["MB_s"] = r["fps"] * len(blobs[0]) / 1e6
+        r["vs_plain"] = r["fps"] / plain
+    out["payload_MB"] = mb
+    key = "recorder over bus, none, max"
+    if key in out["rows"]:
+        r = out["rows"][key]
+        paced = out["rows"][f"recorder over bus, none, {rate:g}/s"]
+        out["target"] = {
+            "uncompressed_fps_ge_100": r["fps"] >= 100,
+            "no_gap": r["gaps"] == 0 and paced["gaps"] == 0 and paced["recorded"] == paced["sent"],
+            "within_80pct_of_plain": r["vs_plain"] >= 0.8,
+        }
+    return out
+
+
+def main(args: argparse.Namespace) -> int:
+    res = run(args.frames, args.height, args.width, args.rate, args.dir, not args.no_bus)
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(
+        f"recording {res['frames']} frames {res['width']}×{res['height']} uint16 "
+        f"({res['frame_bytes'] / 1e6:.2f} MB each, {res['payload_MB']:.0f} MB)"
+    )
+    print(f"{'writer':<34} {'frames/s':>9} {'MB/s':>8} {'vs plain':>9} {'size/raw':>9}  notes")
+    raw = res["payload_MB"] * 1e6
+    for name, r in res["rows"].items():
+        notes = (
+            f"fsync {r['fsync_s']:.2f} s after"
+            if "fsync_s" in r
+            else (
+                f"{r['recorded']}/{r['sent']} written, {r['gaps']} gaps, offered {r['offered_fps']:.0f}/s"
+                + (f", lag p99 {r['lag_p99_s'] * 1e3:.0f} ms" if "max" not in name else "")
+            )
+        )
+        cells = f"{r['fps']:>9.0f} {r['MB_s']:>8.0f} {r['vs_plain']:>8.0%} {r['bytes'] / raw:>9.2f}"
+        print(f"{name:<34} {cells}  {notes}")
+    if "target" in res:
+        t = res["target"]
+        print(
+            "target: ≥100 frames/s uncompressed "
+            + ("yes" if t["uncompressed_fps_ge_100"] else "NO")
+            + ", no gap "
+            + ("yes" if t["no_gap"] else "NO")
+            + ", within 80% of the plain write "
+            + ("yes" if t["within_80pct_of_plain"] else "NO")
+        )
+    return 0
