@@ -148,7 +148,10 @@ class Polarizer(Node):
 
     def teardown(self):
         if self.stage is not None:
-            self.stage.close()
+            try:
+                self.stage.close()
+            except Exception as exc:  # a failed bus may raise again on close; the node still ends cleanly
+                self.log.warning("closing the stage: %s: %s", type(exc).__name__, exc)
             self.stage = None
 
     def _open_stage(self):

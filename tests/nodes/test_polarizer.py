@@ -170,6 +170,20 @@ def test_bus_off_is_a_fault_until_the_bus_restarts(drive):
         h.stop()
 
 
+def test_a_failed_send_is_a_fault_without_angle(drive):
+    h = _node(drive, auto_resets=0)
+    try:
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=12.0))
+        assert _run_until(h, _settled_at(12.0)) is not None
+        h.node.stage.network.bus.shutdown()  # the interface goes away under the node (a pulled adapter)
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=20.0))
+        h.advance(0.05)
+        state = h.published("polarizer/state")[-1]
+        assert "send failed" in state.fault and math.isnan(state.angle_deg) and not state.settled
+    finally:
+        h.stop()  # and the stage closes without raising, though its bus failed
+
+
 def test_never_settling_stage_is_a_clear_fault_after_the_timeout(drive):
     h = _node(drive, auto_resets=0, settle_timeout_s=0.5)
     try:
