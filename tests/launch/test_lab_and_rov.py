@@ -80,7 +80,7 @@ def rov_polarizer_only(tmp_path):
             graph_file = found[0] if found else None
             time.sleep(0.1)
         assert graph_file is not None, "no graph.json"
-        yield json.loads(graph_file.read_text()), public
+        yield json.loads(graph_file.read_text()), public, graph_file
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -91,7 +91,7 @@ def rov_polarizer_only(tmp_path):
 
 
 def test_rov_link_is_curve_encrypted(rov_polarizer_only):
-    graph, public = rov_polarizer_only
+    graph, public, _ = rov_polarizer_only
     endpoint = graph["nodes"]["polarizer"]["pub"]
     assert endpoint.startswith("tcp://")
     with_key = Subscriber([endpoint], "/rov/polarizer/state", PolarizerState,
@@ -105,3 +105,16 @@ def test_rov_link_is_curve_encrypted(rov_polarizer_only):
     finally:
         with_key.socket.close(0)
         plain.socket.close(0)
+
+
+def test_topside_echo_with_the_public_key_only(rov_polarizer_only, tmp_path):
+    """The recipe of rov.toml's header: graph.json plus a key file holding only the public key."""
+    _, public, graph_file = rov_polarizer_only
+    topside = tmp_path / "rov-public.keys"
+    topside.write_text(f"public={public.decode()}\n")
+    out = subprocess.run([sys.executable, "-m", "polarstripe", "topic", "--graph", str(graph_file), "echo",
+                          "/rov/polarizer/state", "-n", "1", "--timeout", "25"],
+                         env={**os.environ, "POLARSTRIPE_CURVE_KEYS": str(topside)}, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "not connected" in out.stdout
