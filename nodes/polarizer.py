@@ -12,9 +12,9 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
   bus-off, a failed send, the drive's limit), a target not reached within ``settle_timeout_s``, a rejected
   command, a stage that cannot be opened (retried every ``connect_retry_s``);
 * recovers with the drive's fault-reset sequence: automatically (at most ``auto_resets`` tries, the wait
-  before each twice the one before, from ``reset_delay_s``; refilled by
-  every new command and every settle at the target), then re-commands the last target; and on request
-  (``polarizer/reset``, or a new command while faulted);
+  before each twice the one before, from ``reset_delay_s``; refilled by every new command and every settle
+  at the target), then re-commands the last target; and on request (``polarizer/reset``, or a new command
+  while faulted);
 * serves ``polarizer/calibrate`` (:class:`CalibrateRequest` → :class:`Calibration`): turns through analyzer
   angles, has the grabber take a frame at each (``camera/trigger`` then the matching ``camera/frame``) and
   fits Malus's law over a region (:func:`polarstripe.imaging.polarization.least_backscatter_angle`) for the
