@@ -263,7 +263,7 @@ class Subscriber:
             self.endpoints.append(endpoint)
 
     def _one(self, frames: list) -> Message | MessageError | None:
-        if frames[0].bytes != self._topic_b:  # a longer topic sharing our prefix
+        if frames[0].buffer != self._topic_b:  # a longer topic sharing our prefix (compared without a copy)
             return None
         try:
             msg = decode(frames[1:], topic=self.topic, expect=self.msg_type, max_bytes=self.max_bytes)
