@@ -43,6 +43,7 @@ from typing import Any, ClassVar
 
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat, Log, Message, MessageError
+from polarstripe.nodes.runtime.graph import resolve
 from polarstripe.nodes.runtime.params import NodeParams, build_params
 
 
@@ -108,8 +109,6 @@ class Node:
     def __init__(
         self, name: str, *, namespace: str = "", params: dict[str, Any] | None = None, bus: Any = None
     ):
-        from polarstripe.nodes.runtime.graph import resolve
-
         self.name, self.namespace = name, namespace
         self.params = build_params(self.Params, params or {}, node=name)
         self._resolve = lambda n: resolve(n, namespace, name)
