@@ -42,6 +42,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "1280x1024:standard or 640x480:reference, which take minutes)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per run")
+    parser.add_argument("--sim-param", action="append", default=[], metavar="KEY=VALUE",
+                        help="extra simulator param (TOML value), e.g. render_ahead=false; repeatable")
 
 
 def _have(module: str) -> bool:
@@ -50,7 +52,7 @@ def _have(module: str) -> bool:
     return importlib.util.find_spec(module) is not None
 
 
-def _launch_file(folder: Path, size: str, fidelity: str, stripes: int, can: str) -> Path:
+def _launch_file(folder: Path, size: str, fidelity: str, stripes: int, can: str, sim_extra: str = "") -> Path:
     compositor = ""
     if _have("polarstripe.nodes.compositor"):
         compositor = f"""
@@ -59,6 +61,8 @@ name = "compositor"
 module = "polarstripe.nodes.compositor"
 params = {{ out = "{folder / 'out'}", comparison = false }}
 """
+    sim = (f'resolution = "{size}", fidelity = "{fidelity}", can_channel = "{can}", '
+           f'log_level = "DEBUG"{sim_extra}')
     seq = (f'methods = ["flood", "polarized_stripes"], stripes = {stripes}, plan = false, '
            'wait_composite = false, scan_timeout_s = 3000.0')
     text = f"""
@@ -70,7 +74,7 @@ OMP_NUM_THREADS = "1"
 [[node]]
 name = "simulator"
 module = "polarstripe.sim.simulator"
-params = {{ resolution = "{size}", fidelity = "{fidelity}", can_channel = "{can}", log_level = "DEBUG" }}
+params = {{ {sim} }}
 [[node]]
 name = "polarizer"
 module = "polarstripe.nodes.polarizer"
@@ -103,14 +107,15 @@ def _cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
 
 
-def run_one(size: str, fidelity: str, stripes: int, timeout: float) -> dict:
+def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: list[str] = ()) -> dict:
     """Launch the rig once and measure its polarized stripe scan."""
     from polarstripe.errors import PolarstripeError
 
     folder = Path(tempfile.mkdtemp(prefix="ps-bench-", dir="/tmp"))
     try:
         can = f"ipc://{folder}/can"
-        toml = _launch_file(folder, size, fidelity, stripes, can)
+        extra = "".join(", {} = {}".format(*(x.strip() for x in kv.partition("=")[::2])) for kv in sim_params)
+        toml = _launch_file(folder, size, fidelity, stripes, can, extra)
         env = {**os.environ, "POLARSTRIPE_RUNS": str(folder / "runs")}
         proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(toml), "--once"], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -184,7 +189,7 @@ def main(args: argparse.Namespace) -> int:
         if not re.fullmatch(r"\d+x\d+", size) or fidelity not in ("preview", "standard", "reference"):
             raise PolarstripeError(f"--configs: {item!r} is not SIZE:FIDELITY, e.g. 640x480:preview")
         configs.append((size, fidelity))
-    rows = [run_one(size, fid, args.stripes, args.timeout) for size, fid in configs]
+    rows = [run_one(size, fid, args.stripes, args.timeout, args.sim_param) for size, fid in configs]
     limit_s = 2 * args.stripes / CAMERA_FPS
     for r in rows:
         r["camera_limit_s"] = limit_s

@@ -30,8 +30,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -109,6 +111,7 @@ class Simulator(Node):
         auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
+        render_ahead: bool = True  # render the scan's next pattern in a worker thread
         analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
         can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
         can_node_id: int = 5
@@ -154,6 +157,8 @@ class Simulator(Node):
             max(1, w // PREVIEW_WIDTH) if self.fidelity.name == "preview" else 1)
         self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
         self._cache: OrderedDict = OrderedDict()
+        self._ahead: dict = {}  # (pattern, pose) -> Future of a render ahead
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="render ahead") if p.render_ahead else None
         self._truth: dict = {}
         self._e_map_base = electrons_per_radiance(cam)
         self._e_map = self._e_map_base
@@ -182,6 +187,8 @@ class Simulator(Node):
                       p.can_channel or "none (fixed analyzer)")
 
     def teardown(self):
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
         if self.drive is not None:
             self.drive.stop()
             self.drive = None
@@ -200,14 +207,8 @@ class Simulator(Node):
     def _truth_key(self) -> tuple:
         return (*self._pose(), self.scene.camera.exposure_s)
 
-    def components(self, pattern: str):
-        """Components of ``pattern`` at the current pose, at the model resolution (cached)."""
-        key = (pattern, self._pose())
-        comp = self._cache.get(key)
-        if comp is not None:
-            self._cache.move_to_end(key)
-            self.stats["cache_hits"] += 1
-            return comp
+    def _model_scene(self, pattern: str) -> Scene:
+        """The scene at the resolution the model runs at for ``pattern``."""
         scene = self.scene
         # checkers keep twice the resolution: their edges are what the high-frequency separation measures
         scale = max(1, self.scale // 2) if pattern.startswith("checker") else self.scale
@@ -215,14 +216,40 @@ class Simulator(Node):
             w, h = scene.camera.resolution
             small = (max(2, round(w / scale)), max(2, round(h / scale)))
             scene = scene.replace(camera=scene.camera.replace(resolution=small))
-        t0 = time.perf_counter()
-        comp = render_components(scene, pattern, self.fidelity)
-        self.stats["model_s"] += time.perf_counter() - t0
-        self.stats["renders"] += 1
-        self._cache[key] = comp
-        while len(self._cache) > self.params.cache_size:
-            self._cache.popitem(last=False)
+        return scene
+
+    def components(self, pattern: str):
+        """Components of ``pattern`` at the current pose, at the model resolution (cached; the next pattern of
+        a scan is rendered ahead in a worker thread while this frame travels)."""
+        key = (pattern, self._pose())
+        comp = self._cache.get(key)
+        if comp is not None:
+            self._cache.move_to_end(key)
+            self.stats["cache_hits"] += 1
+        else:
+            ahead = self._ahead.pop(key, None)
+            if ahead is not None:
+                comp, seconds = ahead.result()
+            else:
+                comp, seconds = _timed_render(self._model_scene(pattern), pattern, self.fidelity)
+            self.stats["model_s"] += seconds
+            self.stats["renders"] += 1
+            self._cache[key] = comp
+            while len(self._cache) > self.params.cache_size:
+                self._cache.popitem(last=False)
+        self._render_ahead(next_pattern(pattern))
         return comp
+
+    def _render_ahead(self, pattern: str | None) -> None:
+        if pattern is None or self._pool is None:
+            return
+        key = (pattern, self._pose())
+        if key in self._cache or key in self._ahead:
+            return
+        for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
+            self._ahead.pop(old).cancel()
+        scene = self._model_scene(pattern)
+        self._ahead[key] = self._pool.submit(_timed_render, scene, pattern, self.fidelity)
 
     def move_to(self, separation_m: float) -> Scene:
         """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
@@ -373,6 +400,23 @@ class Simulator(Node):
             return Ack(ok=False, detail=f"fault {req.command!r}: {exc}")
         self.log.warning("fault injected: %s", req.command)
         return Ack(ok=True, detail=req.command)
+
+
+def next_pattern(pattern: str) -> str | None:
+    """The pattern a scan shows after ``pattern`` (``stripe:K/N`` → ``stripe:K+1/N``, ``checker:S:0`` →
+    ``checker:S:S``), or None."""
+    if m := re.fullmatch(r"stripe:(\d+)/(\d+)", pattern):
+        k, n = int(m[1]), int(m[2])
+        return f"stripe:{k + 1}/{n}" if k + 1 < n else None
+    if m := re.fullmatch(r"checker:(\d+):0", pattern):
+        return f"checker:{m[1]}:{m[1]}"
+    return None
+
+
+def _timed_render(scene: Scene, pattern: str, fidelity):
+    t0 = time.perf_counter()
+    comp = render_components(scene, pattern, fidelity)
+    return comp, time.perf_counter() - t0
 
 
 def expose_fast(radiance: np.ndarray, e_map: np.ndarray, camera, rng: np.random.Generator,
