@@ -17,11 +17,12 @@ Services (relative to the namespace):
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
 
-Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only the
-analyzer and the sensor. With ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels
-wide) the model renders at a lower resolution and the radiance is resized bilinearly to the camera's size
-before the sensor (noise, quantisation and clipping at full size); checker patterns (whose edges the
-high-frequency separation relies on) at twice that resolution, and the ground truth at full size.
+Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
+the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
+(``render_ahead``). With ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels wide)
+the model renders at a lower resolution and the radiance is resized bilinearly to the camera's size before
+the sensor (noise, quantisation and clipping at full size); checker patterns (whose edges the high-frequency
+separation relies on) at twice that resolution, and the ground truth at full size.
 ``noise = "gaussian"`` (the preview default) draws shot and read noise as one normal variate with the EMVA
 mean and variance instead of Poisson + normal.
 """
