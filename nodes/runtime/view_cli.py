@@ -68,7 +68,7 @@ def latest_live(graph: dict, wait_s: float) -> dict[str, Message]:
     if not topics:
         raise ViewError(f"launch {graph.get('launch', '?')!r} has no frame or composite topics")
     subs = [
-        Subscriber(pub_endpoints(graph, t), t, REGISTRY[graph["topics"][t]["type"]], mode="all")
+        Subscriber(pub_endpoints(graph, t), t, REGISTRY[graph["topics"][t]["type"]], mode="latest")
         for t in topics
     ]
     poller = zmq.Poller()

@@ -102,21 +102,23 @@ def test_live_view_takes_the_newest_frame(tmp_path):
             "/rig/log": {"type": "log", "publishers": ["cam"], "subscribers": []},
         },
     }
+    sent = []
     with PubSocket(ep) as ps:
         pub = ps.publisher("/rig/camera/frame", Frame)
         import threading
 
-        def send():
-            time.sleep(0.4)
-            for k in range(3):
-                pub.publish(_frame(k))
+        def send():  # for 2 s, while the view collects for 3 s
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 2.0:
+                pub.publish(_frame(len(sent) % 6))
+                sent.append(len(sent) % 6)
                 time.sleep(0.05)
 
         t = threading.Thread(target=send)
         t.start()
-        latest = latest_live(graph, 1.2)
+        latest = latest_live(graph, 3.0)
         t.join()
-    assert list(latest) == ["/rig/camera/frame"] and latest["/rig/camera/frame"].step == 2
+    assert list(latest) == ["/rig/camera/frame"] and latest["/rig/camera/frame"].step == sent[-1]
     with pytest.raises(ViewError, match="no frame or composite arrived within 0.2 s"):
         latest_live(graph, 0.2)
 
@@ -126,7 +128,8 @@ class _WsClient:
     """The smallest WebSocket client that speaks to the Foxglove server: handshake, JSON text, binary."""
 
     def __init__(self, port: int):
-        self.s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        self.s = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.adv: dict[str, dict] = {}  # topic -> channel, from every advertise seen
         key = base64.b64encode(os.urandom(16)).decode()
         self.s.sendall(
             (
@@ -156,7 +159,12 @@ class _WsClient:
         elif n == 127:
             n = struct.unpack(">Q", self._exact(8))[0]
         data = self._exact(n)
-        return (json.loads(data) if b0 & 0x0F == 1 else data) if b0 & 0x0F in (1, 2) else self.recv()
+        if b0 & 0x0F not in (1, 2):  # ping, pong, continuation: not used by this server here
+            return self.recv()
+        msg = json.loads(data) if b0 & 0x0F == 1 else data
+        if isinstance(msg, dict) and msg.get("op") == "advertise":
+            self.adv.update({c["topic"]: c for c in msg["channels"]})
+        return msg
 
     def send_json(self, obj) -> None:
         data, mask = json.dumps(obj).encode(), os.urandom(4)
@@ -194,31 +202,35 @@ def test_foxglove_bridge_serves_msgpack_and_raw_images_on_loopback():
     try:
         assert node.port > 0
         ws = _WsClient(node.port)
-        adv = {}
-        while "/rig/camera/frame" not in adv:
-            msg = ws.until(lambda m: isinstance(m, dict) and m.get("op") == "advertise")
-            adv.update({c["topic"]: c for c in msg["channels"]})
-        ch = adv["/rig/camera/frame"]
+        ws.until(lambda m: "/rig/camera/frame" in ws.adv)
+        ch = ws.adv["/rig/camera/frame"]
         assert ch["encoding"] == "msgpack" and ch["schemaEncoding"] == "jsonschema"
         assert json.loads(ch["schema"])["title"] == "polarstripe/frame"
         ws.send_json({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ch["id"]}]})
-        time.sleep(0.3)  # the server applies the subscription
         sent = _frame(1)
         sent = Frame(
             **{n: getattr(sent, n) for n, _ in Frame.FIELDS}, header=Header(stamp_ns=123456789, seq=4)
         )
-        node.forward("/rig/camera/frame", sent)
-        data = ws.until(lambda m: isinstance(m, bytes) and m[0] == 1)
+        ws.s.settimeout(0.3)
+        data = None
+        for _ in range(40):  # until the server has applied the subscription
+            node.forward("/rig/camera/frame", sent)
+            try:
+                data = ws.until(lambda m: isinstance(m, bytes) and m[0] == 1, timeout_s=0.3)
+                break
+            except (TimeoutError, AssertionError):
+                continue
+        assert data is not None, "no message data"
         sub_id, log_time = struct.unpack("<IQ", data[1:13])
         assert sub_id == 7 and log_time == 123456789
         assert data[13:] == pack(sent, topic="/rig/camera/frame")
         got = unpack(data[13:])
         assert np.array_equal(got.image, sent.image)
-        # the image channel for the image panel appears once a frame was logged
-        while "/rig/camera/frame/image" not in adv:
-            msg = ws.until(lambda m: isinstance(m, dict) and m.get("op") == "advertise")
-            adv.update({c["topic"]: c for c in msg["channels"]})
-        assert adv["/rig/camera/frame/image"]["schemaName"] == "foxglove.RawImage"
+        # the image channel for the image panel is advertised once a frame was logged
+        ws.s.settimeout(10)
+        if "/rig/camera/frame/image" not in ws.adv:
+            ws.until(lambda m: "/rig/camera/frame/image" in ws.adv)
+        assert ws.adv["/rig/camera/frame/image"]["schemaName"] == "foxglove.RawImage"
     finally:
         node.teardown()
     f = raw_image_fields(sent.image)
