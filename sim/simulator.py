@@ -4,8 +4,9 @@ It serves frames rendered by the light-transport model (:mod:`polarstripe.sim.re
 for, at the analyzer angle of its simulated drive's *actual* position (or with no analyzer in the path),
 through the EMVA 1288 sensor; it serves the ground truth the compositor scores against; it hosts a simulated
 CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a python-can bus carried over
-ZeroMQ, which the polarizer node drives with its real CANopen code; and it moves the virtual source when a
-plan arrives (the in-situ loop of the paper's §4).
+ZeroMQ, which the polarizer node drives with its real CANopen code (or, with ``ell14_link``, a simulated
+Thorlabs ELL14 on a pty for the ``ell14`` backend); and it moves the virtual source when a plan arrives (the
+in-situ loop of the paper's §4).
 
 Services (relative to the namespace):
 
@@ -120,6 +121,7 @@ class Simulator(Node):
         drive_speed_counts_s: float = 200_000.0
         drive_settle_s: float = 0.02
         faults: list[str] = []  # fault commands applied at start, e.g. ["never_settle on"]
+        ell14_link: str = ""  # host a simulated ELL14 on a pty and symlink it here ("" = none)
 
         def validate(self):
             super().validate()
@@ -172,6 +174,9 @@ class Simulator(Node):
 
             self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
                                         settle_s=p.drive_settle_s).start()
+        self.ell14 = None
+        if p.ell14_link:
+            self.ell14 = self._host_ell14(p.ell14_link)
         for command in p.faults:
             self.inject(SimFault(command=command), strict=True)
         self._expose_for_flood()
@@ -187,7 +192,32 @@ class Simulator(Node):
                       self.fidelity.name, self.scale, "gaussian" if self.gaussian else "poisson",
                       p.can_channel or "none (fixed analyzer)")
 
+    def _host_ell14(self, link: str):
+        import os
+
+        from polarstripe.nodes.drivers.simell14 import SimEll14
+
+        dev = SimEll14()
+        dev.start()
+        try:
+            if os.path.islink(link):
+                os.unlink(link)
+            os.symlink(dev.port, link)
+        except OSError as exc:
+            dev.stop()
+            raise SimulatorError(f"node {self.name!r}: param 'ell14_link': cannot link {link!r}: {exc}"
+                                 ) from None
+        self.log.info("simulated ELL14 on %s (link %s)", dev.port, link)
+        return dev
+
     def teardown(self):
+        if self.ell14 is not None:
+            import os
+
+            self.ell14.stop()
+            if os.path.islink(self.params.ell14_link):
+                os.unlink(self.params.ell14_link)
+            self.ell14 = None
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
         if self.drive is not None:
@@ -197,10 +227,13 @@ class Simulator(Node):
 
     # ---- state ---------------------------------------------------------------------------------------------
     def analyzer_angle(self) -> float:
-        """The analyzer angle [deg]: the simulated drive's actual position, or the ``analyzer_deg`` param."""
-        if self.drive is None:
-            return self.params.analyzer_deg
-        return float(self.drive.position) / self.params.counts_per_deg
+        """The analyzer angle [deg]: the simulated CiA 402 drive's actual position, else the simulated
+        ELL14's, else the ``analyzer_deg`` param."""
+        if self.drive is not None:
+            return float(self.drive.position) / self.params.counts_per_deg
+        if self.ell14 is not None:
+            return self.ell14.position * 360.0 / self.ell14.pulses_per_rev
+        return self.params.analyzer_deg
 
     def _pose(self) -> tuple:
         return (self.scene.projector.position, self.scene.projector.look_at)

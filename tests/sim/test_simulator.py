@@ -173,3 +173,20 @@ def test_the_analyzer_follows_the_hosted_drive():
     finally:
         h.stop()
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_the_analyzer_follows_the_hosted_ell14_through_its_link(tmp_path):
+    from polarstripe.nodes.drivers.ell14 import Ell14Stage
+
+    link = tmp_path / "ell14"
+    h = sim(ell14_link=str(link))
+    try:
+        assert link.is_symlink()
+        with Ell14Stage(str(link)) as stage:
+            stage.move_to(45.0)
+            stage.wait_settled(5.0)
+            f, _ = dn(h)
+            assert f.polarizer_deg == pytest.approx(45.0, abs=0.01)
+    finally:
+        h.stop()
+    assert not link.exists()  # removed on the way out
