@@ -3,7 +3,9 @@ import sys
 
 
 def _run(*args):
-    return subprocess.run([sys.executable, "-m", "polarstripe", *args], capture_output=True, text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "polarstripe", *args], capture_output=True, text=True, timeout=60
+    )
 
 
 def test_help_lists_every_command():
