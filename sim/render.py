@@ -258,9 +258,11 @@ def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fide
     D, A, B, Bq, Bu = (np.zeros(n) for _ in range(5))
     hit = np.nonzero(surf.object_id >= 0)[0]
     if "D" in need and hit.size:
-        pts = hits.point[hit]
-        lit = _pattern_lit(pat, src.frame, pts) & ~occluded(scene.objects, src.position, pts)
-        D[hit] = direct(src, scene.objects, cam.position, pts, hits.normal[hit], surf.albedo[hit], lit)
+        lit_idx = hit[_pattern_lit(pat, src.frame, hits.point[hit])]          # shadow rays only where lit
+        lit_idx = lit_idx[~occluded(scene.objects, src.position, hits.point[lit_idx])]
+        pts = hits.point[lit_idx]
+        D[lit_idx] = direct(src, scene.objects, cam.position, pts, hits.normal[lit_idx], surf.albedo[lit_idx],
+                            np.ones(lit_idx.size, bool))
     if "A" in need and hit.size and src.sigma_s > 0:
         A = _a_field(src, scene, fid, cam, hits, surf, pixels)
     if "B" in need and src.sigma_s > 0:
