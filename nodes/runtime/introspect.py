@@ -41,6 +41,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     hz.add_argument("topic")
     hz.add_argument("--window", type=float, default=1.0, help="seconds per report")
     hz.add_argument("-n", "--reports", type=int, default=0, help="stop after this many reports (0: never)")
+    for p in (sub.choices["list"], echo, hz):  # --graph also after the action
+        p.add_argument("--graph", default=argparse.SUPPRESS, metavar="FILE", help=argparse.SUPPRESS)
 
 
 def _open(graph: dict, topic: str) -> zmq.Socket:
