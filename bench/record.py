@@ -38,6 +38,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=100.0, help="paced rate over the bus [frames/s]")
     parser.add_argument("--dir", default=None, help="where to write (default: the system temp dir)")
     parser.add_argument("--no-bus", action="store_true", help="skip the over-the-bus measurements")
+    parser.add_argument("--repeats", type=int, default=3, help="in-process runs; the median is reported")
 
 
 def _frames(n: int, h: int, w: int) -> list[Frame]:
@@ -178,7 +179,7 @@ def _over_bus(tmp: Path, frames: list[Frame], compression: str, rate: float | No
     }
 
 
-def run(n: int, h: int, w: int, rate: float, directory: str | None, bus: bool) -> dict:
+def run(n: int, h: int, w: int, rate: float, directory: str | None, bus: bool, repeats: int = 3) -> dict:
     frames = _frames(n, h, w)
     blobs = [pack(f) for f in frames]
     mb = sum(len(b) for b in blobs) / 1e6
@@ -186,13 +187,21 @@ def run(n: int, h: int, w: int, rate: float, directory: str | None, bus: bool) -
     with tempfile.TemporaryDirectory(dir=directory) as d:
         tmp = Path(d)
         rows = out["rows"]
-        rows["plain write"] = _plain(tmp / "plain.bin", blobs)
-        (tmp / "plain.bin").unlink()
-        for comp in ("none", "zstd"):
-            rows[f"BagWriter {comp}"] = _bagwriter(tmp / f"b-{comp}.mcap", frames, comp)
-            (tmp / f"b-{comp}.mcap").unlink()
-        rows["mcap.Writer none (peer)"] = _mcap_writer(tmp / "m.mcap", frames, blobs)
-        (tmp / "m.mcap").unlink()
+        in_process = {
+            "plain write": lambda p: _plain(p, blobs),
+            "BagWriter none": lambda p: _bagwriter(p, frames, "none"),
+            "BagWriter zstd": lambda p: _bagwriter(p, frames, "zstd"),
+            "mcap.Writer none (peer)": lambda p: _mcap_writer(p, frames, blobs),
+        }
+        for (
+            name,
+            fn,
+        ) in in_process.items():  # the median of `repeats` runs, interleaved would not help the cache
+            runs = []
+            for _ in range(repeats):
+                runs.append(fn(tmp / "out.bin"))
+                (tmp / "out.bin").unlink()
+            rows[name] = sorted(runs, key=lambda r: r["s"])[len(runs) // 2]
         for r in rows.values():
             r["fps"] = n / r["s"]
         if bus:
@@ -211,13 +220,14 @@ def run(n: int, h: int, w: int, rate: float, directory: str | None, bus: bool) -
         out["target"] = {
             "uncompressed_fps_ge_100": r["fps"] >= 100,
             "no_gap": r["gaps"] == 0 and paced["gaps"] == 0 and paced["recorded"] == paced["sent"],
-            "within_80pct_of_plain": r["vs_plain"] >= 0.8,
+            "writer_within_80pct_of_plain": out["rows"]["BagWriter none"]["vs_plain"] >= 0.8,
+            "bus_within_80pct_of_plain": r["vs_plain"] >= 0.8,
         }
     return out
 
 
 def main(args: argparse.Namespace) -> int:
-    res = run(args.frames, args.height, args.width, args.rate, args.dir, not args.no_bus)
+    res = run(args.frames, args.height, args.width, args.rate, args.dir, not args.no_bus, args.repeats)
     if args.json:
         print(json.dumps(res))
         return 0
@@ -240,12 +250,11 @@ def main(args: argparse.Namespace) -> int:
         print(f"{name:<34} {cells}  {notes}")
     if "target" in res:
         t = res["target"]
+        yes = {True: "yes", False: "NO"}
         print(
-            "target: ≥100 frames/s uncompressed "
-            + ("yes" if t["uncompressed_fps_ge_100"] else "NO")
-            + ", no gap "
-            + ("yes" if t["no_gap"] else "NO")
-            + ", within 80% of the plain write "
-            + ("yes" if t["within_80pct_of_plain"] else "NO")
+            f"target: ≥100 frames/s uncompressed over the bus {yes[t['uncompressed_fps_ge_100']]}, "
+            f"no gap {yes[t['no_gap']]}; within 80% of the plain write: the writer "
+            f"{yes[t['writer_within_80pct_of_plain']]}, end to end over the bus "
+            f"{yes[t['bus_within_80pct_of_plain']]} (the bus adds two copies of every frame)"
         )
     return 0
