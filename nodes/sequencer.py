@@ -76,12 +76,13 @@ class Sequencer(Node):
     def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
         """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``."""
         client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
-        deadline = time.monotonic() + self.params.startup_timeout_s
+        now = self._bus.now  # the node's clock (virtual in the harness)
+        deadline = now() + self.params.startup_timeout_s
         while True:
             try:
                 return client.call(request)
             except BusTimeout as exc:
-                if time.monotonic() >= deadline or self.stopping:
+                if now() >= deadline or self.stopping:
                     raise SequenceError(f"{service}: {exc}") from None
             except BusError as exc:
                 raise SequenceError(f"{service}: {exc}") from None

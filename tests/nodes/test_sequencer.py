@@ -1,0 +1,85 @@
+"""The sequencer through the node harness (virtual clock): the order of its calls, and that every failure ends
+it with exit status 1 and a line naming the service or topic."""
+
+import numpy as np
+from polarstripe.msgs import Ack, Composite, Plan, PolarizerState, ScanEvent
+from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.nodes.sequencer import Sequencer
+
+
+def rig(params=None, *, scans_end="done", composite=True, stage_ok=True):
+    """A sequencer whose planner, simulator and emitter answer; each started scan ends with ``scans_end``
+    (None: never) and, if ``composite``, gets its composite."""
+    h = NodeHarness(Sequencer, name="sequencer", namespace="/rig",
+                    params={"methods": ["flood", "polarized_stripes"], "stripes": 5, **(params or {})})
+    h.calls = []
+    h.on_call("planner/plan",
+              lambda req: h.calls.append("plan") or Plan(modality="stripes", separation_m=0.3))
+    h.on_call("simulator/move_source",
+              lambda req: h.calls.append(f"move {req.separation_m}") or Ack(ok=True))
+
+    def start(req):
+        sid = len([c for c in h.calls if c.startswith("scan")]) + 1
+        h.calls.append(f"scan {req.method} {req.stripes} {list(req.analyzer_deg)}")
+        if scans_end:
+            h.queue("emitter/scan", ScanEvent(scan_id=sid, event=scans_end, method=req.method, detail="boom"))
+        if composite:
+            h.queue("compositor/composite", Composite(images={"c": np.zeros((2, 2))}, method=req.method,
+                                                      scan_id=sid, metrics={"contrast": 0.5}))
+        return ScanEvent(scan_id=sid, event="start", method=req.method)
+
+    h.on_call("emitter/start_scan", start)
+    if stage_ok:
+        h.queue("polarizer/state", PolarizerState(angle_deg=0.0, target_deg=0.0, settled=True))
+    return h
+
+
+def test_plans_moves_the_source_then_scans_each_method():
+    h = rig({"eb_deg": 10.0})
+    h.node.run()
+    assert h.node.exit_code == 0
+    assert h.calls == ["plan", "move 0.3", "scan flood 0 []", "scan polarized_stripes 5 [10.0, 100.0]"]
+    assert h.node.results["polarized_stripes"]["metrics"]["contrast"] == 0.5
+
+
+def test_a_scan_fault_fails_the_sequence_but_the_others_run():
+    h = rig(scans_end="fault")
+    h.node.run()
+    assert h.node.exit_code == 1 and len([c for c in h.calls if c.startswith("scan")]) == 2
+    assert any(lvl == "ERROR" and "flood: scan 1 fault: boom" in t for lvl, t in h.logs)
+
+
+def test_a_scan_that_never_ends_times_out():
+    h = rig({"scan_timeout_s": 3.0}, scans_end=None)
+    h.node.run()
+    assert h.node.exit_code == 1
+    assert any("no done/fault on emitter/scan within 3 s" in t for _, t in h.logs)
+
+
+def test_missing_composite_times_out():
+    h = rig({"composite_timeout_s": 2.0, "methods": ["flood"]}, composite=False)
+    h.node.run()
+    assert h.node.exit_code == 1 and any("no compositor/composite within 2 s" in t for _, t in h.logs)
+
+
+def test_planner_that_never_answers_ends_the_sequence():
+    h = rig({"startup_timeout_s": 5.0})
+    del h.bus.responders[h.full("planner/plan")]
+    h.node.run()
+    assert h.node.exit_code == 1 and "scan flood 0 []" not in h.calls
+    assert any(lvl == "ERROR" and t.startswith("planner/plan:") for lvl, t in h.logs)
+
+
+def test_stage_never_ready_stops_before_polarized_scans():
+    h = rig({"startup_timeout_s": 2.0, "plan": False}, stage_ok=False)
+    h.queue("polarizer/state", PolarizerState(angle_deg=float("nan"), target_deg=0.0, settled=False,
+                                              fault="no heartbeat"))
+    h.node.run()
+    assert h.node.exit_code == 1 and h.calls == []
+    assert any("not ready within 2 s (last fault: no heartbeat)" in t for _, t in h.logs)
+
+
+def test_without_plan_or_composites():
+    h = rig({"plan": False, "wait_composite": False, "methods": ["stripes"]}, composite=False)
+    h.node.run()
+    assert h.node.exit_code == 0 and h.calls == ["scan stripes 5 []"]
