@@ -171,7 +171,10 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
         idx = np.nonzero(hit)[0]
         a_out[idx] = at(idx)
         return a_out
-    gw, gh = min(fid.a_grid[0], cam.w), min(fid.a_grid[1], cam.h)
+    gw, gh = fid.a_grid
+    if src.pattern.kind == "stripe":     # A of a stripe varies fast across it, slowly along it
+        gw, gh = 2 * gw, max(gh // 2, 2)
+    gw, gh = min(gw, cam.w), min(gh, cam.h)
     gr = np.linspace(0, cam.h - 1, gh)
     gc = np.linspace(0, cam.w - 1, gw)
     GR, GC = np.meshgrid(gr, gc, indexing="ij")
