@@ -111,6 +111,26 @@ def test_replayer_publishes_each_message_when_its_log_time_is_due(tmp_path):
     assert h.node.stopping  # linger over: the replay ends by itself
 
 
+def test_replayer_start_skips_the_beginning(tmp_path):
+    from polarstripe.nodes.runtime.replay_cli import Replayer
+    from polarstripe.nodes.runtime.testing import NodeHarness
+
+    bag = _bag(tmp_path / "b.mcap", n=6, spacing_s=0.2)  # frames at 0, 0.2, … 1.0 s
+    h = NodeHarness(
+        Replayer,
+        namespace="/rig",
+        params={
+            "path": str(bag),
+            "start_s": 0.5,
+            "delay_s": 0.1,
+            "topics": ["/rig/camera/frame"],
+            "rate": 10,
+        },
+    )
+    h.advance(0.5)
+    assert [m.step for m in h.published("/rig/camera/frame")] == [3, 4, 5]
+
+
 def test_replay_loops(tmp_path, monkeypatch):
     monkeypatch.setenv("POLARSTRIPE_RUNS", str(tmp_path / "runs"))
     bag = _bag(tmp_path / "b.mcap", n=3, spacing_s=0.05)
