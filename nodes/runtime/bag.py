@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
+import numpy as np
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -102,7 +103,7 @@ def payload(msg: Message, *, topic: str = "") -> list:
         nonlocal cur
         if isinstance(v, dict):
             if len(v) == 3 and type(v.get("buf")) is int and "dtype" in v and "shape" in v:
-                data = memoryview(bufs[v["buf"]]).cast("B")
+                data = memoryview(np.ascontiguousarray(bufs[v["buf"]]).reshape(-1).view(np.uint8))
                 cur += b"\x83" + _packb("dtype") + _packb(v["dtype"]) + _packb("shape") + _packb(v["shape"])
                 cur += _packb("data") + _bin_header(data.nbytes)
                 if data.nbytes < _SMALL:

@@ -88,6 +88,24 @@ def test_payload_is_pack_without_copying_the_pixels(msg):
         assert any(isinstance(p, memoryview) and p.nbytes == big for p in parts) or big < 65536
 
 
+@pytest.mark.parametrize(
+    "arr",
+    [
+        np.zeros((0, 5), np.uint16),
+        np.array(5.0),
+        np.ones(3, bool),
+        np.arange(6, dtype=">u2").reshape(2, 3),
+        np.ones((300, 300), np.complex64),
+    ],
+    ids=["empty", "0-d", "bool", "big-endian", "complex-large"],
+)
+def test_payload_of_unusual_arrays_is_pack(arr):
+    c = Composite(images={"a": arr}, method="m", header=Header(stamp_ns=1))
+    assert b"".join(payload(c)) == pack(c)
+    got = unpack(b"".join(payload(c)))
+    assert got.images["a"].dtype == arr.dtype and np.array_equal(got.images["a"], arr)
+
+
 def test_large_frame_payload_is_a_view_of_the_array():
     f = _frame(1, shape=(512, 640))
     parts = payload(f)
