@@ -52,14 +52,15 @@ def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: s
         def count(counter=counter):
             counter["calls"] += 1
 
-        times = []
+        times, cpu = [], []
         for _ in range(max(1, repeats)):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             plans = plan(model, seps, exposure=exposure, progress=count)
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         evaluations = counter["calls"] // max(1, repeats)
-        row = {"seconds_per_plan": float(np.median(times)), "model_evaluations": evaluations,
-               "optima_m": _optima(plans)}
+        row = {"seconds_per_plan": float(np.median(times)), "cpu_seconds_per_plan": float(np.median(cpu)),
+               "model_evaluations": evaluations, "optima_m": _optima(plans)}
         if fid != "reference":  # reference computes A at every pixel: a whole frame takes minutes
             render_components(scene, "flood", fid)
             t0 = time.perf_counter()
@@ -89,24 +90,25 @@ def main(args: argparse.Namespace) -> int:
         return 0
     print(f"planner: {res['separations']} separations × (flood + 3 stripe locations) × {{unpolarized, "
           f"polarized}}, grid step {res['grid_step_m'] * 100:.2f} cm, exposure {res['exposure']}, one core")
-    print(f"{'fidelity':<10} {'s/plan':>8} {'evals':>6} {'whole frames (est.)':>20} {'× slower':>9} "
-          f"{'max steps from ref':>19}")
+    print(f"{'fidelity':<10} {'s/plan':>8} {'cpu s':>7} {'evals':>6} {'whole frames (est.)':>20} "
+          f"{'× slower':>9} {'max steps from ref':>19}")
     for fid, r in res["fidelities"].items():
         steps = r.get("max_steps_from_reference")
         whole = r.get("whole_frame_plan_seconds_estimate")
         whole_txt = (f"{whole:18.1f} s {whole / r['seconds_per_plan']:9.0f}" if whole
                      else f"{'-':>20} {'-':>9}")
-        print(f"{fid:<10} {r['seconds_per_plan']:8.3f} {r['model_evaluations']:6d} {whole_txt} "
+        print(f"{fid:<10} {r['seconds_per_plan']:8.3f} {r['cpu_seconds_per_plan']:7.3f} "
+              f"{r['model_evaluations']:6d} {whole_txt} "
               f"{'-' if steps is None else f'{steps:.1f}':>19}")
     keys = list(next(iter(res["fidelities"].values()))["optima_m"])
     print(f"\noptima [cm] {'':<22}" + "".join(f"{fid:>11}" for fid in res["fidelities"]))
     for k in keys:
         print(f"  {k:<32}" + "".join(f"{r['optima_m'][k] * 100:11.1f}" for r in res["fidelities"].values()))
     for fid, r in res["fidelities"].items():
-        ok_t = r["seconds_per_plan"] <= res["target_seconds"]
+        ok_t = r["cpu_seconds_per_plan"] <= res["target_seconds"]
         steps = r.get("max_steps_from_reference")
         ok_s = steps is not None and steps <= 1.0
         verdict = "within" if ok_s else "NOT within" if steps is not None else "not compared to"
-        print(f"{fid}: {'meets' if ok_t else 'misses'} the 1 s target; optimum {verdict} one grid step "
-              "of reference")
+        print(f"{fid}: {'meets' if ok_t else 'misses'} the 1 s target (CPU time); optimum {verdict} one "
+              "grid step of reference")
     return 0
