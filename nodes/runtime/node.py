@@ -216,8 +216,8 @@ class Node:
         self._timers.pop(timer, None)
 
     def wait_for(self, topic: str, match: Callable[[Message], bool] = lambda m: True, timeout_s: float = 1.0):
-        """Block until a message on subscribed ``topic`` satisfies ``match``; others taken meanwhile are
-        dropped.
+        """Block until a message on subscribed ``topic`` satisfies ``match``; non-matching messages before it
+        are dropped, those after it stay queued for the next call or the loop.
 
         Raises :class:`~polarstripe.nodes.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic.
         """

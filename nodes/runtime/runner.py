@@ -5,6 +5,7 @@ signals, heartbeat, and an orderly close. ``polarstripe node`` and the launcher'
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import time
 from pathlib import Path
@@ -98,14 +99,17 @@ class ZmqNodeBus:
         return c
 
     def poll(self, subs: list, timeout_s: float) -> list[tuple[Any, list]]:
-        ready = dict(self.poller.poll(int(timeout_s * 1000)))
+        # Round up: rounding down would spin through the last millisecond before every timer.
+        ready = dict(self.poller.poll(max(0, math.ceil(timeout_s * 1000))))
         if self.server is not None and self.server.socket in ready:
             self.server.handle_ready()
         return [(s, s.source.take()) for s in subs if s.source.socket in ready]
 
     def take(self, sub: zbus.Subscriber, timeout_s: float) -> list:
-        if sub.socket.poll(max(0, int(timeout_s * 1000))):
-            return sub.take()
+        """For ``wait_for``: one message at a time in ``all`` mode, so nothing after a match is taken off the
+        socket (and lost); ``latest`` mode keeps its meaning, the newest of what has arrived."""
+        if sub.socket.poll(max(0, math.ceil(timeout_s * 1000))):
+            return sub.take(limit=1 if sub.mode == "all" else 1000)
         return []
 
     def server_bad(self) -> int:

@@ -204,3 +204,37 @@ def test_real_loop_delivers_messages_of_several_topics_in_publication_order(tmp_
         assert [(e.topic, e.msg.header.stamp_ns) for e in got] == [("second", 100), ("first", 200)]
         assert isinstance(next(events), Stop)
         bus.close()
+
+
+def test_real_wait_for_keeps_the_messages_after_its_match(tmp_path):
+    import time
+
+    from polarstripe.msgs import PolarizerCommand
+    from polarstripe.nodes.runtime.bus import PubSocket
+    from polarstripe.nodes.runtime.runner import ZmqNodeBus
+
+    class Waiter(Node):
+        SUBSCRIBES = {"cmd": PolarizerCommand}
+
+        def setup(self):
+            self.subscribe("cmd", mode="all")
+
+    with PubSocket(f"ipc://{tmp_path}/src.pub") as src:
+        bus = ZmqNodeBus("w", pub=f"ipc://{tmp_path}/w.pub", srv=f"ipc://{tmp_path}/w.srv", connect=[src.endpoint])
+        node = Waiter("w", bus=bus)
+        node.setup()
+        cmd = src.publisher("/cmd", PolarizerCommand)
+        sub = node._subs["cmd"].source
+        deadline = time.monotonic() + 5
+        while not sub.socket.poll(0):  # slow joiner
+            assert time.monotonic() < deadline
+            cmd.publish(PolarizerCommand(target_deg=-1.0))
+            time.sleep(0.02)
+        sub.take()
+        for deg in (1.0, 2.0, 3.0, 4.0):  # all queued before the first wait_for
+            cmd.publish(PolarizerCommand(target_deg=deg))
+        time.sleep(0.1)
+        got = [node.wait_for("cmd", lambda m: m.target_deg >= 2.0, timeout_s=2.0).target_deg]
+        got += [node.wait_for("cmd", timeout_s=2.0).target_deg for _ in range(2)]
+        assert got == [2.0, 3.0, 4.0]
+        bus.close()
