@@ -220,7 +220,9 @@ def test_real_wait_for_keeps_the_messages_after_its_match(tmp_path):
             self.subscribe("cmd", mode="all")
 
     with PubSocket(f"ipc://{tmp_path}/src.pub") as src:
-        bus = ZmqNodeBus("w", pub=f"ipc://{tmp_path}/w.pub", srv=f"ipc://{tmp_path}/w.srv", connect=[src.endpoint])
+        bus = ZmqNodeBus(
+            "w", pub=f"ipc://{tmp_path}/w.pub", srv=f"ipc://{tmp_path}/w.srv", connect=[src.endpoint]
+        )
         node = Waiter("w", bus=bus)
         node.setup()
         cmd = src.publisher("/cmd", PolarizerCommand)
