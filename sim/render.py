@@ -22,7 +22,7 @@ from polarstripe.sim.geometry import (
 )
 from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stripe_columns
 from polarstripe.sim.polarization import analyzer
-from polarstripe.sim.scene import Scene, SceneError
+from polarstripe.sim.scene import PlaneObject, Scene, SceneError
 from polarstripe.sim.surface import SurfaceInfo, surface_info
 from polarstripe.sim.surface_term import surface_scatter_beams
 from polarstripe.sim.transport import (
@@ -185,6 +185,7 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
     # A/ρ is smooth across texture edges: interpolate the albedo-free part, multiply by the pixel's albedo
     gval[gidx] = a_at(ghits.point[gidx], ghits.normal[gidx], np.ones(gidx.size))
     gval, gobj = gval.reshape(gh, gw), ghits.index.reshape(gh, gw)
+    fields = _extend_planes(scene, cam, gdirs, gval, gobj, a_at)
     idx = np.nonzero(hit)[0]
     rows, cols = idx // cam.w, idx % cam.w
     fr = rows * (gh - 1) / max(cam.h - 1, 1)
@@ -195,18 +196,54 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
     num = np.zeros(idx.size)
     den = np.zeros(idx.size)
     obj = surf.object_id[idx]
-    for dr, wr in ((0, 1 - tr), (1, tr)):
-        for dc, wc in ((0, 1 - tc), (1, tc)):
-            rr, cc = np.minimum(r0 + dr, gh - 1), np.minimum(c0 + dc, gw - 1)
-            wgt = wr * wc * (gobj[rr, cc] == obj)
-            num += wgt * gval[rr, cc]
-            den += wgt
+    for k in np.unique(obj):
+        sel = obj == k
+        vals, valid = fields.get(int(k), (gval, gobj == k))
+        for dr, wr in ((0, 1 - tr[sel]), (1, tr[sel])):
+            for dc, wc in ((0, 1 - tc[sel]), (1, tc[sel])):
+                rr, cc = np.minimum(r0[sel] + dr, gh - 1), np.minimum(c0[sel] + dc, gw - 1)
+                wgt = wr * wc * valid[rr, cc]
+                num[sel] += wgt * vals[rr, cc]
+                den[sel] += wgt
     good = den > 1e-6
     a_out[idx[good]] = surf.albedo[idx[good]] * num[good] / den[good]
     miss = idx[~good]
     if miss.size:
         a_out[miss] = at(miss)
     return a_out
+
+
+def _extend_planes(scene: Scene, cam, gdirs, gval, gobj, a_at) -> dict:
+    """Per plane object: its A/ρ grid extended by one ring of nodes on the plane's continuation, so pixels at
+    the plane's edge interpolate instead of extrapolating. Returns {object index: (values, valid)}."""
+    gh, gw = gobj.shape
+    out = {}
+    for k, o in enumerate(scene.objects):
+        mine = gobj == k
+        if not isinstance(o, PlaneObject) or not mine.any():
+            continue
+        pad = np.pad(mine, 1)
+        ring = np.zeros_like(mine)
+        for dr in (0, 1, 2):
+            for dc in (0, 1, 2):
+                ring |= pad[dr:dr + gh, dc:dc + gw]
+        ring &= ~mine
+        where = np.nonzero(ring.ravel())[0]
+        n = np.asarray(o.normal)
+        d = gdirs[where]
+        dn = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((np.asarray(o.point) - cam.position) @ n) / dn
+        ok = (dn < 0) & (t > 0)
+        where, t, d = where[ok], t[ok], d[ok]
+        vals = np.where(mine, gval, 0.0).ravel()
+        valid = mine.ravel().copy()
+        if where.size:
+            pts = cam.position + t[:, None] * d
+            vals[where] = a_at(pts, np.broadcast_to(n, pts.shape), np.ones(where.size))
+            valid[where] = True
+        out[k] = (vals.reshape(gh, gw), valid.reshape(gh, gw))
+    return out
 
 
 def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fidelity = "standard",
