@@ -7,8 +7,8 @@
    For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
    ``fault`` on ``emitter/scan`` and, if ``wait_composite``, for the compositor's ``compositor/composite`` of
    that scan.
-3. Stop with exit status 0 when every scan was done (and composited), 1 otherwise — so
-   ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
+3. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
+   otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
 Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
 of a failure names the service or topic and what happened.
@@ -168,8 +168,12 @@ class Sequencer(Node):
                            p.composite_timeout_s)
             return False
         shown = {k: v for k, v in comp.metrics.items() if isinstance(v, (int, float, str))}
-        self.log.info("%s: composite %s", method, shown)
         self.results[method]["metrics"] = shown
+        if comp.metrics.get("error"):  # nothing to composite: the scan produced no image
+            self.log.error("%s: scan %d: compositor/composite error: %s", method, sid, comp.metrics["error"])
+            self.results[method]["event"] = "composite_error"
+            return False
+        self.log.info("%s: composite %s", method, shown)
         return True
 
 

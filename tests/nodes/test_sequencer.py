@@ -7,7 +7,7 @@ from polarstripe.nodes.runtime.testing import NodeHarness
 from polarstripe.nodes.sequencer import Sequencer
 
 
-def rig(params=None, *, scans_end="done", composite=True, stage_ok=True):
+def rig(params=None, *, scans_end="done", composite=True, stage_ok=True, metrics=None):
     """A sequencer whose planner, simulator and emitter answer; each started scan ends with ``scans_end``
     (None: never) and, if ``composite``, gets its composite."""
     h = NodeHarness(Sequencer, name="sequencer", namespace="/rig",
@@ -25,7 +25,7 @@ def rig(params=None, *, scans_end="done", composite=True, stage_ok=True):
             h.queue("emitter/scan", ScanEvent(scan_id=sid, event=scans_end, method=req.method, detail="boom"))
         if composite:
             h.queue("compositor/composite", Composite(images={"c": np.zeros((2, 2))}, method=req.method,
-                                                      scan_id=sid, metrics={"contrast": 0.5}))
+                                                      scan_id=sid, metrics=metrics or {"contrast": 0.5}))
         return ScanEvent(scan_id=sid, event="start", method=req.method)
 
     h.on_call("emitter/start_scan", start)
@@ -83,3 +83,12 @@ def test_without_plan_or_composites():
     h = rig({"plan": False, "wait_composite": False, "methods": ["stripes"]}, composite=False)
     h.node.run()
     assert h.node.exit_code == 0 and h.calls == ["scan stripes 5 []"]
+
+
+def test_a_composite_with_an_error_fails_the_scan():
+    h = rig({"plan": False, "methods": ["flood", "stripes"]}, metrics={"error": "no frames to composite"})
+    h.node.run()
+    assert h.node.exit_code == 1 and len([c for c in h.calls if c.startswith("scan")]) == 2
+    assert h.node.results["flood"]["event"] == "composite_error"
+    assert any(lvl == "ERROR" and "flood: scan 1: compositor/composite error: no frames to composite" in t
+               for lvl, t in h.logs)
