@@ -17,6 +17,7 @@ shutdown → switch on → enable operation (2, 3, 4), holding the current posit
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -37,6 +38,8 @@ FAULT_ERROR_CLASSES = {
     0x080: "bus error",
 }
 CAN_ERR_RESTARTED = 0x100
+
+log = logging.getLogger(__name__)
 
 
 class _BusWatch(can.Listener):
@@ -367,14 +370,25 @@ class Cia402Stage(RotationStage):
             raise DriverTimeout(f"{self.name}: homing not attained within {timeout:g} s")
 
     def _close(self) -> None:
+        """Disable the drive if it can hear us, then let go of the bus. Never raises: a bus that failed
+        earlier makes canopen's ``Network.disconnect`` re-raise the receive thread's exception, which is
+        logged here (the fault was already latched when it happened)."""
         self._stop.set()
         try:
             if getattr(self, "node", None) is not None and self._pos is not None and self.fault is None:
                 self._controlword(cia.CW_SHUTDOWN)  # leave the drive disabled (transition 8)
         except StageFault:
             pass
-        if self._own_bus:
-            self.network.disconnect()
-        else:
-            if self.network.notifier is not None:
+        try:
+            if self._own_bus:
+                self.network.disconnect()
+            elif self.network.notifier is not None:
                 self.network.notifier.stop(1.0)
+        except Exception as exc:  # noqa: BLE001 - teardown must not raise
+            log.warning("%s: closing the CAN network: %s: %s", self.name, type(exc).__name__, exc)
+            if self._own_bus and self.network.bus is not None:
+                try:
+                    self.network.bus.shutdown()
+                except Exception as exc2:  # noqa: BLE001
+                    log.warning("%s: closing the CAN bus: %s: %s", self.name, type(exc2).__name__, exc2)
+                self.network.bus = None

@@ -221,3 +221,15 @@ def test_embedded_drive_and_stage_in_one_process_on_the_virtual_bus():
         with Cia402Stage("ps-embedded", 3, interface="virtual", counts_per_deg=100) as stage:
             stage.move_to(-12.5)
             assert stage.wait_settled(2.0) == pytest.approx(-12.5)
+
+
+def test_close_after_the_bus_failed_logs_and_never_raises(drive_process, caplog):
+    stage = Cia402Stage(drive_process.channel, drive_process.node_id, counts_per_deg=1000, min_deg=-90,
+                        max_deg=90)
+    stage.network.bus.shutdown()  # the interface goes away under the stage (a pulled adapter)
+    assert _wait_fault(stage, "CAN receive failed")  # the notifier thread died with an exception
+    with caplog.at_level("WARNING", logger="polarstripe.nodes.drivers.cia402"):
+        stage.close()
+        stage.close()  # idempotent
+    closing = [r for r in caplog.records if "closing" in r.getMessage()]
+    assert len(closing) == 1 and "CiA 402 node 5" in closing[0].getMessage()
