@@ -61,13 +61,13 @@ class Camera(ABC):
             raise DriverError(f"{self.name}: closed")
         if self._pending is None:
             self._pending = self._worker.submit(self._grab)
-        try:
-            image, extra = self._pending.result(timeout)
-        except concurrent.futures.TimeoutError:
-            raise DriverTimeout(f"{self.name}: no frame within {timeout:g} s") from None
-        finally:
-            if self._pending.done():
-                self._pending = None
+        # wait first, then take the result: a TimeoutError raised inside the backend (since Python 3.11
+        # concurrent.futures.TimeoutError is the builtin) is the backend's error, not this grab's timeout
+        done, _ = concurrent.futures.wait([self._pending], timeout)
+        if not done:
+            raise DriverTimeout(f"{self.name}: no frame within {timeout:g} s")
+        pending, self._pending = self._pending, None
+        image, extra = pending.result()
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
             raise DeviceLost(f"{self.name}: returned no image ({type(image).__name__})")
         info = FrameInfo(self._seq, time.time_ns(), self._exposure_s, self._gain, self._bit_depth, self.name,

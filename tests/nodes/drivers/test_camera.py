@@ -211,6 +211,25 @@ def test_a_grab_that_blocks_times_out_instead_of_hanging():
     cam.close()
 
 
+class _RaisingCamera(Camera):
+    def __init__(self, exc):
+        super().__init__("raising camera", exposure_s=0.01, gain=1.0, bit_depth=12)
+        self.exc = exc
+
+    def _grab(self):
+        raise self.exc
+
+
+@pytest.mark.parametrize("exc", [DriverTimeout("sim camera: the simulator did not answer"),
+                                 TimeoutError("serial read timed out")])
+def test_a_timeout_inside_the_backend_keeps_its_own_text(exc):
+    cam = _RaisingCamera(exc)
+    with pytest.raises(TimeoutError) as info:
+        cam.grab(timeout=1.0)
+    assert info.value is exc and "no frame within" not in str(info.value)
+    cam.close()
+
+
 def test_camera_backends_are_registered():
     assert load_backend("camera", "file") is FileCamera
     assert load_backend("camera", "v4l2") is V4l2Camera
