@@ -19,6 +19,9 @@ Nayar et al.'s high-frequency separation). Polarized methods take the analyzer a
 angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg`` param. Unpolarized methods
 with angles are taken at those angles; without, with no analyzer (frames carry ``polarizer_deg`` None).
 
+``emitter/show`` (:class:`~polarstripe.msgs.Pattern` → :class:`~polarstripe.msgs.Ack`) lights one pattern
+between scans (``polarizer/calibrate`` shows flood through it, then ``off``); refused while a scan runs.
+
 Display backends come from :mod:`polarstripe.nodes.drivers` (``null`` for the simulator and CI, ``window``,
 ``serial``).
 """
@@ -158,7 +161,7 @@ class Emitter(Node):
 
     PUBLISHES = {"emitter/pattern": Pattern, "emitter/scan": ScanEvent, "polarizer/cmd": PolarizerCommand}
     SUBSCRIBES = {"polarizer/state": PolarizerState, "camera/frame": Frame}
-    SERVES = {"emitter/start_scan": (ScanRequest, ScanEvent)}
+    SERVES = {"emitter/start_scan": (ScanRequest, ScanEvent), "emitter/show": (Pattern, Ack)}
 
     def setup(self):
         p = self.params
@@ -168,6 +171,7 @@ class Emitter(Node):
         self.subscribe("polarizer/state", mode="latest")
         self.subscribe("camera/frame", mode="all")
         self.serve("emitter/start_scan", self.start_scan)
+        self.serve("emitter/show", self.show)
         self.trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.trigger_timeout_s)
         self.mount = self.client("camera/analyzer", AnalyzerMount, Ack, timeout_s=p.trigger_timeout_s)
         kwargs: dict = {"width": p.display_width, "height": p.display_height}
@@ -179,6 +183,7 @@ class Emitter(Node):
         self.queue: deque[ScanPlan] = deque()
         self.next_id = 1
         self.results: dict[int, ScanEvent] = {}
+        self.scanning: ScanPlan | None = None  # the scan being run
         self.every(0.01, self.run_queued, name="scan")
 
     def teardown(self):
@@ -199,6 +204,22 @@ class Emitter(Node):
         self.queue.append(plan)
         return self._event(plan, "start")
 
+    def show(self, req: Pattern) -> Ack:
+        """``emitter/show``: light one pattern between scans (e.g. flood for ``polarizer/calibrate``, then
+        ``off``); published on ``emitter/pattern`` as given. Refused while a scan runs or is queued."""
+        if self.scanning is not None or self.queue:
+            busy = self.scanning.scan_id if self.scanning is not None else self.queue[0].scan_id
+            return Ack(ok=False, detail=f"emitter/show: scan {busy} is running or queued")
+        try:
+            if req.kind == "off":
+                self.display.blank()
+            else:
+                self.display.show(req)
+        except DriverError as exc:  # DriverValueError too: a pattern the display cannot light
+            return Ack(ok=False, detail=f"emitter/show: {req.kind}: {exc}")
+        self.pattern_pub.publish(req)
+        return Ack(ok=True, detail=f"showing {req.kind}")
+
     def _event(self, plan: ScanPlan, event: str, detail: str = "") -> ScanEvent:
         return ScanEvent(scan_id=plan.scan_id, event=event, method=plan.method, stripes=plan.stripes,
                          analyzer_deg=[a for a in plan.angles if a is not None], detail=detail)
@@ -206,7 +227,11 @@ class Emitter(Node):
     # ---- the scan ------------------------------------------------------------------------------------------
     def run_queued(self) -> None:
         while self.queue and not self.stopping:
-            self.run_scan(self.queue.popleft())
+            self.scanning = self.queue.popleft()
+            try:
+                self.run_scan(self.scanning)
+            finally:
+                self.scanning = None
 
     def run_scan(self, plan: ScanPlan) -> ScanEvent:
         """Run one scan to its end; publish and return its final event (done or fault)."""

@@ -145,3 +145,26 @@ def test_default_analyzer_angles_and_ids_increase():
     second, events = run(h, ScanRequest(method="flood"))
     assert first.analyzer_deg == [5.0, 95.0] and second.scan_id == first.scan_id + 1
     assert [(e.scan_id, e.event) for e in events] == [(1, "start"), (1, "done"), (2, "start"), (2, "done")]
+
+
+def test_show_lights_a_pattern_between_scans_and_says_so():
+    from polarstripe.msgs import Pattern
+
+    h = make()
+    ack = h.call("emitter/show", Pattern(kind="flood", scan_id=7))
+    assert ack.ok, ack.detail
+    assert h.node.display.current.kind == "flood"
+    assert [(p.kind, p.scan_id) for p in h.published("emitter/pattern")] == [("flood", 7)]
+    assert h.call("emitter/show", Pattern(kind="off")).ok and h.node.display.current.kind == "off"
+    bad = h.call("emitter/show", Pattern(kind="stripe", index=5, count=3))
+    assert not bad.ok and bad.detail.startswith("emitter/show: ") and "stripe" in bad.detail
+    assert h.node.display.current.kind == "off" and len(h.published("emitter/pattern")) == 2
+
+
+def test_show_is_refused_while_scans_are_queued():
+    from polarstripe.msgs import Pattern
+
+    h = make()
+    h.call("emitter/start_scan", ScanRequest(method="flood"))  # queued, not run yet (no timer fired)
+    ack = h.call("emitter/show", Pattern(kind="flood"))
+    assert not ack.ok and "scan" in ack.detail and h.published("emitter/pattern") == []
