@@ -16,7 +16,8 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
   at the target), then re-commands the last target; and on request (``polarizer/reset``, or a new command
   while faulted);
 * serves ``polarizer/calibrate`` (:class:`CalibrateRequest` → :class:`Calibration`): turns through analyzer
-  angles, has the grabber take a frame at each (``camera/trigger`` then the matching ``camera/frame``) and
+  angles, has the grabber take a frame at each (``camera/trigger`` then the matching ``camera/frame``) under
+  ``calibrate_pattern`` lit through ``emitter/show`` (when a node serves it; ``off`` afterwards), and
   fits Malus's law over a region (:func:`polarstripe.imaging.polarization.least_backscatter_angle`) for the
   angle of least backscatter, E_b. Calibration frames carry scan ids from :data:`CALIBRATION_SCAN_ID`
   (2**30) up, apart from the emitter's scans (the compositor ignores them).
@@ -38,6 +39,7 @@ from polarstripe.msgs import (
     Frame,
     FrameRequest,
     Message,
+    Pattern,
     PolarizerCommand,
     PolarizerState,
     message,
@@ -99,6 +101,7 @@ class Polarizer(Node):
         calibrate_angles_deg: list[float] = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0]
         calibrate_roi: list[int] = []  # object-free region (row0, row1, col0, col1); empty: whole frame
         calibrate_pattern: str = "flood"
+        calibrate_show_service: str = "emitter/show"  # lights calibrate_pattern first, if served; "": don't
         frame_timeout_s: float = 5.0
         dark_offset_dn: float = 0.0
         saturation_dn: float | None = None  # None: 2**bit_depth - 1 of the frames
@@ -135,6 +138,7 @@ class Polarizer(Node):
         self._last_pub = -math.inf
         self._calibrations = 0
         self._trigger = None
+        self._show = None  # emitter/show client; False once known not to be served
         for key in ("moves", "faults", "auto_resets", "resets_failed", "connects_failed"):
             self.counters[key] = 0
         self.state_pub = self.publisher("polarizer/state")
@@ -341,6 +345,48 @@ class Polarizer(Node):
                 raise PolarstripeError(f"target {self.target_deg:g}° not reached within {timeout_s:g} s")
             time.sleep(min(self.params.poll_s, 0.01))
 
+    def _show_client(self):
+        """The ``emitter/show`` client, or None when calibration is not to light the scene or no node of
+        the launch serves it (then the projector shows whatever it shows)."""
+        from polarstripe.nodes.runtime.bus import BusError
+
+        service = self.params.calibrate_show_service
+        if self._show is None and service:
+            try:
+                self._show = self.client(service, Pattern, Ack, timeout_s=self.params.frame_timeout_s)
+            except BusError as exc:
+                self._show = False
+                self.log.info("calibration does not light the scene: %s", exc)
+        return self._show or None
+
+    def _light(self, tag: str, scan_id: int) -> bool:
+        """Have the emitter show ``tag`` for the calibration frames; False if there is no emitter to ask.
+
+        :raises PolarstripeError: the emitter refused (a scan is running, a bad pattern).
+        """
+        from polarstripe.nodes.emitter import pattern_message
+
+        show = self._show_client()
+        if show is None:
+            return False
+        service = self.params.calibrate_show_service
+        reply = show.call(pattern_message(tag, scan_id, 0))
+        if not reply.ok:
+            raise PolarstripeError(f"{service} {tag!r} refused: {reply.detail}")
+        return True
+
+    def _unlight(self, scan_id: int) -> None:
+        """Blank the projector after the calibration frames (a failure is only logged)."""
+        from polarstripe.nodes.emitter import pattern_message
+        from polarstripe.nodes.runtime.bus import BusError
+
+        try:
+            reply = self._show_client().call(pattern_message("off", scan_id, 0))
+            if not reply.ok:
+                self.log.warning("%s off: %s", self.params.calibrate_show_service, reply.detail)
+        except (BusError, TimeoutError) as exc:
+            self.log.warning("%s off: %s", self.params.calibrate_show_service, exc)
+
     def calibrate(self, request: CalibrateRequest) -> Calibration:
         from polarstripe.imaging.polarization import least_backscatter_angle
         from polarstripe.imaging.validation import roi_slices
@@ -354,9 +400,11 @@ class Polarizer(Node):
         self._calibrations += 1
         scan_id = CALIBRATION_SCAN_ID + self._calibrations
         measured, frames = [], []
+        lit = False
         try:
             if self._trigger is None:
                 self._trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.frame_timeout_s)
+            lit = self._light(p.calibrate_pattern, scan_id)
             for step, angle in enumerate(angles):
                 self._move(self.in_range(angle))
                 measured.append(self._wait_settled(p.settle_timeout_s))
@@ -376,6 +424,9 @@ class Polarizer(Node):
         except (PolarstripeError, BusError, TimeoutError) as exc:
             self.log.error("calibration failed: %s", exc)
             return Calibration(ok=False, detail=f"calibration failed: {exc}", angles_deg=measured)
+        finally:
+            if lit:
+                self._unlight(scan_id)
         self.least_backscatter_deg = best
         if request.apply:
             self._move(best)

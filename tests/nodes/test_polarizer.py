@@ -246,6 +246,7 @@ def test_calibrate_finds_the_angle_of_least_backscatter():
         return Ack(ok=True)
 
     h.on_call("camera/trigger", trigger)
+    h.on_call("emitter/show", lambda req: Ack(ok=True))
     reply = h.call("polarizer/calibrate", CalibrateRequest())
     assert reply.ok, reply.detail
     assert abs(reply.angle_deg - (-70.0)) < 0.5
@@ -258,12 +259,55 @@ def test_calibrate_finds_the_angle_of_least_backscatter():
 
 
 def test_calibrate_without_frames_fails_cleanly():
-    h = NodeHarness(Polarizer, params={"backend": "sim", "speed_deg_s": 1e5, "frame_timeout_s": 0.2})
+    h = NodeHarness(Polarizer, params={"backend": "sim", "speed_deg_s": 1e5, "frame_timeout_s": 0.2,
+                                       "calibrate_show_service": ""})  # no emitter to light the scene
     h.on_call("camera/trigger", lambda req: Ack(ok=True))  # a frame is never published
     t0 = time.monotonic()
     reply = h.call("polarizer/calibrate", CalibrateRequest(angles_deg=[0.0, 60.0, 120.0]))
     assert not reply.ok and "camera/frame" in reply.detail
     assert time.monotonic() - t0 < 3.0
+    h.stop()
+
+
+def _lit_calibration(show):
+    """A polarizer whose grabber answers with a frame as bright as what the emitter shows (``show``
+    answers emitter/show); returns the harness and the list of (what was shown, when) events."""
+    h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
+                    params={"backend": "sim", "speed_deg_s": 1e5, "calibrate_angles_deg": [0.0, 60.0, 120.0]})
+    events = []
+
+    def on_show(req):
+        events.append(("show", req.kind, req.scan_id))
+        return show(req)
+
+    def trigger(req):
+        events.append(("trigger", req.pattern, req.scan_id))
+        theta = math.radians(h.node.stage.angle)
+        img = np.full((4, 4), 100.0 + 50.0 * math.cos(2.0 * (theta - 0.3)))
+        h.queue("camera/frame", Frame(image=img.astype(np.uint16), exposure_s=0.01, scan_id=req.scan_id,
+                                      step=req.step))
+        return Ack(ok=True)
+
+    h.on_call("emitter/show", on_show)
+    h.on_call("camera/trigger", trigger)
+    return h, events
+
+
+def test_calibrate_lights_flood_through_the_emitter_before_grabbing_and_blanks_after():
+    h, events = _lit_calibration(lambda req: Ack(ok=True))
+    reply = h.call("polarizer/calibrate", CalibrateRequest())
+    assert reply.ok, reply.detail
+    kinds = [(e[0], e[1]) for e in events]
+    assert kinds == [("show", "flood")] + [("trigger", "flood")] * 3 + [("show", "off")]
+    assert len({e[2] for e in events}) == 1  # the calibration's scan id on the pattern and the frames
+    h.stop()
+
+
+def test_calibrate_fails_clearly_when_the_emitter_cannot_light():
+    h, events = _lit_calibration(lambda req: Ack(ok=req.kind == "off", detail="emitter/show: scan 3 running"))
+    reply = h.call("polarizer/calibrate", CalibrateRequest())
+    assert not reply.ok and "emitter/show" in reply.detail and "scan 3 running" in reply.detail
+    assert [e for e in events if e[0] == "trigger"] == []  # no frame of an unlit scene
     h.stop()
 
 
