@@ -51,6 +51,20 @@ class NodeError(PolarstripeError):
     """A node used wrongly (undeclared topic, duplicate timer); the text names the node and what."""
 
 
+class NodeStopping(PolarstripeError):
+    """A blocking call (:meth:`Node.wait_for`) gave up because the node was told to stop (SIGINT, SIGTERM,
+    :meth:`Node.stop`). Not a ``TimeoutError``: a caller can tell "stopping" from "nothing came in time".
+
+    Let it propagate to end the node: escaping a callback or :meth:`Node.run`, it ends the node normally
+    (``teardown`` runs, the exit status stays :attr:`Node.exit_code`); catch it only to publish a fault or
+    clean up. Attributes ``node``, ``topic`` and ``reason`` (the stop reason).
+    """
+
+    def __init__(self, node: str, topic: str, reason: str):
+        self.node, self.topic, self.reason = node, topic, reason
+        super().__init__(f"node {node!r}: stopped waiting for {topic!r}: the node is stopping ({reason})")
+
+
 # ---- events -----------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Received:
@@ -77,6 +91,9 @@ class Stop:
 
 
 Event = Received | Tick | Stop
+
+STOP_CHECK_S = 0.05
+"""How often a blocking :meth:`Node.wait_for` looks whether the node was told to stop [s]."""
 
 
 @dataclass
@@ -219,19 +236,25 @@ class Node:
         """Block until a message on subscribed ``topic`` satisfies ``match``; non-matching messages before it
         are dropped, those after it stay queued for the next call or the loop.
 
-        Raises :class:`~polarstripe.nodes.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic.
+        Raises :class:`~polarstripe.nodes.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic
+        after ``timeout_s``, or :class:`NodeStopping` within ~``STOP_CHECK_S`` of the node being told to
+        stop (SIGINT, SIGTERM, :meth:`stop`; also at once if it already was).
         """
         sub = self._subs.get(topic)
         if sub is None:
             raise NodeError(f"node {self.name!r}: wait_for({topic!r}) needs a subscription first")
-        deadline = self._bus.now() + timeout_s
+        bus = self._bus
+        deadline = bus.now() + timeout_s
         while True:
-            for item in self._bus.take(sub.source, deadline - self._bus.now()):
+            if self._stop_reason is not None:
+                raise NodeStopping(self.name, sub.full, self._stop_reason)
+            # short slices: a signal does not cut a zmq poll short (pyzmq resumes it after the handler)
+            for item in bus.take(sub.source, min(max(0.0, deadline - bus.now()), STOP_CHECK_S)):
                 if isinstance(item, MessageError):
                     self._bad(topic, item)
                 elif match(item):
                     return item
-            if self._bus.now() >= deadline or self._stop_reason:
+            if bus.now() >= deadline:
                 from polarstripe.nodes.runtime.bus import BusTimeout
 
                 raise BusTimeout(

@@ -16,7 +16,7 @@ from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat, Message
 from polarstripe.nodes.runtime import bus as zbus
 from polarstripe.nodes.runtime.graph import load_graph, pub_endpoints, runs_dir
-from polarstripe.nodes.runtime.node import Node, install_logging, install_signals
+from polarstripe.nodes.runtime.node import Node, NodeStopping, install_logging, install_signals
 
 
 def load_node_class(spec: str) -> type[Node]:
@@ -190,6 +190,8 @@ def run_node(
         node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
         try:
             node.run()
+        except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to
+            node.log.debug("%s", exc)
         finally:
             node.teardown()
             if node.params.heartbeat_s > 0:

@@ -23,7 +23,7 @@ from typing import Any
 
 from polarstripe.msgs import Message, MessageError, decode, encode
 from polarstripe.nodes.runtime.bus import ServiceError, ServiceTimeout, SubscriberStats
-from polarstripe.nodes.runtime.node import Event, Node, Received, Stop, Tick
+from polarstripe.nodes.runtime.node import Event, Node, NodeStopping, Received, Stop, Tick
 
 
 def roundtrip(msg: Message, topic: str = "") -> Message:
@@ -193,6 +193,8 @@ class NodeHarness:
         node.events = scripted  # type: ignore[method-assign]
         try:
             node.run()
+        except NodeStopping:  # as in a process: a wait cut short by the stop ends the node normally
+            pass
         finally:
             del node.events
 

@@ -5,7 +5,7 @@ import pytest
 from polarstripe.msgs import Ack, Empty, Frame, Log, PolarizerState, ScanEvent, ScanRequest, encode
 from polarstripe.nodes.demo import Listener, Talker
 from polarstripe.nodes.runtime.bus import BusTimeout, ServiceTimeout
-from polarstripe.nodes.runtime.node import Node, NodeError, Received, Stop, Tick
+from polarstripe.nodes.runtime.node import Node, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.nodes.runtime.params import NodeParams, ParamError, build_params, parse_assignments
 from polarstripe.nodes.runtime.testing import NodeHarness
 
@@ -240,3 +240,98 @@ def test_real_wait_for_keeps_the_messages_after_its_match(tmp_path):
         got += [node.wait_for("cmd", timeout_s=2.0).target_deg for _ in range(2)]
         assert got == [2.0, 3.0, 4.0]
         bus.close()
+
+
+def test_wait_for_on_a_stopping_node_raises_node_stopping_not_a_timeout():
+    h = NodeHarness(_Scanner, namespace="/rig")
+    h.queue("polarizer/state", PolarizerState(angle_deg=45.0, target_deg=45.0, settled=True))
+    h.node.stop("SIGTERM")
+    stopping = r"/rig/polarizer/state.: the node is stopping \(SIGTERM\)"
+    with pytest.raises(NodeStopping, match=stopping) as info:
+        h.node.wait_for("polarizer/state", timeout_s=5.0)
+    assert not isinstance(info.value, TimeoutError) and info.value.reason == "SIGTERM"
+    assert h.bus.now() == 0.0  # raised at once, without waiting out the timeout
+
+
+def test_real_wait_for_returns_promptly_when_stopped_from_elsewhere(tmp_path):
+    import threading
+    import time
+
+    from polarstripe.msgs import PolarizerCommand
+    from polarstripe.nodes.runtime.runner import ZmqNodeBus
+
+    class Waiter(Node):
+        SUBSCRIBES = {"cmd": PolarizerCommand}
+
+        def setup(self):
+            self.subscribe("cmd", mode="all")
+
+    bus = ZmqNodeBus("w", pub=f"ipc://{tmp_path}/w.pub", srv=f"ipc://{tmp_path}/w.srv")
+    node = Waiter("w", bus=bus)
+    node.setup()
+    timer = threading.Timer(0.2, node.stop, args=("told to",))
+    timer.start()
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(NodeStopping, match=r"stopping \(told to\)"):
+            node.wait_for("cmd", timeout_s=30.0)
+        waited = time.monotonic() - t0
+    finally:
+        timer.cancel()
+        bus.close()
+    assert 0.2 <= waited < 0.2 + 0.2, waited
+
+
+_WAITER = """
+from polarstripe.msgs import PolarizerCommand
+from polarstripe.nodes.runtime.node import Node
+
+
+class Waiter(Node):
+    SUBSCRIBES = {"cmd": PolarizerCommand}
+
+    def setup(self):
+        self.subscribe("cmd", mode="all")
+        self.every(0.01, self.block)
+
+    def block(self):
+        self.log.info("waiting")
+        self.wait_for("cmd", timeout_s=60.0)  # nothing ever comes; NodeStopping ends the node
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_ends_a_node_blocked_in_wait_for_at_once_and_cleanly(tmp_path, sig):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "waiter_mod.py").write_text(_WAITER)
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    log = tmp_path / "waiter.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "polarstripe", "node", "waiter_mod:Waiter", "--param", "heartbeat_s=0",
+             "--pub", f"ipc://{tmp_path}/w.pub", "--srv", f"ipc://{tmp_path}/w.srv"],
+            stdout=out, stderr=subprocess.STDOUT, env=env, cwd=tmp_path,
+        )
+    try:
+        deadline = time.monotonic() + 30
+        while "waiting" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.02)
+        time.sleep(0.1)  # inside the zmq poll of wait_for
+        t0 = time.monotonic()
+        proc.send_signal(getattr(signal, sig))
+        code = proc.wait(timeout=10)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert code == 0 and "Traceback" not in text, text
+    assert f"waiter: stopped ({sig})" in text, text
+    assert took < 0.5, took  # the interpreter's exit included; not the 60 s timeout
