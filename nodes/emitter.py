@@ -48,7 +48,7 @@ from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.nodes.grabber import AnalyzerMount
 from polarstripe.nodes.runtime.bus import BusError, BusTimeout
-from polarstripe.nodes.runtime.node import Node
+from polarstripe.nodes.runtime.node import Node, NodeStopping
 from polarstripe.nodes.runtime.params import NodeParams
 
 #: method -> (polarized, pattern family)
@@ -108,22 +108,6 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
     resolved: tuple[float | None, ...] = tuple(angles) if angles else (None,)
     return ScanPlan(scan_id, req.method, scan_patterns(req.method, stripes, checker_size), resolved,
                     stripes if family == "stripes" else 0)
-
-
-def wait_for_stoppable(node: Node, topic: str, match, timeout_s: float, slice_s: float = 0.2):
-    """:meth:`Node.wait_for` in slices of ``slice_s``, so a node told to stop (SIGINT) stops waiting within a
-    slice instead of at the end of a long timeout. Raises ``BusTimeout`` at the deadline or on stop."""
-    now = node._bus.now  # the node's clock (virtual in the harness)
-    deadline = now() + timeout_s
-    while True:
-        left = deadline - now()
-        try:
-            return node.wait_for(topic, match, timeout_s=max(0.0, min(slice_s, left)))
-        except BusTimeout:
-            if node.stopping or now() >= deadline or not slice_s < left:
-                why = " (stopping)" if node.stopping else ""
-                raise BusTimeout(f"node {node.name!r}: no matching message on {topic!r} within "
-                                 f"{timeout_s:g} s{why}") from None
 
 
 def pattern_message(tag: str, scan_id: int, step: int) -> Pattern:
@@ -295,11 +279,12 @@ class Emitter(Node):
                                      and abs(s.angle_deg - angle) <= tol)
 
         try:
-            state = wait_for_stoppable(self, "polarizer/state", settled_or_faulted,
-                                       self.params.settle_timeout_s)
+            state = self.wait_for("polarizer/state", settled_or_faulted, self.params.settle_timeout_s)
         except BusTimeout:
             raise ScanFault(f"polarizer/state: analyzer not settled at {angle:g} deg within "
                             f"{self.params.settle_timeout_s:g} s") from None
+        except NodeStopping as exc:
+            raise ScanFault(f"stopped ({exc.reason}) waiting for polarizer/state") from None
         if state.fault:
             raise ScanFault(f"polarizer/state: fault at {state.angle_deg:g} deg: {state.fault}")
 
@@ -319,11 +304,13 @@ class Emitter(Node):
             raise ScanFault(f"{where}: camera/trigger: {ack.detail}")
         t1 = time.monotonic()
         try:
-            wait_for_stoppable(self, "camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
-                               self.params.frame_timeout_s)
+            self.wait_for("camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
+                          self.params.frame_timeout_s)
         except BusTimeout:
             raise ScanFault(f"{where}: camera/frame: no frame within {self.params.frame_timeout_s:g} s "
                             "after the trigger") from None
+        except NodeStopping as exc:
+            raise ScanFault(f"{where}: stopped ({exc.reason}) waiting for camera/frame") from None
         self.timing["camera_s"] += t1 - t0
         self.timing["frame_wait_s"] += time.monotonic() - t1
         self.timing["frames"] += 1

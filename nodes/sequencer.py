@@ -19,7 +19,6 @@ from __future__ import annotations
 import time
 
 from polarstripe.msgs import Ack, Composite, Empty, Plan, PolarizerState, ScanEvent, ScanRequest
-from polarstripe.nodes.emitter import wait_for_stoppable
 from polarstripe.nodes.runtime.bus import BusError, BusTimeout
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
@@ -125,7 +124,7 @@ class Sequencer(Node):
             return not s.fault
 
         try:
-            wait_for_stoppable(self, "polarizer/state", ready, self.params.startup_timeout_s)
+            self.wait_for("polarizer/state", ready, self.params.startup_timeout_s)
         except BusTimeout:
             why = f"last fault: {last[0].fault}" if last else "no state at all"
             raise SequenceError(f"polarizer/state: the analyzer stage was not ready within "
@@ -144,9 +143,8 @@ class Sequencer(Node):
             return False
         sid = reply.scan_id
         try:
-            end = wait_for_stoppable(self, "emitter/scan",
-                                     lambda e: e.scan_id == sid and e.event in ("done", "fault"),
-                                     p.scan_timeout_s)
+            end = self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),
+                                p.scan_timeout_s)
         except BusTimeout:
             self.log.error("%s: scan %d: no done/fault on emitter/scan within %g s", method, sid,
                            p.scan_timeout_s)
@@ -161,8 +159,7 @@ class Sequencer(Node):
         if not p.wait_composite:
             return True
         try:
-            comp = wait_for_stoppable(self, "compositor/composite", lambda c: c.scan_id == sid,
-                                      p.composite_timeout_s)
+            comp = self.wait_for("compositor/composite", lambda c: c.scan_id == sid, p.composite_timeout_s)
         except BusTimeout:
             self.log.error("%s: scan %d: no compositor/composite within %g s", method, sid,
                            p.composite_timeout_s)
