@@ -5,7 +5,8 @@ its endpoints, writes ``graph.json``, then starts each node as ``python -m polar
 session (output to ``logs/<node>.log``) and supervises: respawn with a delay up to ``max_respawns``; a
 ``required`` node's exit ends the launch. Ctrl-C/SIGTERM stop the children in reverse start order: SIGINT,
 then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher
-itself dies.
+itself dies. At the end it prints one line per node (exit status or signal, whether the launcher stopped it,
+respawns) and writes them to ``exits.json`` in the run directory (:meth:`Launcher.exits`).
 
 Recording: ``--record FILE`` adds a node ``recorder`` running
 ``polarstripe.nodes.runtime.record_cli:Recorder`` with param ``path = FILE``, started first and stopped last
@@ -135,8 +136,9 @@ class _Child:
     proc: subprocess.Popen | None = None
     respawns: int = 0
     restart_at: float | None = None
-    exit_code: int | None = None
+    exit_code: int | None = None  # the last exit: its status, or -N if killed by signal N
     done: bool = False  # exited for good
+    stopped_by: str | None = None  # the launcher's last signal to it at shutdown (None: it ended by itself)
 
 
 class Launcher:
@@ -152,6 +154,7 @@ class Launcher:
         if once and not any(n.required for n in spec.nodes):
             raise LaunchError(f"{spec.path.name}: --once needs at least one node with required = true")
         self._stop: str | None = None
+        self._ended = ""  # why the launch ended
 
     def say(self, text: str) -> None:
         print(f"[launch {self.spec.name}] {text}", file=self.out, flush=True)
@@ -197,7 +200,7 @@ class Launcher:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         write_graph(self.graph_file, self.graph)
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        status = 0
+        status = 1  # if something below raises
         try:
             self.say(f"run directory {self.run_dir}")
             for c in self.children:
@@ -213,7 +216,42 @@ class Launcher:
                 signal.signal(s, h)
             self.graph["state"] = "stopped"
             write_graph(self.graph_file, self.graph)
+            self._report_exits(status)
         return status
+
+    def exits(self, status: int) -> dict:
+        """What ``exits.json`` holds: the launch's exit status and, per node (in start order), ``started``,
+        ``exit_code`` (None if a signal killed it), ``signal`` (the signal's name, or None), ``stopped_by``
+        (the launcher's last signal to it at shutdown; None if it had ended by itself), ``respawns``,
+        ``pid`` (of its last process)."""
+        nodes = {}
+        for c in self.children:
+            code = c.exit_code
+            nodes[c.spec.name] = {
+                "started": c.proc is not None,
+                "exit_code": code if code is not None and code >= 0 else None,
+                "signal": signal.Signals(-code).name if code is not None and code < 0 else None,
+                "stopped_by": c.stopped_by,
+                "respawns": c.respawns,
+                "pid": c.proc.pid if c.proc is not None else None,
+            }
+        return {"launch": self.spec.name, "status": status, "ended": self._ended, "nodes": nodes}
+
+    def _report_exits(self, status: int) -> None:
+        """One line per node (exit status or signal, who stopped it, respawns), and ``exits.json`` in the run
+        directory."""
+        report = self.exits(status)
+        for name, e in report["nodes"].items():
+            if not e["started"]:
+                self.say(f"{name}: not started")
+                continue
+            how = f"exit {e['exit_code']}" if e["signal"] is None else f"killed by {e['signal']}"
+            after = f" after the launcher's {e['stopped_by']}" if e["stopped_by"] else ""
+            self.say(f"{name}: {how}{after}, {e['respawns']} respawn{'s' * (e['respawns'] != 1)}")
+        path = self.run_dir / "exits.json"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(report, indent=2))
+        os.replace(tmp, path)
 
     def _supervise(self) -> int:
         required = [c for c in self.children if c.spec.required]
@@ -229,20 +267,24 @@ class Launcher:
                 ended = [c for c in required if c.done]
                 failed = [c for c in ended if c.exit_code]
                 if self.once and len(ended) == len(required):
-                    self.say("every required node has exited")
+                    self._end("every required node has exited")
                     return 1 if failed else 0
                 if not self.once and ended:
-                    self.say(f"required node {ended[0].spec.name} exited: stopping the launch")
+                    self._end(f"required node {ended[0].spec.name} exited: stopping the launch")
                     return 1 if failed else 0
                 if self.once and failed:
-                    self.say(f"required node {failed[0].spec.name} failed: stopping the launch")
+                    self._end(f"required node {failed[0].spec.name} failed: stopping the launch")
                     return 1
             if all(c.done for c in self.children):
-                self.say("every node has exited")
+                self._end("every node has exited")
                 return 1 if any(c.exit_code for c in self.children) else 0
             time.sleep(0.05)
-        self.say(f"{self._stop}: stopping")
+        self._end(f"{self._stop}: stopping")
         return 130 if self._stop == "SIGINT" else 143
+
+    def _end(self, why: str) -> None:
+        self._ended = why
+        self.say(why)
 
     def _exited(self, c: _Child, now: float) -> None:
         c.exit_code = code = c.proc.returncode
@@ -271,6 +313,7 @@ class Launcher:
             if not live:
                 break
             for c in live:
+                c.stopped_by = sig.name
                 try:
                     os.killpg(c.proc.pid, sig)
                 except ProcessLookupError:
@@ -283,7 +326,9 @@ class Launcher:
                 self.say(f"{', '.join(c.spec.name for c in live)} still running after {sig.name}")
         for c in self.children:
             if c.proc is not None:
-                c.proc.wait()
+                code = c.proc.wait()
+                if c.stopped_by is not None or c.exit_code is None:  # stopped here, or died unseen
+                    c.exit_code = code
         sock = _sock_dir(self.run_dir)
         if sock.is_dir():
             for p in sock.iterdir():

@@ -35,14 +35,21 @@ def launch(tmp_path, file, *overrides, timeout=90):
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=timeout)
     (run_dir,) = (tmp_path / "runs").iterdir()
     logs = {p.stem: p.read_text() for p in (run_dir / "logs").iterdir()}
+    proc.exits = json.loads((run_dir / "exits.json").read_text())["nodes"]  # the launcher's record
     return proc, logs
 
 
-def assert_clean_exit(proc, logs, names):
+def assert_clean_exit(proc, logs, names, *, failed=()):
+    """Every node exited 0 (those in ``failed``: 1, by themselves), by itself or at the launcher's first
+    SIGINT, without a traceback."""
     assert "still running after" not in proc.stderr, proc.stderr  # nobody needed SIGTERM or SIGKILL
+    assert sorted(proc.exits) == sorted(names)
     for name in names:
         assert "Traceback" not in logs[name], logs[name]
-        assert f"INFO {name}: stopped (" in logs[name], logs[name]
+        e = proc.exits[name]
+        code = 1 if name in failed else 0
+        assert (e["exit_code"], e["signal"], e["respawns"]) == (code, None, 0), (name, e, logs[name])
+        assert e["stopped_by"] in ((None,) if name in failed else (None, "SIGINT")), (name, e)
 
 
 def half_rig(tmp_path, can, *, methods, sim_params="", emitter_params="", polarizer_params=""):
@@ -104,7 +111,7 @@ def test_stage_that_never_settles_ends_in_a_published_fault(tmp_path, can):
     assert proc.returncode == 1 and "sequencer exit 1" in proc.stderr
     assert "polarized_flood: scan 1 fault: polarizer/state" in logs["sequencer"], logs["sequencer"]
     assert "flood: scan 2 done" in logs["sequencer"]  # the rig is usable after the fault
-    assert_clean_exit(proc, logs, NODES)
+    assert_clean_exit(proc, logs, NODES, failed=["sequencer"])
 
 
 @needs_polarizer
@@ -113,7 +120,7 @@ def test_camera_that_disappears_ends_in_a_published_fault(tmp_path, can):
     assert proc.returncode == 1
     assert "step 0 (stripe:0/3): camera/trigger: DeviceLost" in logs["sequencer"], logs["sequencer"]
     assert "ERROR grabber: frame of scan 1 step 0" in logs["grabber"]
-    assert_clean_exit(proc, logs, NODES)
+    assert_clean_exit(proc, logs, NODES, failed=["sequencer"])
 
 
 @pytest.mark.skipif(not all(_have(f"polarstripe.nodes.{n}") for n in ("polarizer", "compositor", "planner")),

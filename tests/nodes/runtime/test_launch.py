@@ -174,6 +174,16 @@ def test_two_nodes_exchange_messages_and_respawn_stops_at_its_limit(tmp_path):
     }
     assert not any(_alive(n["pid"]) for n in graph["nodes"].values())
     assert not (run / "sock").exists()
+    exits = json.loads((run / "exits.json").read_text())
+    assert (exits["status"], exits["ended"]) == (0, "every required node has exited")
+    assert list(exits["nodes"]) == ["talker", "listener", "crasher"]
+    n = exits["nodes"]
+    assert n["talker"] == {"started": True, "exit_code": 0, "signal": None, "stopped_by": "SIGINT",
+                           "respawns": 0, "pid": graph["nodes"]["talker"]["pid"]}
+    assert (n["listener"]["exit_code"], n["listener"]["stopped_by"]) == (0, None)  # ended by itself
+    assert (n["crasher"]["exit_code"], n["crasher"]["respawns"]) == (0, 2)
+    assert "talker: exit 0 after the launcher's SIGINT, 0 respawns" in out
+    assert "crasher: exit 0, 2 respawns" in out
 
 
 def test_respawned_publisher_reaches_subscribers_again_then_ctrl_c_leaves_no_process(tmp_path):
@@ -312,6 +322,12 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
     assert status == 130
     out = _output(tmp_path)
     assert "stubborn still running after SIGINT" in out and "stubborn still running after SIGTERM" in out
+    n = json.loads((Path(g["run_dir"]) / "exits.json").read_text())["nodes"]
+    assert (n["stubborn"]["signal"], n["stubborn"]["stopped_by"]) == ("SIGKILL", "SIGKILL")
+    assert (n["camera"]["signal"], n["camera"]["stopped_by"]) == ("SIGKILL", None)  # the test killed it
+    counter = n["counter"]
+    assert (counter["exit_code"], counter["signal"], counter["stopped_by"]) == (0, None, "SIGINT")
+    assert "stubborn: killed by SIGKILL after the launcher's SIGKILL, 0 respawns" in out
     assert not any(_alive(n["pid"]) for n in g["nodes"].values())
     assert _processes_mentioning(g["run_dir"]) == []
 
