@@ -1,6 +1,6 @@
 """Two tiny nodes that show the runtime: a talker publishing a counter and a listener counting what it hears.
 
-``launch/sim.toml`` runs them until the simulated rig replaces it.
+``launch/demo.toml`` runs them (``polarstripe launch launch/demo.toml``); the tests use them as a small graph.
 """
 
 from __future__ import annotations
