@@ -76,17 +76,14 @@ def clip_halfspaces(origin: np.ndarray, dirs: np.ndarray, x0: np.ndarray, x1: np
                     normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Clip [x0, x1] of rays origin + x·dir to ∩ {n·(P − apex) ≥ 0}; a ray parallel to a plane is kept
     or dropped whole (|n·d| below 1e−13·|n|), so grazing rays give no 0/0."""
-    rel = np.broadcast_to(origin - apex, dirs.shape)
-    for n in normals:
-        a = rel @ n
-        b = dirs @ n
-        par = np.abs(b) <= _PAR_EPS * np.linalg.norm(n)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            root = np.where(par, 0.0, -a / np.where(par, 1.0, b))
-        x0 = np.where(~par & (b > 0), np.maximum(x0, root), x0)
-        x1 = np.where(~par & (b < 0), np.minimum(x1, root), x1)
-        x1 = np.where(par & (a < 0), -np.inf, x1)
-    return x0, x1
+    from polarstripe.sim.kernels import clip_rays
+
+    lo, hi = np.empty(dirs.shape[0]), np.empty(dirs.shape[0])
+    clip_rays(np.ascontiguousarray(origin, float).reshape(-1, 3), np.ascontiguousarray(dirs, float),
+              np.ascontiguousarray(np.broadcast_to(x0, dirs.shape[:1]), float),
+              np.ascontiguousarray(np.broadcast_to(x1, dirs.shape[:1]), float), np.asarray(apex, float),
+              np.ascontiguousarray(normals, float), _PAR_EPS, lo, hi)
+    return lo, hi
 
 
 def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dirs: np.ndarray,

@@ -20,6 +20,7 @@ from polarstripe.sim.geometry import (
     pixel_rays,
     projector_coords,
 )
+from polarstripe.sim.kernels import camera_stokes
 from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stripe_columns
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
@@ -30,7 +31,6 @@ from polarstripe.sim.transport import (
     direct,
     line_radiance,
     make_source,
-    scattering_frame,
     surface_scatter,
 )
 
@@ -327,10 +327,10 @@ def _camera_stokes(src: Source, scene: Scene, cam, dirs, B, q, u):
     if dop.model == "constant":
         chi = np.arctan2(src.e_field @ cam.u, src.e_field @ cam.r)
         return B * dop.p * src.dop_l * np.cos(2 * chi), B * dop.p * src.dop_l * np.sin(2 * chi)
-    _, e_par = scattering_frame(src.position, cam.position, dirs)
-    beta = np.arctan2(e_par @ cam.u, e_par @ cam.r)
-    c, s = np.cos(2 * beta), np.sin(2 * beta)
-    return q * c - u * s, q * s + u * c
+    qc, uc = np.empty_like(B), np.empty_like(B)
+    camera_stokes(np.asarray(src.position, float), np.asarray(cam.position, float),
+                  np.ascontiguousarray(dirs), cam.r, cam.u, B, q, u, qc, uc)
+    return qc, uc
 
 
 def render_frame(scene: Scene, pattern: str | Pattern, polarizer_deg: float | None = None,

@@ -99,7 +99,7 @@ def surface_scatter_beams(src: Source, objects, camera_pos: np.ndarray, points: 
             root = -a / b
         t0 = np.where(b > 0, np.maximum(t0, root), t0)
         t1 = np.where(b < 0, np.minimum(t1, root), np.where((b == 0) & (a < 0), -np.inf, t1))
-        ray = np.nonzero(t1 > t0)[0]
+        ray = np.nonzero((t1 > t0) & (wts.ravel() > 0))[0]     # degenerate triangles weigh nothing
         beam_src = dataclasses.replace(src, position=o, radius=0.0, inside=True)
         val = line_radiance(beam_src, fr.position, dirs, t0, ray, t0[ray], t1[ray], nodes, facing=n)
         out[sl] = (val.reshape(mm, k) * wts).sum(1)

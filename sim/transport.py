@@ -17,17 +17,17 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+from polarstripe.sim import kernels
 from polarstripe.sim import phase as phase_fn
 from polarstripe.sim.geometry import Frame, pinhole_frame, point_in_box, segment_length_in_box
 from polarstripe.sim.patterns import Pattern
-from polarstripe.sim.polarization import rayleigh_mueller
 from polarstripe.sim.scene import Scene
 
 _TRUNC = 50.0
 _POL_NODES = 5
-_CHUNK_NODES = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -71,17 +71,16 @@ def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.polynomial.legendre.leggauss(int(n))
 
 
-def _light_path(src: Source, y: np.ndarray, d_ly: np.ndarray) -> np.ndarray:
-    """Path length [m] of L→Y inside the medium."""
-    if src.inside:
-        return d_ly
-    return segment_length_in_box(src.position, y, src.box_lo, src.box_hi)
-
-
 def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
                   lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False,
                   facing: np.ndarray | None = None):
     """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
+
+    Each interval is split where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width (so the
+    pieces resolve a forward peak: the source near or behind the ray, A's beams); a piece gets ``nodes``
+    Gauss–Legendre nodes, or nodes/2 (≥ 3) when it spans < min(0.25, 3w) rad seen from the source's foot and
+    < 2 optical depths, nodes/4 when < min(0.06, 0.75w) rad and < 0.5 (w: forward-lobe width; stripe and
+    checker cells are such short pieces). The sum runs in :func:`polarstripe.sim.kernels.line_integrals`.
 
     Parameters
     ----------
@@ -105,44 +104,54 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     u_out = np.zeros(n) if polarization else None
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
         return (b_out, q_out, u_out) if polarization else b_out
-    ray, lo, hi = _split_forward_peak(src, origin, dirs, ray, lo, hi)
-    count = _node_counts(src, origin, dirs, ray, lo, hi, nodes)
-    for nk in np.unique(count):
-        sel = np.nonzero(count == nk)[0]
-        t, w = gauss_legendre(int(nk))
-        chunk = max(1, _CHUNK_NODES // int(nk))
-        for s in range(0, sel.size, chunk):
-            part = sel[s:s + chunk]
-            r = ray[part]
-            res = _intervals(src, origin, dirs, view_start, r, lo[part], hi[part], t, w, polarization, facing)
-            b_out += np.bincount(r, res[0], minlength=n)
-            if polarization:
-                q_out += np.bincount(r, res[1], minlength=n)
-                u_out += np.bincount(r, res[2], minlength=n)
+    pcode, g1, g2, alpha = _phase_code(src.phase)
+    gl_t, gl_w, gl_n, subs, nsubs = _rules(int(nodes))
+    pol = bool(polarization) and src.dop_model.model == "rayleigh"
+    depol = float(src.dop_model.depolarization) if pol else 0.0
+    face = np.zeros((0, 3)) if facing is None else np.ascontiguousarray(facing, float).reshape(-1, 3)
+    f64 = np.ascontiguousarray
+    kernels.line_integrals(
+        f64(src.position, float).reshape(-1, 3), f64(origin, float).reshape(-1, 3), f64(dirs, float),
+        f64(view_start, float), f64(ray, np.int64), f64(lo, float), f64(hi, float), face,
+        float(src.radius), float(src.sigma_t), float(src.sigma_s), float(src.intensity), bool(src.inside),
+        np.asarray(src.box_lo, float), np.asarray(src.box_hi, float), pcode, g1, g2, alpha,
+        forward_width(src.phase), _split_angles(src.phase), int(nodes), gl_t, gl_w, gl_n, subs, nsubs, pol,
+        np.asarray(src.e_field, float), float(src.dop_l), depol, b_out,
+        q_out if pol else np.zeros(1), u_out if pol else np.zeros(1))
     return (b_out, q_out, u_out) if polarization else b_out
 
 
-def _node_counts(src, origin, dirs, ray, lo, hi, nodes):
-    """Gauss–Legendre nodes per interval: ``nodes`` for long intervals, fewer for short ones.
+def _phase_code(phase) -> tuple[int, float, float, float]:
+    """The kernel's phase arguments: (0 isotropic | 1 HG g | 2 TTHG g_F, g_B, α)."""
+    if phase.model == "isotropic":
+        return 0, 0.0, 0.0, 0.0
+    if phase.model == "hg":
+        return 1, float(phase.g), 0.0, 0.0
+    gf, gb, alpha = phase_fn.tthg_parameters(float(phase.g))
+    if alpha == 0.0:
+        return 0, 0.0, 0.0, 0.0
+    return 2, float(gf), float(gb), float(alpha)
 
-    An interval's integrand varies on the scale of its angle span seen from the source's foot (the ξ
-    variable) and of its optical length; an interval spanning < min(0.25, 3w) rad (w: forward-lobe width) and
-    < 2 optical depths gets nodes/2, one spanning < min(0.06, 0.75w) rad and < 0.5 gets nodes/4 (≥ 3).
-    Stripe and checker cells are such short intervals.
-    """
-    if ray.size == 0 or nodes <= 4:
-        return np.full(ray.size, nodes)
-    d = dirs[ray]
-    c = origin if np.ndim(origin) == 1 else origin[ray]
-    lv = (src.position if src.position.ndim == 1 else src.position[ray]) - c
-    xc = (lv * d).sum(-1)
-    he = np.maximum(np.sqrt(np.maximum((lv * lv).sum(-1) - xc * xc, 0.0) + src.radius ** 2), 1e-200)
-    span = np.abs(np.arctan2(hi - xc, he) - np.arctan2(lo - xc, he))
-    tau = src.sigma_t * (hi - lo)
-    w = forward_width(src.phase)
-    count = np.full(ray.size, nodes)
-    count = np.where((span < min(0.25, 3 * w)) & (tau < 2.0), max(nodes // 2, 3), count)
-    return np.where((span < min(0.06, 0.75 * w)) & (tau < 0.5), max(nodes // 4, 3), count)
+
+@lru_cache(maxsize=32)
+def _rules(nodes: int):
+    """Gauss–Legendre rules of nodes, nodes/2, nodes/4 points (≥ 3; all ``nodes`` when nodes ≤ 4), padded
+    into (3, nodes) arrays, and the ≤ _POL_NODES evenly spaced node indices used for the polarization."""
+    counts = [nodes, nodes, nodes] if nodes <= 4 else [nodes, max(nodes // 2, 3), max(nodes // 4, 3)]
+    gl_t, gl_w = np.zeros((3, nodes)), np.zeros((3, nodes))
+    subs, nsubs = np.zeros((3, _POL_NODES), np.int64), np.zeros(3, np.int64)
+    for k, c in enumerate(counts):
+        t, w = gauss_legendre(c)
+        gl_t[k, :c], gl_w[k, :c] = t, w
+        sub = np.unique(np.linspace(0, c - 1, min(c, _POL_NODES)).round().astype(int))
+        subs[k, :sub.size], nsubs[k] = sub, sub.size
+    return gl_t, gl_w, np.array(counts, np.int64), subs, nsubs
+
+
+def _split_angles(phase) -> np.ndarray:
+    """Scattering angles [rad] at which intervals are split: (0.3, 1, 3, 9)× the forward-lobe width, < 1.2."""
+    width = forward_width(phase)
+    return np.array([f * width for f in (0.3, 1.0, 3.0, 9.0) if f * width < 1.2])
 
 
 def forward_width(phase) -> float:
@@ -153,105 +162,6 @@ def forward_width(phase) -> float:
         return max(1.0 - abs(phase.g), 1e-6)
     gf, gb, _ = phase_fn.tthg_parameters(phase.g)
     return max(1.0 - max(gf, gb), 1e-6)
-
-
-def _split_forward_peak(src, origin, dirs, ray, lo, hi):
-    """Split intervals where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width, so the
-    Gauss–Legendre pieces resolve a forward peak (the source near or behind the viewer's ray; A's beams)."""
-    width = forward_width(src.phase)
-    alphas = np.array([f * width for f in (0.3, 1.0, 3.0, 9.0) if f * width < 1.2])
-    if alphas.size == 0 or ray.size == 0:
-        return ray, lo, hi
-    d = dirs[ray]
-    c = origin if np.ndim(origin) == 1 else origin[ray]
-    lv = (src.position if src.position.ndim == 1 else src.position[ray]) - c
-    xc = (lv * d).sum(-1)
-    he = np.sqrt(np.maximum((lv * lv).sum(-1) - xc * xc, 0.0) + src.radius ** 2)
-    xb = xc[:, None] - he[:, None] / np.tan(alphas)[None, :]        # u = −h cot α: scattering angle α
-    inside = (xb > lo[:, None]) & (xb < hi[:, None])
-    if not inside.any():
-        return ray, lo, hi
-    pts = np.sort(np.where(inside, xb, hi[:, None]), axis=1)
-    edges = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
-    a, b = edges[:, :-1], edges[:, 1:]
-    keep = b > a
-    r = np.broadcast_to(ray[:, None], a.shape)
-    return r[keep], a[keep], b[keep]
-
-
-def _intervals(src, origin, dirs, view_start, ray, x0, x1, t, w, polarization, facing=None):
-    d = dirs[ray]
-    c = origin if np.ndim(origin) == 1 else origin[ray]
-    lv = (src.position if src.position.ndim == 1 else src.position[ray]) - c      # C → L
-    xc = (lv * d).sum(-1) if lv.ndim == 2 else d @ lv           # foot of the perpendicular from L
-    hvec = lv - xc[:, None] * d                                 # perpendicular offset of L from the ray
-    h2 = (hvec * hvec).sum(-1)
-    he = np.maximum(np.sqrt(h2 + src.radius ** 2), 1e-200)
-    vs = view_start[ray]
-    st = src.sigma_t
-    # truncate where the excess optical path reaches _TRUNC (refs/physics.md §2.2 step 2)
-    if st > 0:
-        u0 = x0 - xc
-        d0 = np.sqrt(u0 * u0 + h2)
-        if src.inside:
-            s0 = np.where(u0 >= 0, d0 + u0, h2 / np.maximum(d0 - u0, 1e-300))   # d_LY + u at x0, stable
-            q = s0 + min(_TRUNC / st, 1e100)
-            x_tr = xc + (q * q - h2) / (2.0 * q)
-        else:
-            y0 = c + x0[:, None] * d if c.ndim == 2 else c[None] + x0[:, None] * d
-            x_tr = x0 + _light_path(src, y0, d0) + min(_TRUNC / st, 1e100)
-        x1 = np.minimum(x1, np.maximum(x_tr, x0))
-    u0, u1 = x0 - xc, x1 - xc
-    # node positions: θ form when the interval straddles the source's foot, φ form on one side
-    side = np.where(u0 >= 0, 1.0, np.where(u1 <= 0, -1.0, 0.0))
-    a_lo = np.where(side > 0, np.arctan2(he, u1), np.where(side < 0, np.arctan2(he, -u0), np.arctan2(u0, he)))
-    a_hi = np.where(side > 0, np.arctan2(he, u0), np.where(side < 0, np.arctan2(he, -u1), np.arctan2(u1, he)))
-    half = 0.5 * (a_hi - a_lo)
-    ang = (0.5 * (a_hi + a_lo))[:, None] + half[:, None] * t[None, :]
-    sd = side[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(sd == 0, he[:, None] * np.tan(ang), sd * he[:, None] * np.cos(ang) / np.sin(ang))
-    u = np.where(np.isfinite(u), u, 0.0)
-    x = xc[:, None] + u
-    d_ly = np.sqrt(u * u + h2[:, None])
-    dsafe = np.maximum(d_ly, 1e-300)
-    one_plus = np.where(u > 0, h2[:, None] / (dsafe * (d_ly + u) + 1e-300), (d_ly - u) / dsafe)
-    one_minus = np.where(u < 0, h2[:, None] / (dsafe * (d_ly - u) + 1e-300), (d_ly + u) / dsafe)
-    zero = d_ly <= 0
-    one_plus, one_minus = np.where(zero, 1.0, one_plus), np.where(zero, 1.0, one_minus)
-    pf = phase_fn.evaluate(src.phase, one_minus, one_plus)
-    if st > 0:
-        if src.inside:
-            light = d_ly
-        else:
-            y = (c[None] if c.ndim == 1 else c[:, None, :]) + x[..., None] * d[:, None, :]
-            light = _light_path(src, y, d_ly)
-        expo = st * (light + (x - vs[:, None]))
-        m = expo.min(axis=1)
-        rel = np.exp(-(expo - m[:, None]))
-    else:
-        m = np.zeros(ray.size)
-        rel = 1.0
-    wk = w[None, :] * pf * rel
-    if facing is not None:
-        nf = facing[ray]
-        cos_f = (-(hvec * nf).sum(-1)[:, None] + u * (d * nf).sum(-1)[:, None]) / dsafe
-        wk = wk * np.clip(cos_f, 0.0, None)
-    log_pref = np.log(src.sigma_s * src.intensity) - np.log(he) + np.log(np.abs(half) + 1e-300) - m
-    total = wk.sum(axis=1)
-    with np.errstate(under="ignore"):
-        b = np.exp(log_pref) * total
-    if not polarization:
-        return (b,)
-    # the DOP varies slowly along a ray: its B-weighted mean uses at most _POL_NODES of the nodes
-    sub = np.unique(np.linspace(0, t.size - 1, min(t.size, _POL_NODES)).round().astype(int))
-    q, uu = _stokes_nodes(src, d, hvec, u[:, sub], d_ly[:, sub], one_minus[:, sub], one_plus[:, sub])
-    ws = wk[:, sub]
-    tot = ws.sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        qa = np.where(tot > 0, (ws * q).sum(1) / tot, 0.0) * b
-        ua = np.where(tot > 0, (ws * uu).sum(1) / tot, 0.0) * b
-    return b, qa, ua
 
 
 def scattering_frame(src_position: np.ndarray, origin: np.ndarray, dirs: np.ndarray):
@@ -267,27 +177,6 @@ def scattering_frame(src_position: np.ndarray, origin: np.ndarray, dirs: np.ndar
     e_perp = np.where(ok, n / np.maximum(nn, 1e-300)[:, None], alt)
     e_par = np.cross(e_perp, -dirs)
     return e_perp, e_par
-
-
-def _stokes_nodes(src: Source, d, hvec, u, d_ly, one_minus, one_plus):
-    """Normalized outgoing Stokes (q, u) at each node in the (e_par_out, e_perp) frame (paper eq. 15)."""
-    if src.dop_model.model == "constant":
-        return np.zeros_like(u), np.zeros_like(u)
-    lv = hvec + 0.0  # L − C projected ⊥ d plus xc d: only the ⊥ part matters for the plane normal
-    e_perp, _ = scattering_frame(np.zeros(3), -lv, d)
-    e = src.e_field
-    b = e_perp @ e                                                  # E·e_perp, constant along the ray
-    wv = np.cross(e[None, :], e_perp)                               # E × e_perp
-    # k_in = (Y − L)/d_LY = (−hvec + u d)/d_LY ;  E·e_par_in = k_in·(E × e_perp)
-    a = (-(hvec * wv).sum(-1)[:, None] + u * (d * wv).sum(-1)[:, None]) / np.maximum(d_ly, 1e-300)
-    nrm = a * a + b[:, None] ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c2 = np.where(nrm > 0, (a * a - b[:, None] ** 2) / nrm, 0.0)
-        s2 = np.where(nrm > 0, 2 * a * b[:, None] / nrm, 0.0)
-    q_in, u_in = src.dop_l * c2, src.dop_l * s2
-    m11, m12, m22, m33 = rayleigh_mueller(one_minus, one_plus, src.dop_model.depolarization)
-    i_out = m11 + m12 * q_in
-    return (m12 + m22 * q_in) / i_out, m33 * u_in / i_out
 
 
 def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, normals: np.ndarray,
