@@ -93,7 +93,8 @@ class Polarizer(Node):
         speed_deg_s: float = 180.0
         start_deg: float | None = None  # move here once connected
         rate_hz: float = 10.0  # steady publishing rate of polarizer/state
-        poll_s: float = 0.02  # how often a change is looked for (0.01 costs ~9 % of a core, 0.02 ~3 %)
+        poll_s: float = 0.02  # how often a change is looked for while a move or a fault is in progress
+        idle_poll_s: float = 0.1  # ... and while settled without a fault (at most 1/rate_hz)
         settle_timeout_s: float = 5.0
         auto_resets: int = 5
         reset_delay_s: float = 0.2  # wait before the first automatic fault reset (then 2x, 4x, ...)
@@ -110,7 +111,8 @@ class Polarizer(Node):
             super().validate()
             if not self.min_deg < self.max_deg:
                 raise ValueError(f"min_deg={self.min_deg} must be below max_deg={self.max_deg}")
-            for key in ("rate_hz", "poll_s", "settle_timeout_s", "connect_retry_s", "frame_timeout_s"):
+            for key in ("rate_hz", "poll_s", "idle_poll_s", "settle_timeout_s", "connect_retry_s",
+                        "frame_timeout_s"):
                 if not getattr(self, key) > 0:
                     raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
             if self.auto_resets < 0 or self.reset_delay_s < 0:
@@ -146,7 +148,8 @@ class Polarizer(Node):
         self.subscribe("camera/frame", mode="latest")  # only read by calibrate (wait_for)
         self.serve("polarizer/calibrate", self.calibrate)
         self.serve("polarizer/reset", self.on_reset)
-        self.every(self.params.poll_s, self.poll)
+        self._poll_fast = True
+        self.every(self.params.poll_s, self.poll, name="poll")
         self._connect()
         self.poll()
 
@@ -214,6 +217,7 @@ class Polarizer(Node):
 
         self.target_deg = float(angle_deg)
         self._node_fault, self._node_fault_resettable = "", False
+        self._set_poll(fast=True)  # until settled (or a failed move's fault is published)
         if self.stage is None:
             return  # moved there once connected
         try:
@@ -298,11 +302,22 @@ class Polarizer(Node):
         state = self.state()
         key = (None if math.isnan(state.angle_deg) else round(state.angle_deg, 3), state.target_deg,
                state.settled, state.fault)
-        if key != self._last_key or now - self._last_pub >= 1.0 / self.params.rate_hz:
+        if key != self._last_key or now - self._last_pub >= 1.0 / self.params.rate_hz - 1e-6:
             if state.fault and (self._last_key is None or state.fault != self._last_key[3]):
                 self.counters["faults"] += 1
             self.state_pub.publish(state)
             self._last_key, self._last_pub = key, now
+        self._set_poll(fast=bool(self._move_started is not None or fault))
+
+    def _set_poll(self, *, fast: bool) -> None:
+        """Poll every ``poll_s`` while a move or a fault is in progress, else every ``idle_poll_s`` (capped
+        at the steady period 1/rate_hz): a settled stage costs a tenth of the wake-ups."""
+        if fast == self._poll_fast:
+            return
+        self._poll_fast = fast
+        p = self.params
+        self.cancel("poll")
+        self.every(p.poll_s if fast else min(p.idle_poll_s, 1.0 / p.rate_hz), self.poll, name="poll")
 
     def state(self) -> PolarizerState:
         """The state as it stands: NaN angle and not settled whenever a fault stands."""

@@ -329,3 +329,29 @@ def test_ell14_backend_moves_and_a_failed_move_is_a_fault():
             assert _run_until(h, lambda s: s.settled and abs(s.angle_deg + 10.0) < 0.01) is not None
         finally:
             h.stop()
+
+
+def test_polls_fast_only_while_a_move_or_a_fault_is_in_progress():
+    """Settled and fault-free, the stage is looked at every idle_poll_s (the steady rate); a command polls at
+    poll_s again until it settles, so the settle is published as promptly as before."""
+    h = NodeHarness(Polarizer, params={"backend": "sim", "speed_deg_s": 1e5, "poll_s": 0.01,
+                                       "idle_poll_s": 0.1, "rate_hz": 10.0})
+    try:
+        assert h.advance(1.0).count("poll") <= 11  # idle: 10 polls a second, not 100
+        h.deliver("polarizer/cmd", PolarizerCommand(target_deg=40.0))
+        assert 4 <= h.advance(0.05).count("poll") <= 6  # moving: every poll_s
+        time.sleep(0.05)  # the stage settles (SimStage: real time)
+        before = len(h.published("polarizer/state"))
+        h.advance(0.01)  # the next fast poll sees it
+        assert any(s.settled and s.angle_deg == 40.0 for s in h.published("polarizer/state")[before:])
+        h.advance(0.05)
+        assert h.advance(1.0).count("poll") <= 11  # idle again
+        n = len(h.published("polarizer/state"))
+        h.advance(1.0)
+        assert 9 <= len(h.published("polarizer/state")) - n <= 11  # the steady rate is kept
+        h.node.stage.inject_fault("injected")  # a fault while idle: published within idle_poll_s
+        h.advance(0.1)
+        assert "injected" in h.published("polarizer/state")[-1].fault
+        assert 4 <= h.advance(0.05).count("poll") <= 6  # and polled fast while it stands
+    finally:
+        h.stop()
