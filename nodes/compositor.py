@@ -10,8 +10,9 @@ method's composite, scores it and writes it out.
   and E_w, then eq. 6; ``hf_separation`` the direct image from the max and min over the complementary checkers
   (Nayar et al. 2006). E_b is whichever analyzer angle passes less light over the object-free region;
 * scores it: Michelson contrast over the chart's bright and dark bars, and ``error_vs_truth`` (relative RMS,
-  gain fitted) against the simulator's ground truth when ``simulator/truth`` is served (else contrast only,
-  with bar and object-free regions from params);
+  gain fitted) against the simulator's ground truth: the newest ``simulator/truth`` message (the simulator
+  publishes it at every scan start, so a recording carries it), else the ``simulator/truth`` service when a
+  node serves it, else none (contrast only, with bar and object-free regions from params);
 * publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, and ``saturated``
   uint8; ``e_b``/``e_w`` or ``global`` where the method has them) and, after a polarized method,
   ``medium/estimate`` (p; σ_t is not estimated);
@@ -92,7 +93,7 @@ class Compositor(Node):
                 raise ValueError("give both chart_bright_roi and chart_dark_roi, or neither")
 
     PUBLISHES = {"compositor/composite": Composite, "medium/estimate": MediumEstimate}
-    SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent}
+    SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
 
     def setup(self):
         self.scan: _Scan | None = None
@@ -108,6 +109,9 @@ class Compositor(Node):
         self.estimate_pub = self.publisher("medium/estimate")
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
+        self.topic_truth: Composite | None = None  # the newest simulator/truth message
+        if self.params.use_truth:
+            self.subscribe("simulator/truth", self.on_truth, mode="latest")
         if self.params.out:
             os.makedirs(self.params.out, exist_ok=True)
             path = os.path.join(self.params.out, "metrics.json")
@@ -243,9 +247,23 @@ class Compositor(Node):
             self.scan, self._draining = None, False
 
     # ---- the composite ---------------------------------------------------------------------------------
+    def on_truth(self, truth: Composite) -> None:
+        self.topic_truth = truth
+
     def _truth(self, shape) -> Composite | None:
+        """The ground truth for a scan of frames of ``shape``: the newest ``simulator/truth`` message, else
+        the service's answer, else None."""
         from polarstripe.nodes.runtime.bus import BusError
 
+        if not self.params.use_truth:
+            return None
+        for truth in self._take("simulator/truth", 0.0):  # one that came with the last frames
+            self.topic_truth = truth
+        if self.topic_truth is not None:
+            if self.topic_truth.images["S"].shape == shape:
+                return self.topic_truth
+            self.log.warning("truth on the topic is %s, frames are %s: asking the service",
+                             self.topic_truth.images["S"].shape, shape)
         if not self._truth_served:
             return None
         try:

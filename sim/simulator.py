@@ -14,6 +14,9 @@ Services (relative to the namespace):
 * ``simulator/truth`` (``Empty`` → ``Composite``) — images ``S`` (float64: flood D + A in DN above the dark
   offset, no analyzer, same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart),
   ``chart_high`` (bool, bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``.
+  The same ``Composite`` is published on the topic ``simulator/truth`` at every scan start (one render per
+  source pose, cached; re-published as a latch), so a recording carries it and a replay scores like the live
+  run.
 * ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
@@ -131,6 +134,7 @@ class Simulator(Node):
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
                 raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
 
+    PUBLISHES = {"simulator/truth": Composite}
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
     SERVES = {
         "simulator/render": (RenderRequest, Frame),
@@ -182,6 +186,7 @@ class Simulator(Node):
         self._expose_for_flood()
         self.scanning: set[int] = set()  # scans started and not yet ended (emitter/scan)
         self.pending_plan: Plan | None = None
+        self.truth_pub = self.publisher("simulator/truth")
         self.subscribe("planner/plan", self.on_plan, mode="latest")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         self.serve("simulator/render", self.render)
@@ -320,6 +325,7 @@ class Simulator(Node):
     def on_scan(self, event: ScanEvent) -> None:
         if event.event == "start":
             self.scanning.add(event.scan_id)
+            self.truth_pub.publish(self.truth(Empty()))  # the pose cannot change until the scan ends
             return
         self.scanning.discard(event.scan_id)
         if not self.scanning and self.pending_plan is not None:

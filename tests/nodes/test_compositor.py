@@ -218,6 +218,36 @@ def test_truth_gives_error_and_contrast_and_files_are_written(tmp_path):
     assert set(h2.node.metrics) == {"flood", "stripes"}
 
 
+def test_truth_on_the_topic_is_taken_before_the_service():
+    """A replay has no simulator: the truth recorded on the topic must score the scan as the service did."""
+    s, b = _scene(), 200.0
+    band = np.full((H, W), -1, np.int32)
+    band[:, 8:] = 0
+    high = np.zeros((H, W), bool)
+    high[4:12, 8:] = True
+    topic = Composite(images={"S": s, "chart_band": band, "chart_high": high}, method="truth",
+                      metrics={"dark_offset_dn": float(DARK)})
+    wrong = Composite(images={"S": 2 * s + 1, "chart_band": band, "chart_high": ~high}, method="truth",
+                      metrics={"dark_offset_dn": 0.0})
+    h = _harness(use_truth=True, dark_offset_dn=None)
+    h.on_call("simulator/truth", lambda req: wrong)  # must not be asked while the topic has one
+    h.deliver("simulator/truth", topic)
+    comp = _scan(h, 3, "flood", [(_dn(s + b), "flood", None)])
+    assert h.bus.clients.get(h.full("simulator/truth")) is None or not h.bus.clients[
+        h.full("simulator/truth")].requests
+    assert comp.metrics["dark_offset_dn"] == DARK
+    assert comp.metrics["contrast"] == pytest.approx((1400.0 - 600.0) / (1400.0 + 600.0))
+    e = (s + b).ravel()
+    g = (e @ s.ravel()) / (e @ e)
+    expected_err = np.sqrt(np.sum((g * e - s.ravel()) ** 2)) / np.sqrt(np.sum(s ** 2))
+    assert comp.metrics["error_vs_truth"] == pytest.approx(expected_err, rel=1e-6)
+    # a truth of another frame size is not used: the service answers instead
+    h.deliver("simulator/truth", Composite(images={"S": np.zeros((2, 2)), "chart_band": band[:2, :2],
+                                                   "chart_high": high[:2, :2]}, method="truth"))
+    comp = _scan(h, 4, "flood", [(_dn(s + b), "flood", None)])
+    assert comp.metrics["dark_offset_dn"] == 0.0
+
+
 def test_a_fault_ends_the_scan_without_a_composite():
     h = _harness()
     h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="stripes", stripes=2))

@@ -123,6 +123,25 @@ def test_truth_marks_the_chart_and_its_bars():
     assert s[on & high].mean() > s[on & ~high].mean() > 0
 
 
+def test_truth_is_published_at_every_scan_start_for_the_pose_of_that_scan():
+    h = sim()
+    served = h.call("simulator/truth", Empty())
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="flood"))
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="flood"))
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="stripes"))  # the latch again
+    first, again = h.published("simulator/truth")
+    for t in (first, again):
+        assert t.method == "truth" and set(t.images) == set(served.images)
+        assert all(np.array_equal(t.images[k], served.images[k]) for k in served.images)
+        assert t.metrics == served.metrics
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="done", method="stripes"))
+    assert h.call("simulator/move_source", Plan(modality="flood", separation_m=0.3)).ok
+    h.deliver("emitter/scan", ScanEvent(scan_id=3, event="start", method="flood"))
+    moved = h.published("simulator/truth")[-1]
+    assert len(h.published("simulator/truth")) == 3
+    assert moved.metrics["separation_m"] == pytest.approx(0.3) and served.metrics["separation_m"] != 0.3
+
+
 def test_expose_fast_has_the_emva_mean_and_variance():
     cam = load_scene(None).camera
     lam_e = 500.0

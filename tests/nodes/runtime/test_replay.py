@@ -181,7 +181,7 @@ params = {{ camera = "sim" }}
 [[node]]
 name = "compositor"
 module = "polarstripe.nodes.compositor"
-params = {{ use_truth = false, dark_offset_dn = 64.0 }}
+params = {{ use_truth = true }}
 [[node]]
 name = "emitter"
 module = "polarstripe.nodes.emitter"
@@ -201,9 +201,10 @@ def _composites(path) -> dict[str, Composite]:
 
 @pytest.mark.slow
 def test_replayed_scan_gives_the_live_composites_bit_for_bit(tmp_path):
-    """Live: the simulated rig scans with every method, recorded. Replay: launch/replay.toml feeds the
-    recorded frames and scan events into a fresh compositor (configured as live: no ground truth, the same
-    dark offset), recorded too. Every composite image must be identical, bit for bit."""
+    """Live: the simulated rig scans with every method, recorded; the compositor scores against the
+    simulator's ground truth (dark offset, object-free region for p, chart bars). Replay: launch/replay.toml
+    feeds the recorded frames, scan events and truth into a fresh compositor (no simulator), recorded too.
+    Every composite image and its metrics must be identical, bit for bit."""
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs"), "XDG_RUNTIME_DIR": str(tmp_path)}
     live_toml = tmp_path / "live.toml"
     live_toml.write_text(textwrap.dedent(LIVE.format(can=f"ps-replay-test-{os.getpid()}")))
@@ -225,7 +226,6 @@ def test_replayed_scan_gives_the_live_composites_bit_for_bit(tmp_path):
             "--once",
             f"bag={live}",
             "rate=4",
-            "dark_offset_dn=64.0",
             "--record",
             str(replayed),
         ],
@@ -250,3 +250,6 @@ def test_replayed_scan_gives_the_live_composites_bit_for_bit(tmp_path):
             assert img.tobytes() == rep.images[name].tobytes(), f"{method}/{name} differs"
         assert np.ptp(live_c.images["composite"]) > 0  # not a blank image that would match anything
         assert rep.metrics["frames"] == live_c.metrics["frames"]
+        assert live_c.metrics["error_vs_truth"] is not None  # the live run did score against the truth
+        for key in ("error_vs_truth", "contrast", "dark_offset_dn", "p"):
+            assert rep.metrics.get(key) == live_c.metrics.get(key), f"{method}: {key} differs"
