@@ -8,11 +8,11 @@ normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u), s = 2·t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
-from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
-
-_BIG = 1e30
+from polarstripe.sim.ray_kernels import box_interval_kernel, intersect_kernel, pack_objects, pixel_rays_kernel
+from polarstripe.sim.scene import PlaneObject
 
 
 @dataclass(frozen=True)
@@ -53,15 +53,14 @@ def pixel_rays(frame: Frame, pixels: np.ndarray | None = None) -> np.ndarray:
     (n, 3) float64 directions; n = h·w in row-major order when ``pixels`` is None.
     """
     if pixels is None:
-        ii, jj = np.meshgrid(np.arange(frame.h), np.arange(frame.w), indexing="ij")
-        ii, jj = ii.ravel(), jj.ravel()
-    else:
+        rows = np.repeat(np.arange(frame.h, dtype=float), frame.w)
+        cols = np.tile(np.arange(frame.w, dtype=float), frame.h)
+    else:                                        # integer or continuous (row, col)
         pixels = np.asarray(pixels)
-        ii, jj = pixels[:, 0], pixels[:, 1]
-    a = ((jj + 0.5) - frame.w / 2.0) * frame.s
-    b = ((ii + 0.5) - frame.h / 2.0) * frame.s
-    d = frame.f[None, :] + a[:, None] * frame.r[None, :] - b[:, None] * frame.u[None, :]
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+        rows, cols = (np.ascontiguousarray(pixels[:, k], float) for k in (0, 1))
+    out = np.empty((rows.size, 3))
+    pixel_rays_kernel(frame.f, frame.r, frame.u, float(frame.s), frame.w, frame.h, rows, cols, out)
+    return out
 
 
 def box_interval(origin: np.ndarray, dirs: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
@@ -69,18 +68,10 @@ def box_interval(origin: np.ndarray, dirs: np.ndarray, lo, hi) -> tuple[np.ndarr
 
     origin (3,) or (n, 3), dirs (n, 3) unit. Empty intervals have t1 < t0 (no NaN for axis-parallel rays).
     """
-    o = np.broadcast_to(origin, dirs.shape)
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dirs
-        ta, tb = (lo - o) * inv, (hi - o) * inv
-    tmin, tmax = np.minimum(ta, tb), np.maximum(ta, tb)
-    par = dirs == 0.0
-    inside = (o >= lo) & (o <= hi)
-    tmin = np.where(par, np.where(inside, -_BIG, _BIG), tmin)
-    tmax = np.where(par, np.where(inside, _BIG, -_BIG), tmax)
-    t0 = np.maximum(tmin.max(axis=1), 0.0)
-    t1 = tmax.min(axis=1)
+    dirs = np.ascontiguousarray(dirs, float)
+    t0, t1 = np.empty(dirs.shape[0]), np.empty(dirs.shape[0])
+    box_interval_kernel(np.ascontiguousarray(origin, float).reshape(-1, 3), dirs, np.asarray(lo, float),
+                        np.asarray(hi, float), t0, t1)
     return t0, t1
 
 
@@ -120,70 +111,24 @@ def plane_axes(obj: PlaneObject) -> tuple[np.ndarray, np.ndarray]:
     return right, np.cross(right, -n)
 
 
-def _hit_plane(o, d, obj: PlaneObject):
-    n = np.asarray(obj.normal)
-    dn = d @ n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = ((np.asarray(obj.point) - o) @ n) / dn if o.ndim == 1 else np.einsum(
-            "ij,j->i", np.asarray(obj.point) - o, n) / dn
-    ok = (dn < 0) & (t > 1e-12)  # one-sided: only the face whose normal faces the ray origin
-    if obj.size is not None:
-        p = o + np.where(ok, t, 0.0)[:, None] * d
-        ra, ua = plane_axes(obj)
-        rel = p - np.asarray(obj.point)
-        ok &= (np.abs(rel @ ra) <= obj.size[0] / 2) & (np.abs(rel @ ua) <= obj.size[1] / 2)
-    t = np.where(ok, t, np.inf)
-    return t, np.broadcast_to(n, d.shape)
-
-
-def _hit_sphere(o, d, obj: SphereObject):
-    c = np.asarray(obj.center)
-    oc = o - c
-    b = (oc * d).sum(-1) if oc.ndim == 2 else d @ oc
-    cc = (oc * oc).sum(-1) - obj.radius ** 2
-    disc = b * b - cc
-    sq = np.sqrt(np.maximum(disc, 0.0))
-    t = -b - sq
-    ok = (disc > 0) & (t > 1e-12)
-    t = np.where(ok, t, np.inf)
-    p = o + np.where(ok, t, 0.0)[:, None] * d
-    n = (p - c) / obj.radius
-    return t, n
-
-
-def _hit_box(o, d, obj: BoxObject):
-    lo, hi = np.asarray(obj.min), np.asarray(obj.max)
-    ob = np.broadcast_to(o, d.shape)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        ta, tb = (lo - ob) * inv, (hi - ob) * inv
-    tmin = np.where(d == 0, np.where((ob >= lo) & (ob <= hi), -_BIG, _BIG), np.minimum(ta, tb))
-    tmax = np.where(d == 0, np.where((ob >= lo) & (ob <= hi), _BIG, -_BIG), np.maximum(ta, tb))
-    axis = tmin.argmax(axis=1)
-    t0, t1 = tmin.max(axis=1), tmax.min(axis=1)
-    ok = (t0 <= t1) & (t0 > 1e-12)  # seen from outside only
-    n = np.zeros_like(d)
-    rows = np.arange(d.shape[0])
-    n[rows, axis] = -np.sign(d[rows, axis])
-    return np.where(ok, t0, np.inf), n
-
-
 def intersect(objects, origin: np.ndarray, dirs: np.ndarray) -> Hits:
     """Nearest hit of rays origin + t·dir (origin (3,) or (n, 3)) with the scene objects."""
     n = dirs.shape[0]
-    t_best = np.full(n, np.inf)
-    idx = np.full(n, -1, dtype=np.int64)
-    normal = np.zeros((n, 3))
-    fns = {PlaneObject: _hit_plane, SphereObject: _hit_sphere, BoxObject: _hit_box}
-    for k, obj in enumerate(objects):
-        t, nn = fns[type(obj)](origin, dirs, obj)
-        better = t < t_best
-        t_best = np.where(better, t, t_best)
-        idx = np.where(better, k, idx)
-        normal = np.where(better[:, None], nn, normal)
+    t_best = np.empty(n)
+    idx = np.empty(n, dtype=np.int64)
+    normal = np.empty((n, 3))
+    kinds, params = _packed(tuple(objects))
+    origin = np.asarray(origin, float)
+    intersect_kernel(kinds, params, np.ascontiguousarray(origin).reshape(-1, 3),
+                     np.ascontiguousarray(dirs, float), t_best, idx, normal)
     hit = np.isfinite(t_best)
     point = origin + np.where(hit, t_best, 0.0)[:, None] * dirs
     return Hits(t_best, idx, normal, point)
+
+
+@lru_cache(maxsize=64)
+def _packed(objects: tuple):
+    return pack_objects(objects)
 
 
 def occluded(objects, a: np.ndarray, b: np.ndarray, skip: np.ndarray | None = None) -> np.ndarray:

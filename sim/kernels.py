@@ -283,8 +283,10 @@ def camera_stokes(src, origin, dirs, cr, cu, b, q, u, q_out, u_out):
             px, py, pz = px / pn, py / pn, pz / pn
         # e_par = e_perp × (−d)
         ax, ay, az = -(py * dz - pz * dy), -(pz * dx - px * dz), -(px * dy - py * dx)
-        beta = math.atan2(ax * cu[0] + ay * cu[1] + az * cu[2], ax * cr[0] + ay * cr[1] + az * cr[2])
-        c, s = math.cos(2 * beta), math.sin(2 * beta)
+        y = ax * cu[0] + ay * cu[1] + az * cu[2]            # e_par at angle β from r: cos 2β, sin 2β
+        x = ax * cr[0] + ay * cr[1] + az * cr[2]
+        r2 = x * x + y * y
+        c, s = ((x * x - y * y) / r2, 2.0 * x * y / r2) if r2 > 0 else (1.0, 0.0)
         q_out[i] = q[i] * c - u[i] * s
         u_out[i] = q[i] * s + u[i] * c
 

@@ -25,6 +25,7 @@ from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stri
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
 from polarstripe.sim.surface import SurfaceInfo, surface_info
+from polarstripe.sim.surface_grid import plane_stripe_field
 from polarstripe.sim.surface_term import surface_scatter_beams
 from polarstripe.sim.transport import (
     Source,
@@ -51,10 +52,12 @@ class Fidelity:
 
 
 FIDELITY = {
-    "preview": Fidelity("preview", 8, 2, 6, (16, 12), 4),
-    "standard": Fidelity("standard", 12, 4, 12, (32, 24), 5),
+    "preview": Fidelity("preview", 4, 2, 6, (8, 4), 4),
+    "standard": Fidelity("standard", 6, 4, 12, (12, 6), 4),
     "reference": Fidelity("reference", 64, 16, 48, None, 24),
 }
+
+_CAMERA_GRID = 3      # objects other than planes: an A grid of a_grid × this over the image
 
 
 def resolve_fidelity(fidelity: str | Fidelity) -> Fidelity:
@@ -172,8 +175,22 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
         a_out[idx] = at(idx)
         return a_out
     gw, gh = fid.a_grid
-    if src.pattern.kind == "stripe":     # A of a stripe varies fast across it, slowly along it
-        gw, gh = 2 * gw, max(gh // 2, 2)
+    done = np.zeros(n, bool)
+    if src.pattern.kind in ("stripe", "flood") and src.frame is not None:   # planes: pattern coordinates
+        c0, c1 = (0, src.frame.w) if src.pattern.kind == "flood" else stripe_columns(src.pattern, src.frame.w)
+        for k in np.unique(surf.object_id[hit]):
+            if not isinstance(scene.objects[k], PlaneObject):
+                continue
+            idx = np.nonzero(surf.object_id == k)[0]
+            val = plane_stripe_field(src.frame, scene.objects[k], hits.point[idx], c0, c1, gw, gh, a_at)
+            if val is not None:
+                a_out[idx] = surf.albedo[idx] * val
+                done[idx] = True
+        if done[hit].all():
+            return a_out
+    gw, gh = _CAMERA_GRID * gw, _CAMERA_GRID * gh     # other objects: a grid over the image
+    if src.pattern.kind == "stripe":
+        gw, gh = 2 * gw, max(gh // 2, 2)             # A of a stripe varies fast across it, slowly along it
     gw, gh = min(gw, cam.w), min(gh, cam.h)
     gr = np.linspace(0, cam.h - 1, gh)
     gc = np.linspace(0, cam.w - 1, gw)
@@ -186,7 +203,7 @@ def _a_field(src: Source, scene: Scene, fid: Fidelity, cam, hits, surf: SurfaceI
     gval[gidx] = a_at(ghits.point[gidx], ghits.normal[gidx], np.ones(gidx.size))
     gval, gobj = gval.reshape(gh, gw), ghits.index.reshape(gh, gw)
     fields = _extend_planes(scene, cam, gdirs, gval, gobj, a_at)
-    idx = np.nonzero(hit)[0]
+    idx = np.nonzero(hit & ~done)[0]
     rows, cols = idx // cam.w, idx % cam.w
     fr = rows * (gh - 1) / max(cam.h - 1, 1)
     fc = cols * (gw - 1) / max(cam.w - 1, 1)
