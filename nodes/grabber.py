@@ -87,7 +87,7 @@ class Grabber(Node):
         p = self.params
         kwargs: dict = {}
         if p.camera == "sim":
-            from polarstripe.sim.simulator import RenderRequest
+            from polarstripe.sim.simulator_requests import RenderRequest
 
             if self._render_client is None:
                 self._render_client = self.client(p.render_service, RenderRequest, Frame,

@@ -35,72 +35,31 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
-from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent, message
-from polarstripe.msgs.base import Message
+from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn, mean_dn
+from polarstripe.sim.simulator_frames import PREVIEW_WIDTH, expose_fast, next_pattern, timed_render
+from polarstripe.sim.simulator_requests import (
+    FAULT_COMMANDS,
+    RenderRequest,
+    SimFault,
+    SimulatorError,
+    parse_resolution,
+)
 
-PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
-
-
-@message("sim_render_request")
-class RenderRequest(Message):
-    """Ask the simulator for one frame of ``pattern`` (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``,
-    ``off``); ``analyzer`` False takes it with no analyzer in the path; ``exposure_s`` None uses the
-    simulator's."""
-
-    pattern: str
-    analyzer: bool = True
-    scan_id: int = 0
-    step: int = 0
-    exposure_s: float | None = None
-
-
-@message("sim_fault")
-class SimFault(Message):
-    """A fault injection command for the simulator, e.g. ``"never_settle on"``, ``"camera_lost on"``."""
-
-    command: str
-
-
-#: command -> what it does (``simulator/fault`` and the ``faults`` param)
-FAULT_COMMANDS = {
-    "never_settle": "on|off: the drive hunts around its target and never reports target reached",
-    "emcy": "[CODE]: the drive faults and sends an EMCY (default 0x8611)",
-    "heartbeat_stop": "[SECONDS]: the drive's heartbeat stops (for SECONDS, or until heartbeat_resume)",
-    "heartbeat_resume": ": the heartbeat comes back",
-    "bus_off": "SECONDS: an error frame 'bus-off', silence, then 'restarted'",
-    "position_limit": "MIN MAX: the drive's software position limit [counts]",
-    "camera_lost": "on|off: simulator/render answers with an error (the camera is gone)",
-    "frame_delay": "SECONDS: each render waits this long first (a hung camera; 0 ends it)",
-}
-
-
-class SimulatorError(SceneError):
-    """A simulator request or parameter that cannot be served; the text names the field and the value."""
-
-
-def _parse_resolution(text: str) -> tuple[int, int] | None:
-    if not text:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"resolution {text!r} is not WxH, e.g. 320x240") from None
-    if w < 2 or h < 2:
-        raise ValueError(f"resolution {text!r}: need at least 2x2")
-    return w, h
+# requests and errors (simulator_requests.py) and per-frame functions (simulator_frames.py), re-exported
+__all__ = ["FAULT_COMMANDS", "PREVIEW_WIDTH", "RenderRequest", "SimFault", "Simulator", "SimulatorError",
+           "expose_fast", "next_pattern"]
 
 
 class Simulator(Node):
@@ -128,7 +87,7 @@ class Simulator(Node):
 
         def validate(self):
             super().validate()
-            _parse_resolution(self.resolution)
+            parse_resolution(self.resolution)
             if self.noise not in ("poisson", "gaussian", "auto"):
                 raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
@@ -147,7 +106,7 @@ class Simulator(Node):
         p = self.params
         try:
             base = load_scene(p.scene or None)
-            res = _parse_resolution(p.resolution)
+            res = parse_resolution(p.resolution)
             cam = base.camera
             if res is not None and res != cam.resolution:
                 exposure = cam.exposure_s * (res[0] / cam.resolution[0]) ** 2
@@ -270,7 +229,7 @@ class Simulator(Node):
             if ahead is not None:
                 comp, seconds = ahead.result()
             else:
-                comp, seconds = _timed_render(self._model_scene(pattern), pattern, self.fidelity)
+                comp, seconds = timed_render(self._model_scene(pattern), pattern, self.fidelity)
             self.stats["model_s"] += seconds
             self.stats["renders"] += 1
             self._cache[key] = comp
@@ -288,7 +247,7 @@ class Simulator(Node):
         for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
             self._ahead.pop(old).cancel()
         scene = self._model_scene(pattern)
-        self._ahead[key] = self._pool.submit(_timed_render, scene, pattern, self.fidelity)
+        self._ahead[key] = self._pool.submit(timed_render, scene, pattern, self.fidelity)
 
     def move_to(self, separation_m: float) -> Scene:
         """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
@@ -440,65 +399,6 @@ class Simulator(Node):
             return Ack(ok=False, detail=f"fault {req.command!r}: {exc}")
         self.log.warning("fault injected: %s", req.command)
         return Ack(ok=True, detail=req.command)
-
-
-def next_pattern(pattern: str) -> str | None:
-    """The pattern a scan shows after ``pattern`` (``stripe:K/N`` → ``stripe:K+1/N``, ``checker:S:0`` →
-    ``checker:S:S``), or None."""
-    if m := re.fullmatch(r"stripe:(\d+)/(\d+)", pattern):
-        k, n = int(m[1]), int(m[2])
-        return f"stripe:{k + 1}/{n}" if k + 1 < n else None
-    if m := re.fullmatch(r"checker:(\d+):0", pattern):
-        return f"checker:{m[1]}:{m[1]}"
-    return None
-
-
-def _timed_render(scene: Scene, pattern: str, fidelity):
-    t0 = time.perf_counter()
-    comp = render_components(scene, pattern, fidelity)
-    return comp, time.perf_counter() - t0
-
-
-def expose_fast(radiance: np.ndarray, e_map: np.ndarray, camera, rng: np.random.Generator,
-                *, gaussian: bool = False) -> np.ndarray:
-    """One exposure like :func:`polarstripe.sim.sensor.expose`, with the electrons map precomputed.
-
-    Parameters
-    ----------
-    radiance : (h, w) radiance at the sensor [W sr⁻¹ m⁻²].
-    e_map : (h, w) mean photo-electrons per unit radiance
-        (:func:`~polarstripe.sim.sensor.electrons_per_radiance`).
-    camera : the scene's Camera (dark current, exposure, read noise, full well, gain, offset, bits).
-    rng : Generator.
-    gaussian : draw shot + read noise as one normal variate of the EMVA 1288 variance σ_r² + μ_e (mean and
-        variance exact, shape approximate below ~20 e⁻) instead of Poisson + normal.
-
-    Returns
-    -------
-    uint16 DN (h, w), clipped to [0, 2^bits − 1].
-    """
-    dark_e = camera.dark_current_e_s * camera.exposure_s
-    if gaussian:  # float32 in place: ~2x faster than the float64 path, far below the noise in precision
-        lam = np.multiply(radiance, e_map, dtype=np.float32)
-        np.nan_to_num(lam, copy=False, nan=0.0, posinf=0.0)
-        np.clip(lam, 0.0, 1e12, out=lam)
-        lam += np.float32(dark_e)
-        e = rng.standard_normal(lam.shape, dtype=np.float32)
-        sd = lam + np.float32(camera.read_noise_e ** 2)
-        e *= np.sqrt(sd, out=sd)
-        e += lam
-        np.minimum(e, np.float32(camera.full_well_e), out=e)
-        e *= np.float32(1.0 / camera.gain_e_per_dn)
-        e += np.float32(camera.offset_dn)
-        np.rint(e, out=e)
-        np.clip(e, 0, full_scale_dn(camera), out=e)
-        return e.astype(np.uint16)
-    lam = np.clip(np.nan_to_num(radiance, nan=0.0, posinf=0.0), 0.0, None) * e_map + dark_e
-    np.minimum(lam, 1e12, out=lam)
-    e = np.minimum(rng.poisson(lam).astype(float), camera.full_well_e)
-    e += rng.normal(0.0, camera.read_noise_e, size=e.shape)
-    y = np.round(e / camera.gain_e_per_dn + camera.offset_dn)
-    return np.clip(y, 0, full_scale_dn(camera)).astype(np.uint16)
 
 
 NODE = "Simulator"

@@ -48,7 +48,7 @@ class SimCamera(Camera):
         self._send_exposure = True
 
     def _grab(self) -> tuple[np.ndarray, dict]:
-        from polarstripe.sim.simulator import RenderRequest
+        from polarstripe.sim.simulator_requests import RenderRequest
 
         req = RenderRequest(pattern=self._pattern, analyzer=self._analyzer, scan_id=self._scan_id,
                             step=self._step, exposure_s=self._exposure_s if self._send_exposure else None)
