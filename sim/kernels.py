@@ -87,7 +87,7 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
     per_org = origin.shape[0] > 1
     use_facing = facing.shape[0] > 0
     per_face = facing.shape[0] > 1
-    w3, w075 = min(0.25, 3 * width), min(0.06, 0.75 * width)
+    tan3, tan075 = math.tan(min(0.25, 3 * width)), math.tan(min(0.06, 0.75 * width))
     split_cot = np.empty(split_alphas.size)
     for k in range(split_alphas.size):
         split_cot[k] = 1.0 / math.tan(split_alphas[k])
@@ -131,12 +131,13 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
                 continue
             rule = 0
             if nodes > 4:
-                hs = max(he_split, 1e-200)       # angle between the ends, seen from the foot
-                span = abs(math.atan2((x1 - x0) * hs, hs * hs + (x1 - xc) * (x0 - xc)))
+                # angle between the ends seen from the foot: tan(span) = num/den (span < π/2 iff den > 0)
+                hs = max(he_split, 1e-200)
+                num, den = (x1 - x0) * hs, hs * hs + (x1 - xc) * (x0 - xc)
                 tau = st * (x1 - x0)
-                if span < w075 and tau < 0.5:
+                if den > 0 and num < tan075 * den and tau < 0.5:
                     rule = 2
-                elif span < w3 and tau < 2.0:
+                elif den > 0 and num < tan3 * den and tau < 2.0:
                     rule = 1
             trunc = 50.0
             if st > 0.0:

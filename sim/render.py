@@ -52,7 +52,7 @@ class Fidelity:
 
 
 FIDELITY = {
-    "preview": Fidelity("preview", 4, 2, 6, (8, 4), 4),
+    "preview": Fidelity("preview", 4, 2, 6, (10, 4), 4),
     "standard": Fidelity("standard", 6, 4, 12, (12, 6), 4),
     "reference": Fidelity("reference", 64, 16, 48, None, 24),
 }

@@ -14,23 +14,28 @@ of extrapolating. A flood frame is the stripe [0, W) (its edges are the frustum'
 
 from __future__ import annotations
 
-import numpy as np
-from polarstripe.sim.geometry import Frame, projector_coords
-from scipy.interpolate import PchipInterpolator, make_interp_spline
+import math
 
-# graded nodes, in stripe widths from each edge: outward (where A falls off fastest) and inward
-_OUTWARD = (1 / 32, 1 / 8, 1 / 3, 1.0, 2.0, 4.0)
-_INWARD = (1 / 32, 1 / 8)
-_INSIDE = 6           # uniform cells across the stripe
+import numpy as np
+from numba import njit
+from polarstripe.sim.geometry import Frame, projector_coords
+from scipy.interpolate import PchipInterpolator
+
+# graded nodes, in stripe widths from each edge: outward (where A falls off fastest), inward, and the uniform
+# cells across the stripe; a grid narrower than _DENSE_FROM uniform columns (preview) uses the sparse set
+_DENSE = ((1 / 32, 1 / 8, 1 / 3, 1.0, 2.0, 4.0), (1 / 32, 1 / 8), 6)
+_SPARSE = ((1 / 8, 1 / 2, 2.0), (1 / 8,), 3)
+_DENSE_FROM = 12
 
 
 def kappa_nodes(k_min: float, k_max: float, c0: float, c1: float, n_uniform: int) -> np.ndarray:
     """Pattern-column nodes: ``n_uniform`` over [k_min, k_max], the stripe edges, graded nodes about both
-    edges and ``_INSIDE`` uniform cells across the stripe (only those within [k_min, k_max])."""
+    edges and uniform cells across the stripe (only those within [k_min, k_max])."""
     width = max(c1 - c0, 1.0)
-    graded = [c0 - g * width for g in _OUTWARD] + [c1 + g * width for g in _OUTWARD]
-    graded += [c0 + g * width for g in _INWARD] + [c1 - g * width for g in _INWARD]
-    special = np.concatenate([graded, np.linspace(c0, c1, _INSIDE + 1)])
+    outward, inward, inside = _DENSE if n_uniform >= _DENSE_FROM else _SPARSE
+    graded = [c0 - g * width for g in outward] + [c1 + g * width for g in outward]
+    graded += [c0 + g * width for g in inward] + [c1 - g * width for g in inward]
+    special = np.concatenate([graded, np.linspace(c0, c1, inside + 1)])
     special = special[(special >= k_min) & (special <= k_max)]
     uniform = np.linspace(k_min, k_max, max(n_uniform, 2))
     gap = 0.3 * (k_max - k_min) / max(n_uniform - 1, 1)       # uniform nodes give way to nearby special ones
@@ -55,6 +60,7 @@ def plane_stripe_field(frame: Frame, plane, points: np.ndarray, c0: float, c1: f
     if points.shape[0] == 0 or (depth <= 0).any():
         return None
     k_lo, k_hi = float(kap.min()), float(kap.max())
+    k_hi = max(k_hi, k_lo + 1.0)
     r_lo, r_hi = float(rho.min()), float(rho.max())
     kn = kappa_nodes(k_lo, k_hi, float(c0), float(c1), n_kappa)
     rn = np.linspace(r_lo, r_hi, max(n_rho, 2)) if r_hi > r_lo else np.array([r_lo, r_lo + 1.0])
@@ -73,38 +79,39 @@ def plane_stripe_field(frame: Frame, plane, points: np.ndarray, c0: float, c1: f
 
 
 def _interpolate(kn, rn, vals, kap, rho, breaks):
-    """Interpolate log(vals) (vals where a node is 0): cubic splines in κ, one per piece between the stripe
-    edges (the kinks sit on piece ends, so no spline crosses one), then 4-point Lagrange in ϱ (uniform)."""
+    """Interpolate log(vals) (vals where a node is 0): monotone cubics (PCHIP) in κ, one per piece between
+    the stripe edges (the kinks sit on piece ends, so no cubic crosses one), then 4-point Lagrange in ϱ."""
     positive = (vals > 0).all()
     y = np.log(vals) if positive else vals
-    along = np.empty((kap.size, rn.size))              # each pixel's κ-interpolated value on every row
-    edges = np.concatenate([[-np.inf], [b for b in breaks if kn[0] < b < kn[-1]], [np.inf]])
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        sel = (kap >= lo) & (kap < hi) if hi < np.inf else kap >= lo
-        if not sel.any():
-            continue
-        nodes = (kn >= max(lo, kn[0])) & (kn <= min(hi, kn[-1]))
-        x = kn[nodes]
-        k = min(3, x.size - 1)
-        xs = np.clip(kap[sel], x[0], x[-1])
-        along[sel] = (PchipInterpolator(x, y[nodes], axis=0)(xs) if k == 3 else
-                      make_interp_spline(x, y[nodes], k=k, axis=0)(xs))
-    n = rn.size
-    if n < 4:
-        j = np.clip(np.searchsorted(rn, rho, side="right") - 1, 0, n - 2)
-        t = np.clip((rho - rn[j]) / (rn[j + 1] - rn[j]), 0.0, 1.0)
-        rows = np.arange(kap.size)
-        out = (1 - t) * along[rows, j] + t * along[rows, j + 1]
-    else:
-        h = rn[1] - rn[0]
-        j0 = np.clip(np.floor((rho - rn[0]) / h).astype(np.int64) - 1, 0, n - 4)
-        t = (rho - rn[j0]) / h                         # position in node spacings from node j0
-        rows = np.arange(kap.size)
-        out = np.zeros(kap.size)
-        for a in range(4):
-            w = np.ones(kap.size)
-            for b in range(4):
+    cut = [0] + [int(np.searchsorted(kn, b)) for b in breaks if kn[0] < b < kn[-1]] + [kn.size - 1]
+    coef = np.concatenate([PchipInterpolator(kn[i:j + 1], y[i:j + 1], axis=0).c
+                           for i, j in zip(cut[:-1], cut[1:], strict=True) if j > i], axis=1)
+    out = np.empty(kap.size)
+    interpolate_kernel(kn, rn, np.ascontiguousarray(coef), np.ascontiguousarray(kap, float),
+                       np.ascontiguousarray(rho, float), out)
+    return np.exp(out) if positive else np.maximum(out, 0.0)
+
+
+@njit(cache=True)
+def interpolate_kernel(kn, rn, coef, kap, rho, out):
+    """Piecewise cubic in κ (coefficients (4, intervals, rows), as scipy's PPoly) on every node row, then
+    Lagrange in ϱ through the 4 (or 2) nearest rows; κ and ϱ are clamped to the node ranges."""
+    n, nr = kn.size, rn.size
+    order = 4 if nr >= 4 else 2
+    h = rn[1] - rn[0]
+    for p in range(kap.size):
+        k = min(max(kap[p], kn[0]), kn[n - 1])
+        i = min(max(np.searchsorted(kn, k, side="right") - 1, 0), n - 2)
+        dk = k - kn[i]
+        r = min(max(rho[p], rn[0]), rn[nr - 1])
+        j0 = min(max(int(math.floor((r - rn[0]) / h)) - (order // 2 - 1), 0), nr - order)
+        t = (r - rn[j0]) / h
+        acc = 0.0
+        for a in range(order):
+            w = 1.0
+            for b in range(order):
                 if b != a:
                     w *= (t - b) / (a - b)
-            out += w * along[rows, j0 + a]
-    return np.exp(out) if positive else np.maximum(out, 0.0)
+            c = coef[:, i, j0 + a]
+            acc += w * (((c[0] * dk + c[1]) * dk + c[2]) * dk + c[3])
+        out[p] = acc

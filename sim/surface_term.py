@@ -64,6 +64,8 @@ def beam_nodes(src: Source, points: np.ndarray, n_side: int):
     # sides: (fixed coordinate is a column?, its value, distance from p, foot along the side, side extent)
     for vertical, fixed in ((True, c_lo), (True, c_hi), (False, r_lo), (False, r_hi)):
         dist = np.abs((pc if vertical else pr) - fixed)
+        # a side through p (to rounding) is degenerate: its slivers would put beams on O itself
+        live = dist > 1e-9 * max(c_hi - c_lo, r_hi - r_lo)
         foot = pr if vertical else pc
         lo_e, hi_e = (r_lo, r_hi) if vertical else (c_lo, c_hi)
         for sign, end in ((1.0, hi_e), (-1.0, lo_e)):
@@ -76,7 +78,7 @@ def beam_nodes(src: Source, points: np.ndarray, n_side: int):
                     ac, ar, bc, br = np.full_like(pc, fixed), s0, np.full_like(pc, fixed), s1
                 else:
                     ac, ar, bc, br = s0, np.full_like(pc, fixed), s1, np.full_like(pc, fixed)
-                det = np.abs((ac - pc) * (br - ar) - (ar - pr) * (bc - ac))
+                det = np.where(live, np.abs((ac - pc) * (br - ar) - (ar - pr) * (bc - ac)), 0.0)
                 cc = pc[:, None] + U * (ac - pc)[:, None] + (U * V) * (bc - ac)[:, None]
                 rr = pr[:, None] + U * (ar - pr)[:, None] + (U * V) * (br - ar)[:, None]
                 a = (cc - fr.w / 2) * fr.s
