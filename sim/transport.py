@@ -66,9 +66,16 @@ def make_source(scene: Scene, pattern: Pattern) -> Source:
                   pr.polarization.dop, m.dop)
 
 
+@lru_cache(maxsize=64)
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    t, w = np.polynomial.legendre.leggauss(n)
+    t.flags.writeable = w.flags.writeable = False
+    return t, w
+
+
 def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes and weights of n-point Gauss–Legendre on [−1, 1]."""
-    return np.polynomial.legendre.leggauss(int(n))
+    """Nodes and weights of n-point Gauss–Legendre on [−1, 1] (read-only, cached)."""
+    return _leggauss(int(n))
 
 
 def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
