@@ -8,6 +8,10 @@ For each payload (a 1280x1024 uint16 frame = 2.62 MB, 64 KiB, 100 B) and each tr
 * **pyzmq**: raw PUB/SUB ``send_multipart([topic, msgpack(seq, t, flag, dtype, shape), ndarray],
 copy=False)``,
   ``recv_multipart(copy=False)`` and ``np.frombuffer``: the floor any layer on pyzmq adds to.
+* **pyzmq-parts**: the same raw pyzmq, sent and received part by part (``send(…, SNDMORE)``,
+  ``recv(copy=False)`` and ``Frame.more``), which is how the bus does it: ``send_multipart`` and
+  ``recv_multipart`` cost ~1 µs per part in checks and ``getsockopt(RCVMORE)``. The bus's own cost is its
+  difference to this row.
 * **memcpy**: ``np.copyto`` of the same buffer in one process (the physical limit; cache-hot).
 
 Method (as in refs/transport.md): latency = paced sends, one-way = receiver's ``perf_counter_ns``
@@ -128,7 +132,37 @@ class _RawRx:
         self.socket.close(0)
 
 
-TRANSPORTS = {"bus": (_BusTx, _BusRx), "pyzmq": (_RawTx, _RawRx)}
+class _PartsTx(_RawTx):
+    """Raw pyzmq, part by part (``send(…, SNDMORE)``): what ``send_multipart`` does minus its per-part
+    checks; the bus sends this way."""
+
+    def send(self, payload, t_ns, flag):
+        hdr = msgpack.packb((self.seq, t_ns, flag, payload.dtype.str, payload.shape))
+        send = self.sock.send
+        send(self.topic, zmq.SNDMORE)
+        send(hdr, zmq.SNDMORE)
+        send(payload, copy=False)
+        self.seq += 1
+        return self.seq - 1
+
+
+class _PartsRx(_RawRx):
+    """Raw pyzmq, part by part (``recv(copy=False)`` and each frame's ``more``, instead of
+    ``recv_multipart``'s ``getsockopt(RCVMORE)`` per part); the bus receives this way."""
+
+    def recv(self):
+        recv = self.socket.recv
+        part = recv(copy=False)
+        parts = []
+        while part.more:
+            part = recv(copy=False)
+            parts.append(part)
+        seq, t_ns, flag, dtype, shape = msgpack.unpackb(parts[0].bytes)
+        arr = np.frombuffer(parts[1].buffer, dtype=dtype).reshape(shape)
+        return seq, t_ns, flag, arr.flat[0]
+
+
+TRANSPORTS = {"bus": (_BusTx, _BusRx), "pyzmq": (_RawTx, _RawRx), "pyzmq-parts": (_PartsTx, _PartsRx)}
 
 
 def _receiver(kind: str, endpoint: str, ack_endpoint: str) -> None:
@@ -363,13 +397,17 @@ def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = Non
     per["memcpy"] = _memcpy(sizes)
     table = {}
     for name in sizes:
-        row = {k: per[k][name] for k in ("memcpy", "pyzmq", "bus")}
+        row = {k: per[k][name] for k in ("memcpy", "pyzmq", "pyzmq-parts", "bus")}
         m = row["memcpy"]
         for r in row.values():
             r["bw_vs_memcpy"] = r["MB_per_s"] / m["MB_per_s"]
             r["p50_vs_memcpy"] = r["p50_us"] / m["p50_us"]
-        row["bus"]["bw_vs_pyzmq"] = row["bus"]["msgs_per_s"] / row["pyzmq"]["msgs_per_s"]
-        row["bus"]["p50_vs_pyzmq"] = row["bus"]["p50_us"] / row["pyzmq"]["p50_us"]
+        for k in ("pyzmq-parts", "bus"):
+            row[k]["bw_vs_pyzmq"] = row[k]["msgs_per_s"] / row["pyzmq"]["msgs_per_s"]
+            row[k]["p50_vs_pyzmq"] = row[k]["p50_us"] / row["pyzmq"]["p50_us"]
+            row[k]["cpu_vs_pyzmq"] = [row[k][c] / row["pyzmq"][c] for c in ("tx_cpu_us", "rx_cpu_us")]
+        parts = row["pyzmq-parts"]
+        row["bus"]["cpu_vs_parts"] = [row["bus"][c] / parts[c] for c in ("tx_cpu_us", "rx_cpu_us")]
         table[name] = row
     for name, cost in _layer_cost(sizes).items():
         table[name]["layer"] = cost
@@ -397,7 +435,7 @@ def main(args: argparse.Namespace) -> int:
         "throughput phase (steadier than wall-clock rates on a loaded machine).\n"
     )
     head = (
-        f"| {'size':<12} | {'transport':<9} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} "
+        f"| {'size':<12} | {'transport':<11} | {'msgs/s':>10} | {'MB/s':>9} | {'BW/memcpy':>9} "
         f"| {'p50 us':>8} | {'p99 us':>8} | {'p50/memcpy':>10} | {'lost':>4} | {'tx CPU us':>9} "
         f"| {'rx CPU us':>9} | {'bus/pyzmq msgs/s':>16} |"
     )
@@ -407,13 +445,17 @@ def main(args: argparse.Namespace) -> int:
         for k, r in row.items():
             if k == "layer":
                 continue
-            vs = f"{r['bw_vs_pyzmq']:.2f} (p50 {r['p50_vs_pyzmq']:.2f})" if k == "bus" else ""
+            vs = f"{r['bw_vs_pyzmq']:.2f} (p50 {r['p50_vs_pyzmq']:.2f})" if "bw_vs_pyzmq" in r else ""
             print(
-                f"| {name:<12} | {k:<9} | {r['msgs_per_s']:>10,.0f} | {r['MB_per_s']:>9,.0f} | "
+                f"| {name:<12} | {k:<11} | {r['msgs_per_s']:>10,.0f} | {r['MB_per_s']:>9,.0f} | "
                 f"{r['bw_vs_memcpy']:>9.3f} | {r['p50_us']:>8.1f} | {r['p99_us']:>8.1f} | "
                 f"{r['p50_vs_memcpy']:>10.1f} | {r.get('lost', 0):>4} | {r['tx_cpu_us']:>9.1f} "
                 f"| {r['rx_cpu_us']:>9.1f} | {vs:>16} |"
             )
+    print("\nCPU per message, bus ÷ pyzmq and bus ÷ pyzmq-parts (send / receive):")
+    for name, row in table.items():
+        a, b = row["bus"]["cpu_vs_pyzmq"], row["bus"]["cpu_vs_parts"]
+        print(f"  {name:<12}  ÷ pyzmq {a[0]:.2f} / {a[1]:.2f}    ÷ pyzmq-parts {b[0]:.2f} / {b[1]:.2f}")
     print("\nwhat each layer adds around the socket, in-process, µs per message (min of 5 repeats):")
     for name, row in table.items():
         c = row["layer"]

@@ -3,7 +3,6 @@ Schema. :func:`kind_of` maps an annotation to its kind; ``TypeError`` if the cod
 
 from __future__ import annotations
 
-import math
 import types
 import typing
 from typing import Any, Literal
@@ -190,7 +189,8 @@ _ARRAY_KINDS = (
 )
 
 
-_DTYPES: dict[str, np.dtype] = {}
+_DTYPES: dict[str, np.dtype] = {}  # dtype.str -> dtype, of the dtypes that may travel
+_DTYPE_STR: dict[np.dtype, str] = {}  # the reverse
 
 
 def _dtype(text: Any) -> np.dtype:
@@ -206,56 +206,53 @@ def _dtype(text: Any) -> np.dtype:
     return dt
 
 
-class Buffers(list):
-    """The buffer frames of one message; array fields record which ones they used (stray frames are an
-    error)."""
-
-    __slots__ = ("used",)
-
-    def __init__(self, frames=()):
-        super().__init__(frames)
-        self.used: set[int] = set()
-
-
 class _Array(Kind):
-    """An ndarray: on the wire a descriptor ``{"buf": i, "dtype": "<u2", "shape": [h, w]}`` plus raw
-    frame i."""
+    """An ndarray: on the wire a descriptor ``[buf, dtype, shape]`` (buffer frame index, ``dtype.str``, shape)
+    plus raw frame ``buf``.
+
+    Decoding takes ``bufs``, a list of flat byte ``memoryview``s it may change: each array replaces its
+    frame by None, so a frame cannot be taken twice and the frames left over are stray."""
 
     def enc(self, v, bufs):
         if not isinstance(v, np.ndarray):
             raise ValueError(f"expected numpy.ndarray, got {_tname(v)}")
-        if v.dtype.kind not in _ARRAY_KINDS or v.dtype.hasobject:
-            raise ValueError(f"dtype {v.dtype} cannot travel (plain numeric dtypes only)")
+        dt = v.dtype
+        code = _DTYPE_STR.get(dt)
+        if code is None:
+            if dt.kind not in _ARRAY_KINDS or dt.hasobject:
+                raise ValueError(f"dtype {dt} cannot travel (plain numeric dtypes only)")
+            code = dt.str
+            if len(_DTYPE_STR) < 64:
+                _DTYPE_STR[dt] = code
         if not v.flags.c_contiguous:
             v = np.ascontiguousarray(v)
         bufs.append(v)
-        return {"buf": len(bufs) - 1, "dtype": v.dtype.str, "shape": list(v.shape)}
+        return [len(bufs) - 1, code, v.shape]
 
     def dec(self, v, bufs):
-        try:
-            if type(v) is not dict or len(v) != 3:
-                raise KeyError
-            i, dtype, shape = v["buf"], v["dtype"], v["shape"]
-        except KeyError:
-            raise ValueError("expected an array descriptor {buf, dtype, shape}") from None
+        if type(v) is not list or len(v) != 3:
+            raise ValueError("expected an array descriptor [buf, dtype, shape]")
+        i, dtype, shape = v
         if type(i) is not int or not 0 <= i < len(bufs):
-            raise ValueError(f"buffer index {i!r} out of range (message has {len(bufs)} buffers)")
+            raise ValueError(f"buffer index {i!r:.20} out of range (message has {len(bufs)} buffers)")
         dt = _DTYPES.get(dtype) if type(dtype) is str else None
         if dt is None:
             dt = _dtype(dtype)
         if type(shape) is not list:
             raise ValueError(f"bad shape {shape!r:.60}")
-        for n in shape:
-            if type(n) is not int or n < 0:
+        n = dt.itemsize
+        for d in shape:
+            if type(d) is not int or d < 0:
                 raise ValueError(f"bad shape {shape!r:.60}")
+            n *= d
         buf = bufs[i]
-        bufs.used.add(i)
-        n = math.prod(shape) * dt.itemsize
+        if buf is None:
+            raise ValueError(f"buffer {i} is taken by another array")
+        bufs[i] = None  # taken: what is left over at the end are stray frames
         if n != buf.nbytes:
             raise ValueError(f"dtype {dt.str} shape {tuple(shape)} needs {n} bytes, buffer has {buf.nbytes}")
-        arr = np.ndarray(shape, dt, buffer=buf)
-        arr.flags.writeable = False  # a view of the received frame: never write into it
-        return arr
+        buf = buf.toreadonly()  # a view of the received frame, never written into: the array is read-only
+        return np.frombuffer(buf, dt) if len(shape) == 1 else np.ndarray(shape, dt, buffer=buf)
 
     def schema(self):
         return {
@@ -269,6 +266,9 @@ class _Array(Kind):
             "required": ["dtype", "shape", "data"],
         }
 
+
+ArrayKind, DictKind, ListKind, OptionalKind = _Array, _Dict, _List, _Optional
+"""The kinds a tool walking wire values needs to tell apart (e.g. the MCAP writer inlining arrays)."""
 
 _MAX_DEPTH = 8
 

@@ -47,7 +47,9 @@ from mcap.records import (
     SummaryOffset,
 )
 from polarstripe.errors import PolarstripeError
-from polarstripe.msgs import Message, encode, json_schema
+from polarstripe.msgs import Message, json_schema
+from polarstripe.msgs.codec import HEADER_ITEMS, packed_fields
+from polarstripe.msgs.fields import ArrayKind, DictKind, OptionalKind
 
 MAGIC = b"\x89MCAP0\r\n"
 MESSAGE_ENCODING = "msgpack"
@@ -95,32 +97,38 @@ def payload(msg: Message, *, topic: str = "") -> list:
     ``b"".join(payload(msg)) == pack(msg)``. Raises :class:`~polarstripe.msgs.MessageError` like
     :func:`~polarstripe.msgs.encode`.
     """
-    frames = encode(msg, topic=topic)
-    head = msgpack.unpackb(frames[0], raw=False)
-    bufs, out, cur = frames[1:], [], bytearray()
+    (head, fields), bufs = packed_fields(msg, topic=topic)
+    out, cur = [], bytearray()
 
-    def emit(v) -> None:
+    def emit(kind, v) -> None:  # v: a wire value of kind (array descriptors [buf, dtype, shape])
         nonlocal cur
-        if isinstance(v, dict):
-            if len(v) == 3 and type(v.get("buf")) is int and "dtype" in v and "shape" in v:
-                data = memoryview(np.ascontiguousarray(bufs[v["buf"]]).reshape(-1).view(np.uint8))
-                cur += b"\x83" + _packb("dtype") + _packb(v["dtype"]) + _packb("shape") + _packb(v["shape"])
-                cur += _packb("data") + _bin_header(data.nbytes)
-                if data.nbytes < _SMALL:
-                    cur += data
-                else:
-                    out.append(bytes(cur))
-                    out.append(data)
-                    cur = bytearray()
-                return
+        if v is not None and isinstance(kind, OptionalKind):
+            kind = kind.inner
+        if v is not None and isinstance(kind, ArrayKind):
+            data = memoryview(np.ascontiguousarray(bufs[v[0]]).reshape(-1).view(np.uint8))
+            cur += b"\x83" + _packb("dtype") + _packb(v[1]) + _packb("shape") + _packb(list(v[2]))
+            cur += _packb("data") + _bin_header(data.nbytes)
+            if data.nbytes < _SMALL:
+                cur += data
+            else:
+                out.append(bytes(cur))
+                out.append(data)
+                cur = bytearray()
+        elif v is not None and isinstance(kind, DictKind):
             cur += _map_header(len(v))
             for k, x in v.items():
                 cur += _packb(k)
-                emit(x)
+                emit(kind.inner, x)
         else:
             cur += _packb(v)
 
-    emit(head)
+    cur += _map_header(len(HEADER_ITEMS) + 1)
+    for key, value in zip(HEADER_ITEMS, head, strict=True):
+        cur += _packb(key) + _packb(value)
+    cur += _packb("fields") + _map_header(len(fields))
+    for name, kind, value in fields:
+        cur += _packb(name)
+        emit(kind, value)
     if cur:
         out.append(bytes(cur))
     return out

@@ -9,6 +9,7 @@ need the message class.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -16,7 +17,7 @@ import sys
 import time
 
 import zmq
-from polarstripe.msgs import MessageError, describe
+from polarstripe.msgs import REGISTRY, MessageError, describe
 from polarstripe.nodes.runtime.bus import CurveKeys
 from polarstripe.nodes.runtime.graph import find_graph, load_graph, pub_endpoints, resolve
 
@@ -87,7 +88,22 @@ def _list(graph: dict) -> int:
     return 0
 
 
+def _register_type(graph: dict, topic: str) -> None:
+    """Import the topic's publishers' modules if its type is not registered here (a node may declare its
+    own types), so that ``describe`` can name the fields of the positional wire header."""
+    info = graph.get("topics", {}).get(topic, {})
+    if info.get("type") in REGISTRY:
+        return
+    for name in info.get("publishers", []):
+        module = str(graph.get("nodes", {}).get(name, {}).get("module", "")).partition(":")[0]
+        try:
+            importlib.import_module(module)
+        except Exception:  # a module that does not import here: fields are shown by position
+            pass
+
+
 def _echo(graph: dict, topic: str, count: int, timeout_s: float, as_json: bool) -> int:
+    _register_type(graph, topic)
     sock = _open(graph, topic)
     n, t_end = 0, (time.monotonic() + timeout_s) if timeout_s else None
     try:

@@ -166,18 +166,16 @@ def test_publisher_stamps_seq_and_keeps_a_given_stamp():
 
 
 # ---- every kind of bad message: one error class naming topic and field ------------------------------
-def _head(msg, **changes):
+def _head(msg, *, append=(), **changes):
+    """The frames of ``msg`` with header items or fields (``fields.NAME``; ``_DROP`` removes it) replaced."""
     frames = encode(msg, topic="/t")
     head = msgpack.unpackb(frames[0], raw=False)
+    assert isinstance(head, list)  # [type, version, stamp_ns, seq, frame_id, *values in declared order]
+    names = ["type", "version", "stamp_ns", "seq", "frame_id", *(name for name, _ in type(msg).FIELDS)]
     for k, v in changes.items():
-        if k.startswith("fields."):
-            name = k.split(".", 1)[1]
-            if v is _DROP:
-                del head["fields"][name]
-            else:
-                head["fields"][name] = v
-        else:
-            head[k] = v
+        i = names.index(k.removeprefix("fields."))
+        head[i] = v
+    head = [v for v in head if v is not _DROP] + list(append)
     return [msgpack.packb(head, use_bin_type=True), *[np.ascontiguousarray(b).tobytes() for b in frames[1:]]]
 
 
@@ -185,7 +183,7 @@ _DROP = object()
 
 
 def _desc(buf, dtype, shape):
-    return {"buf": buf, "dtype": dtype, "shape": shape}
+    return [buf, dtype, shape]
 
 
 _frame = Frame(image=np.zeros((4, 6), np.uint16), exposure_s=0.01)
@@ -195,15 +193,19 @@ _frame = Frame(image=np.zeros((4, 6), np.uint16), exposure_s=0.01)
     ("frames", "field", "problem"),
     [
         ([b"\xc1\xff garbage"], "header", "not a MessagePack header"),
-        ([msgpack.packb([1, 2, 3])], "header", "expected a map"),
+        ([msgpack.packb({"type": "frame"})], "header", "expected an array, got dict"),
+        ([msgpack.packb([1, 2, 3])], "header", r"expected \[type, .*, frame_id, \*fields\], got 3 items"),
         ([], "header", "empty message"),
         (_head(_frame, type="nonesuch"), "type", "unknown message type 'nonesuch'"),
         (_head(Log(level="INFO", node="a", text="b")), "type", "expected 'frame', got 'log'"),
         (_head(_frame, version=7), "version", "unknown schema version 7"),
-        (_head(_frame, **{"fields.exposure_s": _DROP}), "exposure_s", "missing"),
+        (_head(_frame, **{"fields.step": _DROP}), "step", "missing"),
+        (_head(_frame, **{"fields.scan_id": _DROP, "fields.step": _DROP}), "scan_id", "missing"),
         (_head(_frame, **{"fields.exposure_s": "fast"}), "exposure_s", "expected float"),
         (_head(_frame, **{"fields.bit_depth": 1.5}), "bit_depth", "expected int"),
-        (_head(_frame, **{"fields.color": "red"}), "color", "unknown field"),
+        (_head(_frame, append=["red"]), "fields", "9 values but 'frame' has 8 fields"),
+        (_head(_frame, **{"fields.image": {"buf": 0, "dtype": "<u2", "shape": [4, 6]}}), "image",
+         r"expected an array descriptor \[buf, dtype, shape\]"),
         (_head(_frame, **{"fields.image": _desc(0, "<u2", [5, 6])}), "image", "needs 60 bytes"),
         (_head(_frame, **{"fields.image": _desc(0, "<f8", [4, 6])}), "image", "needs 192 bytes"),
         (_head(_frame, **{"fields.image": _desc(0, "|O", [4, 6])}), "image", "bad dtype"),
@@ -211,7 +213,7 @@ _frame = Frame(image=np.zeros((4, 6), np.uint16), exposure_s=0.01)
         (_head(_frame, **{"fields.image": _desc(0, "<u2", [-4, 6])}), "image", "bad shape"),
         (_head(_frame) + [b"stray"], "buffers", "2 buffer frames but 1 used"),
         (_head(_frame, seq="x"), "seq", "expected int"),
-        (_head(_frame, extra=1), "extra", "unknown header key"),
+        (_head(_frame, frame_id=3), "frame_id", "expected str"),
     ],
 )
 def test_bad_messages_raise_one_error_naming_topic_and_field(frames, field, problem):
@@ -278,3 +280,46 @@ def test_describe_summarises_arrays_without_the_class():
     }
     with pytest.raises(MessageError, match="field 'header'"):
         describe([b"\xc1"], topic="/t")
+
+
+def _packed(msg, **changes):
+    doc = msgpack.unpackb(pack(msg), raw=False)
+    for k, v in changes.items():
+        where, key = (doc["fields"], k.removeprefix("fields.")) if k.startswith("fields.") else (doc, k)
+        if v is _DROP:
+            del where[key]
+        else:
+            where[key] = v
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    ("blob", "field", "problem"),
+    [
+        (_packed(_frame, **{"fields.color": "red"}), "color", "unknown field of 'frame'"),
+        (_packed(_frame, **{"fields.gain": _DROP}), "gain", "missing"),
+        (_packed(_frame, extra=1), "extra", "unknown header key"),
+        (_packed(_frame, seq=_DROP), "seq", "missing from the header"),
+        (_packed(_frame, **{"fields.image": {"dtype": "<u2", "shape": [5, 6], "data": b"12"}}), "image",
+         "needs 60 bytes, buffer has 2"),
+        (msgpack.packb([1]), "header", "expected a map"),
+    ],
+)
+def test_bad_packed_messages_raise_one_error_naming_the_field(blob, field, problem):
+    with pytest.raises(MessageError, match=problem) as info:
+        unpack(blob, topic="/t", expect=Frame)
+    assert info.value.field == field
+
+
+def test_describe_shows_an_unknown_type_by_position():
+    head = ["nonesuch", 1, 5, 0, "", 42, [0, "<u2", [2, 3]]]
+    d = describe([msgpack.packb(head), bytes(12)], topic="/t")
+    assert (d["type"], d["stamp_ns"], d["fields"]) == ("nonesuch", 5, {"#0": 42, "#1": [0, "<u2", [2, 3]]})
+
+
+def test_an_array_frame_cannot_be_taken_twice():
+    two = Composite(images={"a": np.zeros(4, np.uint16), "b": np.ones(4, np.uint16)}, method="m")
+    frames = _head(two, **{"fields.images": {"a": _desc(0, "<u2", [4]), "b": _desc(0, "<u2", [4])}})
+    with pytest.raises(MessageError, match="buffer 0 is taken by another array") as info:
+        decode(frames, topic="/t", expect=Composite)
+    assert info.value.field == "images"

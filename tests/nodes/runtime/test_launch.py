@@ -293,13 +293,12 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
             time.sleep(0.05)
         before = int(_call(g, "/rig/counter/count").detail)
 
-        head = msgpack.unpackb(good[0])
+        head = msgpack.unpackb(good[0])  # [type, version, stamp_ns, seq, frame_id, image, …, step]
         bad_frames = []
-        for change in ({"version": 9}, {"type": "nonesuch"}):
-            bad_frames.append([msgpack.packb({**head, **change}), good[1]])
-        missing = {**head, "fields": {k: v for k, v in head["fields"].items() if k != "exposure_s"}}
-        bad_frames.append([msgpack.packb(missing), good[1]])
-        shape = {**head, "fields": {**head["fields"], "image": {"buf": 0, "dtype": "<u2", "shape": [5, 4]}}}
+        for i, value in ((1, 9), (0, "nonesuch")):  # version, type
+            bad_frames.append([msgpack.packb([*head[:i], value, *head[i + 1:]]), good[1]])
+        bad_frames.append([msgpack.packb(head[:-1]), good[1]])  # the last field (step) missing
+        shape = [*head[:5], [0, "<u2", [5, 4]], *head[6:]]  # image: 40 bytes for a 32-byte buffer
         bad_frames.append([msgpack.packb(shape), good[1]])
         bad_frames.append([b"\xc1 not msgpack"])
         bad_frames.append(encode(Log(level="INFO", node="x", text="wrong type")))
@@ -315,7 +314,7 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
         raw.close(0)
         log = (Path(g["run_dir"]) / "logs" / "counter.log").read_text()
         assert log.count("dropped bad message: topic '/rig/camera/frame': field ") == 5  # then rate-limited
-        for field in ("'version'", "'type'", "'exposure_s'", "'image'", "'header'"):
+        for field in ("'version'", "'type'", "'step'", "'image'", "'header'"):
             assert f"field {field}" in log
     finally:
         status = _stop(proc)
