@@ -129,16 +129,6 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
             x0, x1 = edges[p], edges[p + 1]
             if not x1 > x0:
                 continue
-            rule = 0
-            if nodes > 4:
-                # angle between the ends seen from the foot: tan(span) = num/den (span < π/2 iff den > 0)
-                hs = max(he_split, 1e-200)
-                num, den = (x1 - x0) * hs, hs * hs + (x1 - xc) * (x0 - xc)
-                tau = st * (x1 - x0)
-                if den > 0 and num < tan075 * den and tau < 0.5:
-                    rule = 2
-                elif den > 0 and num < tan3 * den and tau < 2.0:
-                    rule = 1
             trunc = 50.0
             if st > 0.0:
                 u0 = x0 - xc
@@ -152,106 +142,127 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
                     x_tr = x0 + segment_in_box(sx, sy, sz, cx + x0 * dx, cy + x0 * dy, cz + x0 * dz, box_lo,
                                                box_hi) + lim
                 x1 = min(x1, max(x_tr, x0))
-            u0, u1 = x0 - xc, x1 - xc
-            if u0 >= 0:
-                side = 1.0
-                a_lo, a_hi = math.atan2(he, u1), math.atan2(he, u0)
-            elif u1 <= 0:
-                side = -1.0
-                a_lo, a_hi = math.atan2(he, -u0), math.atan2(he, -u1)
-            else:
-                side = 0.0
-                a_lo, a_hi = math.atan2(u0, he), math.atan2(u1, he)
-            half = 0.5 * (a_hi - a_lo)
-            mid = 0.5 * (a_hi + a_lo)
-            m = 1e308
-            for i in range(gl_n[rule]):
-                a = mid + half * gl_t[rule, i]
-                if side == 0.0:
-                    u = he * math.tan(a)
+            # a piece long in optical depth is cut where the excess path (rate ≤ 2σ_t) may reach 6, 12, 24, 48
+            # e-folds, so each sub-piece's exponential is resolved by the rule whatever σ_t
+            xa_end = x1
+            n_sub = 1
+            if st > 0.0:
+                while n_sub < 5 and (x1 - x0) * 2.0 * st > 3.0 * 2.0 ** n_sub:
+                    n_sub += 1
+            for sp in range(n_sub):
+                x0 = edges[p] if sp == 0 else x1
+                x1 = xa_end if sp == n_sub - 1 else edges[p] + 3.0 * 2.0 ** (sp + 1) / (2.0 * st)
+                rule = 0
+                if nodes > 4:
+                    # angle between the ends seen from the foot: tan(span) = num/den (span < π/2 iff den > 0)
+                    hs = max(he_split, 1e-200)
+                    num, den = (x1 - x0) * hs, hs * hs + (x1 - xc) * (x0 - xc)
+                    tau = st * (x1 - x0)
+                    if den > 0 and num < tan075 * den and tau < 0.5:
+                        rule = 2
+                    elif den > 0 and num < tan3 * den and tau < 2.0:
+                        rule = 1
+                u0, u1 = x0 - xc, x1 - xc
+                if u0 >= 0:
+                    side = 1.0
+                    a_lo, a_hi = math.atan2(he, u1), math.atan2(he, u0)
+                elif u1 <= 0:
+                    side = -1.0
+                    a_lo, a_hi = math.atan2(he, -u0), math.atan2(he, -u1)
                 else:
-                    ta = math.tan(a)
-                    u = side * he / ta if ta != 0.0 else math.inf
-                if not math.isfinite(u):
-                    u = 0.0
-                x = xc + u
-                d_ly = math.sqrt(u * u + h2)
-                dsafe = max(d_ly, 1e-300)
-                if d_ly <= 0:
-                    opm, omm = 1.0, 1.0
-                else:
-                    opm = h2 / (dsafe * (d_ly + u) + 1e-300) if u > 0 else (d_ly - u) / dsafe
-                    omm = h2 / (dsafe * (d_ly - u) + 1e-300) if u < 0 else (d_ly + u) / dsafe
-                uu[i], dly[i], omm_a[i], opm_a[i] = u, d_ly, omm, opm
-                if st > 0.0:
-                    if inside:
-                        light = d_ly
+                    side = 0.0
+                    a_lo, a_hi = math.atan2(u0, he), math.atan2(u1, he)
+                half = 0.5 * (a_hi - a_lo)
+                mid = 0.5 * (a_hi + a_lo)
+                m = 1e308
+                for i in range(gl_n[rule]):
+                    a = mid + half * gl_t[rule, i]
+                    if side == 0.0:
+                        u = he * math.tan(a)
                     else:
-                        light = segment_in_box(sx, sy, sz, cx + x * dx, cy + x * dy, cz + x * dz, box_lo,
-                                               box_hi)
-                    e = st * (light + (x - vs))
-                else:
-                    e = 0.0
-                ang[i] = e
-                if e < m:
-                    m = e
-            total = 0.0
-            for i in range(gl_n[rule]):
-                v = gl_w[rule, i] * phase_value(pcode, g1, g2, alpha, omm_a[i], opm_a[i]) * math.exp(
-                    -(ang[i] - m))
-                if use_facing:
-                    cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
-                             ) / max(dly[i], 1e-300)
-                    v *= max(cos_f, 0.0)
-                wk[i] = v
-                total += v
-            if m < 600.0:
-                b = ss * inten / he * (abs(half) + 1e-300) * math.exp(-m) * total
-            else:                   # log space: e^{−m} alone would underflow where 1/h_e is huge
-                b = math.exp(math.log(ss * inten) - math.log(he) + math.log(abs(half) + 1e-300) - m) * total
-            b_ray += b
-            if not pol:
-                continue
-            # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray)
-            px, py, pz = hy * dz - hz * dy, hz * dx - hx * dz, hx * dy - hy * dx
-            pn = math.sqrt(px * px + py * py + pz * pz)
-            if pn > 1e-12 * math.sqrt(h2):
-                px, py, pz = px / pn, py / pn, pz / pn
-            else:
-                if abs(dx) < 0.9:
-                    hx2, hy2, hz2 = 1.0, 0.0, 0.0
-                else:
-                    hx2, hy2, hz2 = 0.0, 1.0, 0.0
-                px, py, pz = dy * hz2 - dz * hy2, dz * hx2 - dx * hz2, dx * hy2 - dy * hx2
+                        ta = math.tan(a)
+                        u = side * he / ta if ta != 0.0 else math.inf
+                    if not math.isfinite(u):
+                        u = 0.0
+                    x = xc + u
+                    d_ly = math.sqrt(u * u + h2)
+                    dsafe = max(d_ly, 1e-300)
+                    if d_ly <= 0:
+                        opm, omm = 1.0, 1.0
+                    else:
+                        opm = h2 / (dsafe * (d_ly + u) + 1e-300) if u > 0 else (d_ly - u) / dsafe
+                        omm = h2 / (dsafe * (d_ly - u) + 1e-300) if u < 0 else (d_ly + u) / dsafe
+                    uu[i], dly[i], omm_a[i], opm_a[i] = u, d_ly, omm, opm
+                    if st > 0.0:
+                        if inside:
+                            light = d_ly
+                        else:
+                            light = segment_in_box(sx, sy, sz, cx + x * dx, cy + x * dy, cz + x * dz, box_lo,
+                                                   box_hi)
+                        e = st * (light + (x - vs))
+                    else:
+                        e = 0.0
+                    ang[i] = e
+                    if e < m:
+                        m = e
+                total = 0.0
+                for i in range(gl_n[rule]):
+                    v = gl_w[rule, i] * phase_value(pcode, g1, g2, alpha, omm_a[i], opm_a[i]) * math.exp(
+                        -(ang[i] - m))
+                    if use_facing:
+                        cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
+                                 ) / max(dly[i], 1e-300)
+                        v *= max(cos_f, 0.0)
+                    wk[i] = v
+                    total += v
+                if m < 600.0:
+                    b = ss * inten / he * (abs(half) + 1e-300) * math.exp(-m) * total
+                else:                   # log space: e^{−m} alone would underflow where 1/h_e is huge
+                    b = math.exp(math.log(ss * inten) - math.log(he) + math.log(abs(half) + 1e-300)
+                                 - m) * total
+                b_ray += b
+                if not pol:
+                    continue
+                # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray)
+                px, py, pz = hy * dz - hz * dy, hz * dx - hx * dz, hx * dy - hy * dx
                 pn = math.sqrt(px * px + py * py + pz * pz)
-                px, py, pz = px / pn, py / pn, pz / pn
-            bb = px * ex + py * ey + pz * ez
-            wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
-            hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
-            big = (1.0 - depol) / (1.0 + depol / 2.0)
-            tot = 0.0
-            qs = 0.0
-            us = 0.0
-            for jj in range(nsubs[rule]):
-                i = sub_all[rule, jj]
-                aa = (-hw + uu[i] * dw) / max(dly[i], 1e-300)
-                nrm = aa * aa + bb * bb
-                c2 = (aa * aa - bb * bb) / nrm if nrm > 0 else 0.0
-                s2 = 2.0 * aa * bb / nrm if nrm > 0 else 0.0
-                q_in, u_in = dop_l * c2, dop_l * s2
-                omm, opm = omm_a[i], opm_a[i]
-                mu = 0.5 * (opm - omm)
-                m22 = big * 0.75 * (1.0 + mu * mu)
-                m11 = m22 + (1.0 - big)
-                m12 = -big * 0.75 * (omm * opm)
-                m33 = big * 1.5 * mu
-                i_out = m11 + m12 * q_in
-                tot += wk[i]
-                qs += wk[i] * (m12 + m22 * q_in) / i_out
-                us += wk[i] * m33 * u_in / i_out
-            if tot > 0:
-                q_ray += qs / tot * b
-                u_ray += us / tot * b
+                if pn > 1e-12 * math.sqrt(h2):
+                    px, py, pz = px / pn, py / pn, pz / pn
+                else:
+                    if abs(dx) < 0.9:
+                        hx2, hy2, hz2 = 1.0, 0.0, 0.0
+                    else:
+                        hx2, hy2, hz2 = 0.0, 1.0, 0.0
+                    px, py, pz = dy * hz2 - dz * hy2, dz * hx2 - dx * hz2, dx * hy2 - dy * hx2
+                    pn = math.sqrt(px * px + py * py + pz * pz)
+                    px, py, pz = px / pn, py / pn, pz / pn
+                bb = px * ex + py * ey + pz * ez
+                wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
+                hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
+                big = (1.0 - depol) / (1.0 + depol / 2.0)
+                tot = 0.0
+                qs = 0.0
+                us = 0.0
+                for jj in range(nsubs[rule]):
+                    i = sub_all[rule, jj]
+                    aa = (-hw + uu[i] * dw) / max(dly[i], 1e-300)
+                    nrm = aa * aa + bb * bb
+                    c2 = (aa * aa - bb * bb) / nrm if nrm > 0 else 0.0
+                    s2 = 2.0 * aa * bb / nrm if nrm > 0 else 0.0
+                    q_in, u_in = dop_l * c2, dop_l * s2
+                    omm, opm = omm_a[i], opm_a[i]
+                    mu = 0.5 * (opm - omm)
+                    m22 = big * 0.75 * (1.0 + mu * mu)
+                    m11 = m22 + (1.0 - big)
+                    m12 = -big * 0.75 * (omm * opm)
+                    m33 = big * 1.5 * mu
+                    i_out = m11 + m12 * q_in
+                    tot += wk[i]
+                    qs += wk[i] * (m12 + m22 * q_in) / i_out
+                    us += wk[i] * m33 * u_in / i_out
+                if tot > 0:
+                    q_ray += qs / tot * b
+                    u_ray += us / tot * b
         b_out[r] += b_ray
         if pol:
             q_out[r] += q_ray
