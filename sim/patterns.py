@@ -124,8 +124,9 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
         ends = []
         for x in (a, b):
             vf = np.maximum(vf0 + x * df, 1e-300)
-            ends.append((frame.w / 2 + ((vr0 + x * dr) / vf) / frame.s,
-                         frame.h / 2 - ((vu0 + x * du) / vf) / frame.s))
+            with np.errstate(over="ignore"):    # an end at the apex (vf → 0): clamp into the frustum's range
+                ends.append((np.clip(frame.w / 2 + ((vr0 + x * dr) / vf) / frame.s, 0.0, frame.w),
+                             np.clip(frame.h / 2 - ((vu0 + x * du) / vf) / frame.s, 0.0, frame.h)))
         cuts = [a[:, None], b[:, None]]
         for axis, off in ((0, shift % size), (1, 0)):
             lo_c = np.minimum(ends[0][axis], ends[1][axis])
@@ -155,7 +156,8 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
         with np.errstate(divide="ignore", invalid="ignore"):
             col = frame.w / 2.0 + ((vr0[:, None] + mid * dr[:, None]) / pf) / frame.s
             row = frame.h / 2.0 - ((vu0[:, None] + mid * du[:, None]) / pf) / frame.s
-        lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
+        with np.errstate(invalid="ignore"):     # a mid-point at the apex (0/0) is not lit
+            lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
         r_i, c_i = np.nonzero(lit)
         rays.append(idx[r_i])
         los.append(s0[r_i, c_i])
