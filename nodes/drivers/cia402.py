@@ -98,6 +98,8 @@ class Cia402Stage(RotationStage):
             raise ValueError(f"{self.name}: counts_per_deg={counts_per_deg} must be positive")
         self.counts_per_deg, self.tolerance_deg = float(counts_per_deg), float(tolerance_deg)
         self.heartbeat_timeout_s, self.pdo_timeout_s = heartbeat_timeout_s, pdo_timeout_s
+        # the watchdog's period: a tenth of the shorter timeout, at most 50 ms (detection within 10 %)
+        self._watch_s = min(0.05, heartbeat_timeout_s / 10.0, pdo_timeout_s / 10.0)
         self.error_frames = 0
         self._lock = threading.RLock()
         self._sw: int | None = None
@@ -226,8 +228,8 @@ class Cia402Stage(RotationStage):
                 self._latch_fault(f"CAN {text} (error frame class 0x{error_class:03X})")
 
     def _watch(self) -> None:
-        """Consumer heartbeat timeout and TPDO staleness, checked every 10 ms."""
-        while not self._stop.wait(0.01):
+        """Consumer heartbeat timeout and TPDO staleness, checked every ``_watch_s``."""
+        while not self._stop.wait(self._watch_s):
             now = time.monotonic()
             if self._pos is None:
                 continue
