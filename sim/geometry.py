@@ -117,12 +117,10 @@ def intersect(objects, origin: np.ndarray, dirs: np.ndarray) -> Hits:
     t_best = np.empty(n)
     idx = np.empty(n, dtype=np.int64)
     normal = np.empty((n, 3))
+    point = np.empty((n, 3))
     kinds, params = _packed(tuple(objects))
-    origin = np.asarray(origin, float)
-    intersect_kernel(kinds, params, np.ascontiguousarray(origin).reshape(-1, 3),
-                     np.ascontiguousarray(dirs, float), t_best, idx, normal)
-    hit = np.isfinite(t_best)
-    point = origin + np.where(hit, t_best, 0.0)[:, None] * dirs
+    intersect_kernel(kinds, params, np.ascontiguousarray(origin, float).reshape(-1, 3),
+                     np.ascontiguousarray(dirs, float), t_best, idx, normal, point)
     return Hits(t_best, idx, normal, point)
 
 

@@ -326,3 +326,20 @@ def clip_rays(origin, dirs, x0, x1, apex, normals, eps, lo_out, hi_out):
             else:
                 a1 = min(a1, -a / b)
         lo_out[i], hi_out[i] = a0, a1
+
+
+@njit(cache=True)
+def direct_kernel(src, cam, points, normals, albedo, lit, st, inten, radius, box_lo, box_hi, out):
+    """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at lit points, else 0 (transport.direct)."""
+    for i in range(points.shape[0]):
+        if not lit[i]:
+            out[i] = 0.0
+            continue
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        vx, vy, vz = src[0] - px, src[1] - py, src[2] - pz
+        d2 = vx * vx + vy * vy + vz * vz
+        n_v = normals[i, 0] * vx + normals[i, 1] * vy + normals[i, 2] * vz
+        cos_phi = max(n_v / max(math.sqrt(d2), 1e-300), 0.0)
+        tau = st * (segment_in_box(src[0], src[1], src[2], px, py, pz, box_lo, box_hi)
+                    + segment_in_box(cam[0], cam[1], cam[2], px, py, pz, box_lo, box_hi))
+        out[i] = albedo[i] * cos_phi / math.pi * inten * math.exp(-tau) / max(d2 + radius * radius, 1e-300)

@@ -70,8 +70,8 @@ def pack_objects(objects) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out):
-    """Nearest hit per ray (t = inf, index −1, normal 0 when none), as geometry.intersect."""
+def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out, p_out):
+    """Nearest hit per ray (t = inf, index −1, normal 0, point = origin when none), as geometry.intersect."""
     per = origin.shape[0] > 1
     for i in range(dirs.shape[0]):
         ko = i if per else 0
@@ -128,3 +128,5 @@ def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out):
                 bnx, bny, bnz = nx, ny, nz
         t_out[i], idx_out[i] = best, bidx
         n_out[i, 0], n_out[i, 1], n_out[i, 2] = bnx, bny, bnz
+        tt = best if bidx >= 0 else 0.0
+        p_out[i, 0], p_out[i, 1], p_out[i, 2] = ox + tt * dx, oy + tt * dy, oz + tt * dz

@@ -193,16 +193,14 @@ def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, nor
     ``lit`` marks points the pattern lights and the source sees (shadowing tested by the caller);
     cos φ is clamped at 0 (a point facing away gets no direct light).
     """
-    v = src.position - points
-    d2 = (v * v).sum(-1)
-    dist = np.sqrt(d2)
-    cos_phi = np.clip((normals * v).sum(-1) / np.maximum(dist, 1e-300), 0.0, None)
-    tau = src.sigma_t * (segment_length_in_box(src.position, points, src.box_lo, src.box_hi)
-                         + segment_length_in_box(camera_pos, points, src.box_lo, src.box_hi))
-    with np.errstate(under="ignore"):
-        falloff = np.maximum(d2 + src.radius ** 2, 1e-300)
-        val = albedo * cos_phi / np.pi * src.intensity * np.exp(-tau) / falloff
-    return np.where(lit, val, 0.0)
+    out = np.empty(points.shape[0])
+    kernels.direct_kernel(np.asarray(src.position, float), np.asarray(camera_pos, float),
+                          np.ascontiguousarray(points, float), np.ascontiguousarray(normals, float),
+                          np.ascontiguousarray(np.broadcast_to(albedo, points.shape[:1]), float),
+                          np.ascontiguousarray(np.broadcast_to(lit, points.shape[:1]), bool),
+                          float(src.sigma_t), float(src.intensity), float(src.radius),
+                          np.asarray(src.box_lo, float), np.asarray(src.box_hi, float), out)
+    return out
 
 
 _SPLITS = (0.0, 0.02, 0.12, 0.5, np.pi)
