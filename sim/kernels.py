@@ -154,7 +154,7 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
                 x0 = edges[p] if sp == 0 else x1
                 x1 = xa_end if sp == n_sub - 1 else edges[p] + 3.0 * 2.0 ** (sp + 1) / (2.0 * st)
                 rule = 0
-                if nodes > 4:
+                if nodes > 2:
                     # angle between the ends seen from the foot: tan(span) = num/den (span < π/2 iff den > 0)
                     hs = max(he_split, 1e-200)
                     num, den = (x1 - x0) * hs, hs * hs + (x1 - xc) * (x0 - xc)

@@ -23,7 +23,7 @@ from scipy.interpolate import PchipInterpolator
 
 # graded nodes, in stripe widths from each edge: outward (where A falls off fastest), inward, and the uniform
 # cells across the stripe; a grid narrower than _DENSE_FROM uniform columns (preview) uses the sparse set
-_DENSE = ((1 / 32, 1 / 8, 1 / 3, 1.0, 2.0, 4.0), (1 / 32, 1 / 8), 6)
+_DENSE = ((1 / 16, 1 / 4, 1.0, 2.5), (1 / 16,), 4)
 _SPARSE = ((1 / 8, 1 / 2, 2.0), (1 / 8,), 3)
 _DENSE_FROM = 12
 

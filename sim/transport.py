@@ -84,10 +84,11 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
 
     Each interval is split where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width (so the
-    pieces resolve a forward peak: the source near or behind the ray, A's beams); a piece gets ``nodes``
-    Gauss–Legendre nodes, or nodes/2 (≥ 3) when it spans < min(0.25, 3w) rad seen from the source's foot and
-    < 2 optical depths, nodes/4 when < min(0.06, 0.75w) rad and < 0.5 (w: forward-lobe width; stripe and
-    checker cells are such short pieces). The sum runs in :func:`polarstripe.sim.kernels.line_integrals`.
+    pieces resolve a forward peak: the source near or behind the ray, A's beams) and where the excess optical
+    path may pass 6, 12, 24, 48 e-folds; a piece gets ``nodes`` Gauss–Legendre nodes, or nodes/2 (≥ 3; ≥ 2
+    when nodes ≤ 4) when it spans < min(0.25, 3w) rad seen from the source's foot and < 2 optical depths,
+    nodes/4 when < min(0.06, 0.75w) rad and < 0.5 (w: forward-lobe width; stripe and checker cells are such
+    short pieces). The sum runs in :func:`polarstripe.sim.kernels.line_integrals`.
 
     Parameters
     ----------
@@ -142,9 +143,10 @@ def _phase_code(phase) -> tuple[int, float, float, float]:
 
 @lru_cache(maxsize=32)
 def _rules(nodes: int):
-    """Gauss–Legendre rules of nodes, nodes/2, nodes/4 points (≥ 3; all ``nodes`` when nodes ≤ 4), padded
+    """Gauss–Legendre rules of nodes, nodes/2, nodes/4 points (≥ 3; ≥ 2 when nodes ≤ 4), padded
     into (3, nodes) arrays, and the ≤ _POL_NODES evenly spaced node indices used for the polarization."""
-    counts = [nodes, nodes, nodes] if nodes <= 4 else [nodes, max(nodes // 2, 3), max(nodes // 4, 3)]
+    least = 3 if nodes > 4 else min(nodes, 2)
+    counts = [nodes, max(nodes // 2, least), max(nodes // 4, least)]
     gl_t, gl_w = np.zeros((3, nodes)), np.zeros((3, nodes))
     subs, nsubs = np.zeros((3, _POL_NODES), np.int64), np.zeros(3, np.int64)
     for k, c in enumerate(counts):
