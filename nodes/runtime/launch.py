@@ -36,7 +36,12 @@ RECORDER = "polarstripe.nodes.runtime.record_cli:Recorder"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="launch file (TOML), e.g. launch/sim.toml")
+    parser.add_argument(
+        "file",
+        nargs="?",
+        default="sim",
+        help="launch file (TOML); a name such as 'sim' picks one shipped with polarstripe (default: sim)",
+    )
     parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="override [args] of the file")
     parser.add_argument("--dry-run", action="store_true", help="print the resolved graph and exit")
     parser.add_argument(
@@ -139,6 +144,7 @@ class _Child:
     exit_code: int | None = None  # the last exit: its status, or -N if killed by signal N
     done: bool = False  # exited for good
     stopped_by: str | None = None  # the launcher's last signal to it at shutdown (None: it ended by itself)
+    echoed: int = 0  # bytes of its log already shown on the console (screen = true)
 
 
 class Launcher:
@@ -193,6 +199,19 @@ class Launcher:
         write_graph(self.graph_file, self.graph)
         self.say(f"{n.name} started (pid {c.proc.pid})" + (f", respawn {c.respawns}" if c.respawns else ""))
 
+    def _echo(self) -> None:
+        """Show on the console what ``screen = true`` nodes have written to their logs since last time."""
+        for c in self.children:
+            if not c.spec.screen or c.proc is None:
+                continue
+            with open(self.run_dir / "logs" / f"{c.spec.name}.log", "rb") as f:
+                f.seek(c.echoed)
+                data = f.read()
+            complete = data[: data.rfind(b"\n") + 1]
+            c.echoed += len(complete)
+            for line in complete.decode(errors="replace").splitlines():
+                print(f"[{c.spec.name}] {line}", file=self.out, flush=True)
+
     def _on_signal(self, signum, frame) -> None:
         self._stop = self._stop or signal.Signals(signum).name
 
@@ -212,6 +231,7 @@ class Launcher:
             status = self._supervise()
         finally:
             self._shutdown()
+            self._echo()
             for s, h in old.items():
                 signal.signal(s, h)
             self.graph["state"] = "stopped"
@@ -278,6 +298,7 @@ class Launcher:
             if all(c.done for c in self.children):
                 self._end("every node has exited")
                 return 1 if any(c.exit_code for c in self.children) else 0
+            self._echo()
             time.sleep(0.05)
         self._end(f"{self._stop}: stopping")
         return 130 if self._stop == "SIGINT" else 143
@@ -349,6 +370,8 @@ def _with_recorder(spec: LaunchSpec, path: str) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    if "=" in args.file and not args.file.endswith(".toml"):  # `launch out=DIR`: an arg, not a file
+        args.overrides, args.file = [args.file, *args.overrides], "sim"
     overrides = parse_assignments(args.overrides, what="arg")
     spec = load_launch(args.file, overrides)
     if args.record:

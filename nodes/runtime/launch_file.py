@@ -40,6 +40,7 @@ _NODE_KEYS = {
     "enabled": bool,
     "pub": str,
     "srv": str,
+    "screen": bool,
 }
 _TOP_KEYS = {"launch", "args", "node"}
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*$")
@@ -58,6 +59,7 @@ class NodeSpec:
     required: bool = False
     pub: str = ""
     srv: str = ""
+    screen: bool = False  # also show its log lines on the launcher's console
     node_class: Any = None
 
 
@@ -146,6 +148,21 @@ def _check_table(table: Any, keys: dict[str, type], where: str, args: dict) -> d
     return out
 
 
+def find_launch_file(path: str | Path) -> Path:
+    """``path`` if it exists, else the launch file of that name shipped with polarstripe (``sim``,
+    ``sim.toml`` and ``launch/sim.toml`` all name the embedded ``launch/sim.toml``), else ``path``."""
+    path = Path(path)
+    if path.exists() or path.is_absolute():
+        return path
+    import polarstripe
+
+    shipped = Path(polarstripe.__file__).parent / "launch" / path.name
+    for candidate in (shipped, shipped.with_name(shipped.name + ".toml")):
+        if candidate.is_file():
+            return candidate
+    return path
+
+
 def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> LaunchSpec:
     """Read and check a launch file; ``overrides`` are ``key=value`` args from the command line.
 
@@ -154,7 +171,7 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
     """
     from polarstripe.nodes.runtime.runner import load_node_class
 
-    path = Path(path)
+    path = find_launch_file(path)
     try:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:

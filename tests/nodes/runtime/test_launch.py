@@ -455,3 +455,20 @@ def test_tcp_transport_with_curve(tmp_path):
     finally:
         assert _stop(proc) == 130
     assert "heard" in (Path(g["run_dir"]) / "logs" / "listener.log").read_text()
+
+
+def test_shipped_launch_file_by_name_from_anywhere_with_screen_output(tmp_path):
+    """`polarstripe launch demo` finds the launch file shipped with polarstripe from any directory; the
+    listener is `screen = true`, so its log lines reach the launcher's console prefixed with its name."""
+    r = subprocess.run(
+        [sys.executable, "-m", "polarstripe", "launch", "demo", "count=5", "rate=50", "--once"],
+        cwd=tmp_path,
+        env=_env(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    listener_lines = [line for line in r.stderr.splitlines() if line.startswith("[listener] ")]
+    assert listener_lines, r.stderr[-2000:]
+    assert not any(line.startswith("[talker] ") for line in r.stderr.splitlines())  # not a screen node
