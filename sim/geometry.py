@@ -11,7 +11,13 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from polarstripe.sim.ray_kernels import box_interval_kernel, intersect_kernel, pack_objects, pixel_rays_kernel
+from polarstripe.sim.ray_kernels import (
+    box_interval_kernel,
+    intersect_kernel,
+    pack_objects,
+    pixel_rays_kernel,
+    projector_coords_kernel,
+)
 from polarstripe.sim.scene import PlaneObject
 
 
@@ -143,10 +149,8 @@ def projector_coords(frame: Frame, points: np.ndarray) -> tuple[np.ndarray, np.n
 
     col ∈ [j, j+1) is pattern column j (row likewise); depth ≤ 0 means behind the projector.
     """
-    v = points - frame.position
-    vf, vr, vu = v @ frame.f, v @ frame.r, v @ frame.u
-    with np.errstate(divide="ignore", invalid="ignore"):
-        col = frame.w / 2.0 + (vr / vf) / frame.s
-        row = frame.h / 2.0 - (vu / vf) / frame.s
-    bad = vf <= 0
-    return np.where(bad, -1.0, col), np.where(bad, -1.0, row), vf
+    points = np.ascontiguousarray(points, float).reshape(-1, 3)
+    col, row, depth = (np.empty(points.shape[0]) for _ in range(3))
+    projector_coords_kernel(frame.position, frame.f, frame.r, frame.u, float(frame.s), frame.w, frame.h,
+                            points, col, row, depth)
+    return col, row, depth

@@ -130,3 +130,17 @@ def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out, p_out):
         n_out[i, 0], n_out[i, 1], n_out[i, 2] = bnx, bny, bnz
         tt = best if bidx >= 0 else 0.0
         p_out[i, 0], p_out[i, 1], p_out[i, 2] = ox + tt * dx, oy + tt * dy, oz + tt * dz
+
+
+@njit(cache=True)
+def projector_coords_kernel(position, f, r, u, s, w, h, points, col, row, depth):
+    """Pattern coordinates (col, row) and depth of points; (−1, −1) behind the projector (depth ≤ 0)."""
+    for i in range(points.shape[0]):
+        vx, vy, vz = points[i, 0] - position[0], points[i, 1] - position[1], points[i, 2] - position[2]
+        vf = vx * f[0] + vy * f[1] + vz * f[2]
+        depth[i] = vf
+        if vf <= 0:
+            col[i] = row[i] = -1.0
+            continue
+        col[i] = w / 2.0 + ((vx * r[0] + vy * r[1] + vz * r[2]) / vf) / s
+        row[i] = h / 2.0 - ((vx * u[0] + vy * u[1] + vz * u[2]) / vf) / s

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from polarstripe.sim.geometry import Hits, plane_axes
 from polarstripe.sim.scene import PlaneObject, SceneError
 
@@ -60,17 +61,31 @@ def surface_info(objects, hits: Hits) -> SurfaceInfo:
             continue
         assert isinstance(obj, PlaneObject) and obj.size is not None
         ra, ua = plane_axes(obj)
+        if tex == "chart":
+            _chart_kernel(hits.index, k, np.ascontiguousarray(hits.point), np.asarray(obj.point, float), ra,
+                          ua, float(obj.size[0]), float(obj.size[1]), float(obj.albedo),
+                          np.asarray(CHART_LOW, float), CHART_BANDS, CHART_BARS, albedo, band, high)
+            continue
         rel = hits.point[sel] - np.asarray(obj.point)
         fx = np.clip((rel @ ra) / obj.size[0] + 0.5, 0.0, 1.0 - 1e-12)      # 0 left … 1 right
         fy = np.clip(0.5 - (rel @ ua) / obj.size[1], 0.0, 1.0 - 1e-12)      # 0 top … 1 bottom
-        if tex == "chart":
-            b = (fy * CHART_BANDS).astype(np.int64)
-            hi = (fx * CHART_BARS).astype(np.int64) % 2 == 0
-            albedo[sel] = obj.albedo * np.where(hi, 1.0, np.asarray(CHART_LOW)[b])
-            band[sel], high[sel] = b, hi
-        else:
-            img = _png(tex)
-            r = (fy * img.shape[0]).astype(np.int64)
-            c = (fx * img.shape[1]).astype(np.int64)
-            albedo[sel] = obj.albedo * img[r, c]
+        img = _png(tex)
+        r = (fy * img.shape[0]).astype(np.int64)
+        c = (fx * img.shape[1]).astype(np.int64)
+        albedo[sel] = obj.albedo * img[r, c]
     return SurfaceInfo(hits.index.copy(), albedo, band, high)
+
+
+@njit(cache=True)
+def _chart_kernel(index, k, points, origin, ra, ua, width, height, rho, low, bands, bars, albedo, band, high):
+    """The chart's albedo, band and bar at the hits on object k (as the numpy texture lookup)."""
+    for i in range(index.size):
+        if index[i] != k:
+            continue
+        rx, ry, rz = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
+        fx = min(max((rx * ra[0] + ry * ra[1] + rz * ra[2]) / width + 0.5, 0.0), 1.0 - 1e-12)
+        fy = min(max(0.5 - (rx * ua[0] + ry * ua[1] + rz * ua[2]) / height, 0.0), 1.0 - 1e-12)
+        b = int(fy * bands)
+        hi = int(fx * bars) % 2 == 0
+        albedo[i] = rho * (1.0 if hi else low[b])
+        band[i], high[i] = b, hi

@@ -80,7 +80,7 @@ def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
                   lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False,
-                  facing: np.ndarray | None = None):
+                  facing: np.ndarray | None = None, splits: tuple[float, ...] = (0.3, 1.0, 3.0, 9.0)):
     """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
 
     Each interval is split where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width (so the
@@ -101,6 +101,7 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     facing : optional (n, 3) unit normals at the source point: multiplies the integrand by
         max(0, n·(Y − L))/d_LY (the Lambertian cosine when the "source" is a surface point, for A).
         ``src.position`` may then be (n, 3), one point per ray (inside the medium).
+    splits : scattering angles, in forward-lobe widths, where intervals are split.
 
     Returns
     -------
@@ -123,7 +124,8 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
         f64(view_start, float), f64(ray, np.int64), f64(lo, float), f64(hi, float), face,
         float(src.radius), float(src.sigma_t), float(src.sigma_s), float(src.intensity), bool(src.inside),
         np.asarray(src.box_lo, float), np.asarray(src.box_hi, float), pcode, g1, g2, alpha,
-        forward_width(src.phase), _split_angles(src.phase), int(nodes), gl_t, gl_w, gl_n, subs, nsubs, pol,
+        forward_width(src.phase), _split_angles(src.phase, tuple(splits)), int(nodes), gl_t, gl_w, gl_n, subs,
+        nsubs, pol,
         np.asarray(src.e_field, float), float(src.dop_l), depol, b_out,
         q_out if pol else np.zeros(1), u_out if pol else np.zeros(1))
     return (b_out, q_out, u_out) if polarization else b_out
@@ -157,10 +159,10 @@ def _rules(nodes: int):
     return gl_t, gl_w, np.array(counts, np.int64), subs, nsubs
 
 
-def _split_angles(phase) -> np.ndarray:
-    """Scattering angles [rad] at which intervals are split: (0.3, 1, 3, 9)× the forward-lobe width, < 1.2."""
+def _split_angles(phase, factors: tuple[float, ...]) -> np.ndarray:
+    """Scattering angles [rad] at which intervals are split: ``factors`` × the forward-lobe width, < 1.2."""
     width = forward_width(phase)
-    return np.array([f * width for f in (0.3, 1.0, 3.0, 9.0) if f * width < 1.2])
+    return np.array([f * width for f in factors if f * width < 1.2])
 
 
 def forward_width(phase) -> float:
