@@ -80,6 +80,7 @@ class Compositor(Node):
         p_min: float = 0.05
         use_truth: bool = True  # ask simulator/truth when a node of the launch serves it
         truth_timeout_s: float = 10.0
+        truth_wait_s: float = 1.0  # without a service, wait this long for the scan's simulator/truth message
         done_grace_s: float = 0.3  # after "done", wait this long for frames still in flight
         image_format: Literal["tiff", "npy"] = "tiff"
         comparison: bool = True
@@ -110,6 +111,8 @@ class Compositor(Node):
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         self.topic_truth: Composite | None = None  # the newest simulator/truth message
+        self._truth_fresh = False  # one came since the running scan's start
+        self._truth_heard = self._truth_silent = False
         if self.params.use_truth:
             self.subscribe("simulator/truth", self.on_truth, mode="latest")
         if self.params.out:
@@ -209,6 +212,9 @@ class Compositor(Node):
                 self.scan = None
                 return
             self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
+            # the simulator publishes the truth of this scan after its start (it may be handled first)
+            t = self.topic_truth
+            self._truth_fresh = t is not None and t.header.stamp_ns >= ev.header.stamp_ns
             if self.running is not None:
                 self.running.reset()
         elif self.scan is None or ev.scan_id != self.scan.scan_id:
@@ -248,41 +254,53 @@ class Compositor(Node):
 
     # ---- the composite ---------------------------------------------------------------------------------
     def on_truth(self, truth: Composite) -> None:
-        self.topic_truth = truth
+        self.topic_truth, self._truth_fresh, self._truth_heard = truth, True, True
 
     def _truth(self, shape) -> Composite | None:
-        """The ground truth for a scan of frames of ``shape``: the newest ``simulator/truth`` message, else
-        the service's answer, else None."""
-        from polarstripe.nodes.runtime.bus import BusError
-
+        """The ground truth for a scan of frames of ``shape``, in this order: a ``simulator/truth`` message
+        that came since the scan's start; the service's answer (live); a message waited for up to
+        ``truth_wait_s`` (a replay: it has its own socket and may trail the frames; a silent topic is not
+        waited for again); None. A truth of another shape is not used."""
         if not self.params.use_truth:
             return None
         for truth in self._take("simulator/truth", 0.0):  # one that came with the last frames
-            self.topic_truth = truth
-        if self.topic_truth is not None:
-            if self.topic_truth.images["S"].shape == shape:
-                return self.topic_truth
-            self.log.warning("truth on the topic is %s, frames are %s: asking the service",
-                             self.topic_truth.images["S"].shape, shape)
-        if not self._truth_served:
+            self.on_truth(truth)
+        if not self._truth_fresh and self._truth_served:
+            truth = self._served_truth()
+            if truth is not None:
+                return self._fits(truth, shape)
+        if not self._truth_fresh and not self._truth_silent:
+            for truth in self._take("simulator/truth", self.params.truth_wait_s):
+                self.on_truth(truth)
+            if not self._truth_heard:
+                self._truth_silent = True
+                self.log.info("no ground truth on simulator/truth within %g s: not waited for again",
+                              self.params.truth_wait_s)
+        return self._fits(self.topic_truth, shape) if self._truth_fresh else None
+
+    def _fits(self, truth: Composite | None, shape) -> Composite | None:
+        if truth is not None and truth.images["S"].shape != shape:
+            self.log.warning("truth is %s, frames are %s: not used", truth.images["S"].shape, shape)
             return None
+        return truth
+
+    def _served_truth(self) -> Composite | None:
+        """The ``simulator/truth`` service's answer, or None (not served: not asked again)."""
+        from polarstripe.nodes.runtime.bus import BusError
+
         try:
             if self._truth_client is None:
                 self._truth_client = self.client("simulator/truth", Empty, Composite,
                                                  timeout_s=self.params.truth_timeout_s)
-        except BusError as exc:  # no node of this launch serves it: a real rig
+        except BusError as exc:  # no node of this launch serves it: a real rig, or a replay
             self._truth_served = False
-            self.log.info("no ground truth (%s): contrast from params only", exc)
+            self.log.info("no simulator/truth service (%s)", exc)
             return None
         try:
-            truth = self._truth_client.call(Empty())
+            return self._truth_client.call(Empty())
         except BusError as exc:  # a timeout or an error reply: try again next scan
             self.log.warning("no ground truth for this scan: %s", exc)
             return None
-        if truth.images["S"].shape != shape:
-            self.log.warning("truth is %s, frames are %s: not used", truth.images["S"].shape, shape)
-            return None
-        return truth
 
     def finish(self, scan: _Scan) -> None:
         from polarstripe.imaging.metrics import michelson_contrast, signal_error

@@ -218,6 +218,16 @@ def test_truth_gives_error_and_contrast_and_files_are_written(tmp_path):
     assert set(h2.node.metrics) == {"flood", "stripes"}
 
 
+def _truth_scan(h, scan_id, image, truth=None):
+    """A flood scan during which the simulator publishes ``truth`` (after the start, as it does)."""
+    h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="start", method="flood"))
+    if truth is not None:
+        h.deliver("simulator/truth", truth)
+    h.deliver("camera/frame", Frame(image=image, exposure_s=0.01, pattern="flood", scan_id=scan_id, step=0))
+    h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="done", method="flood"))
+    return h.published("compositor/composite")[-1]
+
+
 def test_truth_on_the_topic_is_taken_before_the_service():
     """A replay has no simulator: the truth recorded on the topic must score the scan as the service did."""
     s, b = _scene(), 200.0
@@ -227,25 +237,44 @@ def test_truth_on_the_topic_is_taken_before_the_service():
     high[4:12, 8:] = True
     topic = Composite(images={"S": s, "chart_band": band, "chart_high": high}, method="truth",
                       metrics={"dark_offset_dn": float(DARK)})
-    wrong = Composite(images={"S": 2 * s + 1, "chart_band": band, "chart_high": ~high}, method="truth",
-                      metrics={"dark_offset_dn": 0.0})
+    served = Composite(images={"S": 2 * s + 1, "chart_band": band, "chart_high": ~high}, method="truth",
+                       metrics={"dark_offset_dn": 0.0})
     h = _harness(use_truth=True, dark_offset_dn=None)
-    h.on_call("simulator/truth", lambda req: wrong)  # must not be asked while the topic has one
-    h.deliver("simulator/truth", topic)
-    comp = _scan(h, 3, "flood", [(_dn(s + b), "flood", None)])
-    assert h.bus.clients.get(h.full("simulator/truth")) is None or not h.bus.clients[
-        h.full("simulator/truth")].requests
+    h.on_call("simulator/truth", lambda req: served)  # must not be asked while the scan has its message
+    comp = _truth_scan(h, 3, _dn(s + b), topic)
+    assert not h.bus.clients.get(h.full("simulator/truth"), type("c", (), {"requests": []})).requests
     assert comp.metrics["dark_offset_dn"] == DARK
     assert comp.metrics["contrast"] == pytest.approx((1400.0 - 600.0) / (1400.0 + 600.0))
     e = (s + b).ravel()
     g = (e @ s.ravel()) / (e @ e)
     expected_err = np.sqrt(np.sum((g * e - s.ravel()) ** 2)) / np.sqrt(np.sum(s ** 2))
     assert comp.metrics["error_vs_truth"] == pytest.approx(expected_err, rel=1e-6)
-    # a truth of another frame size is not used: the service answers instead
-    h.deliver("simulator/truth", Composite(images={"S": np.zeros((2, 2)), "chart_band": band[:2, :2],
-                                                   "chart_high": high[:2, :2]}, method="truth"))
-    comp = _scan(h, 4, "flood", [(_dn(s + b), "flood", None)])
-    assert comp.metrics["dark_offset_dn"] == 0.0
+    # no message for this scan (the last one is another pose's): the service answers
+    comp = _truth_scan(h, 4, _dn(s + b))
+    assert comp.metrics["dark_offset_dn"] == 0.0 and comp.metrics["contrast"] < 0
+
+
+def test_without_a_service_the_scans_truth_message_is_waited_for_once_the_topic_is_silent():
+    s = _scene()
+    truth = Composite(images={"S": s, "chart_band": np.zeros((H, W), np.int32),
+                              "chart_high": np.zeros((H, W), bool)}, method="truth",
+                      metrics={"dark_offset_dn": float(DARK)})
+    h = _harness(use_truth=True, dark_offset_dn=None, truth_wait_s=0.5)
+    h.node._truth_served = False  # as when no node serves simulator/truth (a replay)
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="flood"))
+    h.deliver("camera/frame", Frame(image=_dn(s), exposure_s=0.01, pattern="flood", scan_id=1, step=0))
+    h.queue("simulator/truth", truth)  # trails the frame: taken while waiting, not dispatched yet
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="flood"))
+    assert h.published("compositor/composite")[-1].metrics["dark_offset_dn"] == DARK
+    t0 = h.bus.now()
+    comp = _truth_scan(h, 2, _dn(s))  # no message: waited for (the topic has spoken before), then none
+    assert comp.metrics["dark_offset_dn"] == 0.0 and h.bus.now() - t0 >= 0.5
+    h2 = _harness(use_truth=True, dark_offset_dn=None, truth_wait_s=0.5)
+    h2.node._truth_served = False
+    _truth_scan(h2, 1, _dn(s))
+    t0 = h2.bus.now()
+    _truth_scan(h2, 2, _dn(s))  # a silent topic is not waited for again
+    assert h2.bus.now() - t0 < 0.5
 
 
 def test_a_fault_ends_the_scan_without_a_composite():

@@ -247,7 +247,8 @@ def test_replayed_scan_gives_the_live_composites_bit_for_bit(tmp_path):
         assert set(rep.images) == set(live_c.images)
         for name, img in live_c.images.items():
             assert img.dtype == rep.images[name].dtype and img.shape == rep.images[name].shape
-            assert img.tobytes() == rep.images[name].tobytes(), f"{method}/{name} differs"
+            assert img.tobytes() == rep.images[name].tobytes(), (
+                f"{method}/{name} differs: live {live_c.metrics}, replayed {rep.metrics}")
         assert np.ptp(live_c.images["composite"]) > 0  # not a blank image that would match anything
         assert rep.metrics["frames"] == live_c.metrics["frames"]
         assert live_c.metrics["error_vs_truth"] is not None  # the live run did score against the truth
