@@ -385,43 +385,12 @@ class Compositor(Node):
 
     # ---- files -----------------------------------------------------------------------------------------
     def _write(self, method: str, image: np.ma.MaskedArray) -> None:
-        import cv2
+        from polarstripe.nodes.compositor_output import write_comparison, write_method
 
         out = self.params.out
-        png = np.clip(np.round(np.ma.filled(image, 0.0)), 0, 65535).astype(np.uint16)
-        cv2.imwrite(os.path.join(out, f"{method}.png"), png)
-        raw = np.ma.filled(image.astype(np.float32), np.nan)
-        if self.params.image_format == "tiff":
-            cv2.imwrite(os.path.join(out, f"{method}.tiff"), raw)
-        else:
-            np.save(os.path.join(out, f"{method}.npy"), raw)
-        tmp = os.path.join(out, "metrics.json.tmp")
-        with open(tmp, "w") as f:
-            json.dump(self.metrics, f, indent=2, sort_keys=True)
-        os.replace(tmp, os.path.join(out, "metrics.json"))
+        write_method(out, method, image, self.metrics, image_format=self.params.image_format)
         if self.params.comparison:
-            self._comparison(os.path.join(out, "comparison.png"))
-
-    def _comparison(self, path: str) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        methods = [m for m in METHODS if m in self.results]
-        fig, axes = plt.subplots(1, len(methods), figsize=(3.2 * len(methods), 3.0), squeeze=False)
-        for ax, method in zip(axes[0], methods, strict=True):
-            img = self.results[method]
-            valid = img.compressed()
-            lo, hi = np.percentile(valid, (1, 99.5)) if valid.size else (0.0, 1.0)
-            ax.imshow(np.ma.filled(img, hi), cmap="gray", vmin=lo, vmax=max(hi, lo + 1e-9))
-            m = self.metrics[method]
-            ax.set_title(f"{method}\ncontrast {_fmt(m['contrast'])}, error {_fmt(m['error_vs_truth'])}",
-                         fontsize=8)
-            ax.axis("off")
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
+            write_comparison(os.path.join(out, "comparison.png"), self.results, self.metrics, METHODS)
 
 
 def _fmt(x) -> str:
