@@ -66,6 +66,8 @@ class Sequencer(Node):
         except SequenceError as exc:
             self.log.error("%s", exc)
             ok = False
+        if self.results:
+            self.log.info("results:\n%s", self.summary())
         if not self.stopping:
             self.stop("sequence finished" if ok else "sequence failed", exit_code=0 if ok else 1)
         for _ in self.events():  # ends with Stop
@@ -170,8 +172,24 @@ class Sequencer(Node):
             self.log.error("%s: scan %d: compositor/composite error: %s", method, sid, comp.metrics["error"])
             self.results[method]["event"] = "composite_error"
             return False
-        self.log.info("%s: composite %s", method, shown)
+        self.log.info("%s: %s", method, _scores(shown))
         return True
+
+    def summary(self) -> str:
+        """One line per method that reached a composite: contrast and error vs truth, side by side."""
+        rows = [f"{'method':<18} {'contrast':>9} {'error vs truth':>15}"]
+        for method, r in self.results.items():
+            m = r.get("metrics", {})
+            rows.append(f"{method:<18} {_num(m.get('contrast')):>9} {_num(m.get('error_vs_truth')):>15}")
+        return "\n".join(rows)
+
+
+def _num(value) -> str:
+    return f"{value:.3f}" if isinstance(value, int | float) else "-"
+
+
+def _scores(metrics: dict) -> str:
+    return f"contrast {_num(metrics.get('contrast'))}, error vs truth {_num(metrics.get('error_vs_truth'))}"
 
 
 class SequenceError(Exception):
