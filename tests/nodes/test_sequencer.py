@@ -92,3 +92,12 @@ def test_a_composite_with_an_error_fails_the_scan():
     assert h.node.results["flood"]["event"] == "composite_error"
     assert any(lvl == "ERROR" and "flood: scan 1: compositor/composite error: no frames to composite" in t
                for lvl, t in h.logs)
+
+
+def test_the_results_table_lists_each_method_with_its_scores():
+    h = rig(metrics={"contrast": 0.4125, "error_vs_truth": 0.25})
+    h.node.run()
+    table = next(t for lvl, t in h.logs if t.startswith("results:")).splitlines()
+    assert table[1].split() == ["method", "contrast", "error", "vs", "truth"]
+    assert [row.split() for row in table[2:]] == [["flood", "0.412", "0.250"],
+                                                  ["polarized_stripes", "0.412", "0.250"]]
