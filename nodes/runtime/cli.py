@@ -31,7 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("polarstripe.nodes.runtime.record_cli", "record topics to an MCAP file"),
     "bag": ("polarstripe.nodes.runtime.bag_cli", "inspect or recover MCAP recordings"),
     "replay": ("polarstripe.nodes.runtime.replay_cli", "publish a recording on its original topics"),
-    "view": ("polarstripe.nodes.runtime.view_cli", "write a contact sheet of the latest frames and composites"),
+    "view": ("polarstripe.nodes.runtime.view_cli", "contact sheet of the latest frames and composites"),
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
 }
 
@@ -45,7 +45,7 @@ def _top_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"polarstripe {__version__}")
-    parser.add_argument("command", choices=sorted(COMMANDS), metavar="COMMAND", help="one of the commands below")
+    parser.add_argument("command", choices=sorted(COMMANDS), metavar="COMMAND", help="a command listed below")
     return parser
 
 
