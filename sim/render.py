@@ -40,8 +40,9 @@ from polarstripe.sim.transport import (
 class Fidelity:
     """Sample counts: ξ nodes per lit interval; for A the pattern-pixel rule's nodes per side (``a_side``,
     pinhole flood/stripe: :mod:`surface_term`; 0 = always the hemisphere rule), the hemisphere rule's θ
-    nodes per piece × φ azimuths (point source, checkers), and the A grid (w, h) over the image (None: every
-    pixel)."""
+    nodes per piece × φ azimuths (point source, checkers), and the A grid (w, h) (None: every pixel): for a
+    flood or stripe on a plane w uniform pattern columns (plus graded ones at the stripe edges, a sparser set
+    when w < 12) × h pattern rows (:mod:`surface_grid`); other objects a camera grid of 3w × 3h."""
 
     name: str
     xi_nodes: int
