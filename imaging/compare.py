@@ -42,11 +42,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def _resolution(text: str) -> tuple[int, int]:
     from polarstripe.imaging.validation import ImagingError
+    from polarstripe.sim.scene import parse_size
 
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ImagingError(f"--resolution: expected WxH, got {text!r}") from None
+    w, h = parse_size(text, "--resolution")
     if w < 16 or h < 12:
         raise ImagingError(f"--resolution: {w}x{h} is too small to resolve the chart (min 16x12)")
     return w, h

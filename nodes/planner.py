@@ -24,6 +24,7 @@ import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.nodes.runtime.node import Node
 from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.sim.scene import parse_size
 
 
 class Planner(Node):
@@ -58,7 +59,7 @@ class Planner(Node):
             if self.p_tolerance < 0 or self.sigma_tolerance < 0:
                 raise ValueError("p_tolerance and sigma_tolerance must be >= 0")
             if self.resolution:
-                _resolution(self.resolution)
+                parse_size(self.resolution)
 
     PUBLISHES = {"planner/plan": Plan}
     SUBSCRIBES = {"medium/estimate": MediumEstimate}
@@ -69,7 +70,7 @@ class Planner(Node):
 
         scene = load_scene(self.params.scene or None)
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
-            (w, h), cam = _resolution(self.params.resolution), scene.camera
+            (w, h), cam = parse_size(self.params.resolution), scene.camera
             exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
             scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
         self.scene = scene
@@ -167,13 +168,6 @@ class Planner(Node):
         self.plan = self.make_plan()
         self.counters["replans"] += 1
         self.plan_pub.publish(self.plan)
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    w, sep, h = text.lower().partition("x")
-    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
-        raise ValueError(f"resolution must be WxH (e.g. 640x480), got {text!r}")
-    return int(w), int(h)
 
 
 NODE = Planner

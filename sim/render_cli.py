@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from polarstripe.sim.scene import SceneError
+from polarstripe.sim.scene import parse_size
 
 HELP = "render one frame of a scene with the light-transport model"
 
@@ -33,15 +33,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", required=True, help="output folder (created)")
 
 
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w < 1 or h < 1:
-            raise ValueError
-        return w, h
-    except ValueError:
-        raise SceneError(f"--resolution must be WxH with positive integers, got {text!r}") from None
-
 
 def main(args: argparse.Namespace) -> int:
     import cv2
@@ -53,7 +44,8 @@ def main(args: argparse.Namespace) -> int:
     fidelity = resolve_fidelity(args.fidelity)
     scene = load_scene(args.scene)
     if args.resolution:
-        scene = scene.replace(camera=scene.camera.replace(resolution=_resolution(args.resolution)))
+        size = parse_size(args.resolution, "--resolution")
+        scene = scene.replace(camera=scene.camera.replace(resolution=size))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -56,6 +56,17 @@ def _unit_interval(key: str, value: Any) -> float:
     return v
 
 
+def parse_size(text: str, what: str = "resolution") -> tuple[int, int]:
+    """``"640x480"`` → ``(640, 480)``: the one parser of ``WxH`` text (command lines, node params).
+
+    Raises :class:`SceneError` (a ``ValueError``) naming ``what`` and the text.
+    """
+    w, sep, h = str(text).strip().lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+        raise SceneError(f"{what} must be WxH with positive integers (e.g. 640x480), got {text!r}")
+    return int(w), int(h)
+
+
 def _resolution(key: str, value: Any) -> tuple[int, int]:
     if not isinstance(value, (list, tuple)) or len(value) != 2:
         raise SceneError(f"{key} must be [width, height], got {value!r}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from polarstripe.msgs import message
 from polarstripe.msgs.base import Message
-from polarstripe.sim.scene import SceneError
+from polarstripe.sim.scene import SceneError, parse_size
 
 
 @message("sim_render_request")
@@ -49,10 +49,7 @@ class SimulatorError(SceneError):
 def parse_resolution(text: str) -> tuple[int, int] | None:
     if not text:
         return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"resolution {text!r} is not WxH, e.g. 320x240") from None
+    w, h = parse_size(text)
     if w < 2 or h < 2:
         raise ValueError(f"resolution {text!r}: need at least 2x2")
     return w, h
