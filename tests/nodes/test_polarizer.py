@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import math
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 
@@ -22,42 +20,13 @@ from polarstripe.nodes.polarizer import CalibrateRequest, Polarizer
 from polarstripe.nodes.runtime.testing import NodeHarness
 
 
-class Drive:
-    """``python -m polarstripe.nodes.drivers.simdrive`` in another process; fault commands on its stdin."""
-
-    def __init__(self, channel: str):
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "polarstripe.nodes.drivers.simdrive", "--channel", channel,
-             "--node-id", "5"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        assert self.proc.stdout.readline().strip() == "ready"
-
-    def cmd(self, text: str) -> None:
-        self.proc.stdin.write(text + "\n")
-        self.proc.stdin.flush()
-        assert self.proc.stdout.readline().strip() == f"ok {text}"
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.stdin.write("quit\n")
-            self.proc.stdin.flush()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
 @pytest.fixture
-def drive():
-    folder = tempfile.mkdtemp(prefix="ps-pol-", dir="/tmp")
-    channel = f"ipc://{folder}/bus"
-    with ZmqCanHub(channel):
-        d = Drive(channel)
-        d.channel = channel
+def drive(can_channel, spawn_drive):
+    """The simulated drive (tests/nodes/conftest.py) in another process, on a hub in this one."""
+    with ZmqCanHub(can_channel):
+        d = spawn_drive(can_channel)
         yield d
         d.close()
-    shutil.rmtree(folder, ignore_errors=True)
 
 
 def _node(drive, **params):

@@ -1,5 +1,5 @@
-"""Fixtures for the driver tests: a CAN segment on ipc, a simulated CiA 402 drive in another process, fakes on
-ptys.
+"""Fixtures for the driver and polarizer tests: a CAN segment on ipc, a simulated CiA 402 drive in
+another process.
 """
 
 from __future__ import annotations
