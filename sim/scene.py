@@ -414,30 +414,25 @@ def _medium(t: dict) -> Medium:
     return Medium(**kw)
 
 
-def _camera(t: dict) -> Camera:
-    t = dict(_check_keys("camera", t, _SECTIONS["camera"]))
-    if "polarizer" in t:
-        t["polarizer"] = Polarizer(**_check_keys("camera.polarizer", t["polarizer"],
-                                                 {"angle_deg", "extinction_ratio"}))
+def _pinhole(section: str, t: dict, nested: str, nested_cls: type, nested_keys: set[str]) -> dict:
+    """What `[camera]` and `[projector]` share: a nested table, the pose vectors, the resolution."""
+    t = dict(_check_keys(section, t, _SECTIONS[section]))
+    if nested in t:
+        t[nested] = nested_cls(**_check_keys(f"{section}.{nested}", t[nested], nested_keys))
     for k in ("position", "look_at", "up"):
         if k in t:
-            t[k] = _vec3(f"camera.{k}", t[k])
+            t[k] = _vec3(f"{section}.{k}", t[k])
     if "resolution" in t:
-        t["resolution"] = _resolution("camera.resolution", t["resolution"])
-    return Camera(**t)
+        t["resolution"] = _resolution(f"{section}.resolution", t["resolution"])
+    return t
+
+
+def _camera(t: dict) -> Camera:
+    return Camera(**_pinhole("camera", t, "polarizer", Polarizer, {"angle_deg", "extinction_ratio"}))
 
 
 def _projector(t: dict) -> Projector:
-    t = dict(_check_keys("projector", t, _SECTIONS["projector"]))
-    if "polarization" in t:
-        t["polarization"] = SourcePolarization(**_check_keys("projector.polarization", t["polarization"],
-                                                             {"dop", "angle_deg"}))
-    for k in ("position", "look_at", "up"):
-        if k in t:
-            t[k] = _vec3(f"projector.{k}", t[k])
-    if "resolution" in t:
-        t["resolution"] = _resolution("projector.resolution", t["resolution"])
-    return Projector(**t)
+    return Projector(**_pinhole("projector", t, "polarization", SourcePolarization, {"dop", "angle_deg"}))
 
 
 def _object(i: int, t: dict, base: Path | None) -> SceneObject:
