@@ -115,7 +115,22 @@ def _connect(sock: zmq.Socket, endpoint: str) -> None:
         raise BusError(f"cannot connect to {endpoint}: {exc}") from None
 
 
-class PubSocket:
+class _SocketOwner:
+    """Owns ``self.socket``: ``close()`` (no linger) and the context manager."""
+
+    socket: zmq.Socket
+
+    def close(self) -> None:
+        self.socket.close(0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class PubSocket(_SocketOwner):
     """One bound PUB socket carrying any number of topics.
 
     Parameters
@@ -157,15 +172,6 @@ class PubSocket:
     @property
     def topics(self) -> dict[str, type[Message]]:
         return {t: p.msg_type for t, p in self._topics.items()}
-
-    def close(self) -> None:
-        self.socket.close(0)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class Publisher:
@@ -215,7 +221,7 @@ class SubscriberStats:
         return {k: v for k, v in self.__dict__.items() if isinstance(v, int)}
 
 
-class Subscriber:
+class Subscriber(_SocketOwner):
     """Receives one topic from one or more publishers' endpoints.
 
     Parameters
@@ -353,15 +359,6 @@ class Subscriber:
             if left <= 0:
                 raise BusTimeout(f"topic {self.topic!r}: nothing received within {timeout_s} s")
             self.socket.poll(int(left * 1000) + 1)
-
-    def close(self) -> None:
-        self.socket.close(0)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def __getattr__(name: str):

@@ -23,6 +23,7 @@ from polarstripe.nodes.runtime.bus import (
     _apply_curve,
     _bind,
     _connect,
+    _SocketOwner,
 )
 
 Handler = Callable[[Message], Message]
@@ -47,7 +48,7 @@ class ServerStats:
     per_service: dict[str, int] = field(default_factory=dict)
 
 
-class ServiceServer:
+class ServiceServer(_SocketOwner):
     """Serves any number of named services on one bound ROUTER socket.
 
     Request frames (from a DEALER): ``[name, request_id, header, *buffers]``; reply:
@@ -134,15 +135,6 @@ class ServiceServer:
             return exc
         reply(b"ok", payload)
         return None
-
-    def close(self) -> None:
-        self.socket.close(0)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 _request_ids = itertools.count(1)
