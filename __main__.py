@@ -1,3 +1,3 @@
-from polarstripe.nodes.runtime.cli import main
+from polarstripe.tools.cli import main
 
 raise SystemExit(main())

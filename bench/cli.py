@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from polarstripe.errors import PolarstripeError
+
 HELP = "run a benchmark and print its table (--json for machines)"
 
 BENCHES: dict[str, str] = {
@@ -34,7 +36,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from polarstripe.errors import PolarstripeError
 
     try:
         module = importlib.import_module(f"polarstripe.bench.{args.bench}")

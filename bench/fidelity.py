@@ -20,10 +20,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
 import tracemalloc
 
 import numpy as np
+from polarstripe.sim import phase as phase_fn
+from polarstripe.sim.geometry import box_interval, intersect, pinhole_frame, pixel_rays, projector_coords
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import load_scene
 
 LEVELS = ("preview", "standard", "reference")
 
@@ -51,10 +59,6 @@ def _timed(fn, repeat: int, cpu: dict | None = None):
 def _cold_compile_s() -> float:
     """Seconds for a fresh process with an empty numba cache to import the model and render a 64×48 stripe
     and flood frame (every kernel compiled), minus the same with the cache warm."""
-    import os
-    import subprocess
-    import sys
-    import tempfile
 
     code = ("import time; t = time.perf_counter(); from polarstripe.sim.render import render_components; "
             "from polarstripe.sim.scene import load_scene; s = load_scene(None); "
@@ -90,8 +94,6 @@ def _rel_err(x, r):
 
 def _march_b(scene, pixels, steps: int) -> np.ndarray:
     """The peer: B by the midpoint rule in x along each ray (volume sampling), flood light."""
-    from polarstripe.sim import phase as phase_fn
-    from polarstripe.sim.geometry import box_interval, intersect, pinhole_frame, pixel_rays, projector_coords
 
     c, m, pr = scene.camera, scene.medium, scene.projector
     cam = pinhole_frame(c.position, c.look_at, c.up, c.fov_deg, c.resolution)
@@ -116,8 +118,6 @@ def _march_b(scene, pixels, steps: int) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from polarstripe.sim.render import render_components
-    from polarstripe.sim.scene import load_scene
 
     w, h = (int(v) for v in args.resolution.lower().split("x"))
     scene = load_scene(None)
@@ -175,7 +175,6 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def _scaling(scene, repeat):
-    from polarstripe.sim.render import render_components
 
     out = {"resolution": [], "stripes": [], "thickness": []}
     for w, h in ((160, 120), (320, 240), (640, 480)):
@@ -195,7 +194,6 @@ def _scaling(scene, repeat):
 def _peer(scene, px, b_ref, target_err, n_pixels):
     """Ray marching at increasing step counts: error on the sampled pixels, time from a 160×120 full frame
     scaled to ``n_pixels`` (so per-call overhead does not count against it)."""
-    from polarstripe.sim.render import render_components
 
     small = scene.replace(camera=scene.camera.replace(resolution=(160, 120)))
     rows = []

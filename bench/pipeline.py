@@ -20,6 +20,7 @@ The physical limit is a 30 fps camera: 60 frames in 2 s (the target for ``previe
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import re
@@ -31,6 +32,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.composite import RunningComposite
 
 CAMERA_FPS = 30.0
 DEFAULT_CONFIGS = "640x480:preview,640x480:standard,1280x1024:preview"
@@ -47,7 +50,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _have(module: str) -> bool:
-    import importlib.util
 
     return importlib.util.find_spec(module) is not None
 
@@ -73,7 +75,7 @@ namespace = "/bench"
 OMP_NUM_THREADS = "1"
 [[node]]
 name = "simulator"
-module = "polarstripe.sim.simulator"
+module = "polarstripe.nodes.simulator"
 params = {{ {sim} }}
 [[node]]
 name = "polarizer"
@@ -109,7 +111,6 @@ def _cpu_s(pid: int) -> float | None:
 
 def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: list[str] = ()) -> dict:
     """Launch the rig once and measure its polarized stripe scan."""
-    from polarstripe.errors import PolarstripeError
 
     folder = Path(tempfile.mkdtemp(prefix="ps-bench-", dir="/tmp"))
     try:
@@ -169,7 +170,6 @@ def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: 
 
 
 def _compositing_s(w: int, h: int, frames: int) -> float:
-    from polarstripe.imaging.composite import RunningComposite
 
     rng = np.random.default_rng(0)
     distinct = [rng.integers(0, 4096, (h, w), dtype=np.uint16) for _ in range(4)]
@@ -181,7 +181,6 @@ def _compositing_s(w: int, h: int, frames: int) -> float:
 
 
 def main(args: argparse.Namespace) -> int:
-    from polarstripe.errors import PolarstripeError
 
     configs = []
     for item in args.configs.split(","):

@@ -14,6 +14,10 @@ import json
 import time
 
 import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.planning.planner import SceneModel, default_separations, plan
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import load_scene
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -36,9 +40,6 @@ def _optima(plans) -> dict[str, float]:
 
 
 def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: str) -> dict:
-    from polarstripe.sim.planner import SceneModel, default_separations, plan
-    from polarstripe.sim.render import render_components
-    from polarstripe.sim.scene import load_scene
 
     scene = load_scene(scene_path)
     seps = default_separations(n_sep)
@@ -79,7 +80,6 @@ def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: s
 
 
 def main(args: argparse.Namespace) -> int:
-    from polarstripe.errors import PolarstripeError
 
     fids = [f.strip() for f in args.fidelities.split(",") if f.strip()]
     if not fids:

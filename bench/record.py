@@ -4,7 +4,7 @@ Measured in one run, on the file system of ``--dir`` (default: the system temp d
 
 * **plain write** — the same payload bytes (the frames' packed messages) with ``f.write``, then ``fsync``: the
   limit of this disk (its page cache, really, for a short run; the ``fsync`` time is reported apart);
-* **BagWriter** — :class:`~polarstripe.nodes.runtime.bag.BagWriter` in this process (no bus), uncompressed
+* **BagWriter** — :class:`~polarstripe.tools.bag.BagWriter` in this process (no bus), uncompressed
   and zstd, beside the peer, ``mcap.Writer`` with the same payloads (it copies each payload three times);
 * **recorder over the bus** — ``polarstripe record`` in its own process, subscribed (``mode="all"``) to a
   publisher in this process over ipc: frames sent as fast as the publisher can (the recorder's sustained
@@ -38,7 +38,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from polarstripe.msgs import Frame, decode, encode, pack
+from mcap.writer import CompressionType, Writer
+from polarstripe.msgs import Frame, decode, encode, json_schema, pack
+from polarstripe.runtime.bus import PubSocket
+from polarstripe.tools.bag import BagWriter
+from polarstripe.tools.bag_reader import BagReader
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -100,7 +104,6 @@ def _plain(path: Path, blobs: list[bytes]) -> dict:
 
 
 def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
-    from polarstripe.nodes.runtime.bag import BagWriter
 
     t0 = time.perf_counter()
     w = BagWriter(path, compression=compression).start()
@@ -115,8 +118,6 @@ def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
 
 
 def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
-    from mcap.writer import CompressionType, Writer
-    from polarstripe.msgs import json_schema
 
     t0 = time.perf_counter()
     with open(path, "wb") as fh:
@@ -139,8 +140,6 @@ def _over_bus(
     """``polarstripe record`` in its own process; this process publishes ``frames`` (paced at ``rate``),
     right after :func:`_warm` of ``warm_bytes`` if given (else memory has been idle for the recorder's
     start-up, 2 s, and is cold)."""
-    from polarstripe.nodes.runtime.bag_reader import BagReader
-    from polarstripe.nodes.runtime.bus import PubSocket
 
     ep = f"ipc://{tmp}/bench-cam.pub"
     graph = {

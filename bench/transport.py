@@ -31,10 +31,14 @@ import os
 import statistics
 import tempfile
 import time
+import timeit
 
 import msgpack
 import numpy as np
 import zmq
+from polarstripe.errors import PolarstripeError
+from polarstripe.msgs import Frame, decode, encode
+from polarstripe.runtime.bus import PubSocket, Subscriber
 
 HELP = "bus throughput and latency vs raw pyzmq and memcpy"
 
@@ -64,8 +68,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------
 class _BusTx:
     def __init__(self, endpoint, ctx):
-        from polarstripe.msgs import Frame
-        from polarstripe.nodes.runtime.bus import PubSocket
 
         self.Frame = Frame
         self.sock = PubSocket(endpoint, hwm=HWM, ctx=ctx)
@@ -80,8 +82,6 @@ class _BusTx:
 
 class _BusRx:
     def __init__(self, endpoint, ctx):
-        from polarstripe.msgs import Frame
-        from polarstripe.nodes.runtime.bus import Subscriber
 
         self.sub = Subscriber([endpoint], TOPIC, Frame, mode="all", ctx=ctx)
         self.socket = self.sub.socket
@@ -351,7 +351,6 @@ def _layer_cost(size_names) -> dict:
     """In-process cost per message of what each layer adds around the socket (min of repeats: robust to load):
     bus = Frame() + encode on send, decode (all checks, read-only view) on receive; pyzmq = msgpack header
     pack on send, unpack + ``np.frombuffer`` on receive."""
-    from polarstripe.msgs import Frame, encode
 
     out = {}
     for name in size_names:
@@ -368,9 +367,7 @@ def _layer_cost(size_names) -> dict:
 
 
 def _layer_figures(payload, frames, raw) -> dict:
-    import timeit
 
-    from polarstripe.msgs import Frame, decode, encode
 
     def best(fn, n=2000):
         return min(timeit.repeat(fn, number=n, repeat=5)) / n * 1e6
@@ -415,7 +412,6 @@ def run(seconds: float = 1.0, quick: bool = False, sizes: list[str] | None = Non
 
 
 def main(args: argparse.Namespace) -> int:
-    from polarstripe.errors import PolarstripeError
 
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     unknown = [s for s in sizes if s not in SIZES]

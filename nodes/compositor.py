@@ -37,9 +37,17 @@ from typing import Literal
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
-from polarstripe.msgs import Composite, Empty, Frame, MediumEstimate, ScanEvent
-from polarstripe.nodes.runtime.node import Node
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.imaging.composite import RunningComposite
+from polarstripe.imaging.metrics import michelson_contrast, signal_error
+from polarstripe.imaging.polarization import estimate_p, recover_signal
+from polarstripe.imaging.separation import separate_direct_global
+from polarstripe.imaging.validation import ImagingError, roi_slices
+from polarstripe.msgs import Composite, Empty, Frame, MediumEstimate, MessageError, ScanEvent
+from polarstripe.nodes.compositor_output import write_comparison, write_method
+from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
+from polarstripe.runtime.bus import BusError
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
 
 METHODS = ("flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation")
 _PATTERN = {"flood": "flood", "polarized_flood": "flood", "stripes": "stripe:",
@@ -134,8 +142,6 @@ class Compositor(Node):
                              f": {detail}" if detail else "", n)
 
     def on_frame(self, frame: Frame) -> None:
-        from polarstripe.imaging.composite import RunningComposite
-        from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
 
         if frame.scan_id >= CALIBRATION_SCAN_ID:
             self.counters["frames_calibration"] += 1  # the polarizer's, not a scan's
@@ -174,7 +180,6 @@ class Compositor(Node):
     def _take(self, topic: str, timeout_s: float) -> list:
         """Every message already arrived on ``topic`` (waiting up to ``timeout_s`` for the first). Unlike
         :meth:`Node.wait_for`, which keeps one message of what it takes, nothing is dropped."""
-        from polarstripe.msgs import MessageError
 
         out = []
         for item in self._bus.take(self._subs[topic].source, timeout_s):
@@ -286,7 +291,6 @@ class Compositor(Node):
 
     def _served_truth(self) -> Composite | None:
         """The ``simulator/truth`` service's answer, or None (not served: not asked again)."""
-        from polarstripe.nodes.runtime.bus import BusError
 
         try:
             if self._truth_client is None:
@@ -303,8 +307,6 @@ class Compositor(Node):
             return None
 
     def finish(self, scan: _Scan) -> None:
-        from polarstripe.imaging.metrics import michelson_contrast, signal_error
-        from polarstripe.imaging.validation import ImagingError
 
         if scan.frames == 0:
             raise PolarstripeError("no frames")
@@ -352,9 +354,6 @@ class Compositor(Node):
 
     def _compose(self, scan: _Scan, rc, dark: float, free):
         """(composite, extra images, p or None) for the scan's method; DN above the dark offset, masked."""
-        from polarstripe.imaging.polarization import estimate_p, recover_signal
-        from polarstripe.imaging.separation import separate_direct_global
-        from polarstripe.imaging.validation import ImagingError, roi_slices
 
         angles = rc.angles
         method = scan.method
@@ -385,7 +384,6 @@ class Compositor(Node):
 
     # ---- files -----------------------------------------------------------------------------------------
     def _write(self, method: str, image: np.ma.MaskedArray) -> None:
-        from polarstripe.nodes.compositor_output import write_comparison, write_method
 
         out = self.params.out
         write_method(out, method, image, self.metrics, image_format=self.params.image_format)

@@ -7,13 +7,15 @@ from __future__ import annotations
 import json
 import os
 
+import cv2
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 
 def write_method(out: str, method: str, image: np.ma.MaskedArray, metrics: dict, *,
                  image_format: str = "tiff") -> None:
     """Write ``method``'s composite ``image`` [DN] to folder ``out`` and rewrite ``metrics.json``."""
-    import cv2
 
     png = np.clip(np.round(np.ma.filled(image, 0.0)), 0, 65535).astype(np.uint16)
     cv2.imwrite(os.path.join(out, f"{method}.png"), png)
@@ -31,10 +33,8 @@ def write_method(out: str, method: str, image: np.ma.MaskedArray, metrics: dict,
 def write_comparison(path: str, results: dict, metrics: dict, order) -> None:
     """The composites of ``results`` (method -> masked image) side by side in ``order``, each stretched from
     its 1st to 99.5th percentile, titled with contrast and error."""
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     methods = [m for m in order if m in results]
     fig, axes = plt.subplots(1, len(methods), figsize=(3.2 * len(methods), 3.0), squeeze=False)

@@ -6,8 +6,8 @@
 from __future__ import annotations
 
 from polarstripe.msgs import Ack, Empty, Log
-from polarstripe.nodes.runtime.node import Node, Received, Stop, Tick
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.runtime.node import Node, Received, Stop, Tick
+from polarstripe.runtime.params import NodeParams
 
 
 class Talker(Node):

@@ -47,9 +47,9 @@ from polarstripe.nodes.drivers.display import as_pattern
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.nodes.grabber import AnalyzerMount
-from polarstripe.nodes.runtime.bus import BusError, BusTimeout
-from polarstripe.nodes.runtime.node import Node, NodeStopping
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.runtime.bus import BusError, BusTimeout
+from polarstripe.runtime.node import Node, NodeStopping
+from polarstripe.runtime.params import NodeParams
 
 #: method -> (polarized, pattern family)
 METHODS = {

@@ -24,9 +24,10 @@ import numpy as np
 from polarstripe.msgs import Ack, Frame, FrameRequest, Message, PolarizerState, message
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
-from polarstripe.nodes.runtime.bus import BusTimeout
-from polarstripe.nodes.runtime.node import Node
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.nodes.simulator_requests import RenderRequest
+from polarstripe.runtime.bus import BusTimeout
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
 
 
 @message("analyzer_mount")
@@ -87,7 +88,6 @@ class Grabber(Node):
         p = self.params
         kwargs: dict = {}
         if p.camera == "sim":
-            from polarstripe.sim.simulator_requests import RenderRequest
 
             if self._render_client is None:
                 self._render_client = self.client(p.render_service, RenderRequest, Frame,

@@ -8,7 +8,7 @@
   ``p_tolerance`` (absolute), or σ_t by more than ``sigma_tolerance`` (relative), the scene's medium takes the
   measured values (a constant DOP p, σ_t when given) and the plan is made again and published.
 
-The plan comes from :func:`polarstripe.sim.planner.plan` on :class:`~polarstripe.sim.planner.SceneModel`
+The plan comes from :func:`polarstripe.planning.planner.plan` on :class:`~polarstripe.planning.planner.SceneModel`
 (``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``): modality
 ``stripes`` (GQM·W) or ``flood`` (CQM·W), with or without the polarizer. :class:`Plan` carries the best
 separation of the mean curve, the scan type (``rotate``, ``translate`` or ``both``) and per-location optima
@@ -22,9 +22,12 @@ from typing import Literal
 
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
-from polarstripe.nodes.runtime.node import Node
-from polarstripe.nodes.runtime.params import NodeParams
-from polarstripe.sim.scene import parse_size
+from polarstripe.planning.planner import SceneModel, default_separations, plan
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import DopModel, load_scene, parse_size, with_separation
+from polarstripe.sim.sensor import full_scale_dn, mean_dn
 
 
 class Planner(Node):
@@ -66,7 +69,6 @@ class Planner(Node):
     SERVES = {"planner/plan": (Empty, Plan)}
 
     def setup(self):
-        from polarstripe.sim.scene import load_scene
 
         scene = load_scene(self.params.scene or None)
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
@@ -84,7 +86,6 @@ class Planner(Node):
 
     def make_plan(self) -> Plan:
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
-        from polarstripe.sim.planner import SceneModel, default_separations, plan
 
         p = self.params
         model = SceneModel(self.scene, fidelity=p.fidelity, n_stripes=p.stripes)
@@ -126,9 +127,6 @@ class Planner(Node):
         The planner's objective looks at a few observed points; a source near the camera can still fill the
         rest of the frame with backscatter beyond full scale (the default tank saturates most of a flood
         frame below d_LC ≈ 0.1 m), and every method of a scan uses the one separation."""
-        from polarstripe.sim.render import render_components
-        from polarstripe.sim.scene import with_separation
-        from polarstripe.sim.sensor import full_scale_dn, mean_dn
 
         if self.params.max_saturated_fraction >= 1.0:
             return 0.0
@@ -150,7 +148,6 @@ class Planner(Node):
         return self.plan
 
     def on_estimate(self, est: MediumEstimate) -> None:
-        from polarstripe.sim.scene import DopModel
 
         p = self.params
         dp = abs(est.p - self.p_assumed)

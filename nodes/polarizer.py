@@ -36,14 +36,16 @@ from polarstripe.msgs import (
     PolarizerCommand,
     PolarizerState,
 )
+from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
+from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.nodes.polarizer_calibration import (  # re-exported: the sequencer and compositor use them
     CALIBRATION_SCAN_ID,
     CalibrateRequest,
     Calibrating,
     Calibration,
 )
-from polarstripe.nodes.runtime.node import Node
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
 
 __all__ = ["CALIBRATION_SCAN_ID", "CalibrateRequest", "Calibration", "Polarizer"]
 
@@ -133,7 +135,6 @@ class Polarizer(Calibrating, Node):
             self.stage = None
 
     def _open_stage(self):
-        from polarstripe.nodes.drivers.registry import open_backend
 
         p = self.params
         limits = {"min_deg": p.min_deg, "max_deg": p.max_deg}
@@ -187,7 +188,6 @@ class Polarizer(Calibrating, Node):
         return Ack(ok=ok and not self._fault_text(), detail=self._fault_text() or "fault cleared")
 
     def _move(self, angle_deg: float) -> None:
-        from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 
         self.target_deg = float(angle_deg)
         self._node_fault, self._node_fault_resettable = "", False
@@ -218,7 +218,6 @@ class Polarizer(Calibrating, Node):
 
     def _reset(self, why: str) -> bool:
         """The drive's fault-reset sequence; True if the stage came back without a fault."""
-        from polarstripe.nodes.drivers.errors import DriverError
 
         try:
             self.stage.reset_fault()

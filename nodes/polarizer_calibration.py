@@ -18,7 +18,11 @@ from dataclasses import field
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.polarization import least_backscatter_angle
+from polarstripe.imaging.validation import roi_slices
 from polarstripe.msgs import Ack, FrameRequest, Message, Pattern, message
+from polarstripe.nodes.emitter import pattern_message
+from polarstripe.runtime.bus import BusError
 
 #: scan ids of calibration frames start here (the emitter counts its scans from 1)
 CALIBRATION_SCAN_ID = 2**30
@@ -81,7 +85,6 @@ class Calibrating:
     def _show_client(self):
         """The ``emitter/show`` client, or None when calibration is not to light the scene or no node of
         the launch serves it (then the projector shows whatever it shows)."""
-        from polarstripe.nodes.runtime.bus import BusError
 
         service = self.params.calibrate_show_service
         if self._show is None and service:
@@ -97,7 +100,6 @@ class Calibrating:
 
         :raises PolarstripeError: the emitter refused (a scan is running, a bad pattern).
         """
-        from polarstripe.nodes.emitter import pattern_message
 
         show = self._show_client()
         if show is None:
@@ -110,8 +112,6 @@ class Calibrating:
 
     def _unlight(self, scan_id: int) -> None:
         """Blank the projector after the calibration frames (a failure is only logged)."""
-        from polarstripe.nodes.emitter import pattern_message
-        from polarstripe.nodes.runtime.bus import BusError
 
         try:
             reply = self._show_client().call(pattern_message("off", scan_id, 0))
@@ -121,9 +121,6 @@ class Calibrating:
             self.log.warning("%s off: %s", self.params.calibrate_show_service, exc)
 
     def calibrate(self, request: CalibrateRequest) -> Calibration:
-        from polarstripe.imaging.polarization import least_backscatter_angle
-        from polarstripe.imaging.validation import roi_slices
-        from polarstripe.nodes.runtime.bus import BusError
 
         p = self.params
         angles = list(request.angles_deg) or list(p.calibrate_angles_deg)

@@ -19,9 +19,10 @@ from __future__ import annotations
 import time
 
 from polarstripe.msgs import Ack, Composite, Empty, Plan, PolarizerState, ScanEvent, ScanRequest
-from polarstripe.nodes.runtime.bus import BusError, BusTimeout
-from polarstripe.nodes.runtime.node import Node
-from polarstripe.nodes.runtime.params import NodeParams
+from polarstripe.nodes.polarizer import CalibrateRequest, Calibration
+from polarstripe.runtime.bus import BusError, BusTimeout
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
 
 DEFAULT_METHODS = ["flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"]
 
@@ -102,7 +103,6 @@ class Sequencer(Node):
         if p.calibrate or any(m.startswith("polarized") for m in p.methods):
             self.wait_stage_ready()
         if p.calibrate:
-            from polarstripe.nodes.polarizer import CalibrateRequest, Calibration
 
             cal = self.call("polarizer/calibrate", CalibrateRequest, Calibration, CalibrateRequest(),
                             timeout_s=60.0)

@@ -14,11 +14,10 @@ import numpy as np
 from polarstripe.sim.ray_kernels import (
     box_interval_kernel,
     intersect_kernel,
-    pack_objects,
     pixel_rays_kernel,
     projector_coords_kernel,
 )
-from polarstripe.sim.scene import PlaneObject
+from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 
 
 @dataclass(frozen=True)
@@ -128,6 +127,27 @@ def intersect(objects, origin: np.ndarray, dirs: np.ndarray) -> Hits:
     intersect_kernel(kinds, params, np.ascontiguousarray(origin, float).reshape(-1, 3),
                      np.ascontiguousarray(dirs, float), t_best, idx, normal, point)
     return Hits(t_best, idx, normal, point)
+
+
+def pack_objects(objects) -> tuple[np.ndarray, np.ndarray]:
+    """Objects → (kinds (k,), params (k, 14)): plane P, n, w/2, h/2 (inf: unbounded), right, up axes;
+    sphere centre, radius; box min, max."""
+    kinds = np.zeros(len(objects), np.int64)
+    params = np.zeros((len(objects), 14))
+    for k, o in enumerate(objects):
+        if isinstance(o, PlaneObject):
+            ra, ua = plane_axes(o)
+            half = (np.inf, np.inf) if o.size is None else (o.size[0] / 2, o.size[1] / 2)
+            params[k] = [*o.point, *o.normal, *half, *ra, *ua]
+        elif isinstance(o, SphereObject):
+            kinds[k] = 1
+            params[k, :4] = [*o.center, o.radius]
+        elif isinstance(o, BoxObject):
+            kinds[k] = 2
+            params[k, :6] = [*o.min, *o.max]
+        else:
+            raise TypeError(f"unknown object type {type(o).__name__}")
+    return kinds, params
 
 
 @lru_cache(maxsize=64)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from polarstripe.sim.geometry import Frame
+from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
 _PAR_EPS = 1e-13
@@ -76,7 +77,6 @@ def clip_halfspaces(origin: np.ndarray, dirs: np.ndarray, x0: np.ndarray, x1: np
                     normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Clip [x0, x1] of rays origin + x·dir to ∩ {n·(P − apex) ≥ 0}; a ray parallel to a plane is kept
     or dropped whole (|n·d| below 1e−13·|n|), so grazing rays give no 0/0."""
-    from polarstripe.sim.kernels import clip_rays
 
     lo, hi = np.empty(dirs.shape[0]), np.empty(dirs.shape[0])
     clip_rays(np.ascontiguousarray(origin, float).reshape(-1, 3), np.ascontiguousarray(dirs, float),

@@ -1,7 +1,7 @@
 """Compiled (numba) ray geometry: pinhole rays, the box slab test and nearest object hits.
 
 Same conventions and arithmetic as the numpy definitions in :mod:`polarstripe.sim.geometry`, which call
-these; objects are packed once into arrays by :func:`pack_objects` (kind 0 plane, 1 sphere, 2 box).
+these; objects are packed once into arrays by ``geometry.pack_objects`` (kind 0 plane, 1 sphere, 2 box).
 """
 
 from __future__ import annotations
@@ -43,30 +43,6 @@ def box_interval_kernel(origin, dirs, lo, hi, t0_out, t1_out):
                 a, b = min(ta, tb), max(ta, tb)
             tmin, tmax = max(tmin, a), min(tmax, b)
         t0_out[i], t1_out[i] = max(tmin, 0.0), tmax
-
-
-def pack_objects(objects) -> tuple[np.ndarray, np.ndarray]:
-    """Objects → (kinds (k,), params (k, 14)): plane P, n, w/2, h/2 (inf: unbounded), right, up axes;
-    sphere centre, radius; box min, max."""
-    from polarstripe.sim.geometry import plane_axes
-    from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
-
-    kinds = np.zeros(len(objects), np.int64)
-    params = np.zeros((len(objects), 14))
-    for k, o in enumerate(objects):
-        if isinstance(o, PlaneObject):
-            ra, ua = plane_axes(o)
-            half = (np.inf, np.inf) if o.size is None else (o.size[0] / 2, o.size[1] / 2)
-            params[k] = [*o.point, *o.normal, *half, *ra, *ua]
-        elif isinstance(o, SphereObject):
-            kinds[k] = 1
-            params[k, :4] = [*o.center, o.radius]
-        elif isinstance(o, BoxObject):
-            kinds[k] = 2
-            params[k, :6] = [*o.min, *o.max]
-        else:
-            raise TypeError(f"unknown object type {type(o).__name__}")
-    return kinds, params
 
 
 @njit(cache=True)

@@ -24,6 +24,7 @@ from polarstripe.sim.kernels import camera_stokes
 from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stripe_columns
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
+from polarstripe.sim.sensor import expose
 from polarstripe.sim.surface import SurfaceInfo, surface_info
 from polarstripe.sim.surface_grid import plane_stripe_field
 from polarstripe.sim.surface_term import surface_scatter_beams
@@ -361,7 +362,6 @@ def render_frame(scene: Scene, pattern: str | Pattern, polarizer_deg: float | No
     (dn, components): dn uint16 (h, w) digital numbers (``bits``-bit, clipped), and the Components.
     ``seed`` None uses ``camera.seed``.
     """
-    from polarstripe.sim.sensor import expose
 
     comp = render_components(scene, pattern, fidelity, pixels)
     radiance = analyzer(comp, polarizer_deg)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
+import cv2
 import numpy as np
 from numba import njit
 from polarstripe.sim.geometry import Hits, plane_axes
@@ -34,7 +35,6 @@ class SurfaceInfo:
 
 @lru_cache(maxsize=8)
 def _png(path: str) -> np.ndarray:
-    import cv2
 
     img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if img is None:

@@ -22,8 +22,8 @@ from functools import lru_cache
 import numpy as np
 from polarstripe.sim import kernels
 from polarstripe.sim import phase as phase_fn
-from polarstripe.sim.geometry import Frame, pinhole_frame, point_in_box, segment_length_in_box
-from polarstripe.sim.patterns import Pattern
+from polarstripe.sim.geometry import Frame, box_interval, pinhole_frame, point_in_box, segment_length_in_box
+from polarstripe.sim.patterns import Pattern, lit_intervals
 from polarstripe.sim.scene import Scene
 
 _TRUNC = 50.0
@@ -264,8 +264,6 @@ def surface_scatter(src: Source, camera_pos: np.ndarray, points: np.ndarray, nor
     -------
     (m,) radiance [W sr⁻¹ m⁻²] toward the camera, before the analyzer.
     """
-    from polarstripe.sim.geometry import box_interval
-    from polarstripe.sim.patterns import lit_intervals
 
     m = points.shape[0]
     out = np.zeros(m)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 from polarstripe.nodes.drivers.camera import Camera
 from polarstripe.nodes.drivers.errors import DeviceLost, DriverTimeout
+from polarstripe.nodes.simulator_requests import RenderRequest
 
 
 class SimCamera(Camera):
@@ -48,7 +49,6 @@ class SimCamera(Camera):
         self._send_exposure = True
 
     def _grab(self) -> tuple[np.ndarray, dict]:
-        from polarstripe.sim.simulator_requests import RenderRequest
 
         req = RenderRequest(pattern=self._pattern, analyzer=self._analyzer, scan_id=self._scan_id,
                             step=self._step, exposure_s=self._exposure_s if self._send_exposure else None)

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import zmq
 from polarstripe.msgs import PolarizerState
-from polarstripe.nodes.runtime.bus import BusTimeout, CurveKeys, Subscriber
-from polarstripe.nodes.runtime.launch_file import load_launch
+from polarstripe.runtime.bus import BusTimeout, CurveKeys, Subscriber
+from polarstripe.runtime.launch_file import load_launch
 
 LAUNCH = Path(__file__).resolve().parents[2] / "launch"
 

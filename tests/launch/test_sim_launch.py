@@ -64,7 +64,7 @@ namespace = "/rig"
 OMP_NUM_THREADS = "1"
 [[node]]
 name = "simulator"
-module = "polarstripe.sim.simulator"
+module = "polarstripe.nodes.simulator"
 params = {{ resolution = "48x36", can_channel = "{can}" {sim_params} }}
 [[node]]
 name = "polarizer"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Composite, Frame, ScanEvent
 from polarstripe.nodes.compositor import Compositor
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.testing import NodeHarness
 
 H, W, DARK = 24, 32, 64
 

@@ -6,7 +6,7 @@ import pytest
 from polarstripe.msgs import Ack, Frame, PolarizerState, ScanRequest
 from polarstripe.nodes.drivers.display import render_pattern
 from polarstripe.nodes.emitter import Emitter
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.testing import NodeHarness
 
 
 def make(params=None, *, frames=True, settle=True):

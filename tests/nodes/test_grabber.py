@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Frame, FrameRequest, PolarizerState
 from polarstripe.nodes.grabber import AnalyzerMount, Grabber
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.testing import NodeHarness
 
 
 class FakeSimulator:

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.nodes.planner import Planner
-from polarstripe.nodes.runtime.params import ParamError
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.params import ParamError
+from polarstripe.runtime.testing import NodeHarness
 
 FAST = {"fidelity": "preview", "separations": 6, "d_min_m": 0.05, "d_max_m": 0.45, "resolution": "160x120"}
 

@@ -17,7 +17,7 @@ import pytest
 from polarstripe.msgs import Ack, Empty, Frame, PolarizerCommand
 from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
 from polarstripe.nodes.polarizer import CalibrateRequest, Polarizer
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.testing import NodeHarness
 
 
 @pytest.fixture

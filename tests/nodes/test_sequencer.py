@@ -3,7 +3,7 @@ it with exit status 1 and a line naming the service or topic."""
 
 import numpy as np
 from polarstripe.msgs import Ack, Composite, Plan, PolarizerState, ScanEvent
-from polarstripe.nodes.runtime.testing import NodeHarness
+from polarstripe.runtime.testing import NodeHarness
 from polarstripe.nodes.sequencer import Sequencer
 
 

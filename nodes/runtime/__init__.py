@@ -1,1 +1,0 @@
-"""The node runtime: bus, Node base class, launcher, recorder/replayer, command line."""

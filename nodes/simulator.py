@@ -1,0 +1,403 @@
+"""The simulator node: projector, camera and polarizer stage of the default tank (or a scene file).
+
+It serves frames rendered by the light-transport model (:mod:`polarstripe.sim.render`) for the pattern asked
+for, at the analyzer angle of its simulated drive's *actual* position (or with no analyzer in the path),
+through the EMVA 1288 sensor; it serves the ground truth the compositor scores against; it hosts a simulated
+CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a python-can bus carried over
+ZeroMQ, which the polarizer node drives with its real CANopen code (or, with ``ell14_link``, a simulated
+Thorlabs ELL14 on a pty for the ``ell14`` backend); and it moves the virtual source when a plan arrives (the
+in-situ loop of the paper's §4).
+
+Services (relative to the namespace):
+
+* ``simulator/render`` (:class:`RenderRequest` → :class:`~polarstripe.msgs.Frame`) — one frame.
+* ``simulator/truth`` (``Empty`` → ``Composite``) — images ``S`` (float64: flood D + A in DN above the dark
+  offset, no analyzer, same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart),
+  ``chart_high`` (bool, bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``.
+  The same ``Composite`` is published on the topic ``simulator/truth`` at every scan start (one render per
+  source pose, cached; re-published as a latch), so a recording carries it and a replay scores like the live
+  run.
+* ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
+  ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
+* ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
+
+Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
+the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
+(``render_ahead``). With ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels wide)
+the model renders at a lower resolution and the radiance is resized bilinearly to the camera's size before
+the sensor (noise, quantisation and clipping at full size); checker patterns (whose edges the high-frequency
+separation relies on) at twice that resolution, and the ground truth at full size.
+``noise = "gaussian"`` (the preview default) draws shot and read noise as one normal variate with the EMVA
+mean and variance instead of Poisson + normal.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
+from polarstripe.nodes.drivers.simdrive import SimCia402Drive
+from polarstripe.nodes.drivers.simell14 import SimEll14
+from polarstripe.nodes.simulator_frames import PREVIEW_WIDTH, expose_fast, next_pattern, timed_render
+from polarstripe.nodes.simulator_requests import (
+    FAULT_COMMANDS,
+    RenderRequest,
+    SimFault,
+    SimulatorError,
+    parse_resolution,
+)
+from polarstripe.runtime.node import Node
+from polarstripe.runtime.params import NodeParams
+from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.render import render_components, resolve_fidelity
+from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
+from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn, mean_dn
+
+# requests and errors (simulator_requests.py) and per-frame functions (simulator_frames.py), re-exported
+__all__ = ["FAULT_COMMANDS", "PREVIEW_WIDTH", "RenderRequest", "SimFault", "Simulator", "SimulatorError",
+           "expose_fast", "next_pattern"]
+
+
+class Simulator(Node):
+    """Stands in for projector, camera and polarizer stage (see the module docstring)."""
+
+    class Params(NodeParams):
+        scene: str = ""  # scene TOML; "" = the paper's tank
+        resolution: str = ""  # camera "WxH"; "" = the scene's
+        fidelity: str = "preview"  # preview | standard | reference | "xi=..,theta=..,phi=..,grid=.."
+        render_scale: int = 0  # model resolution divisor; 0 = auto (preview: ~160 px wide, else 1)
+        noise: str = "auto"  # poisson | gaussian | auto (gaussian at preview)
+        exposure_s: float | None = None  # None: the scene's, scaled by (w/w_scene)^2 to keep the DN level
+        auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
+        seed: int | None = None  # None: the scene camera's seed
+        cache_size: int = 80  # cached component sets (one per pattern and source pose)
+        render_ahead: bool = True  # render the scan's next pattern in a worker thread
+        analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
+        can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
+        can_node_id: int = 5
+        counts_per_deg: float = 1000.0
+        drive_speed_counts_s: float = 200_000.0
+        drive_settle_s: float = 0.02
+        faults: list[str] = []  # fault commands applied at start, e.g. ["never_settle on"]
+        ell14_link: str = ""  # host a simulated ELL14 on a pty and symlink it here ("" = none)
+
+        def validate(self):
+            super().validate()
+            parse_resolution(self.resolution)
+            if self.noise not in ("poisson", "gaussian", "auto"):
+                raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
+            if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
+                raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
+
+    PUBLISHES = {"simulator/truth": Composite}
+    SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
+    SERVES = {
+        "simulator/render": (RenderRequest, Frame),
+        "simulator/truth": (Empty, Composite),
+        "simulator/move_source": (Plan, Ack),
+        "simulator/fault": (SimFault, Ack),
+    }
+
+    def setup(self):
+        p = self.params
+        try:
+            base = load_scene(p.scene or None)
+            res = parse_resolution(p.resolution)
+            cam = base.camera
+            if res is not None and res != cam.resolution:
+                exposure = cam.exposure_s * (res[0] / cam.resolution[0]) ** 2
+                cam = cam.replace(resolution=res, exposure_s=exposure)
+            if p.exposure_s is not None:
+                cam = cam.replace(exposure_s=p.exposure_s)
+            self.fidelity = resolve_fidelity(p.fidelity)
+        except SceneError as exc:
+            raise SimulatorError(f"node {self.name!r}: {exc}") from None
+        self.base = base.replace(camera=cam)
+        self.scene = self.base
+        w = cam.resolution[0]
+        self.scale = p.render_scale or (
+            max(1, w // PREVIEW_WIDTH) if self.fidelity.name == "preview" else 1)
+        self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
+        self._cache: OrderedDict = OrderedDict()
+        self._ahead: dict = {}  # (pattern, pose) -> Future of a render ahead
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="render ahead") if p.render_ahead else None
+        self._truth: dict = {}
+        self._e_map_base = electrons_per_radiance(cam)
+        self._e_map = self._e_map_base
+        self.camera_lost, self.frame_delay_s = False, 0.0
+        self.stats = {"frames": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0, "sensor_s": 0.0,
+                      "resize_s": 0.0, "busy_s": 0.0}
+        self.drive = None
+        if p.can_channel:
+
+            self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
+                                        settle_s=p.drive_settle_s).start()
+        self.ell14 = None
+        if p.ell14_link:
+            self.ell14 = self._host_ell14(p.ell14_link)
+        for command in p.faults:
+            self.inject(SimFault(command=command), strict=True)
+        self._expose_for_flood()
+        self.scanning: set[int] = set()  # scans started and not yet ended (emitter/scan)
+        self.pending_plan: Plan | None = None
+        self.truth_pub = self.publisher("simulator/truth")
+        self.subscribe("planner/plan", self.on_plan, mode="latest")
+        self.subscribe("emitter/scan", self.on_scan, mode="all")
+        self.serve("simulator/render", self.render)
+        self.serve("simulator/truth", self.truth)
+        self.serve("simulator/move_source", self.move_source)
+        self.serve("simulator/fault", self.inject)
+        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %s noise, drive %s", w, cam.resolution[1],
+                      self.fidelity.name, self.scale, "gaussian" if self.gaussian else "poisson",
+                      p.can_channel or "none (fixed analyzer)")
+
+    def _host_ell14(self, link: str):
+
+
+        dev = SimEll14()
+        dev.start()
+        try:
+            if os.path.islink(link):
+                os.unlink(link)
+            os.symlink(dev.port, link)
+        except OSError as exc:
+            dev.stop()
+            raise SimulatorError(f"node {self.name!r}: param 'ell14_link': cannot link {link!r}: {exc}"
+                                 ) from None
+        self.log.info("simulated ELL14 on %s (link %s)", dev.port, link)
+        return dev
+
+    def teardown(self):
+        if self.ell14 is not None:
+
+            self.ell14.stop()
+            if os.path.islink(self.params.ell14_link):
+                os.unlink(self.params.ell14_link)
+            self.ell14 = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        if self.drive is not None:
+            self.drive.stop()
+            self.drive = None
+        self.log.info("stats %s", json.dumps({k: round(v, 4) for k, v in self.stats.items()}))
+
+    # ---- state ---------------------------------------------------------------------------------------------
+    def analyzer_angle(self) -> float:
+        """The analyzer angle [deg]: the simulated CiA 402 drive's actual position, else the simulated
+        ELL14's, else the ``analyzer_deg`` param."""
+        if self.drive is not None:
+            return float(self.drive.position) / self.params.counts_per_deg
+        if self.ell14 is not None:
+            return self.ell14.position * 360.0 / self.ell14.pulses_per_rev
+        return self.params.analyzer_deg
+
+    def _pose(self) -> tuple:
+        return (self.scene.projector.position, self.scene.projector.look_at)
+
+    def _truth_key(self) -> tuple:
+        return (*self._pose(), self.scene.camera.exposure_s)
+
+    def _model_scene(self, pattern: str) -> Scene:
+        """The scene at the resolution the model runs at for ``pattern``."""
+        scene = self.scene
+        # checkers keep twice the resolution: their edges are what the high-frequency separation measures
+        scale = max(1, self.scale // 2) if pattern.startswith("checker") else self.scale
+        if scale > 1:
+            w, h = scene.camera.resolution
+            small = (max(2, round(w / scale)), max(2, round(h / scale)))
+            scene = scene.replace(camera=scene.camera.replace(resolution=small))
+        return scene
+
+    def components(self, pattern: str):
+        """Components of ``pattern`` at the current pose, at the model resolution (cached; the next pattern of
+        a scan is rendered ahead in a worker thread while this frame travels)."""
+        key = (pattern, self._pose())
+        comp = self._cache.get(key)
+        if comp is not None:
+            self._cache.move_to_end(key)
+            self.stats["cache_hits"] += 1
+        else:
+            ahead = self._ahead.pop(key, None)
+            if ahead is not None:
+                comp, seconds = ahead.result()
+            else:
+                comp, seconds = timed_render(self._model_scene(pattern), pattern, self.fidelity)
+            self.stats["model_s"] += seconds
+            self.stats["renders"] += 1
+            self._cache[key] = comp
+            while len(self._cache) > self.params.cache_size:
+                self._cache.popitem(last=False)
+        self._render_ahead(next_pattern(pattern))
+        return comp
+
+    def _render_ahead(self, pattern: str | None) -> None:
+        if pattern is None or self._pool is None:
+            return
+        key = (pattern, self._pose())
+        if key in self._cache or key in self._ahead:
+            return
+        for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
+            self._ahead.pop(old).cancel()
+        scene = self._model_scene(pattern)
+        self._ahead[key] = self._pool.submit(timed_render, scene, pattern, self.fidelity)
+
+    def move_to(self, separation_m: float) -> Scene:
+        """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
+        if not (math.isfinite(separation_m) and separation_m > 0):
+            raise SimulatorError(f"plan: separation_m={separation_m} must be a positive number of metres")
+        self.scene = with_separation(self.base, separation_m)
+        self._expose_for_flood()
+        return self.scene
+
+    def _expose_for_flood(self) -> None:
+        """Auto exposure (``auto_exposure``): the base exposure, shortened so that the 99.5th percentile of
+        the flood frame without analyzer stays at 85 % of the sensor's range (ADC or full well, above the dark
+        offset). The same exposure then serves every method and the ground truth."""
+        base = self.base.camera
+        factor = 1.0
+        if self.params.auto_exposure:
+            comp = self.components("flood")
+            radiance = comp.D + comp.A + comp.B
+            w, h = base.resolution
+            if radiance.shape != (h, w):
+                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+            peak = float(np.percentile(radiance * self._e_map_base, 99.5)) / base.gain_e_per_dn
+            span = min(full_scale_dn(base) - dark_offset_dn(base), base.full_well_e / base.gain_e_per_dn)
+            limit = 0.85 * span
+            if peak > limit:
+                factor = limit / peak
+        self.scene = self.scene.replace(camera=base.replace(exposure_s=base.exposure_s * factor))
+        self._e_map = self._e_map_base * factor
+        if factor < 1.0:
+            self.log.info("auto exposure: %.3g s (flood would clip at %.3g s)", self.scene.camera.exposure_s,
+                          base.exposure_s)
+
+    # ---- handlers ------------------------------------------------------------------------------------------
+    def on_scan(self, event: ScanEvent) -> None:
+        if event.event == "start":
+            self.scanning.add(event.scan_id)
+            self.truth_pub.publish(self.truth(Empty()))  # the pose cannot change until the scan ends
+            return
+        self.scanning.discard(event.scan_id)
+        if not self.scanning and self.pending_plan is not None:
+            plan, self.pending_plan = self.pending_plan, None
+            self.on_plan(plan)
+
+    def on_plan(self, plan: Plan) -> None:
+        """A plan on ``planner/plan`` moves the source — after the scan that is running, never during one."""
+        if self.scanning:
+            self.pending_plan = plan
+            return
+        if abs(self.scene.separation_m() - plan.separation_m) < 1e-9:
+            return
+        try:
+            self.move_to(plan.separation_m)
+            self.log.info("plan: source moved to d_LC = %.3f m", plan.separation_m)
+        except SimulatorError as exc:
+            self.log.error("%s", exc)
+
+    def move_source(self, plan: Plan) -> Ack:
+        try:
+            self.move_to(plan.separation_m)
+        except SimulatorError as exc:
+            return Ack(ok=False, detail=str(exc))
+        pos = ", ".join(f"{v:.3f}" for v in self.scene.projector.position)
+        self.log.info("source moved to d_LC = %.3f m (projector at %s)", plan.separation_m, pos)
+        return Ack(ok=True, detail=f"separation_m={plan.separation_m:.6g} projector=({pos})")
+
+    def render(self, req: RenderRequest) -> Frame:
+        t_start = time.perf_counter()
+        if self.frame_delay_s > 0:
+            time.sleep(self.frame_delay_s)
+        if self.camera_lost:
+            raise SimulatorError("simulated camera lost (fault 'camera_lost on')")
+        cam = self.scene.camera
+        if req.exposure_s is not None:
+            if not (math.isfinite(req.exposure_s) and req.exposure_s > 0):
+                raise SimulatorError(f"exposure_s={req.exposure_s} must be a positive number of seconds")
+            cam = cam.replace(exposure_s=req.exposure_s)
+        pattern = req.pattern.strip().lower()
+        if pattern == "off":  # nothing lit: a dark frame
+            radiance = np.zeros((cam.resolution[1], cam.resolution[0]))
+            angle = self.analyzer_angle() if req.analyzer else None
+        else:
+            try:
+                comp = self.components(pattern)
+            except SceneError as exc:
+                raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
+            angle = self.analyzer_angle() if req.analyzer else None
+            t0 = time.perf_counter()
+            radiance = analyzer(comp, angle)
+            w, h = cam.resolution
+            if radiance.shape != (h, w):
+                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+            self.stats["resize_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        seed = self.params.seed if self.params.seed is not None else cam.seed
+        rng = np.random.default_rng([seed, req.scan_id, req.step, self.stats["frames"]])
+        e_map = self._e_map if cam.exposure_s == self.scene.camera.exposure_s else (
+            self._e_map * cam.exposure_s / self.scene.camera.exposure_s)
+        image = expose_fast(radiance, e_map, cam, rng, gaussian=self.gaussian)
+        t_end = time.perf_counter()
+        self.stats["sensor_s"] += t_end - t0
+        self.stats["frames"] += 1
+        self.stats["busy_s"] += t_end - t_start
+        self.log.debug("frame scan %d step %d %s: %.4f s (sensor %.4f s)", req.scan_id, req.step, pattern,
+                       t_end - t_start, t_end - t0)
+        return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
+                     polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
+
+    def truth(self, req: Empty) -> Composite:
+        key = self._truth_key()
+        if key not in self._truth:
+            comp = render_components(self.scene, "flood", self.fidelity, need=("D", "A"))
+            cam = self.scene.camera
+            signal = mean_dn(comp.D + comp.A, cam) - dark_offset_dn(cam)
+            self._truth[key] = Composite(
+                images={"S": signal.astype(np.float64),
+                        "chart_band": comp.surface.chart_band.astype(np.int32),
+                        "chart_high": comp.surface.chart_high.astype(bool)},
+                method="truth",
+                metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
+                         "dark_offset_dn": dark_offset_dn(cam)},
+            )
+        return self._truth[key]
+
+    def inject(self, req: SimFault, strict: bool = False) -> Ack:
+        words = req.command.split()
+        try:
+            if not words or words[0] not in FAULT_COMMANDS:
+                known = ", ".join(FAULT_COMMANDS)
+                raise ValueError(f"unknown fault command {req.command!r} (known: {known})")
+            name, args = words[0], words[1:]
+            if name == "camera_lost":
+                self.camera_lost = (args or ["on"])[0] == "on"
+            elif name == "frame_delay":
+                self.frame_delay_s = float(args[0])
+            else:
+                if self.drive is None:
+                    raise ValueError(f"fault {name!r} needs the simulated drive (param can_channel)")
+                d = self.drive
+                {"never_settle": lambda: d.inject_never_settle((args or ["on"])[0] == "on"),
+                 "emcy": lambda: d.inject_emcy(int(args[0], 0) if args else 0x8611),
+                 "heartbeat_stop": lambda: d.inject_heartbeat_stop(float(args[0]) if args else None),
+                 "heartbeat_resume": d.resume_heartbeat,
+                 "bus_off": lambda: d.inject_bus_off(float(args[0])),
+                 "position_limit": lambda: d.inject_position_limit(int(args[0]), int(args[1])),
+                 }[name]()
+        except (ValueError, IndexError) as exc:
+            if strict:
+                raise SimulatorError(f"node {self.name!r}: param 'faults': {exc}") from None
+            return Ack(ok=False, detail=f"fault {req.command!r}: {exc}")
+        self.log.warning("fault injected: %s", req.command)
+        return Ack(ok=True, detail=req.command)
+
+
+NODE = "Simulator"

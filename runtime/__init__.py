@@ -1,0 +1,1 @@
+"""The framework: bus, services, the Node base and its bus protocol, params, launcher, graph, testing."""

@@ -1,0 +1,382 @@
+"""``polarstripe launch FILE.toml [key=value …] [--dry-run] [--once] [--record run.mcap]``: start a rig.
+
+The launcher checks the whole file first (:mod:`.launch_file`), makes the run directory, assigns every node
+its endpoints, writes ``graph.json``, then starts each node as ``python -m polarstripe node …`` in its own
+session (output to ``logs/<node>.log``) and supervises: respawn with a delay up to ``max_respawns``; a
+``required`` node's exit ends the launch. Ctrl-C/SIGTERM stop the children in reverse start order: SIGINT,
+then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher
+itself dies. At the end it prints one line per node (exit status or signal, whether the launcher stopped it,
+respawns) and writes them to ``exits.json`` in the run directory (:meth:`Launcher.exits`).
+
+Recording: ``--record FILE`` adds a node ``recorder`` running
+``polarstripe.tools.record:Recorder`` with param ``path = FILE``, started first and stopped last
+so it sees the whole run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from polarstripe.runtime.graph import resolve, runs_dir, write_graph
+from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, load_launch
+from polarstripe.runtime.params import parse_assignments
+from polarstripe.runtime.runner import load_node_class
+
+HELP = "start a rig from a launch file"
+RECORDER = "polarstripe.tools.record:Recorder"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "file",
+        nargs="?",
+        default="sim",
+        help="launch file (TOML); a name such as 'sim' picks one shipped with polarstripe (default: sim)",
+    )
+    parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="override [args] of the file")
+    parser.add_argument("--dry-run", action="store_true", help="print the resolved graph and exit")
+    parser.add_argument(
+        "--once", action="store_true", help="end when every required node has exited (status 1 if one failed)"
+    )
+    parser.add_argument("--record", metavar="FILE.mcap", help="also record every topic to FILE.mcap")
+    # KEY=VALUE may come after the flags (`launch f.toml --once n=3`): parse positionals intermixed
+    parser.parse_args = parser.parse_intermixed_args  # type: ignore[method-assign]
+
+
+def _free_port(host: str) -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _sock_dir(run_dir: Path) -> Path:
+    d = run_dir / "sock"
+    if len(str(d)) > 80:  # ipc paths are limited to ~107 bytes by the kernel
+        d = Path("/tmp") / f"ps-{os.getuid()}-{os.getpid()}-{abs(hash(str(run_dir))) % 10**8}"
+    return d
+
+
+def build_graph(spec: LaunchSpec, run_dir: Path) -> dict:
+    """Endpoints for every node, and who publishes, subscribes and serves what (full names)."""
+    sock = _sock_dir(run_dir)
+    nodes, topics, services = {}, {}, {}
+    for n in spec.nodes:
+        cls = n.node_class
+        if spec.transport == "ipc":
+            pub, srv = f"ipc://{sock}/{n.name}.pub", f"ipc://{sock}/{n.name}.srv"
+        else:
+            pub = f"tcp://{spec.host}:{_free_port(spec.host)}"
+            srv = f"tcp://{spec.host}:{_free_port(spec.host)}"
+        pub, srv = n.pub or pub, n.srv or srv
+        full = {t: resolve(t, spec.namespace, n.name) for t in (*cls.PUBLISHES, *cls.SUBSCRIBES, *cls.SERVES)}
+        publishes = {full[t]: m.TYPE for t, m in cls.PUBLISHES.items()}
+        publishes[resolve("log", spec.namespace)] = "log"
+        publishes[resolve("heartbeat", spec.namespace)] = "heartbeat"
+        nodes[n.name] = {
+            "module": n.module,
+            "pub": pub,
+            "srv": srv,
+            "publishes": publishes,
+            "subscribes": {full[t]: m.TYPE for t, m in cls.SUBSCRIBES.items()},
+            "serves": {full[s]: [q.TYPE, r.TYPE] for s, (q, r) in cls.SERVES.items()},
+            "params": n.params,
+            "env": n.env,
+            "required": n.required,
+            "respawn": n.respawn,
+            "respawn_delay": n.respawn_delay,
+            "max_respawns": n.max_respawns,
+            "log": str(run_dir / "logs" / f"{n.name}.log"),
+            "pid": None,
+        }
+        for t, typ in publishes.items():
+            topics.setdefault(t, {"type": typ, "publishers": [], "subscribers": []})["publishers"].append(
+                n.name
+            )
+        for s, (q, r) in nodes[n.name]["serves"].items():
+            if s in services:
+                raise LaunchError(
+                    f"{spec.path.name}: service {s!r} is served by both "
+                    f"{services[s]['node']!r} and {n.name!r}"
+                )
+            services[s] = {"node": n.name, "endpoint": srv, "request": q, "reply": r}
+    for n in spec.nodes:
+        for t, typ in nodes[n.name]["subscribes"].items():
+            topics.setdefault(t, {"type": typ, "publishers": [], "subscribers": []})["subscribers"].append(
+                n.name
+            )
+    return {
+        "launch": spec.name,
+        "file": str(spec.path),
+        "namespace": spec.namespace,
+        "run_dir": str(run_dir),
+        "pid": os.getpid(),
+        "started_ns": time.time_ns(),
+        "state": "starting",
+        "args": spec.args,
+        "nodes": nodes,
+        "topics": topics,
+        "services": services,
+    }
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class _Child:
+    spec: NodeSpec
+    proc: subprocess.Popen | None = None
+    respawns: int = 0
+    restart_at: float | None = None
+    exit_code: int | None = None  # the last exit: its status, or -N if killed by signal N
+    done: bool = False  # exited for good
+    stopped_by: str | None = None  # the launcher's last signal to it at shutdown (None: it ended by itself)
+    echoed: int = 0  # bytes of its log already shown on the console (screen = true)
+
+
+class Launcher:
+    """Starts and supervises the nodes of one launch. :meth:`run` returns the launch's exit status."""
+
+    def __init__(self, spec: LaunchSpec, *, once: bool = False, out=sys.stderr):
+        self.spec, self.once, self.out = spec, once, out
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        self.run_dir = runs_dir() / f"{spec.name}-{stamp}-{os.getpid()}"
+        self.graph = build_graph(spec, self.run_dir)
+        self.graph_file = self.run_dir / "graph.json"
+        self.children = [_Child(n) for n in spec.nodes]
+        if once and not any(n.required for n in spec.nodes):
+            raise LaunchError(f"{spec.path.name}: --once needs at least one node with required = true")
+        self._stop: str | None = None
+        self._ended = ""  # why the launch ended
+
+    def say(self, text: str) -> None:
+        print(f"[launch {self.spec.name}] {text}", file=self.out, flush=True)
+
+    def _spawn(self, c: _Child) -> None:
+        n = c.spec
+        env = {**os.environ, **self.spec.env, **n.env, "PYTHONUNBUFFERED": "1"}
+        cmd = [
+            sys.executable,
+            "-m",
+            "polarstripe",
+            "node",
+            n.module,
+            "--name",
+            n.name,
+            "--graph",
+            str(self.graph_file),
+            "--params-json",
+            json.dumps(n.params),
+        ]
+        log = open(self.run_dir / "logs" / f"{n.name}.log", "ab")  # noqa: SIM115  (the child owns it)
+        try:
+            c.proc = subprocess.Popen(
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+                preexec_fn=_die_with_parent,
+            )
+        finally:
+            log.close()
+        c.restart_at = None
+        self.graph["nodes"][n.name]["pid"] = c.proc.pid
+        write_graph(self.graph_file, self.graph)
+        self.say(f"{n.name} started (pid {c.proc.pid})" + (f", respawn {c.respawns}" if c.respawns else ""))
+
+    def _echo(self) -> None:
+        """Show on the console what ``screen = true`` nodes have written to their logs since last time."""
+        for c in self.children:
+            if not c.spec.screen or c.proc is None:
+                continue
+            with open(self.run_dir / "logs" / f"{c.spec.name}.log", "rb") as f:
+                f.seek(c.echoed)
+                data = f.read()
+            complete = data[: data.rfind(b"\n") + 1]
+            c.echoed += len(complete)
+            for line in complete.decode(errors="replace").splitlines():
+                print(f"[{c.spec.name}] {line}", file=self.out, flush=True)
+
+    def _on_signal(self, signum, frame) -> None:
+        self._stop = self._stop or signal.Signals(signum).name
+
+    def run(self) -> int:
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        write_graph(self.graph_file, self.graph)
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        status = 1  # if something below raises
+        try:
+            self.say(f"run directory {self.run_dir}")
+            for c in self.children:
+                if self._stop:
+                    break
+                self._spawn(c)
+            self.graph["state"] = "running"
+            write_graph(self.graph_file, self.graph)
+            status = self._supervise()
+        finally:
+            self._shutdown()
+            self._echo()
+            for s, h in old.items():
+                signal.signal(s, h)
+            self.graph["state"] = "stopped"
+            write_graph(self.graph_file, self.graph)
+            self._report_exits(status)
+        return status
+
+    def exits(self, status: int) -> dict:
+        """What ``exits.json`` holds: the launch's exit status and, per node (in start order), ``started``,
+        ``exit_code`` (None if a signal killed it), ``signal`` (the signal's name, or None), ``stopped_by``
+        (the launcher's last signal to it at shutdown; None if it had ended by itself), ``respawns``,
+        ``pid`` (of its last process)."""
+        nodes = {}
+        for c in self.children:
+            code = c.exit_code
+            nodes[c.spec.name] = {
+                "started": c.proc is not None,
+                "exit_code": code if code is not None and code >= 0 else None,
+                "signal": signal.Signals(-code).name if code is not None and code < 0 else None,
+                "stopped_by": c.stopped_by,
+                "respawns": c.respawns,
+                "pid": c.proc.pid if c.proc is not None else None,
+            }
+        return {"launch": self.spec.name, "status": status, "ended": self._ended, "nodes": nodes}
+
+    def _report_exits(self, status: int) -> None:
+        """One line per node (exit status or signal, who stopped it, respawns), and ``exits.json`` in the run
+        directory."""
+        report = self.exits(status)
+        for name, e in report["nodes"].items():
+            if not e["started"]:
+                self.say(f"{name}: not started")
+                continue
+            how = f"exit {e['exit_code']}" if e["signal"] is None else f"killed by {e['signal']}"
+            after = f" after the launcher's {e['stopped_by']}" if e["stopped_by"] else ""
+            self.say(f"{name}: {how}{after}, {e['respawns']} respawn{'s' * (e['respawns'] != 1)}")
+        path = self.run_dir / "exits.json"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(report, indent=2))
+        os.replace(tmp, path)
+
+    def _supervise(self) -> int:
+        required = [c for c in self.children if c.spec.required]
+        while not self._stop:
+            now = time.monotonic()
+            for c in self.children:
+                if c.proc is not None and c.exit_code is None and c.proc.poll() is not None:
+                    self._exited(c, now)
+                elif c.restart_at is not None and now >= c.restart_at:
+                    self._spawn(c)
+                    c.exit_code = None
+            if required:
+                ended = [c for c in required if c.done]
+                failed = [c for c in ended if c.exit_code]
+                if self.once and len(ended) == len(required):
+                    self._end("every required node has exited")
+                    return 1 if failed else 0
+                if not self.once and ended:
+                    self._end(f"required node {ended[0].spec.name} exited: stopping the launch")
+                    return 1 if failed else 0
+                if self.once and failed:
+                    self._end(f"required node {failed[0].spec.name} failed: stopping the launch")
+                    return 1
+            if all(c.done for c in self.children):
+                self._end("every node has exited")
+                return 1 if any(c.exit_code for c in self.children) else 0
+            self._echo()
+            time.sleep(0.05)
+        self._end(f"{self._stop}: stopping")
+        return 130 if self._stop == "SIGINT" else 143
+
+    def _end(self, why: str) -> None:
+        self._ended = why
+        self.say(why)
+
+    def _exited(self, c: _Child, now: float) -> None:
+        c.exit_code = code = c.proc.returncode
+        n = c.spec
+        how = f"exit {code}" if code >= 0 else f"killed by {signal.Signals(-code).name}"
+        if n.respawn and c.respawns < n.max_respawns:
+            c.respawns += 1
+            c.restart_at = now + n.respawn_delay
+            self.say(f"{n.name} {how}; respawn {c.respawns}/{n.max_respawns} in {n.respawn_delay:g} s")
+        else:
+            c.done = True
+            tail = ""
+            if code:
+                try:
+                    lines = Path(self.graph["nodes"][n.name]["log"]).read_text(errors="replace").splitlines()
+                    tail = f" (last line: {lines[-1]})" if lines else ""
+                except OSError:
+                    pass
+            self.say(f"{n.name} {how}{tail}")
+
+    def _shutdown(self) -> None:
+        """SIGINT, then SIGTERM, then SIGKILL to every live child (reverse start order), each stage waiting up
+        to ``shutdown_timeout`` s; then reap everything."""
+        live = [c for c in reversed(self.children) if c.proc is not None and c.proc.poll() is None]
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            if not live:
+                break
+            for c in live:
+                c.stopped_by = sig.name
+                try:
+                    os.killpg(c.proc.pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + self.spec.shutdown_timeout
+            while live and time.monotonic() < deadline:
+                live = [c for c in live if c.proc.poll() is None]
+                time.sleep(0.02)
+            if live and sig != signal.SIGKILL:
+                self.say(f"{', '.join(c.spec.name for c in live)} still running after {sig.name}")
+        for c in self.children:
+            if c.proc is not None:
+                code = c.proc.wait()
+                if c.stopped_by is not None or c.exit_code is None:  # stopped here, or died unseen
+                    c.exit_code = code
+        sock = _sock_dir(self.run_dir)
+        if sock.is_dir():
+            for p in sock.iterdir():
+                p.unlink(missing_ok=True)
+            sock.rmdir()
+
+
+def _with_recorder(spec: LaunchSpec, path: str) -> None:
+
+    try:
+        cls = load_node_class(RECORDER)
+    except Exception:
+        raise LaunchError(f"--record: recording is not available in this build (needs {RECORDER})") from None
+    recorder = NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls)
+    spec.nodes.insert(0, recorder)  # first up, last down: it sees the whole run
+
+
+def main(args: argparse.Namespace) -> int:
+    if "=" in args.file and not args.file.endswith(".toml"):  # `launch out=DIR`: an arg, not a file
+        args.overrides, args.file = [args.file, *args.overrides], "sim"
+    overrides = parse_assignments(args.overrides, what="arg")
+    spec = load_launch(args.file, overrides)
+    if args.record:
+        _with_recorder(spec, os.path.abspath(args.record))
+    launcher = Launcher(spec, once=args.once)
+    if args.dry_run:
+        print(json.dumps(launcher.graph, indent=2))
+        return 0
+    return launcher.run()

@@ -1,0 +1,243 @@
+"""Reading a launch file (TOML, stdlib ``tomllib``): check every key and type, substitute ``${arg}``, import
+each node class and build its params, so a bad file is rejected with one line before anything starts.
+
+The format is documented in docs/architecture.md ("Launch files").
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import polarstripe
+from polarstripe.errors import PolarstripeError
+from polarstripe.runtime.params import ParamError, build_params
+from polarstripe.runtime.runner import load_node_class
+
+
+class LaunchError(PolarstripeError, ValueError):
+    """A launch file or command line that cannot be launched; the text names the file, key and value."""
+
+
+_LAUNCH_KEYS = {
+    "name": str,
+    "namespace": str,
+    "transport": str,
+    "host": str,
+    "shutdown_timeout": float,
+    "env": dict,
+}
+_NODE_KEYS = {
+    "name": str,
+    "module": str,
+    "params": dict,
+    "env": dict,
+    "respawn": bool,
+    "respawn_delay": float,
+    "max_respawns": int,
+    "required": bool,
+    "enabled": bool,
+    "pub": str,
+    "srv": str,
+    "screen": bool,
+}
+_TOP_KEYS = {"launch", "args", "node"}
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*$")
+_ARG = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    module: str
+    params: dict[str, Any]
+    env: dict[str, str] = field(default_factory=dict)
+    respawn: bool = False
+    respawn_delay: float = 1.0
+    max_respawns: int = 5
+    required: bool = False
+    pub: str = ""
+    srv: str = ""
+    screen: bool = False  # also show its log lines on the launcher's console
+    node_class: Any = None
+
+
+@dataclass
+class LaunchSpec:
+    path: Path
+    name: str
+    namespace: str = ""
+    transport: str = "ipc"
+    host: str = "127.0.0.1"
+    shutdown_timeout: float = 3.0
+    env: dict[str, str] = field(default_factory=dict)
+    args: dict[str, Any] = field(default_factory=dict)
+    nodes: list[NodeSpec] = field(default_factory=list)
+
+
+def _type_ok(value: Any, typ: type) -> bool:
+    if typ is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if typ is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, typ)
+
+
+def _substitute(value: Any, args: dict[str, Any], where: str) -> Any:
+    """Replace ``${name}`` in strings (recursively); a string that is exactly ``${name}`` takes the arg's
+    value with its type."""
+    if isinstance(value, str):
+        m = _ARG.fullmatch(value)
+        if m:
+            if m.group(1) not in args:
+                raise LaunchError(f"{where}: unknown arg ${{{m.group(1)}}} (declared: {_names(args)})")
+            return args[m.group(1)]
+
+        def one(m: re.Match) -> str:
+            if m.group(1) not in args:
+                raise LaunchError(f"{where}: unknown arg ${{{m.group(1)}}} (declared: {_names(args)})")
+            v = args[m.group(1)]
+            return str(v).lower() if isinstance(v, bool) else str(v)
+
+        return _ARG.sub(one, value)
+    if isinstance(value, dict):
+        return {k: _substitute(v, args, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, list):
+        return [_substitute(v, args, where) for v in value]
+    return value
+
+
+def _names(args: dict) -> str:
+    return ", ".join(sorted(args)) or "none"
+
+
+def _coerce_typed(value: Any, typ: type, where: str) -> Any:
+    """A value after substitution may be a string standing for a bool or number (``"${use_sim}"``)."""
+    if _type_ok(value, typ):
+        return float(value) if typ is float else value
+    if isinstance(value, str):
+        low = value.strip().lower()
+        try:
+            if typ is bool and low in ("true", "false", "1", "0", "yes", "no"):
+                return low in ("true", "1", "yes")
+            if typ is int:
+                return int(low)
+            if typ is float:
+                return float(low)
+        except ValueError:
+            pass
+    raise LaunchError(f"{where}: expected {typ.__name__}, got {type(value).__name__} {value!r}")
+
+
+def _check_table(table: Any, keys: dict[str, type], where: str, args: dict) -> dict:
+    if not isinstance(table, dict):
+        raise LaunchError(f"{where}: expected a table, got {type(table).__name__}")
+    out = {}
+    for key, value in table.items():
+        if key not in keys:
+            raise LaunchError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(keys))})")
+        value = _substitute(value, args, f"{where}.{key}")
+        out[key] = _coerce_typed(value, keys[key], f"{where}.{key}")
+    for key in ("env",):
+        for k, v in out.get(key, {}).items():
+            if not isinstance(v, str | int | float | bool):
+                raise LaunchError(f"{where}.env.{k}: expected a string, got {type(v).__name__}")
+        if key in out:
+            out[key] = {k: str(v) for k, v in out[key].items()}
+    return out
+
+
+def find_launch_file(path: str | Path) -> Path:
+    """``path`` if it exists, else the launch file of that name shipped with polarstripe (``sim``,
+    ``sim.toml`` and ``launch/sim.toml`` all name the embedded ``launch/sim.toml``), else ``path``."""
+    path = Path(path)
+    if path.exists() or path.is_absolute():
+        return path
+
+    shipped = Path(polarstripe.__file__).parent / "launch" / path.name
+    for candidate in (shipped, shipped.with_name(shipped.name + ".toml")):
+        if candidate.is_file():
+            return candidate
+    return path
+
+
+def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> LaunchSpec:
+    """Read and check a launch file; ``overrides`` are ``key=value`` args from the command line.
+
+    Raises :class:`LaunchError` (one line) for a file that cannot be read or parsed, an unknown key, a value
+    of the wrong type, an unknown arg, a duplicate node name, a missing module or class, or bad params.
+    """
+
+    path = find_launch_file(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise LaunchError(f"launch file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise LaunchError(f"{path}: not valid TOML: {exc}") from None
+    where = path.name
+    for key in raw:
+        if key not in _TOP_KEYS:
+            raise LaunchError(f"{where}: unknown top-level key {key!r} (known: args, launch, node)")
+    args = raw.get("args", {})
+    if not isinstance(args, dict):
+        raise LaunchError(f"{where}: [args] must be a table")
+    for k, v in args.items():
+        if not isinstance(v, str | int | float | bool):
+            raise LaunchError(f"{where}: args.{k}: expected a string, number or bool, got {type(v).__name__}")
+    args = dict(args)
+    for k, v in (overrides or {}).items():
+        if k not in args:
+            raise LaunchError(f"{where}: unknown arg {k!r} on the command line (declared: {_names(args)})")
+        args[k] = v
+    launch = _check_table(raw.get("launch", {}), _LAUNCH_KEYS, f"{where}: [launch]", args)
+    spec = LaunchSpec(
+        path=path,
+        name=launch.get("name", path.stem),
+        args=args,
+        namespace=launch.get("namespace", ""),
+        transport=launch.get("transport", "ipc"),
+        host=launch.get("host", "127.0.0.1"),
+        shutdown_timeout=launch.get("shutdown_timeout", 3.0),
+        env=launch.get("env", {}),
+    )
+    if spec.transport not in ("ipc", "tcp"):
+        raise LaunchError(f"{where}: launch.transport must be 'ipc' or 'tcp', got {spec.transport!r}")
+    if not spec.shutdown_timeout > 0:
+        raise LaunchError(f"{where}: launch.shutdown_timeout must be > 0, got {spec.shutdown_timeout}")
+    nodes = raw.get("node", [])
+    if not isinstance(nodes, list) or not nodes:
+        raise LaunchError(f"{where}: needs at least one [[node]]")
+    seen = set()
+    for i, table in enumerate(nodes):
+        nwhere = f"{where}: node[{i}]" + (f" ({table.get('name')!r})" if isinstance(table, dict) else "")
+        t = _check_table(table, _NODE_KEYS, nwhere, args)
+        for req in ("name", "module"):
+            if req not in t:
+                raise LaunchError(f"{nwhere}: missing key {req!r}")
+        name = t["name"]
+        if not _NAME.match(name):
+            raise LaunchError(
+                f"{nwhere}: name {name!r} must be letters, digits, '_' or '-', starting with a letter"
+            )
+        if name in seen:
+            raise LaunchError(f"{nwhere}: duplicate node name {name!r}")
+        seen.add(name)
+        if not t.pop("enabled", True):
+            continue
+        if t.get("respawn_delay", 0) < 0 or t.get("max_respawns", 0) < 0:
+            raise LaunchError(f"{nwhere}: respawn_delay and max_respawns must be >= 0")
+        try:
+            cls = load_node_class(t["module"])
+        except PolarstripeError as exc:
+            raise LaunchError(f"{nwhere}: {exc}") from None
+        try:
+            params = build_params(cls.Params, t.get("params", {}), node=name).as_dict()
+        except ParamError as exc:
+            raise LaunchError(f"{where}: {exc}") from None
+        t["params"] = {k: v for k, v in params.items() if k in t.get("params", {})}
+        spec.nodes.append(NodeSpec(node_class=cls, **t))
+    return spec

@@ -1,0 +1,214 @@
+"""Running a node as a process: its ZeroMQ sockets (from the graph file or explicit endpoints), logging,
+signals, heartbeat, and an orderly close. ``polarstripe node`` and the launcher's children end up in
+:func:`run_node`."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import zmq
+from polarstripe.errors import PolarstripeError
+from polarstripe.msgs import Heartbeat, Message
+from polarstripe.runtime import bus as zbus
+from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir
+from polarstripe.runtime.node import Node, NodeStopping, install_logging, install_signals
+from polarstripe.runtime.service import ServiceClient, ServiceServer
+
+
+def load_node_class(spec: str) -> type[Node]:
+    """``"package.module:Class"`` (or ``"package.module"`` whose ``NODE`` names the class) → the class.
+
+    Raises :class:`PolarstripeError` naming the spec if the module or class is missing.
+    """
+    module_name, _, cls_name = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        raise PolarstripeError(f"node {spec!r}: module {exc.name!r} not found") from None
+    obj = getattr(module, cls_name or "NODE", None)
+    if isinstance(obj, str):
+        obj = getattr(module, obj, None)
+    if not (isinstance(obj, type) and issubclass(obj, Node)):
+        what = f"class {cls_name!r}" if cls_name else "a NODE attribute naming its Node class"
+        raise PolarstripeError(f"node {spec!r}: module {module_name!r} has no {what} (a Node subclass)")
+    return obj
+
+
+class ZmqNodeBus:
+    """The node's view of the bus: one PUB socket, one ROUTER socket (made when the first service is served),
+    subscribers connected to the publishers the graph lists, service clients pointed by the graph."""
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        pub: str,
+        srv: str,
+        graph: dict | None = None,
+        connect: list[str] = (),
+        services: dict[str, str] | None = None,
+        curve: zbus.CurveKeys | None = None,
+        pub_hwm: int = 100,
+    ):
+        self.name, self.graph, self.curve = name, graph or {}, curve
+        self.ctx = zmq.Context.instance()
+        self.pub_socket = zbus.PubSocket(pub, hwm=pub_hwm, curve=curve)
+        self._srv_endpoint = srv
+        self.server: ServiceServer | None = None
+        self.connect = list(connect)
+        self.service_endpoints = dict(services or {})
+        self.subscribers: list[zbus.Subscriber] = []
+        self.clients: list[ServiceClient] = []
+        self.poller = zmq.Poller()
+
+    now = staticmethod(time.monotonic)
+
+    def publisher(self, topic: str, msg_type: type[Message]):
+        return self.pub_socket.publisher(topic, msg_type)
+
+    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> zbus.Subscriber:
+        endpoints = pub_endpoints(self.graph, topic) + self.connect
+        client_curve = zbus.CurveKeys(server_public=self.curve.public) if self.curve else None
+        sub = zbus.Subscriber(endpoints, topic, msg_type, mode=mode, max_bytes=max_bytes, curve=client_curve)
+        self.subscribers.append(sub)
+        self.poller.register(sub.socket, zmq.POLLIN)
+        return sub
+
+    def serve(self, service: str, req: type[Message], resp: type[Message], handler) -> None:
+        if self.server is None:
+            self.server = ServiceServer(self._srv_endpoint, curve=self.curve)
+            self.poller.register(self.server.socket, zmq.POLLIN)
+        self.server.add(service, req, resp, handler)
+
+    def client(self, service: str, req: type[Message], resp: type[Message], timeout_s: float):
+        endpoint = self.service_endpoints.get(service) or self.graph.get("services", {}).get(service, {}).get(
+            "endpoint"
+        )
+        if not endpoint:
+            raise zbus.BusError(
+                f"service {service!r} is not served by any node of this launch "
+                f"(known: {', '.join(sorted(self.graph.get('services', {}))) or 'none'})"
+            )
+        client_curve = zbus.CurveKeys(server_public=self.curve.public) if self.curve else None
+        c = ServiceClient(endpoint, service, req, resp, timeout_s=timeout_s, curve=client_curve)
+        self.clients.append(c)
+        return c
+
+    def poll(self, subs: list, timeout_s: float) -> list[tuple[Any, list]]:
+        # Round up: rounding down would spin through the last millisecond before every timer.
+        ready = dict(self.poller.poll(max(0, math.ceil(timeout_s * 1000))))
+        if self.server is not None and self.server.socket in ready:
+            self.server.handle_ready()
+        return [(s, s.source.take()) for s in subs if s.source.socket in ready]
+
+    def take(self, sub: zbus.Subscriber, timeout_s: float) -> list:
+        """For ``wait_for``: one message at a time in ``all`` mode, so nothing after a match is taken off the
+        socket (and lost); ``latest`` mode keeps its meaning, the newest of what has arrived."""
+        if sub.socket.poll(max(0, math.ceil(timeout_s * 1000))):
+            return sub.take(limit=1 if sub.mode == "all" else 1000)
+        return []
+
+    def server_bad(self) -> int:
+        return self.server.stats.bad if self.server else 0
+
+    def server_counts(self) -> tuple[int, int]:
+        return (self.server.stats.requests, self.server.stats.errors) if self.server else (0, 0)
+
+    def close(self) -> None:
+        for s in self.subscribers:
+            s.close()
+        for c in self.clients:
+            c.close()
+        if self.server is not None:
+            self.server.close()
+        self.pub_socket.close()
+
+
+def default_endpoints(name: str) -> tuple[str, str]:
+    """Endpoints of a node started by hand (no launcher): ipc sockets in ``<runs>/standalone/``."""
+    d = runs_dir().parent / "standalone"
+    return f"ipc://{d}/{name}.pub", f"ipc://{d}/{name}.srv"
+
+
+def run_node(
+    spec: str,
+    *,
+    name: str | None = None,
+    namespace: str = "",
+    params: dict[str, Any] | None = None,
+    graph_file: str | None = None,
+    pub: str | None = None,
+    srv: str | None = None,
+    connect: list[str] = (),
+    services: dict[str, str] | None = None,
+) -> int:
+    """Run one node until SIGINT/SIGTERM or :meth:`Node.stop`; returns its exit code.
+
+    With ``graph_file`` (the launcher's), the node's endpoints and its peers come from the graph; otherwise
+    from ``pub``/``srv`` (default :func:`default_endpoints`), ``connect`` (PUB endpoints to subscribe to)
+    and ``services`` (service name → ROUTER endpoint).
+    """
+    cls = load_node_class(spec)
+    graph = load_graph(graph_file) if graph_file else {}
+    name = name or cls.__name__.lower()
+    entry = graph.get("nodes", {}).get(name, {})
+    if graph and not entry:
+        raise PolarstripeError(f"node {name!r} is not in graph {graph_file}")
+    namespace = namespace or graph.get("namespace", "")
+    d_pub, d_srv = default_endpoints(name)
+    pub = pub or entry.get("pub") or d_pub
+    srv = srv or entry.get("srv") or d_srv
+    curve = None
+    key_file = os.environ.get("POLARSTRIPE_CURVE_KEYS")
+    if key_file:
+        curve = zbus.CurveKeys.load(key_file)
+    node = cls(name, namespace=namespace, params=params, bus=None)
+    bus = ZmqNodeBus(
+        name,
+        pub=pub,
+        srv=srv,
+        graph=graph,
+        connect=list(connect),
+        services=services,
+        curve=curve,
+        pub_hwm=node.params.pub_hwm,
+    )
+    node._bus = bus
+    install_logging(node)
+    install_signals(node)
+    try:
+        hb_pub = bus.publisher(node._resolve("heartbeat"), Heartbeat)
+        if node.params.heartbeat_s > 0:
+            node.every(
+                node.params.heartbeat_s, lambda: hb_pub.publish(_heartbeat(node, bus)), name="_heartbeat"
+            )
+        node.setup()
+        node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
+        try:
+            node.run()
+        except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to
+            node.log.debug("%s", exc)
+        finally:
+            node.teardown()
+            if node.params.heartbeat_s > 0:
+                hb_pub.publish(_heartbeat(node, bus))
+            node.log.info("stopped (%s)", node._stop_reason or "loop ended")
+    except KeyboardInterrupt:
+        node.exit_code = node.exit_code or 130
+    finally:
+        bus.close()
+        if pub.startswith("ipc://"):
+            Path(pub[6:]).unlink(missing_ok=True)
+    return node.exit_code
+
+
+def _heartbeat(node: Node, bus: ZmqNodeBus) -> Heartbeat:
+    hb = node.heartbeat()
+    requests, errors = bus.server_counts()
+    hb.counters["requests"], hb.counters["service_errors"] = requests, errors
+    return hb

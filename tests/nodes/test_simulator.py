@@ -1,0 +1,211 @@
+"""The simulator node through the harness (and its hosted CiA 402 drive on a real zmq CAN segment).
+
+Physics checks use identities that do not depend on the code under test: Malus' law (two crossed analyzer
+frames add up to the frame without analyzer), the EMVA 1288 mean and variance, the camera–source distance
+of a moved source, the DN level being independent of the resolution once the exposure follows the pixel
+solid angle.
+"""
+
+import shutil
+import tempfile
+
+import numpy as np
+import pytest
+from polarstripe.msgs import Empty, Plan, ScanEvent
+from polarstripe.runtime.testing import NodeHarness
+from polarstripe.sim.scene import load_scene
+from polarstripe.nodes.simulator import RenderRequest, SimFault, Simulator, SimulatorError, expose_fast
+
+
+def sim(**params):
+    return NodeHarness(Simulator, name="simulator", namespace="/rig",
+                       params={"resolution": "48x36", "seed": 3, **params})
+
+
+def dn(h, pattern="flood", analyzer=True, step=0):
+    f = h.call("simulator/render", RenderRequest(pattern=pattern, analyzer=analyzer, step=step))
+    return f, f.image.astype(float)
+
+
+def test_crossed_analyzer_frames_add_up_to_the_frame_without_analyzer():
+    for angle in (0.0, 30.0):
+        h = sim(analyzer_deg=angle)
+        dark = h.call("simulator/truth", Empty()).metrics["dark_offset_dn"]
+        _, a = dn(h)
+        h2 = sim(analyzer_deg=angle + 90.0)
+        _, b = dn(h2)
+        f, none = dn(h, analyzer=False)
+        assert f.polarizer_deg is None
+        # Malus: I(φ) + I(φ + 90°) = (k1 + k2)·(D + A + B) with k1 = 1, k2 = 1/1000 (the scene's extinction)
+        lhs, rhs = (a - dark) + (b - dark), (1 + 1e-3) * (none - dark)
+        assert abs(lhs.mean() / rhs.mean() - 1) < 0.01
+
+
+def test_crossed_analyzer_passes_less_backscatter_than_parallel():
+    # the source is polarized at 90 deg and backscatter keeps most of it: E_b is near 0 deg
+    _, eb = dn(sim(analyzer_deg=0.0))
+    _, ew = dn(sim(analyzer_deg=90.0))
+    assert ew.mean() > 1.5 * eb.mean()
+
+
+def test_second_angle_reuses_the_transport_and_a_moved_source_renders_again():
+    h = sim()
+    dn(h, "stripe:1/4")
+    dn(h, "stripe:1/4", analyzer=False)
+    assert h.node.stats["renders"] == 2  # flood (auto exposure) + the stripe once
+    ack = h.call("simulator/move_source", Plan(modality="stripes", separation_m=0.3))
+    assert ack.ok
+    pos = np.array(h.node.scene.projector.position)
+    assert np.linalg.norm(pos - np.array(h.node.scene.camera.position)) == pytest.approx(0.3, abs=1e-9)
+    dn(h, "stripe:1/4")
+    assert h.node.stats["renders"] == 4  # flood and stripe again at the new pose
+
+
+def test_a_plan_on_the_topic_moves_the_source_too():
+    h = sim()
+    h.deliver("planner/plan", Plan(modality="flood", separation_m=0.25))
+    assert h.node.scene.separation_m() == pytest.approx(0.25)
+
+
+def test_a_plan_during_a_scan_waits_for_its_end():
+    h = sim()
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes"))
+    h.deliver("planner/plan", Plan(modality="stripes", separation_m=0.3))
+    assert h.node.scene.separation_m() == pytest.approx(0.2)  # not in the middle of scan 4
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="fault", method="stripes", detail="x"))
+    assert h.node.scene.separation_m() == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan")])
+def test_bad_separation_is_refused_and_the_source_stays(bad):
+    h = sim()
+    before = h.node.scene.projector.position
+    ack = h.call("simulator/move_source", Plan(modality="stripes", separation_m=bad))
+    assert not ack.ok and "separation_m" in ack.detail
+    assert h.node.scene.projector.position == before
+
+
+def test_dn_level_does_not_depend_on_the_resolution():
+    # exposure ∝ pixel solid angle ∝ 1/w²: the same radiance gives the same mean electrons per pixel
+    small, big = (sim(resolution=r, auto_exposure=False) for r in ("40x30", "80x60"))
+    _, a = dn(small, analyzer=False)
+    _, b = dn(big, analyzer=False)
+    assert abs(a.mean() / b.mean() - 1) < 0.03
+
+
+def test_auto_exposure_keeps_a_near_source_flood_off_the_rails():
+    h = sim()
+    h.call("simulator/move_source", Plan(modality="flood", separation_m=0.02))  # huge backscatter
+    f, none = dn(h, analyzer=False)
+    assert f.exposure_s < load_scene(None).camera.exposure_s * (48 / 640) ** 2
+    assert (f.image >= 4095).mean() < 0.01
+    h2 = sim(auto_exposure=False)
+    h2.call("simulator/move_source", Plan(modality="flood", separation_m=0.02))
+    assert (dn(h2, analyzer=False)[0].image >= 4095).mean() > 0.5  # without it, the flood clips
+
+
+def test_model_at_lower_resolution_matches_the_full_render_on_average():
+    full = sim(resolution="96x72", render_scale=1)
+    half = sim(resolution="96x72", render_scale=2)
+    _, a = dn(full, "stripe:2/4")
+    _, b = dn(half, "stripe:2/4")
+    assert b.shape == a.shape == (72, 96)
+    assert abs(b.mean() / a.mean() - 1) < 0.05
+
+
+def test_truth_marks_the_chart_and_its_bars():
+    h = sim()
+    t = h.call("simulator/truth", Empty())
+    s, band, high = t.images["S"], t.images["chart_band"], t.images["chart_high"]
+    assert s.shape == band.shape == high.shape == (36, 48) and s.dtype == np.float64
+    on = band >= 0
+    assert 0.1 < on.mean() < 0.9 and not high[~on].any()
+    assert s[on & high].mean() > s[on & ~high].mean() > 0
+
+
+def test_truth_is_published_at_every_scan_start_for_the_pose_of_that_scan():
+    h = sim()
+    served = h.call("simulator/truth", Empty())
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="flood"))
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="flood"))
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="stripes"))  # the latch again
+    first, again = h.published("simulator/truth")
+    for t in (first, again):
+        assert t.method == "truth" and set(t.images) == set(served.images)
+        assert all(np.array_equal(t.images[k], served.images[k]) for k in served.images)
+        assert t.metrics == served.metrics
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="done", method="stripes"))
+    assert h.call("simulator/move_source", Plan(modality="flood", separation_m=0.3)).ok
+    h.deliver("emitter/scan", ScanEvent(scan_id=3, event="start", method="flood"))
+    moved = h.published("simulator/truth")[-1]
+    assert len(h.published("simulator/truth")) == 3
+    assert moved.metrics["separation_m"] == pytest.approx(0.3) and served.metrics["separation_m"] != 0.3
+
+
+def test_expose_fast_has_the_emva_mean_and_variance():
+    cam = load_scene(None).camera
+    lam_e = 500.0
+    e_map = np.full((200, 300), lam_e)  # electrons per unit radiance
+    for gaussian in (False, True):
+        y = expose_fast(np.ones((200, 300)), e_map, cam, np.random.default_rng(1), gaussian=gaussian)
+        dark = cam.dark_current_e_s * cam.exposure_s
+        k = cam.gain_e_per_dn
+        mean = (lam_e + dark) / k + cam.offset_dn
+        var = (cam.read_noise_e ** 2 + lam_e + dark) / k ** 2 + 1 / 12
+        assert y.mean() == pytest.approx(mean, rel=0.01)
+        assert y.var() == pytest.approx(var, rel=0.05)
+
+
+def test_faults_and_bad_requests_are_clear():
+    h = sim()
+    assert h.call("simulator/fault", SimFault(command="camera_lost on")).ok
+    with pytest.raises(SimulatorError, match="camera lost"):
+        h.node.render(RenderRequest(pattern="flood"))
+    h.call("simulator/fault", SimFault(command="camera_lost off"))
+    ack = h.call("simulator/fault", SimFault(command="explode"))
+    assert not ack.ok and "unknown fault command 'explode'" in ack.detail and "never_settle" in ack.detail
+    ack = h.call("simulator/fault", SimFault(command="never_settle on"))
+    assert not ack.ok and "can_channel" in ack.detail  # no drive hosted
+    with pytest.raises(SimulatorError, match="pattern 'stripe:9/4'"):
+        h.node.render(RenderRequest(pattern="stripe:9/4"))
+    with pytest.raises(SimulatorError, match="param 'faults'"):
+        sim(faults=["bogus"])
+
+
+def test_off_pattern_is_a_dark_frame():
+    _, img = dn(sim(), "off")
+    assert abs(img.mean() - 64) < 1  # the dark offset (64 DN by default)
+
+
+def test_the_analyzer_follows_the_hosted_drive():
+    from polarstripe.nodes.drivers.cia402 import Cia402Stage
+
+    folder = tempfile.mkdtemp(prefix="ps-can-", dir="/tmp")
+    channel = f"ipc://{folder}/bus"
+    h = sim(can_channel=channel)
+    try:
+        with Cia402Stage(channel, interface="zmq") as stage:
+            stage.move_to(37.5)
+            stage.wait_settled(5.0)
+            f, _ = dn(h)
+            assert f.polarizer_deg == pytest.approx(37.5, abs=0.01)
+    finally:
+        h.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_the_analyzer_follows_the_hosted_ell14_through_its_link(tmp_path):
+    from polarstripe.nodes.drivers.ell14 import Ell14Stage
+
+    link = tmp_path / "ell14"
+    h = sim(ell14_link=str(link))
+    try:
+        assert link.is_symlink()
+        with Ell14Stage(str(link)) as stage:
+            stage.move_to(45.0)
+            stage.wait_settled(5.0)
+            f, _ = dn(h)
+            assert f.polarizer_deg == pytest.approx(45.0, abs=0.01)
+    finally:
+        h.stop()
+    assert not link.exists()  # removed on the way out
