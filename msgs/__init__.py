@@ -4,6 +4,17 @@ See docs/architecture.md, "Bus, messages and nodes"."""
 
 from polarstripe.msgs.base import REGISTRY, Header, Message, MessageError, message
 from polarstripe.msgs.codec import DEFAULT_MAX_BYTES, decode, describe, encode, pack, unpack
+from polarstripe.msgs.methods import METHOD_NAMES, Method
+from polarstripe.msgs.patterns import PatternError, PatternSpec
+from polarstripe.msgs.rig import (
+    CALIBRATION_SCAN_ID,
+    FAULT_COMMANDS,
+    AnalyzerMount,
+    CalibrateRequest,
+    Calibration,
+    RenderRequest,
+    SimFault,
+)
 from polarstripe.msgs.schema import json_schema
 from polarstripe.msgs.types import (
     ALL_TYPES,
@@ -24,6 +35,17 @@ from polarstripe.msgs.types import (
 )
 
 __all__ = [
+    "CALIBRATION_SCAN_ID",
+    "FAULT_COMMANDS",
+    "METHOD_NAMES",
+    "AnalyzerMount",
+    "CalibrateRequest",
+    "Calibration",
+    "Method",
+    "PatternError",
+    "PatternSpec",
+    "RenderRequest",
+    "SimFault",
     "ALL_TYPES",
     "DEFAULT_MAX_BYTES",
     "REGISTRY",

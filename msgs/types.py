@@ -8,6 +8,8 @@ from typing import Any, Literal
 
 import numpy as np
 from polarstripe.msgs.base import Message, message
+from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.msgs.patterns import parse as parse_pattern
 
 
 @message("frame")
@@ -43,6 +45,18 @@ class Pattern(Message):
     shift: int = 0
     scan_id: int = 0
     step: int = 0
+
+    @classmethod
+    def of(cls, pattern, scan_id: int = 0, step: int = 0) -> Pattern:
+        """The message of a pattern tag (``"stripe:3/30"``) or
+        :class:`~polarstripe.msgs.patterns.PatternSpec`; ``PatternError`` if it describes no pattern."""
+        p = parse_pattern(pattern)
+        return cls(kind=p.kind, index=p.index, count=p.count, size=p.size, shift=p.shift, scan_id=scan_id,
+                   step=step)
+
+    def spec(self) -> PatternSpec:
+        """The checked pattern; ``PatternError`` if the fields describe none."""
+        return parse_pattern(self)
 
 
 @message("scan_event")

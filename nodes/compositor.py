@@ -42,16 +42,22 @@ from polarstripe.imaging.metrics import michelson_contrast, signal_error
 from polarstripe.imaging.polarization import estimate_p, recover_signal
 from polarstripe.imaging.separation import separate_direct_global
 from polarstripe.imaging.validation import ImagingError, roi_slices
-from polarstripe.msgs import Composite, Empty, Frame, MediumEstimate, MessageError, ScanEvent
+from polarstripe.msgs import (
+    CALIBRATION_SCAN_ID,
+    METHOD_NAMES,
+    Composite,
+    Empty,
+    Frame,
+    MediumEstimate,
+    MessageError,
+    Method,
+    ScanEvent,
+)
 from polarstripe.nodes.compositor_output import write_comparison, write_method
-from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
 from polarstripe.runtime.bus import BusError
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
-METHODS = ("flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation")
-_PATTERN = {"flood": "flood", "polarized_flood": "flood", "stripes": "stripe:",
-            "polarized_stripes": "stripe:", "hf_separation": "checker:"}
 _DROPS = ("frames_unexpected", "frames_mismatched", "frames_bad", "frames_duplicate", "frames_bad_pattern",
           "frames_bad_angle")
 
@@ -159,7 +165,7 @@ class Compositor(Node):
             return self._drop("frames_bad", frame, f"image {image.dtype} {image.shape}")
         if frame.step in scan.steps:
             return self._drop("frames_duplicate", frame)
-        if not frame.pattern.startswith(_PATTERN[scan.method]):
+        if not Method(scan.method).accepts(frame.pattern):
             return self._drop("frames_bad_pattern", frame, f"{frame.pattern!r} in a {scan.method} scan")
         key = self._angle_key(frame.polarizer_deg, scan)
         if key is False:
@@ -211,9 +217,9 @@ class Compositor(Node):
             if self.scan is not None:
                 self.log.warning("scan %d started before scan %d ended: the old one is dropped", ev.scan_id,
                                  self.scan.scan_id)
-            if ev.method not in METHODS:
+            if ev.method not in METHOD_NAMES:
                 self.log.error("scan %d: unknown method %r (known: %s)", ev.scan_id, ev.method,
-                               ", ".join(METHODS))
+                               ", ".join(METHOD_NAMES))
                 self.scan = None
                 return
             self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
@@ -388,7 +394,7 @@ class Compositor(Node):
         out = self.params.out
         write_method(out, method, image, self.metrics, image_format=self.params.image_format)
         if self.params.comparison:
-            write_comparison(os.path.join(out, "comparison.png"), self.results, self.metrics, METHODS)
+            write_comparison(os.path.join(out, "comparison.png"), self.results, self.metrics, METHOD_NAMES)
 
 
 def _fmt(x) -> str:

@@ -13,9 +13,9 @@ what is wrong. The scan then runs in the node's loop, one at a time (requests qu
 4. The display is blanked, the analyzer put back, and ``emitter/scan`` says ``done`` — or ``fault`` with
    ``detail`` naming the step, the topic or service and what happened. A fault never hangs the node.
 
-Methods (:data:`METHODS`): ``flood``, ``polarized_flood`` (flood at E_b and E_w), ``stripes`` (N
-stripes), ``polarized_stripes`` (N stripes at E_b and E_w), ``hf_separation`` (two complementary checkers,
-Nayar et al.'s high-frequency separation). Polarized methods take the analyzer angles of the request: two
+Methods (:class:`~polarstripe.msgs.Method`): ``flood``, ``polarized_flood`` (flood at E_b and E_w),
+``stripes`` (N stripes), ``polarized_stripes`` (N stripes at E_b and E_w), ``hf_separation`` (two
+complementary checkers, Nayar et al.'s high-frequency separation). Polarized methods take the analyzer angles of the request: two
 angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg`` param. Unpolarized methods
 with angles are taken at those angles; without, with no analyzer (frames carry ``polarizer_deg`` None).
 
@@ -35,30 +35,21 @@ from dataclasses import dataclass
 
 from polarstripe.msgs import (
     Ack,
+    AnalyzerMount,
     Frame,
     FrameRequest,
+    Method,
     Pattern,
     PolarizerCommand,
     PolarizerState,
     ScanEvent,
     ScanRequest,
 )
-from polarstripe.nodes.drivers.display import as_pattern
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
-from polarstripe.nodes.grabber import AnalyzerMount
 from polarstripe.runtime.bus import BusError, BusTimeout
 from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.params import NodeParams
-
-#: method -> (polarized, pattern family)
-METHODS = {
-    "flood": (False, "flood"),
-    "polarized_flood": (True, "flood"),
-    "stripes": (False, "stripes"),
-    "polarized_stripes": (True, "stripes"),
-    "hf_separation": (False, "checker"),
-}
 
 
 class ScanFault(Exception):
@@ -76,24 +67,13 @@ class ScanPlan:
     stripes: int = 0
 
 
-def scan_patterns(method: str, stripes: int, checker_size: int) -> tuple[str, ...]:
-    """The pattern tags of one pass of ``method`` (the model's: flood, stripe:K/N, checker:SIZE:SHIFT)."""
-    family = METHODS[method][1]
-    if family == "flood":
-        return ("flood",)
-    if family == "stripes":
-        return tuple(f"stripe:{k}/{stripes}" for k in range(stripes))
-    return (f"checker:{checker_size}:0", f"checker:{checker_size}:{checker_size}")
-
-
 def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_size: int,
               default_analyzer_deg: list[float]) -> ScanPlan:
     """Check ``req`` and spell out the scan; raises ``ValueError`` naming the field and the value."""
-    if req.method not in METHODS:
-        raise ValueError(f"method {req.method!r} is not one of {', '.join(METHODS)}")
-    polarized, family = METHODS[req.method]
+    method = Method.parse(req.method)
+    polarized, family = method.polarized, method.family
     stripes = req.stripes or default_stripes
-    if family == "stripes" and not 1 <= stripes <= 4096:
+    if family == "stripe" and not 1 <= stripes <= 4096:
         raise ValueError(f"stripes={req.stripes} must be 1..4096")
     angles = [float(a) for a in req.analyzer_deg]
     if any(not math.isfinite(a) for a in angles):
@@ -106,15 +86,8 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
             raise ValueError(f"method {req.method!r} needs analyzer_deg [E_b, E_w] (or one angle, "
                              f"E_w = E_b + 90), got {req.analyzer_deg}")
     resolved: tuple[float | None, ...] = tuple(angles) if angles else (None,)
-    return ScanPlan(scan_id, req.method, scan_patterns(req.method, stripes, checker_size), resolved,
-                    stripes if family == "stripes" else 0)
-
-
-def pattern_message(tag: str, scan_id: int, step: int) -> Pattern:
-    """The ``emitter/pattern`` message of a pattern tag."""
-    p = as_pattern(tag)
-    return Pattern(kind=p.kind, index=p.index, count=p.count, size=p.size, shift=p.shift, scan_id=scan_id,
-                   step=step)
+    patterns = tuple(str(p) for p in method.patterns(stripes, checker_size))
+    return ScanPlan(scan_id, req.method, patterns, resolved, stripes if family == "stripe" else 0)
 
 
 class Emitter(Node):
@@ -294,7 +267,7 @@ class Emitter(Node):
             self.display.show(tag)
         except DriverError as exc:
             raise ScanFault(f"{where}: display: {exc}") from None
-        self.pattern_pub.publish(pattern_message(tag, plan.scan_id, step))
+        self.pattern_pub.publish(Pattern.of(tag, plan.scan_id, step))
         t0 = time.monotonic()
         try:
             ack = self.trigger.call(FrameRequest(scan_id=plan.scan_id, step=step, pattern=tag))

@@ -21,20 +21,12 @@ import math
 import time
 
 import numpy as np
-from polarstripe.msgs import Ack, Frame, FrameRequest, Message, PolarizerState, message
+from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState, RenderRequest
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
-from polarstripe.nodes.simulator_requests import RenderRequest
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
-
-
-@message("analyzer_mount")
-class AnalyzerMount(Message):
-    """Put the analyzer in the optical path (``inserted``) or take it out (unpolarized methods)."""
-
-    inserted: bool
 
 
 class Grabber(Node):

@@ -31,6 +31,8 @@ from typing import Literal
 
 from polarstripe.msgs import (
     Ack,
+    CalibrateRequest,
+    Calibration,
     Empty,
     Frame,
     PolarizerCommand,
@@ -38,16 +40,11 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 from polarstripe.nodes.drivers.registry import open_backend
-from polarstripe.nodes.polarizer_calibration import (  # re-exported: the sequencer and compositor use them
-    CALIBRATION_SCAN_ID,
-    CalibrateRequest,
-    Calibrating,
-    Calibration,
-)
+from polarstripe.nodes.polarizer_calibration import Calibrating
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
-__all__ = ["CALIBRATION_SCAN_ID", "CalibrateRequest", "Calibration", "Polarizer"]
+__all__ = ["Polarizer"]
 
 
 class Polarizer(Calibrating, Node):

@@ -14,43 +14,13 @@ otherwise shows whatever it shows), and Malus's law is fitted over an object-fre
 from __future__ import annotations
 
 import time
-from dataclasses import field
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import roi_slices
-from polarstripe.msgs import Ack, FrameRequest, Message, Pattern, message
-from polarstripe.nodes.emitter import pattern_message
+from polarstripe.msgs import CALIBRATION_SCAN_ID, Ack, CalibrateRequest, Calibration, FrameRequest, Pattern
 from polarstripe.runtime.bus import BusError
-
-#: scan ids of calibration frames start here (the emitter counts its scans from 1)
-CALIBRATION_SCAN_ID = 2**30
-
-
-@message("polarizer_calibrate_request")
-class CalibrateRequest(Message):
-    """Find E_b: ``angles_deg`` to sample (empty: the node's ``calibrate_angles_deg``), the object-free
-    ``roi`` (row0, row1, col0, col1; empty: the node's ``calibrate_roi``, or the whole frame), and whether to
-    turn the analyzer to the result afterwards."""
-
-    angles_deg: list[float] = field(default_factory=list)
-    roi: list[int] = field(default_factory=list)
-    apply: bool = True
-
-
-@message("polarizer_calibration")
-class Calibration(Message):
-    """The analyzer angle of least backscatter ``angle_deg`` [deg, within the stage's limits] or why not; the
-    measured angles and the region's mean [DN, offset subtracted] at each."""
-
-    ok: bool
-    angle_deg: float | None = None
-    detail: str = ""
-    angles_deg: list[float] = field(default_factory=list)
-    means_dn: list[float] = field(default_factory=list)
-
-
 
 
 class Calibrating:
@@ -105,7 +75,7 @@ class Calibrating:
         if show is None:
             return False
         service = self.params.calibrate_show_service
-        reply = show.call(pattern_message(tag, scan_id, 0))
+        reply = show.call(Pattern.of(tag, scan_id, 0))
         if not reply.ok:
             raise PolarstripeError(f"{service} {tag!r} refused: {reply.detail}")
         return True
@@ -114,7 +84,7 @@ class Calibrating:
         """Blank the projector after the calibration frames (a failure is only logged)."""
 
         try:
-            reply = self._show_client().call(pattern_message("off", scan_id, 0))
+            reply = self._show_client().call(Pattern.of("off", scan_id, 0))
             if not reply.ok:
                 self.log.warning("%s off: %s", self.params.calibrate_show_service, reply.detail)
         except (BusError, TimeoutError) as exc:

@@ -18,20 +18,28 @@ from __future__ import annotations
 
 import time
 
-from polarstripe.msgs import Ack, Composite, Empty, Plan, PolarizerState, ScanEvent, ScanRequest
-from polarstripe.nodes.polarizer import CalibrateRequest, Calibration
+from polarstripe.msgs import (
+    METHOD_NAMES,
+    Ack,
+    CalibrateRequest,
+    Calibration,
+    Composite,
+    Empty,
+    Plan,
+    PolarizerState,
+    ScanEvent,
+    ScanRequest,
+)
 from polarstripe.runtime.bus import BusError, BusTimeout
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
-
-DEFAULT_METHODS = ["flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"]
 
 
 class Sequencer(Node):
     """Runs a fixed list of scans once (see the module docstring)."""
 
     class Params(NodeParams):
-        methods: list[str] = list(DEFAULT_METHODS)
+        methods: list[str] = list(METHOD_NAMES)
         stripes: int = 30
         eb_deg: float = 0.0  # analyzer angle of least backscatter E_b [deg]; E_w = E_b + 90
         calibrate: bool = False  # measure E_b first with polarizer/calibrate (overrides eb_deg)

@@ -43,15 +43,16 @@ from concurrent.futures import ThreadPoolExecutor
 import cv2
 import numpy as np
 from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
+from polarstripe.msgs.patterns import following
+from polarstripe.msgs.rig import FAULT_COMMANDS, RenderRequest, SimFault
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
 from polarstripe.nodes.drivers.simell14 import SimEll14
-from polarstripe.nodes.simulator_frames import PREVIEW_WIDTH, expose_fast, next_pattern, timed_render
-from polarstripe.nodes.simulator_requests import (
-    FAULT_COMMANDS,
-    RenderRequest,
-    SimFault,
+from polarstripe.nodes.simulator_frames import (
+    PREVIEW_WIDTH,
     SimulatorError,
+    expose_fast,
     parse_resolution,
+    timed_render,
 )
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
@@ -60,9 +61,7 @@ from polarstripe.sim.render import render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn, mean_dn
 
-# requests and errors (simulator_requests.py) and per-frame functions (simulator_frames.py), re-exported
-__all__ = ["FAULT_COMMANDS", "PREVIEW_WIDTH", "RenderRequest", "SimFault", "Simulator", "SimulatorError",
-           "expose_fast", "next_pattern"]
+__all__ = ["Simulator", "SimulatorError"]
 
 
 class Simulator(Node):
@@ -234,7 +233,7 @@ class Simulator(Node):
             self._cache[key] = comp
             while len(self._cache) > self.params.cache_size:
                 self._cache.popitem(last=False)
-        self._render_ahead(next_pattern(pattern))
+        self._render_ahead(following(pattern))
         return comp
 
     def _render_ahead(self, pattern: str | None) -> None:

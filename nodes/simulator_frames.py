@@ -1,28 +1,30 @@
-"""What the simulator node computes per frame, as plain functions: the pattern a scan shows next (rendered
-ahead), a timed component render, and the sensor exposure with the electrons map precomputed."""
+"""What the simulator node computes per frame, as plain functions: a timed component render and the sensor
+exposure with the electrons map precomputed; its error type and the ``resolution`` param's parser."""
 
 from __future__ import annotations
 
-import re
 import time
 
 import numpy as np
 from polarstripe.sim.render import render_components
-from polarstripe.sim.scene import Scene
+from polarstripe.sim.scene import Scene, SceneError, parse_size
 from polarstripe.sim.sensor import full_scale_dn
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
 
 
-def next_pattern(pattern: str) -> str | None:
-    """The pattern a scan shows after ``pattern`` (``stripe:K/N`` → ``stripe:K+1/N``, ``checker:S:0`` →
-    ``checker:S:S``), or None."""
-    if m := re.fullmatch(r"stripe:(\d+)/(\d+)", pattern):
-        k, n = int(m[1]), int(m[2])
-        return f"stripe:{k + 1}/{n}" if k + 1 < n else None
-    if m := re.fullmatch(r"checker:(\d+):0", pattern):
-        return f"checker:{m[1]}:{m[1]}"
-    return None
+class SimulatorError(SceneError):
+    """A simulator request or parameter that cannot be served; the text names the field and the value."""
+
+
+def parse_resolution(text: str) -> tuple[int, int] | None:
+    """The ``resolution`` param: ``""`` (the scene's) or ``WxH`` with both at least 2."""
+    if not text:
+        return None
+    w, h = parse_size(text)
+    if w < 2 or h < 2:
+        raise ValueError(f"resolution {text!r}: need at least 2x2")
+    return w, h
 
 
 def timed_render(scene: Scene, pattern: str, fidelity):

@@ -1,68 +1,36 @@
-"""Projector patterns and the analytic clipping of rays to the lit part of the projector's frustum.
+"""Projector patterns in the model: the analytic clipping of rays to the lit part of the projector's frustum.
 
-``flood`` lights every pattern pixel; ``stripe:K/N`` lights columns floor(K·W/N) … floor((K+1)·W/N) − 1;
-``checker:SIZE:SHIFT`` lights SIZE×SIZE-pixel squares where (floor((col − SHIFT)/SIZE) + floor(row/SIZE))
-is even: lit fraction 1/2, SHIFT in projector pixels along the columns (SHIFT = SIZE swaps lit and dark).
+The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``) and the pattern value are
+:mod:`polarstripe.msgs.patterns`; ``Pattern`` and ``stripe_columns`` here are those, imported for the model.
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
-Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (refs/physics.md §2.3).
+Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (docs/physics.md §2.3).
 """
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
-
 import numpy as np
+from polarstripe.msgs.patterns import PatternError, parse, stripe_columns
+from polarstripe.msgs.patterns import PatternSpec as Pattern
 from polarstripe.sim.geometry import Frame
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
+__all__ = ["Pattern", "clip_halfspaces", "lit_intervals", "parse_pattern", "stripe_columns"]
+
 _PAR_EPS = 1e-13
 
 
-@dataclass(frozen=True)
-class Pattern:
-    """A parsed pattern: kind ``flood``, ``stripe`` (k of n) or ``checker`` (size, shift px)."""
-
-    kind: str
-    k: int = 0
-    n: int = 1
-    size: int = 0
-    shift: int = 0
-
-    def __str__(self) -> str:
-        if self.kind == "stripe":
-            return f"stripe:{self.k}/{self.n}"
-        if self.kind == "checker":
-            return f"checker:{self.size}:{self.shift}"
-        return "flood"
-
-
 def parse_pattern(spec: str | Pattern) -> Pattern:
-    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N) or ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels)."""
-    if isinstance(spec, Pattern):
-        return spec
-    s = str(spec).strip().lower()
-    if s == "flood":
-        return Pattern("flood")
-    m = re.fullmatch(r"stripe:(\d+)/(\d+)", s)
-    if m:
-        k, n = int(m.group(1)), int(m.group(2))
-        if n < 1 or not 0 <= k < n:
-            raise SceneError(f"pattern {spec!r}: stripe:K/N needs N >= 1 and 0 <= K < N")
-        return Pattern("stripe", k=k, n=n)
-    m = re.fullmatch(r"checker:(\d+):(\d+)", s)
-    if m:
-        size, shift = int(m.group(1)), int(m.group(2))
-        if size < 1:
-            raise SceneError(f"pattern {spec!r}: checker SIZE must be >= 1 pixel")
-        return Pattern("checker", size=size, shift=shift)
-    raise SceneError(f"pattern {spec!r} is not flood, stripe:K/N or checker:SIZE:SHIFT")
-
-
-def stripe_columns(pattern: Pattern, width: int) -> tuple[int, int]:
-    """Lit column edges [c0, c1) of a stripe (c1 exclusive) on a projector ``width`` pixels wide."""
-    return (pattern.k * width) // pattern.n, ((pattern.k + 1) * width) // pattern.n
+    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N) or ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) with
+    the grammar of :mod:`polarstripe.msgs.patterns`; a bad spec (or ``off``, which lights nothing to model)
+    is a :class:`SceneError`."""
+    try:
+        pattern = parse(spec)
+    except PatternError as exc:
+        raise SceneError(str(exc)) from None
+    if pattern.kind == "off":
+        raise SceneError(f"pattern {spec!r} is not flood, stripe:K/N or checker:SIZE:SHIFT")
+    return pattern
 
 
 def _halfspaces(frame: Frame, c0: float, c1: float) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The display / trigger role: what the projector (or laser line) lights now, and the projector image.
 
-Pattern conventions are the light-transport model's (``polarstripe.sim.patterns``), for a projector ``W``
+Pattern conventions are the rig's (:mod:`polarstripe.msgs.patterns`), for a projector ``W``
 pixels wide and ``H`` high, row 0 at the top:
 
 * ``flood`` lights every pixel, ``off`` none; * ``stripe:K/N`` lights columns ``floor(K·W/N)`` …
@@ -14,81 +14,25 @@ simulator) lights nothing and remembers what it was asked to show.
 
 from __future__ import annotations
 
-import re
 import time
 from abc import ABC, abstractmethod
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
+from polarstripe.msgs.patterns import PatternError, PatternSpec, parse, stripe_columns
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 
-KINDS = ("flood", "stripe", "checker", "off")
 
-
-@dataclass(frozen=True)
-class DisplayPattern:
-    """What to light: ``kind``; stripe ``index`` of ``count``; checker squares ``size`` px, ``shift`` px."""
-
-    kind: str
-    index: int = 0
-    count: int = 0
-    size: int = 0
-    shift: int = 0
-
-    def __post_init__(self):
-        if self.kind not in KINDS:
-            raise DriverValueError(f"pattern kind={self.kind!r} is not one of {', '.join(KINDS)}")
-        if self.kind == "stripe" and not (self.count >= 1 and 0 <= self.index < self.count):
-            raise DriverValueError(
-                f"stripe pattern index={self.index} count={self.count}: need 0 <= index < count"
-            )
-        if self.kind == "checker" and not (self.size >= 1 and self.shift >= 0):
-            raise DriverValueError(
-                f"checker pattern size={self.size} shift={self.shift}: need size >= 1, shift >= 0"
-            )
-
-    def __str__(self) -> str:
-        if self.kind == "stripe":
-            return f"stripe:{self.index}/{self.count}"
-        if self.kind == "checker":
-            return f"checker:{self.size}:{self.shift}"
-        return self.kind
-
-
-def as_pattern(pattern) -> DisplayPattern:
-    """A :class:`DisplayPattern` from a spec string (``"stripe:3/30"``), a message with ``kind``,
-    ``index``, ``count``, ``size``, ``shift`` (``polarstripe.msgs.Pattern``) or the model's pattern (``kind``,
-    ``k``, ``n``).
+def as_pattern(pattern) -> PatternSpec:
+    """The checked pattern of a spec string (``"stripe:3/30"``), a pattern message or a
+    :class:`~polarstripe.msgs.patterns.PatternSpec` (:func:`polarstripe.msgs.patterns.parse`).
 
     :raises DriverValueError: the spec or the fields describe no valid pattern.
     """
-    if isinstance(pattern, DisplayPattern):
-        return pattern
-    if isinstance(pattern, str):
-        spec = pattern.strip().lower()
-        if spec in ("flood", "off"):
-            return DisplayPattern(spec)
-        if m := re.fullmatch(r"stripe:(\d+)/(\d+)", spec):
-            return DisplayPattern("stripe", index=int(m[1]), count=int(m[2]))
-        if m := re.fullmatch(r"checker:(\d+):(\d+)", spec):
-            return DisplayPattern("checker", size=int(m[1]), shift=int(m[2]))
-        raise DriverValueError(f"pattern {pattern!r} is not flood, off, stripe:K/N or checker:SIZE:SHIFT")
-    kind = getattr(pattern, "kind", None)
-    if kind is None:
-        raise DriverValueError(f"pattern {pattern!r} has no kind")
-    kind = str(kind)
-    if kind == "stripe":
-        return DisplayPattern(
-            kind,
-            index=int(getattr(pattern, "index", getattr(pattern, "k", 0))),
-            count=int(getattr(pattern, "count", getattr(pattern, "n", 0))),
-        )
-    if kind == "checker":
-        return DisplayPattern(
-            kind, size=int(getattr(pattern, "size", 0)), shift=int(getattr(pattern, "shift", 0))
-        )
-    return DisplayPattern(kind)  # flood, off; an unknown kind is refused here
+    try:
+        return parse(pattern)
+    except PatternError as exc:
+        raise DriverValueError(str(exc)) from None
 
 
 def render_pattern(
@@ -98,7 +42,7 @@ def render_pattern(
 
     Parameters
     ----------
-    pattern : a spec string, :class:`DisplayPattern` or pattern message (see :func:`as_pattern`).
+    pattern : a spec string, ``PatternSpec`` or pattern message (see :func:`as_pattern`).
     width, height : projector size [pixels].
     lit, dark : pixel values (``dark`` > 0 models a projector black level).
 
@@ -113,7 +57,8 @@ def render_pattern(
     if p.kind == "flood":
         image[:] = lit
     elif p.kind == "stripe":
-        image[:, (p.index * width) // p.count : ((p.index + 1) * width) // p.count] = lit
+        c0, c1 = stripe_columns(p, width)
+        image[:, c0:c1] = lit
     elif p.kind == "checker":
         col = np.arange(width)
         row = np.arange(height)
@@ -132,7 +77,7 @@ class Display(ABC):
         if width < 1 or height < 1:
             raise DriverValueError(f"{name}: size {width}x{height} must be at least 1x1")
         self.width, self.height, self.name = int(width), int(height), name
-        self.current: DisplayPattern | None = None
+        self.current: PatternSpec | None = None
         self._closed = False
 
     def show(self, pattern) -> float:
@@ -151,7 +96,7 @@ class Display(ABC):
 
     def blank(self) -> float:
         """Light nothing (``off``)."""
-        return self.show(DisplayPattern("off"))
+        return self.show(PatternSpec("off"))
 
     def close(self) -> None:
         """Blank if possible and release the output; idempotent."""
@@ -159,7 +104,7 @@ class Display(ABC):
             return
         try:
             if self.current is not None and self.current.kind != "off":
-                self._show(DisplayPattern("off"))
+                self._show(PatternSpec("off"))
         except DriverError:
             pass
         finally:
@@ -173,7 +118,7 @@ class Display(ABC):
         self.close()
 
     @abstractmethod
-    def _show(self, pattern: DisplayPattern) -> float: ...
+    def _show(self, pattern: PatternSpec) -> float: ...
 
     def _close(self) -> None:  # noqa: B027 - optional hook
         pass
@@ -184,9 +129,9 @@ class NullDisplay(Display):
 
     def __init__(self, width: int = 1280, height: int = 800, history: int = 1000):
         super().__init__(width, height, name="null display")
-        self.shown: deque[DisplayPattern] = deque(maxlen=history)
+        self.shown: deque[PatternSpec] = deque(maxlen=history)
 
-    def _show(self, pattern: DisplayPattern) -> float:
+    def _show(self, pattern: PatternSpec) -> float:
         self.shown.append(pattern)
         return time.monotonic()
 

@@ -25,14 +25,15 @@ import threading
 import time
 
 import serial
-from polarstripe.nodes.drivers.display import Display, DisplayPattern
+from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.nodes.drivers.display import Display
 from polarstripe.nodes.drivers.errors import DeviceError, DriverError, DriverTimeout, DriverValueError
 
 PROTOCOL_VERSION = 1
 ERROR_CODES = {1: "unknown command", 2: "bad argument", 3: "not supported", 4: "busy", 5: "hardware fault"}
 
 
-def pattern_command(pattern: DisplayPattern) -> str:
+def pattern_command(pattern: PatternSpec) -> str:
     """The request line (without ``\\n``) that sets ``pattern``."""
     if pattern.kind == "stripe":
         return f"PAT STRIPE {pattern.index} {pattern.count}"
@@ -107,7 +108,7 @@ class SerialTriggerDisplay(Display):
         self._seq = seq
         return stamp
 
-    def _show(self, pattern: DisplayPattern) -> float:
+    def _show(self, pattern: PatternSpec) -> float:
         return self._command(pattern_command(pattern))
 
     def trigger(self, exposure_s: float) -> float:

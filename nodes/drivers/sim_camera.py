@@ -19,9 +19,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from polarstripe.msgs import RenderRequest
 from polarstripe.nodes.drivers.camera import Camera
 from polarstripe.nodes.drivers.errors import DeviceLost, DriverTimeout
-from polarstripe.nodes.simulator_requests import RenderRequest
 
 
 class SimCamera(Camera):

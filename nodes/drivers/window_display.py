@@ -13,7 +13,8 @@ import os
 import time
 
 import numpy as np
-from polarstripe.nodes.drivers.display import Display, DisplayPattern, render_pattern
+from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.nodes.drivers.display import Display, render_pattern
 from polarstripe.nodes.drivers.errors import BackendUnavailable, DriverError
 
 
@@ -73,7 +74,7 @@ class WindowDisplay(Display):
         super().__init__(width, height, name=f"window display {display_index}")
         self._pygame, self.level = pygame, int(level)
 
-    def _show(self, pattern: DisplayPattern) -> float:
+    def _show(self, pattern: PatternSpec) -> float:
         pygame = self._pygame
         grey = render_pattern(pattern, self.width, self.height, lit=self.level)
         rgb = np.repeat(grey.T[:, :, None], 3, axis=2)  # pygame's surfarray is (width, height, 3)

@@ -13,7 +13,7 @@ import tracemalloc
 import cv2
 import numpy as np
 import pytest
-from polarstripe.msgs import Composite, Frame, ScanEvent
+from polarstripe.msgs import CALIBRATION_SCAN_ID, Composite, Frame, ScanEvent
 from polarstripe.nodes.compositor import Compositor
 from polarstripe.runtime.testing import NodeHarness
 
@@ -318,7 +318,6 @@ def test_frames_ahead_of_their_start_event_are_kept():
 
 
 def test_the_polarizers_calibration_frames_are_ignored_quietly():
-    from polarstripe.nodes.polarizer import CALIBRATION_SCAN_ID
 
     h = _harness()
     h.deliver("camera/frame", Frame(image=np.zeros((H, W), np.uint16), exposure_s=0.01, pattern="flood",

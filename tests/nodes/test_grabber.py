@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 import pytest
 from polarstripe.msgs import Frame, FrameRequest, PolarizerState
-from polarstripe.nodes.grabber import AnalyzerMount, Grabber
+from polarstripe.msgs import AnalyzerMount
+from polarstripe.nodes.grabber import Grabber
 from polarstripe.runtime.testing import NodeHarness
 
 

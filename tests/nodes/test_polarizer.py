@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Ack, Empty, Frame, PolarizerCommand
 from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
-from polarstripe.nodes.polarizer import CalibrateRequest, Polarizer
+from polarstripe.msgs import CalibrateRequest
+from polarstripe.nodes.polarizer import Polarizer
 from polarstripe.runtime.testing import NodeHarness
 
 

@@ -14,7 +14,9 @@ import pytest
 from polarstripe.msgs import Empty, Plan, ScanEvent
 from polarstripe.runtime.testing import NodeHarness
 from polarstripe.sim.scene import load_scene
-from polarstripe.nodes.simulator import RenderRequest, SimFault, Simulator, SimulatorError, expose_fast
+from polarstripe.msgs import RenderRequest, SimFault
+from polarstripe.nodes.simulator import Simulator
+from polarstripe.nodes.simulator_frames import SimulatorError, expose_fast
 
 
 def sim(**params):

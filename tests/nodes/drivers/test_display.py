@@ -8,7 +8,8 @@ import time
 
 import numpy as np
 import pytest
-from polarstripe.nodes.drivers.display import DisplayPattern, NullDisplay, as_pattern, render_pattern
+from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.nodes.drivers.display import NullDisplay, as_pattern, render_pattern
 from polarstripe.nodes.drivers.errors import (
     BackendUnavailable,
     DeviceError,
@@ -45,7 +46,7 @@ def test_show_returns_when_and_remembers_what(display):
         before = time.monotonic()
         stamp = display.show("stripe:3/30")
         assert before <= stamp <= time.monotonic()
-        assert display.current == DisplayPattern("stripe", index=3, count=30)
+        assert display.current == PatternSpec("stripe", index=3, count=30)
         display.show("checker:8:4")
         assert str(display.current) == "checker:8:4"
         display.blank()
@@ -113,10 +114,10 @@ def test_flood_off_and_black_level():
 
 def test_patterns_come_from_messages_and_the_model():
     msgs = pytest.importorskip("polarstripe.msgs")
-    assert as_pattern(msgs.Pattern(kind="stripe", index=2, count=9)) == DisplayPattern("stripe", 2, 9)
+    assert as_pattern(msgs.Pattern(kind="stripe", index=2, count=9)) == PatternSpec("stripe", 2, 9)
     patterns = pytest.importorskip("polarstripe.sim.patterns")
-    assert as_pattern(patterns.parse_pattern("stripe:4/30")) == DisplayPattern("stripe", 4, 30)
-    assert as_pattern(patterns.parse_pattern("checker:16:8")) == DisplayPattern("checker", size=16, shift=8)
+    assert as_pattern(patterns.parse_pattern("stripe:4/30")) == PatternSpec("stripe", 4, 30)
+    assert as_pattern(patterns.parse_pattern("checker:16:8")) == PatternSpec("checker", size=16, shift=8)
 
 
 # -- backends ----------------------------------------------------------------------------------------------
