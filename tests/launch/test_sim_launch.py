@@ -3,7 +3,6 @@ every node stopping in order; a stage that never settles and a camera that disap
 fault and a clean shutdown, never a hang. The full ``launch/sim.toml`` at a small size checks the paper's
 claim on the chart: polarized light striping beats flood lighting in contrast."""
 
-import importlib.util
 import json
 import os
 import shutil
@@ -16,10 +15,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 NODES = ["simulator", "polarizer", "grabber", "emitter", "sequencer"]
-
-
-def _have(module: str) -> bool:
-    return importlib.util.find_spec(module) is not None
 
 
 @pytest.fixture
@@ -86,10 +81,6 @@ required = true
     return launch(tmp_path, f)
 
 
-needs_polarizer = pytest.mark.skipif(not _have("polarstripe.nodes.polarizer"), reason="no polarizer node")
-
-
-@needs_polarizer
 def test_scans_run_to_the_end_and_every_node_stops_cleanly(tmp_path, can):
     proc, logs = half_rig(tmp_path, can, methods=["flood", "polarized_stripes", "hf_separation"])
     assert proc.returncode == 0, proc.stderr + logs["sequencer"]
@@ -102,7 +93,6 @@ def test_scans_run_to_the_end_and_every_node_stops_cleanly(tmp_path, can):
     assert_clean_exit(proc, logs, NODES)
 
 
-@needs_polarizer
 def test_stage_that_never_settles_ends_in_a_published_fault(tmp_path, can):
     proc, logs = half_rig(tmp_path, can, methods=["polarized_flood", "flood"],
                           sim_params=', faults = ["never_settle on"]',
@@ -114,7 +104,6 @@ def test_stage_that_never_settles_ends_in_a_published_fault(tmp_path, can):
     assert_clean_exit(proc, logs, NODES, failed=["sequencer"])
 
 
-@needs_polarizer
 def test_camera_that_disappears_ends_in_a_published_fault(tmp_path, can):
     proc, logs = half_rig(tmp_path, can, methods=["stripes"], sim_params=', faults = ["camera_lost on"]')
     assert proc.returncode == 1
@@ -123,8 +112,6 @@ def test_camera_that_disappears_ends_in_a_published_fault(tmp_path, can):
     assert_clean_exit(proc, logs, NODES, failed=["sequencer"])
 
 
-@pytest.mark.skipif(not all(_have(f"polarstripe.nodes.{n}") for n in ("polarizer", "compositor", "planner")),
-                    reason="the other rig nodes (polarizer, compositor, planner) are not there yet")
 def test_sim_launch_polarized_stripes_beat_flood(tmp_path, can):
     out = tmp_path / "out"
     proc, logs = launch(tmp_path, ROOT / "launch" / "sim.toml", f"out={out}", "resolution=96x72", "stripes=8",
@@ -133,7 +120,8 @@ def test_sim_launch_polarized_stripes_beat_flood(tmp_path, can):
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics) == {"flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"}
     assert metrics["polarized_stripes"]["contrast"] > metrics["flood"]["contrast"]
-    assert all("error_vs_truth" in m for m in metrics.values())
+    errors = {name: m["error_vs_truth"] for name, m in metrics.items()}
+    assert all(isinstance(e, float) and 0.0 < e < 1.0 for e in errors.values()), errors
     for name in ("polarized_stripes", "flood", "comparison"):
         assert (out / f"{name}.png").is_file()
     assert_clean_exit(proc, logs, [*NODES, "compositor", "planner"])
