@@ -12,6 +12,8 @@ from functools import lru_cache
 
 import numpy as np
 from polarstripe.sim.ray_kernels import (
+    HitArrays,
+    Pinhole,
     box_interval_kernel,
     intersect_kernel,
     pixel_rays_kernel,
@@ -31,6 +33,11 @@ class Frame:
     s: float
     w: int
     h: int
+
+    def kernel_args(self) -> Pinhole:
+        """The frame as the compiled kernels take it."""
+        return Pinhole(np.asarray(self.position, float), self.f, self.r, self.u, float(self.s), int(self.w),
+                       int(self.h))
 
 
 def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> Frame:
@@ -64,7 +71,7 @@ def pixel_rays(frame: Frame, pixels: np.ndarray | None = None) -> np.ndarray:
         pixels = np.asarray(pixels)
         rows, cols = (np.ascontiguousarray(pixels[:, k], float) for k in (0, 1))
     out = np.empty((rows.size, 3))
-    pixel_rays_kernel(frame.f, frame.r, frame.u, float(frame.s), frame.w, frame.h, rows, cols, out)
+    pixel_rays_kernel(frame.kernel_args(), rows, cols, out)
     return out
 
 
@@ -125,7 +132,7 @@ def intersect(objects, origin: np.ndarray, dirs: np.ndarray) -> Hits:
     point = np.empty((n, 3))
     kinds, params = _packed(tuple(objects))
     intersect_kernel(kinds, params, np.ascontiguousarray(origin, float).reshape(-1, 3),
-                     np.ascontiguousarray(dirs, float), t_best, idx, normal, point)
+                     np.ascontiguousarray(dirs, float), HitArrays(t_best, idx, normal, point))
     return Hits(t_best, idx, normal, point)
 
 
@@ -171,6 +178,5 @@ def projector_coords(frame: Frame, points: np.ndarray) -> tuple[np.ndarray, np.n
     """
     points = np.ascontiguousarray(points, float).reshape(-1, 3)
     col, row, depth = (np.empty(points.shape[0]) for _ in range(3))
-    projector_coords_kernel(frame.position, frame.f, frame.r, frame.u, float(frame.s), frame.w, frame.h,
-                            points, col, row, depth)
+    projector_coords_kernel(frame.kernel_args(), points, col, row, depth)
     return col, row, depth

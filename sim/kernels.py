@@ -13,12 +13,105 @@ reference tests compare to 1e-6; it bought 8 %). Compiled once per machine (``ca
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 _FOUR_PI = 4.0 * math.pi
 _G_MAX = 1.0 - 1e-6
+
+
+# The kernels' arguments, bundled by kind. Module-level NamedTuples are plain tuples to numba (free to pass,
+# and ``cache=True`` keeps working); :mod:`polarstripe.sim.transport` builds them with fixed field types
+# (float64 / int64 / bool, C-contiguous arrays) so each kernel compiles once.
+
+
+class Light(NamedTuple):
+    """The source as the line integral sees it."""
+
+    position: np.ndarray        # (1, 3) shared or (n, 3) one per ray
+    radius: float               # r_s [m]
+    intensity: float            # I0 [W/sr]
+    inside: bool                # inside (or on) the medium box: the exact truncation applies
+    facing: np.ndarray          # (0, 3) none, (1, 3) or (n, 3): normals of a surface point "source" (A)
+
+
+class Medium(NamedTuple):
+    """Extinction and scattering coefficients [1/m] and the medium box."""
+
+    sigma_t: float
+    sigma_s: float
+    box_lo: np.ndarray          # (3,)
+    box_hi: np.ndarray          # (3,)
+
+
+class PhaseArgs(NamedTuple):
+    """The phase function: code 0 isotropic, 1 HG(g1), 2 TTHG α·HG(g1) + (1 − α)·HG(−g2) (scalars only, so
+    passing it to :func:`phase_value` in the inner loop costs nothing)."""
+
+    code: int
+    g1: float
+    g2: float
+    alpha: float
+
+
+class Quadrature(NamedTuple):
+    """How each interval is cut and summed: Gauss–Legendre rules of n = (nodes, nodes/2, nodes/4) points
+    padded into (3, nodes) ``t``/``w``, the polarization node subsets ``subs`` (3, 5) of each rule (``nsubs``
+    (3,) long), the phase function's forward-lobe width [rad] and the scattering angles [rad] where intervals
+    are split."""
+
+    nodes: int
+    t: np.ndarray
+    w: np.ndarray
+    n: np.ndarray
+    subs: np.ndarray
+    nsubs: np.ndarray
+    width: float
+    split_alphas: np.ndarray
+
+
+class Polarization(NamedTuple):
+    """Whether to accumulate the Stokes sums, the source's unit E-field (3,), its DOP and the medium's δ."""
+
+    on: bool
+    e_field: np.ndarray
+    dop_l: float
+    depol: float
+
+
+class Rays(NamedTuple):
+    """View rays origin + x·dirs; the view path enters the medium at x = view_start."""
+
+    origin: np.ndarray          # (1, 3) shared or (n, 3)
+    dirs: np.ndarray            # (n, 3) unit
+    view_start: np.ndarray      # (n,)
+
+
+class Intervals(NamedTuple):
+    """Lit intervals [lo, hi] of ray index ``ray`` (from :func:`polarstripe.sim.patterns.lit_intervals`)."""
+
+    ray: np.ndarray             # (m,) int64
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+class Stokes(NamedTuple):
+    """Per-ray radiance b and its B-weighted linear Stokes sums q, u (each (n,))."""
+
+    b: np.ndarray
+    q: np.ndarray
+    u: np.ndarray
+
+
+class SurfacePoints(NamedTuple):
+    """Surface points (m, 3), unit normals (m, 3), albedo (m,) and whether the pattern lights them (m,)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    albedo: np.ndarray
+    lit: np.ndarray
 
 
 @njit(cache=True)
@@ -35,13 +128,29 @@ def _hg(omm, opm, g):
 
 
 @njit(cache=True)
-def phase_value(code, g1, g2, alpha, omm, opm):
-    """P [1/sr]: code 0 isotropic, 1 HG(g1), 2 TTHG α·HG(g1) + (1 − α)·HG(−g2)."""
-    if code == 0:
+def phase_value(phase, omm, opm):
+    """P [1/sr] of a :class:`PhaseArgs` given 1 − μ and 1 + μ."""
+    if phase.code == 0:
         return 1.0 / _FOUR_PI
-    if code == 1:
-        return _hg(omm, opm, g1)
-    return alpha * _hg(omm, opm, g1) + (1.0 - alpha) * _hg(omm, opm, -g2)
+    if phase.code == 1:
+        return _hg(omm, opm, phase.g1)
+    return phase.alpha * _hg(omm, opm, phase.g1) + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2)
+
+
+@njit(cache=True)
+def unit_normal(ax, ay, az, dx, dy, dz, tol):
+    """normalize(a × d), or a unit vector ⊥ d when |a × d| ≤ tol (a on the ray: any scattering plane)."""
+    px, py, pz = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
+    pn = math.sqrt(px * px + py * py + pz * pz)
+    if pn > tol:
+        return px / pn, py / pn, pz / pn
+    if abs(dx) < 0.9:
+        hx, hy, hz = 1.0, 0.0, 0.0
+    else:
+        hx, hy, hz = 0.0, 1.0, 0.0
+    px, py, pz = dy * hz - dz * hy, dz * hx - dx * hz, dx * hy - dy * hx
+    pn = math.sqrt(px * px + py * py + pz * pz)
+    return px / pn, py / pn, pz / pn
 
 
 @njit(cache=True)
@@ -67,15 +176,20 @@ def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
 
 
 @njit(cache=True)
-def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radius, st, ss, inten, inside,
-                   box_lo, box_hi, pcode, g1, g2, alpha, width, split_alphas, nodes, gl_t, gl_w, gl_n,
-                   sub_all, nsubs, pol, e_field, dop_l, depol, b_out, q_out, u_out):
+def line_integrals(light, medium, phase, quad, polarization, rays, intervals, out):
     """Accumulate the eq. 13 line integral of each interval into its ray (see the module docstring).
 
-    ``src_pos``, ``origin`` and ``facing`` are (1, 3) (shared) or (n, 3) (one per ray; ``facing`` of
-    shape (0, 3) means no facing factor). ``gl_t``/``gl_w`` (3, nodes) hold the rules of ``gl_n`` =
-    (nodes, nodes/2, nodes/4) points, ``subs``/``nsubs`` the polarization node subsets of each rule.
+    Arguments are the records above (:class:`Light`, :class:`Medium`, :class:`PhaseArgs`,
+    :class:`Quadrature`, :class:`Polarization`, :class:`Rays`, :class:`Intervals`); the sums are added into
+    ``out`` (:class:`Stokes`; q and u only with ``polarization.on``).
     """
+    src_pos, radius, inten, inside, facing = light
+    st, ss, box_lo, box_hi = medium
+    nodes, gl_t, gl_w, gl_n, sub_all, nsubs, width, split_alphas = quad
+    pol, e_field, dop_l, depol = polarization
+    origin, dirs, view_start = rays
+    ray, lo, hi = intervals
+    b_out, q_out, u_out = out
     nmax = gl_t.shape[1]
     ang = np.empty(nmax)
     uu = np.empty(nmax)
@@ -208,8 +322,7 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
                         m = e
                 total = 0.0
                 for i in range(gl_n[rule]):
-                    v = gl_w[rule, i] * phase_value(pcode, g1, g2, alpha, omm_a[i], opm_a[i]) * math.exp(
-                        -(ang[i] - m))
+                    v = gl_w[rule, i] * phase_value(phase, omm_a[i], opm_a[i]) * math.exp(-(ang[i] - m))
                     if use_facing:
                         cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
                                  ) / max(dly[i], 1e-300)
@@ -225,18 +338,7 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
                 if not pol:
                     continue
                 # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray)
-                px, py, pz = hy * dz - hz * dy, hz * dx - hx * dz, hx * dy - hy * dx
-                pn = math.sqrt(px * px + py * py + pz * pz)
-                if pn > 1e-12 * math.sqrt(h2):
-                    px, py, pz = px / pn, py / pn, pz / pn
-                else:
-                    if abs(dx) < 0.9:
-                        hx2, hy2, hz2 = 1.0, 0.0, 0.0
-                    else:
-                        hx2, hy2, hz2 = 0.0, 1.0, 0.0
-                    px, py, pz = dy * hz2 - dz * hy2, dz * hx2 - dx * hz2, dx * hy2 - dy * hx2
-                    pn = math.sqrt(px * px + py * py + pz * pz)
-                    px, py, pz = px / pn, py / pn, pz / pn
+                px, py, pz = unit_normal(hx, hy, hz, dx, dy, dz, 1e-12 * math.sqrt(h2))
                 bb = px * ex + py * ey + pz * ez
                 wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
                 hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
@@ -271,9 +373,10 @@ def line_integrals(src_pos, origin, dirs, view_start, ray, lo, hi, facing, radiu
 
 
 @njit(cache=True)
-def camera_stokes(src, origin, dirs, cr, cu, b, q, u, q_out, u_out):
-    """Rotate per-ray (q, u) from the scattering-plane frame (e_par_out = e_perp × (−d)) into the camera's
-    (r, u) axes (render._camera_stokes)."""
+def camera_stokes(src, origin, dirs, cr, cu, sums, q_out, u_out):
+    """Rotate per-ray (q, u) of ``sums`` (:class:`Stokes`) from the scattering-plane frame (e_par_out =
+    e_perp × (−d)) into the camera's (r, u) axes ``cr``, ``cu`` (render._camera_stokes)."""
+    b, q, u = sums
     lx, ly, lz = src[0] - origin[0], src[1] - origin[1], src[2] - origin[2]
     scale = math.sqrt(lx * lx + ly * ly + lz * lz)
     for i in range(dirs.shape[0]):
@@ -282,18 +385,7 @@ def camera_stokes(src, origin, dirs, cr, cu, b, q, u, q_out, u_out):
             u_out[i] = 0.0
             continue
         dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        px, py, pz = ly * dz - lz * dy, lz * dx - lx * dz, lx * dy - ly * dx
-        pn = math.sqrt(px * px + py * py + pz * pz)
-        if pn > 1e-12 * max(scale, 1e-300):
-            px, py, pz = px / pn, py / pn, pz / pn
-        else:
-            if abs(dx) < 0.9:
-                hx, hy, hz = 1.0, 0.0, 0.0
-            else:
-                hx, hy, hz = 0.0, 1.0, 0.0
-            px, py, pz = dy * hz - dz * hy, dz * hx - dx * hz, dx * hy - dy * hx
-            pn = math.sqrt(px * px + py * py + pz * pz)
-            px, py, pz = px / pn, py / pn, pz / pn
+        px, py, pz = unit_normal(lx, ly, lz, dx, dy, dz, 1e-12 * max(scale, 1e-300))
         # e_par = e_perp × (−d)
         ax, ay, az = -(py * dz - pz * dy), -(pz * dx - px * dz), -(px * dy - py * dx)
         y = ax * cu[0] + ay * cu[1] + az * cu[2]            # e_par at angle β from r: cos 2β, sin 2β
@@ -330,8 +422,12 @@ def clip_rays(origin, dirs, x0, x1, apex, normals, eps, lo_out, hi_out):
 
 
 @njit(cache=True)
-def direct_kernel(src, cam, points, normals, albedo, lit, st, inten, radius, box_lo, box_hi, out):
-    """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at lit points, else 0 (transport.direct)."""
+def direct_kernel(light, medium, cam, surface, out):
+    """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at the lit :class:`SurfacePoints`, else 0
+    (transport.direct); ``light.position`` is (1, 3), ``cam`` (3,)."""
+    src, inten, radius = light.position[0], light.intensity, light.radius
+    st, box_lo, box_hi = medium.sigma_t, medium.box_lo, medium.box_hi
+    points, normals, albedo, lit = surface
     for i in range(points.shape[0]):
         if not lit[i]:
             out[i] = 0.0

@@ -7,6 +7,7 @@ these; objects are packed once into arrays by ``geometry.pack_objects`` (kind 0 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -14,9 +15,32 @@ from numba import njit
 _BIG = 1e30
 
 
+class Pinhole(NamedTuple):
+    """A pinhole's pose as the kernels take it (geometry.Frame): position, unit f, r, u, pitch s, w, h."""
+
+    position: np.ndarray
+    f: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    s: float
+    w: int
+    h: int
+
+
+class HitArrays(NamedTuple):
+    """Per-ray outputs of :func:`intersect_kernel`: t (n,), object index (n,), normal (n, 3), point (n, 3)."""
+
+    t: np.ndarray
+    index: np.ndarray
+    normal: np.ndarray
+    point: np.ndarray
+
+
 @njit(cache=True)
-def pixel_rays_kernel(f, r, u, s, w, h, rows, cols, out):
-    """Unit directions normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u) (issue 3)."""
+def pixel_rays_kernel(frame, rows, cols, out):
+    """Unit directions normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u) (issue 3) of a
+    :class:`Pinhole` at pixel coordinates (rows, cols)."""
+    f, r, u, s, w, h = frame.f, frame.r, frame.u, frame.s, frame.w, frame.h
     for k in range(rows.size):
         a = ((cols[k] + 0.5) - w / 2.0) * s
         b = ((rows[k] + 0.5) - h / 2.0) * s
@@ -46,8 +70,10 @@ def box_interval_kernel(origin, dirs, lo, hi, t0_out, t1_out):
 
 
 @njit(cache=True)
-def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out, p_out):
-    """Nearest hit per ray (t = inf, index −1, normal 0, point = origin when none), as geometry.intersect."""
+def intersect_kernel(kinds, params, origin, dirs, out):
+    """Nearest hit per ray into ``out`` (:class:`HitArrays`; t = inf, index −1, normal 0, point = origin when
+    none), as geometry.intersect; objects packed by ``geometry.pack_objects``."""
+    t_out, idx_out, n_out, p_out = out
     per = origin.shape[0] > 1
     for i in range(dirs.shape[0]):
         ko = i if per else 0
@@ -109,8 +135,10 @@ def intersect_kernel(kinds, params, origin, dirs, t_out, idx_out, n_out, p_out):
 
 
 @njit(cache=True)
-def projector_coords_kernel(position, f, r, u, s, w, h, points, col, row, depth):
-    """Pattern coordinates (col, row) and depth of points; (−1, −1) behind the projector (depth ≤ 0)."""
+def projector_coords_kernel(frame, points, col, row, depth):
+    """Pattern coordinates (col, row) and depth of points in a :class:`Pinhole`; (−1, −1) behind it
+    (depth ≤ 0)."""
+    position, f, r, u, s, w, h = frame
     for i in range(points.shape[0]):
         vx, vy, vz = points[i, 0] - position[0], points[i, 1] - position[1], points[i, 2] - position[2]
         vf = vx * f[0] + vy * f[1] + vz * f[2]

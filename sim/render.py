@@ -20,7 +20,7 @@ from polarstripe.sim.geometry import (
     pixel_rays,
     projector_coords,
 )
-from polarstripe.sim.kernels import camera_stokes
+from polarstripe.sim.kernels import Stokes, camera_stokes
 from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stripe_columns
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
@@ -327,9 +327,9 @@ def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fide
     if "B" in need and src.sigma_s > 0:
         t0, t1 = box_interval(cam.position, dirs, src.box_lo, src.box_hi)
         t1 = np.minimum(t1, hits.t)
-        ray, lo, hi = lit_intervals(pat, src.frame, cam.position, dirs, t0, t1)
+        lit = lit_intervals(pat, src.frame, cam.position, dirs, t0, t1)
         pol = "p" in need and scene.medium.dop.model == "rayleigh"
-        res = line_radiance(src, cam.position, dirs, t0, ray, lo, hi, fid.xi_nodes, polarization=pol)
+        res = line_radiance(src, cam.position, dirs, t0, lit, fid.xi_nodes, polarization=pol)
         B, q, u = res if pol else (res, None, None)
         if "p" in need:
             Bq, Bu = _camera_stokes(src, scene, cam, dirs, B, q, u)
@@ -348,7 +348,7 @@ def _camera_stokes(src: Source, scene: Scene, cam, dirs, B, q, u):
         return B * dop.p * src.dop_l * np.cos(2 * chi), B * dop.p * src.dop_l * np.sin(2 * chi)
     qc, uc = np.empty_like(B), np.empty_like(B)
     camera_stokes(np.asarray(src.position, float), np.asarray(cam.position, float),
-                  np.ascontiguousarray(dirs), cam.r, cam.u, B, q, u, qc, uc)
+                  np.ascontiguousarray(dirs), cam.r, cam.u, Stokes(B, q, u), qc, uc)
     return qc, uc
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -31,6 +32,21 @@ class SurfaceInfo:
     albedo: np.ndarray
     chart_band: np.ndarray
     chart_high: np.ndarray
+
+
+class Chart(NamedTuple):
+    """A chart plane as :func:`_chart_kernel` takes it: centre, texture axes (right, up), size [m], high
+    albedo ρ, the bands' low factors, and the band and bar counts."""
+
+    origin: np.ndarray
+    right: np.ndarray
+    up: np.ndarray
+    width: float
+    height: float
+    rho: float
+    low: np.ndarray
+    bands: int
+    bars: int
 
 
 @lru_cache(maxsize=8)
@@ -62,9 +78,9 @@ def surface_info(objects, hits: Hits) -> SurfaceInfo:
         assert isinstance(obj, PlaneObject) and obj.size is not None
         ra, ua = plane_axes(obj)
         if tex == "chart":
-            _chart_kernel(hits.index, k, np.ascontiguousarray(hits.point), np.asarray(obj.point, float), ra,
-                          ua, float(obj.size[0]), float(obj.size[1]), float(obj.albedo),
-                          np.asarray(CHART_LOW, float), CHART_BANDS, CHART_BARS, albedo, band, high)
+            chart = Chart(np.asarray(obj.point, float), ra, ua, float(obj.size[0]), float(obj.size[1]),
+                          float(obj.albedo), np.asarray(CHART_LOW, float), CHART_BANDS, CHART_BARS)
+            _chart_kernel(hits.index, k, np.ascontiguousarray(hits.point), chart, (albedo, band, high))
             continue
         rel = hits.point[sel] - np.asarray(obj.point)
         fx = np.clip((rel @ ra) / obj.size[0] + 0.5, 0.0, 1.0 - 1e-12)      # 0 left … 1 right
@@ -77,8 +93,10 @@ def surface_info(objects, hits: Hits) -> SurfaceInfo:
 
 
 @njit(cache=True)
-def _chart_kernel(index, k, points, origin, ra, ua, width, height, rho, low, bands, bars, albedo, band, high):
-    """The chart's albedo, band and bar at the hits on object k (as the numpy texture lookup)."""
+def _chart_kernel(index, k, points, chart, out):
+    """The chart's albedo, band and bar high into ``out`` = (albedo, band, high) at the hits on object k."""
+    origin, ra, ua, width, height, rho, low, bands, bars = chart
+    albedo, band, high = out
     for i in range(index.size):
         if index[i] != k:
             continue

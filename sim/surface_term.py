@@ -18,6 +18,7 @@ the stripe's edges.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -29,6 +30,23 @@ _GRADE = 2
 # forward-lobe splits of A's beams at 5–8 ξ nodes (standard): the pattern-pixel rule's error dominates there
 _SPLITS_FEW = (1.0, 4.0)
 _CUTS = (0.0, 1.0, 4.0, 16.0)   # side cuts from the foot of p, in units of p's distance
+
+
+class TriangleRule(NamedTuple):
+    """Side cuts (in units of the apex's distance) and the graded Duffy rule's nodes (u, v) and weights w."""
+
+    cuts: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+
+
+class BeamNodes(NamedTuple):
+    """Per point (m, k): the nodes' pattern column, row and solid-angle weight [sr]."""
+
+    col: np.ndarray
+    row: np.ndarray
+    weight: np.ndarray
 
 
 def _rect(src: Source) -> tuple[float, float, float, float]:
@@ -62,16 +80,23 @@ def beam_nodes(src: Source, points: np.ndarray, n_side: int):
     W = np.outer(ww, ww) * _GRADE * U ** (2 * _GRADE - 1)      # u = s^q (grading) times the Duffy Jacobian u
     U = U ** _GRADE
     k = 8 * len(_CUTS) * n_side * n_side
-    cols, rows, wts = (np.empty((pc.size, k)) for _ in range(3))
-    _beam_nodes_kernel(np.ascontiguousarray(pc, float), np.ascontiguousarray(pr, float), float(c_lo),
-                       float(c_hi), float(r_lo), float(r_hi), np.array(_CUTS), U.ravel(), V.ravel(),
-                       W.ravel(), float(fr.w), float(fr.h), float(fr.s), cols, rows, wts)
-    return cols, rows, wts
+    out = BeamNodes(*(np.empty((pc.size, k)) for _ in range(3)))
+    _beam_nodes_kernel(np.ascontiguousarray(pc, float), np.ascontiguousarray(pr, float),
+                       (float(c_lo), float(c_hi), float(r_lo), float(r_hi)),
+                       TriangleRule(np.array(_CUTS), U.ravel(), V.ravel(), W.ravel()),
+                       (float(fr.w), float(fr.h), float(fr.s)), out)
+    return out
 
 
 @njit(cache=True)
-def _beam_nodes_kernel(pc, pr, c_lo, c_hi, r_lo, r_hi, cuts, uu, vv, ww, fw, fh, fs, cols, rows, wts):
-    """The triangles of :func:`beam_nodes`, side by side (left, right, top, bottom; up then down each)."""
+def _beam_nodes_kernel(pc, pr, rect, rule, pattern, out):
+    """The triangles of :func:`beam_nodes`, side by side (left, right, top, bottom; up then down each):
+    apexes (pc, pr), the rectangle (c_lo, c_hi, r_lo, r_hi), a :class:`TriangleRule`, the pattern's
+    (width, height, pitch), the nodes into ``out`` (:class:`BeamNodes`)."""
+    c_lo, c_hi, r_lo, r_hi = rect
+    cuts, uu, vv, ww = rule
+    fw, fh, fs = pattern
+    cols, rows, wts = out
     tol = 1e-9 * max(c_hi - c_lo, r_hi - r_lo)
     nk = cuts.size
     for m in range(pc.size):
@@ -138,7 +163,7 @@ def surface_scatter_beams(src: Source, objects, camera_pos: np.ndarray, points: 
         t1 = np.where(b < 0, np.minimum(t1, root), np.where((b == 0) & (a < 0), -np.inf, t1))
         ray = np.nonzero(t1 > t0)[0]
         beam_src = dataclasses.replace(src, position=o, radius=0.0, inside=True)
-        val = line_radiance(beam_src, fr.position, dirs, t0, ray, t0[ray], t1[ray], nodes, facing=n,
+        val = line_radiance(beam_src, fr.position, dirs, t0, (ray, t0[ray], t1[ray]), nodes, facing=n,
                             splits=_SPLITS_FEW if 5 <= nodes <= 8 else (0.3, 1.0, 3.0, 9.0))
         out[sl] = np.bincount(owner, val * wts, minlength=pts.shape[0])
     view = src.sigma_t * segment_length_in_box(camera_pos, points, src.box_lo, src.box_hi)

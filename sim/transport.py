@@ -26,7 +26,6 @@ from polarstripe.sim.geometry import Frame, box_interval, pinhole_frame, point_i
 from polarstripe.sim.patterns import Pattern, lit_intervals
 from polarstripe.sim.scene import Scene
 
-_TRUNC = 50.0
 _POL_NODES = 5
 
 
@@ -78,9 +77,9 @@ def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     return _leggauss(int(n))
 
 
-def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, ray: np.ndarray,
-                  lo: np.ndarray, hi: np.ndarray, nodes: int, polarization: bool = False,
-                  facing: np.ndarray | None = None, splits: tuple[float, ...] = (0.3, 1.0, 3.0, 9.0)):
+def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start: np.ndarray, intervals,
+                  nodes: int, *, polarization: bool = False, facing: np.ndarray | None = None,
+                  splits: tuple[float, ...] = (0.3, 1.0, 3.0, 9.0)):
     """Single-scattered radiance arriving at ``origin`` along −dir from lit intervals [lo, hi] (eq. 13).
 
     Each interval is split where the scattering angle crosses (0.3, 1, 3, 9)× the forward-lobe width (so the
@@ -95,7 +94,8 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     src : Source
     origin : (3,) or (n, 3) viewer positions; dirs : (n, 3) unit ray directions.
     view_start : (n,) ray parameter where the view path enters the medium (attenuation σ_t·(x − view_start)).
-    ray, lo, hi : (m,) interval → ray index and interval ends (from :func:`patterns.lit_intervals`).
+    intervals : (ray, lo, hi), each (m,): interval → ray index and interval ends (as
+        :func:`patterns.lit_intervals` returns them).
     nodes : Gauss–Legendre nodes per interval.
     polarization : also return the B-weighted Stokes (q, u) per ray in the scattering-plane frame.
     facing : optional (n, 3) unit normals at the source point: multiplies the integrand by
@@ -108,27 +108,37 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     B : (n,) radiance [W sr⁻¹ m⁻²]; with ``polarization`` also q, u : (n,) B-weighted sums (divide by B).
     """
     n = dirs.shape[0]
+    ray, lo, hi = intervals
     b_out = np.zeros(n)
     q_out = np.zeros(n) if polarization else None
     u_out = np.zeros(n) if polarization else None
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
         return (b_out, q_out, u_out) if polarization else b_out
-    pcode, g1, g2, alpha = _phase_code(src.phase)
-    gl_t, gl_w, gl_n, subs, nsubs = _rules(int(nodes))
     pol = bool(polarization) and src.dop_model.model == "rayleigh"
-    depol = float(src.dop_model.depolarization) if pol else 0.0
-    face = np.zeros((0, 3)) if facing is None else np.ascontiguousarray(facing, float).reshape(-1, 3)
     f64 = np.ascontiguousarray
+    face = np.zeros((0, 3)) if facing is None else f64(facing, float).reshape(-1, 3)
     kernels.line_integrals(
-        f64(src.position, float).reshape(-1, 3), f64(origin, float).reshape(-1, 3), f64(dirs, float),
-        f64(view_start, float), f64(ray, np.int64), f64(lo, float), f64(hi, float), face,
-        float(src.radius), float(src.sigma_t), float(src.sigma_s), float(src.intensity), bool(src.inside),
-        np.asarray(src.box_lo, float), np.asarray(src.box_hi, float), pcode, g1, g2, alpha,
-        forward_width(src.phase), _split_angles(src.phase, tuple(splits)), int(nodes), gl_t, gl_w, gl_n, subs,
-        nsubs, pol,
-        np.asarray(src.e_field, float), float(src.dop_l), depol, b_out,
-        q_out if pol else np.zeros(1), u_out if pol else np.zeros(1))
+        _light(src, face), _medium(src), kernels.PhaseArgs(*_phase_code(src.phase)),
+        _quadrature(int(nodes), src.phase, tuple(splits)), _polarization(src, pol),
+        kernels.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
+        kernels.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
+        kernels.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
     return (b_out, q_out, u_out) if polarization else b_out
+
+
+def _light(src: Source, facing: np.ndarray) -> kernels.Light:
+    return kernels.Light(np.ascontiguousarray(src.position, float).reshape(-1, 3), float(src.radius),
+                         float(src.intensity), bool(src.inside), facing)
+
+
+def _medium(src: Source) -> kernels.Medium:
+    return kernels.Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
+                          np.asarray(src.box_hi, float))
+
+
+def _polarization(src: Source, on: bool) -> kernels.Polarization:
+    depol = float(src.dop_model.depolarization) if on else 0.0
+    return kernels.Polarization(on, np.asarray(src.e_field, float), float(src.dop_l), depol)
 
 
 def _phase_code(phase) -> tuple[int, float, float, float]:
@@ -141,6 +151,11 @@ def _phase_code(phase) -> tuple[int, float, float, float]:
     if alpha == 0.0:
         return 0, 0.0, 0.0, 0.0
     return 2, float(gf), float(gb), float(alpha)
+
+
+def _quadrature(nodes: int, phase, splits: tuple[float, ...]) -> kernels.Quadrature:
+    """The kernel's quadrature record: :func:`_rules` of ``nodes``, the forward width, the split angles."""
+    return kernels.Quadrature(*_rules(nodes), float(forward_width(phase)), _split_angles(phase, splits))
 
 
 @lru_cache(maxsize=32)
@@ -156,7 +171,7 @@ def _rules(nodes: int):
         gl_t[k, :c], gl_w[k, :c] = t, w
         sub = np.unique(np.linspace(0, c - 1, min(c, _POL_NODES)).round().astype(int))
         subs[k, :sub.size], nsubs[k] = sub, sub.size
-    return gl_t, gl_w, np.array(counts, np.int64), subs, nsubs
+    return nodes, gl_t, gl_w, np.array(counts, np.int64), subs, nsubs
 
 
 def _split_angles(phase, factors: tuple[float, ...]) -> np.ndarray:
@@ -175,21 +190,6 @@ def forward_width(phase) -> float:
     return max(1.0 - max(gf, gb), 1e-6)
 
 
-def scattering_frame(src_position: np.ndarray, origin: np.ndarray, dirs: np.ndarray):
-    """Per-ray unit vectors (e_perp, e_par_out): normal of the plane (L, C, ray) and the in-plane axis of the
-    light leaving toward the viewer (e_par = e_perp × k_out, k_out = −d). Degenerate (L on the ray): any ⊥."""
-    lv = src_position - origin
-    n = np.cross(lv, dirs)
-    nn = np.linalg.norm(n, axis=-1)
-    alt = np.cross(dirs, np.where(np.abs(dirs[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    alt /= np.linalg.norm(alt, axis=-1, keepdims=True)
-    scale = np.linalg.norm(np.broadcast_to(lv, dirs.shape), axis=-1)
-    ok = (nn > 1e-12 * np.maximum(scale, 1e-300))[:, None]
-    e_perp = np.where(ok, n / np.maximum(nn, 1e-300)[:, None], alt)
-    e_par = np.cross(e_perp, -dirs)
-    return e_perp, e_par
-
-
 def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, normals: np.ndarray,
            albedo: np.ndarray, lit: np.ndarray) -> np.ndarray:
     """D = (ρ cos φ / π)·I0·e^{−σ_t (ℓ_LO + ℓ_CO)} / (d_LO² + r_s²) at lit surface points (paper eq. 11).
@@ -198,12 +198,12 @@ def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, nor
     cos φ is clamped at 0 (a point facing away gets no direct light).
     """
     out = np.empty(points.shape[0])
-    kernels.direct_kernel(np.asarray(src.position, float), np.asarray(camera_pos, float),
-                          np.ascontiguousarray(points, float), np.ascontiguousarray(normals, float),
-                          np.ascontiguousarray(np.broadcast_to(albedo, points.shape[:1]), float),
-                          np.ascontiguousarray(np.broadcast_to(lit, points.shape[:1]), bool),
-                          float(src.sigma_t), float(src.intensity), float(src.radius),
-                          np.asarray(src.box_lo, float), np.asarray(src.box_hi, float), out)
+    f64 = np.ascontiguousarray
+    surface = kernels.SurfacePoints(f64(points, float), f64(normals, float),
+                                    f64(np.broadcast_to(albedo, points.shape[:1]), float),
+                                    f64(np.broadcast_to(lit, points.shape[:1]), bool))
+    kernels.direct_kernel(_light(src, np.zeros((0, 3))), _medium(src),
+                          np.asarray(camera_pos, float), surface, out)
     return out
 
 
@@ -281,8 +281,8 @@ def surface_scatter(src: Source, camera_pos: np.ndarray, points: np.ndarray, nor
         dirs = dirs.reshape(-1, 3)
         orig = np.repeat(points[sl], k, axis=0)
         x0, x1 = box_interval(orig, dirs, src.box_lo, src.box_hi)
-        ray, lo, hi = lit_intervals(src.pattern, src.frame, orig, dirs, x0, x1)
-        la = line_radiance(src, orig, dirs, x0, ray, lo, hi, nodes)
+        lit = lit_intervals(src.pattern, src.frame, orig, dirs, x0, x1)
+        la = line_radiance(src, orig, dirs, x0, lit, nodes)
         out[sl] = (la.reshape(mm, k) * wd).sum(1)
     view = src.sigma_t * segment_length_in_box(camera_pos, points, src.box_lo, src.box_hi)
     with np.errstate(under="ignore"):
