@@ -162,7 +162,7 @@ def _packed(objects: tuple):
     return pack_objects(objects)
 
 
-def occluded(objects, a: np.ndarray, b: np.ndarray, skip: np.ndarray | None = None) -> np.ndarray:
+def occluded(objects, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """True where the segment a (3,) → b (n, 3) is blocked by an object before reaching b."""
     v = b - a
     dist = np.linalg.norm(v, axis=1)

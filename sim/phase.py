@@ -75,8 +75,3 @@ def evaluate(phase: Phase, one_minus_mu: np.ndarray, one_plus_mu: np.ndarray) ->
         return hg(one_minus_mu, one_plus_mu, phase.g)
     return tthg(one_minus_mu, one_plus_mu, phase.g)
 
-
-def evaluate_mu(phase: Phase, mu: np.ndarray) -> np.ndarray:
-    """Convenience form P(μ) for plots (less accurate than :func:`evaluate` at |μ| → 1)."""
-    mu = np.asarray(mu, float)
-    return evaluate(phase, 1.0 - mu, 1.0 + mu)

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from polarstripe.sim.geometry import (
@@ -110,7 +110,6 @@ class Components:
     fidelity: Fidelity
     pixels: np.ndarray | None = None
     seconds: float = 0.0
-    extra: dict = field(default_factory=dict)
 
     @property
     def S(self) -> np.ndarray:
