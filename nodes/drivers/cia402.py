@@ -1,7 +1,8 @@
 """A rotation stage on a CANopen CiA 402 drive in profile position mode, through ``canopen`` on python-can.
 
-Setup (SDO): check the device type (0x1000, profile 402), set the producer heartbeat time (0x1017), the mode
-of operation (0x6060 = 1, profile position), the profile velocity (0x6081) and the drive's own software
+Setup (SDO): check the device type (0x1000, profile 402) and the supported drive modes (0x6502: profile
+position, and homing for :meth:`home`), then write the configuration: the producer heartbeat time (0x1017), the
+mode of operation (0x6060 = 1, profile position), the profile velocity (0x6081) and the drive's own software
 position limit (0x607D) from this stage's limits; then NMT start and walk the state machine to OPERATION
 ENABLED. Runtime (PDO): RPDO1 carries controlword + target position, TPDO1 statusword + position actual value
 + mode display. A move writes the target, raises controlword bit 4 (new set-point, bit 5 change immediately),
@@ -9,58 +10,40 @@ waits for the set-point acknowledge (statusword bit 12), lowers bit 4; "settled"
 after that acknowledge, with the position inside the tolerance.
 
 Faults become text in :attr:`fault`, never a wrong angle: an EMCY, the FAULT state, internal limit active (bit
-11), a lost heartbeat (consumer heartbeat timeout), an NMT state other than OPERATIONAL, stale TPDOs, CAN
-error frames (bus-off, no ACK, TX timeout, bus error), a receive error and a failed send. :meth:`reset_fault`
-runs the drive's fault reset: NMT start if needed, controlword bit 7 rising edge (transition 15), then
-shutdown → switch on → enable operation (2, 3, 4), holding the current position.
+11), a lost heartbeat (consumer heartbeat timeout), a drive that left NMT OPERATIONAL or rebooted (boot-up, or
+another master's NMT reset), stale TPDOs, CAN error frames (bus-off, no ACK, TX timeout, bus error), a receive
+error and a failed send (see :mod:`.cia402_watch`). :meth:`reset_fault` runs the drive's recovery: NMT start if
+needed, the configuration again (a rebooted drive is back on its power-on values), controlword bit 7 rising
+edge (transition 15), then shutdown → switch on → enable operation (2, 3, 4), holding the current position.
+:meth:`home` writes the homing method it means (0x6098, ``homing_method``; 37, "home on the current position",
+by default, falling back to its older number 35) and the home offset 0x607C = 0 where the drive has one.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 
 import can
 import canopen
-from canopen.sdo.exceptions import SdoError
+from canopen.sdo.exceptions import SdoAbortedError, SdoError
 from polarstripe.nodes.drivers import cia402_states as cia
 from polarstripe.nodes.drivers.cia402_states import EDS_PATH, State
+from polarstripe.nodes.drivers.cia402_watch import BusWatch, Cia402Watch
 from polarstripe.nodes.drivers.errors import DriverError, DriverTimeout, StageFault
 from polarstripe.nodes.drivers.stage import RotationStage
 
-#: CAN error classes (linux/can/error.h) that are a fault for the stage; others are only counted.
-FAULT_ERROR_CLASSES = {
-    0x001: "TX timeout",
-    0x020: "no ACK (no other node on the bus)",
-    0x040: "bus-off",
-    0x080: "bus error",
-}
-CAN_ERR_RESTARTED = 0x100
+MODE_PROFILE_POSITION, MODE_HOMING = 1, 6
+#: 0x6502 (supported drive modes) bit of each mode the stage uses
+MODE_BITS = {MODE_PROFILE_POSITION: 1 << 0, MODE_HOMING: 1 << 5}
+#: homing methods that mean the same ("home on the current position": 35 is the older number of 37)
+SAME_HOMING_METHOD = {35: 37, 37: 35}
 
 log = logging.getLogger(__name__)
 
 
-class _BusWatch(can.Listener):
-    """Sees what canopen's listener drops: error frames, and receive errors (a Notifier without ``on_error``
-    would die silently)."""
-
-    def __init__(self, stage: Cia402Stage):
-        self.stage = stage
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_error_frame:
-            self.stage._on_error_frame(msg.arbitration_id)
-
-    def on_error(self, exc: Exception) -> None:
-        self.stage._latch_fault(f"CAN receive failed: {exc}")
-
-    def stop(self) -> None:
-        pass
-
-
-class Cia402Stage(RotationStage):
+class Cia402Stage(Cia402Watch, RotationStage):
     """A polarizer rotation stage on a CiA 402 drive (see the module docstring).
 
     :param channel, interface: the python-can bus (``zmq`` for the simulator, ``socketcan`` on ``can0``), or
@@ -71,6 +54,7 @@ class Cia402Stage(RotationStage):
     :param speed_deg_s: profile velocity [deg/s] written to 0x6081, or None to keep the drive's.
     :param heartbeat_ms: the drive's producer heartbeat time; the consumer timeout is ``heartbeat_timeout_s``.
     :param tolerance_deg: how far from the target a settled stage may be.
+    :param homing_method: the CiA 402 homing method :meth:`home` writes to 0x6098.
     """
 
     def __init__(
@@ -91,6 +75,7 @@ class Cia402Stage(RotationStage):
         sdo_timeout_s: float = 0.3,
         tolerance_deg: float = 0.01,
         connect_timeout_s: float = 3.0,
+        homing_method: int = 37,
         **bus_kwargs,
     ):
         super().__init__(min_deg=min_deg, max_deg=max_deg, name=f"CiA 402 node {node_id} on {channel}")
@@ -98,18 +83,11 @@ class Cia402Stage(RotationStage):
             raise ValueError(f"{self.name}: counts_per_deg={counts_per_deg} must be positive")
         self.counts_per_deg, self.tolerance_deg = float(counts_per_deg), float(tolerance_deg)
         self.heartbeat_timeout_s, self.pdo_timeout_s = heartbeat_timeout_s, pdo_timeout_s
+        self.heartbeat_ms, self.speed_deg_s, self.homing_method = heartbeat_ms, speed_deg_s, homing_method
         # the watchdog's period: a tenth of the shorter timeout, at most 50 ms (detection within 10 %)
         self._watch_s = min(0.05, heartbeat_timeout_s / 10.0, pdo_timeout_s / 10.0)
-        self.error_frames = 0
-        self._lock = threading.RLock()
-        self._sw: int | None = None
-        self._pos: int | None = None
-        self._pdo_at = self._hb_at = -math.inf
-        self._nmt_state: int | None = None
-        self._awaiting_ack = False
-        self._acked = threading.Event()
-        self._target_counts: int | None = None
-        self._stop = threading.Event()
+        self._init_watch()
+        self.supported_modes = 0
         self._own_bus = bus is None
         if bus is None:
             try:
@@ -120,17 +98,17 @@ class Cia402Stage(RotationStage):
         self.network.NOTIFIER_CYCLE = 0.05  # the receive poll; a short one makes close() quick
         try:
             self.network.connect()
-            self.network.notifier.add_listener(_BusWatch(self))
+            self.network.notifier.add_listener(BusWatch(self))
             self.node = canopen.RemoteNode(node_id, eds)
             self.network.add_node(self.node)
             self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
-            self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
-            self.node.emcy.add_callback(self._on_emcy)
-            self._configure(heartbeat_ms, speed_deg_s)
-            self._watchdog = threading.Thread(
-                target=self._watch, name=f"cia402 {node_id} watchdog", daemon=True
-            )
-            self._watchdog.start()
+            self._start_watch()
+            self._check_drive()
+            self._configure()
+            self.node.tpdo.read(from_od=True)
+            self.node.rpdo.read(from_od=True)
+            self.node.tpdo[1].subscribe()
+            self.node.tpdo[1].add_callback(self._on_tpdo)
             self._enable(connect_timeout_s)
             # a drive found in FAULT was just reset by the enable walk (transition 15): say what it was
             with self._fault_lock:
@@ -140,29 +118,47 @@ class Cia402Stage(RotationStage):
             raise
 
     # -- setup --------------------------------------------------------------------------------------------
-    def _configure(self, heartbeat_ms: int, speed_deg_s: float | None) -> None:
+    def _check_drive(self) -> None:
+        """Device type 402 and profile position among the supported drive modes (0x6502)."""
         sdo = self.node.sdo
         try:
-            device_type = sdo[0x1000].raw
-            if device_type & 0xFFFF != 402:
-                raise DriverError(f"{self.name}: device type 0x{device_type:08X} is not a CiA 402 drive")
-            sdo[0x1017].raw = heartbeat_ms
-            sdo[0x6060].raw = 1  # profile position
-            if speed_deg_s is not None:
-                sdo[0x6081].raw = int(round(speed_deg_s * self.counts_per_deg))
+            try:
+                device_type = sdo[0x1000].raw
+            except SdoError:
+                if self._nmt_state != 4:
+                    raise
+                # a drive in NMT STOPPED serves no SDO: PRE-OPERATIONAL does
+                self._send(lambda: self.node.nmt.send_command(0x80), "NMT enter PRE-OPERATIONAL")
+                device_type = sdo[0x1000].raw
+            self.supported_modes = sdo[0x6502].raw
+        except (SdoError, can.CanError) as exc:
+            raise DriverError(f"{self.name}: drive check over SDO failed: {exc}") from exc
+        if device_type & 0xFFFF != 402:
+            raise DriverError(f"{self.name}: device type 0x{device_type:08X} is not a CiA 402 drive")
+        if not self.supported_modes & MODE_BITS[MODE_PROFILE_POSITION]:
+            raise DriverError(
+                f"{self.name}: the drive does not support profile position mode "
+                f"(0x6502 = 0x{self.supported_modes:08X})"
+            )
+
+    def _configure(self) -> None:
+        """Write the configuration (again after a drive reset: it is back on its power-on values)."""
+        sdo = self.node.sdo
+        try:
+            sdo[0x1017].raw = self.heartbeat_ms
+            sdo[0x6060].raw = MODE_PROFILE_POSITION  # 0x6502 was checked
+            if self.speed_deg_s is not None:
+                sdo[0x6081].raw = int(round(self.speed_deg_s * self.counts_per_deg))
             lo = max(-(2**31), math.floor(self.min_deg * self.counts_per_deg))
             hi = min(2**31 - 1, math.ceil(self.max_deg * self.counts_per_deg))
             sdo[0x607D][1].raw, sdo[0x607D][2].raw = lo, hi
         except (SdoError, can.CanError) as exc:
             raise DriverError(f"{self.name}: drive setup over SDO failed: {exc}") from exc
-        self.node.tpdo.read(from_od=True)
-        self.node.rpdo.read(from_od=True)
-        self.node.tpdo[1].subscribe()
-        self.node.tpdo[1].add_callback(self._on_tpdo)
+        self._needs_config = False
 
     def _enable(self, timeout: float) -> None:
         """NMT start, then walk the state machine to OPERATION ENABLED holding the current position."""
-        self._send(lambda: self.node.nmt.send_command(0x01), "NMT start")
+        self._nmt_start()
         deadline = time.monotonic() + timeout
         while self._pos is None:
             if time.monotonic() > deadline:
@@ -184,62 +180,6 @@ class Cia402Stage(RotationStage):
             if number is not None:
                 self._controlword(cia.TRANSITIONS[number][2])
             self._wait_pdo(until=lambda s=state: self.drive_state is not s, timeout=0.2)
-
-    # -- callbacks (canopen's notifier thread) ------------------------------------------------------------
-    def _on_tpdo(self, pdo_map) -> None:
-        sw = pdo_map["Statusword"].raw
-        with self._lock:
-            self._sw, self._pos = sw, pdo_map["Position actual value"].raw
-            self._pdo_at = time.monotonic()
-            if self._awaiting_ack and sw & cia.SW_SETPOINT_ACK:
-                self._acked.set()
-        try:
-            state = cia.decode_statusword(sw)
-        except ValueError:
-            self._latch_fault(f"statusword 0x{sw:04X} matches no CiA 402 state")
-            return
-        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            self._latch_fault(f"drive in {state.value} (statusword 0x{sw:04X})")
-        if sw & cia.SW_INTERNAL_LIMIT and self._target_counts is not None:
-            self._latch_fault(
-                f"drive internal limit active: target {self._target_deg}° is beyond the drive's "
-                "own position limit (0x607D)"
-            )
-
-    def _on_heartbeat(self, nmt_state: int) -> None:
-        self._hb_at = time.monotonic()
-        self._nmt_state = nmt_state
-        if nmt_state != 5 and self._pos is not None:
-            name = canopen.nmt.NMT_STATES.get(nmt_state, str(nmt_state))
-            self._latch_fault(f"drive left NMT OPERATIONAL (heartbeat reports {name})")
-
-    def _on_emcy(self, emcy) -> None:
-        if emcy.code & 0xFF00 == 0:
-            return  # "error reset / no error"
-        self._latch_fault(
-            f"EMCY 0x{emcy.code:04X} ({emcy.get_desc() or 'no description'}), "
-            f"error register 0x{emcy.register:02X}"
-        )
-
-    def _on_error_frame(self, error_class: int) -> None:
-        self.error_frames += 1
-        for bit, text in FAULT_ERROR_CLASSES.items():
-            if error_class & bit:
-                self._latch_fault(f"CAN {text} (error frame class 0x{error_class:03X})")
-
-    def _watch(self) -> None:
-        """Consumer heartbeat timeout and TPDO staleness, checked every ``_watch_s``."""
-        while not self._stop.wait(self._watch_s):
-            now = time.monotonic()
-            if self._pos is None:
-                continue
-            if now - self._hb_at > self.heartbeat_timeout_s:
-                self._latch_fault(
-                    f"heartbeat of node {self.node.id} lost (none for more than "
-                    f"{self.heartbeat_timeout_s:g} s)"
-                )
-            if now - self._pdo_at > self.pdo_timeout_s:
-                self._latch_fault(f"no TPDO1 from node {self.node.id} for more than {self.pdo_timeout_s:g} s")
 
     # -- sending ------------------------------------------------------------------------------------------
     def _send(self, action, what: str) -> None:
@@ -311,6 +251,12 @@ class Cia402Stage(RotationStage):
     def _reset(self) -> None:
         if self.network.bus is not None and self.network.bus.state is can.BusState.ERROR:
             raise StageFault(f"{self.name}: cannot reset, the CAN bus is still off (no restart seen)")
+        if self._nmt_state != 5:
+            self._nmt_start()  # a drive serves SDO in OPERATIONAL as in PRE-OPERATIONAL, in STOPPED not at all
+        try:
+            self._configure()  # always: a drive that rebooted unseen runs on its power-on values too
+        except DriverError as exc:
+            raise StageFault(f"{self.name}: cannot reset, {exc.args[0].removeprefix(self.name + ': ')}") from exc
         if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
             # give a recovering drive one heartbeat period to show up
             self._wait_pdo(
@@ -319,8 +265,6 @@ class Cia402Stage(RotationStage):
             )
         if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
             raise StageFault(f"{self.name}: cannot reset, the drive's heartbeat is still missing")
-        if self._nmt_state != 5:
-            self._send(lambda: self.node.nmt.send_command(0x01), "NMT start")
         if not self._wait_pdo():
             raise StageFault(f"{self.name}: cannot reset, no TPDO1 from the drive")
         self.node.emcy.reset()
@@ -347,29 +291,50 @@ class Cia402Stage(RotationStage):
             )
 
     def _home(self, timeout: float) -> None:
+        if not self.supported_modes & MODE_BITS[MODE_HOMING]:
+            raise StageFault(
+                f"{self.name}: the drive does not support homing mode (0x6502 = 0x{self.supported_modes:08X})"
+            )
         sdo = self.node.sdo
         try:
-            sdo[0x6060].raw = 6  # homing
+            self._write_homing_method()
+            if 0x607C in self.node.object_dictionary:
+                sdo[0x607C].raw = 0  # the home position is 0° of this stage
+            sdo[0x6060].raw = MODE_HOMING
             self._controlword(cia.CW_ENABLE_OPERATION)
             with self._lock:
                 self._target_counts = 0
                 self._awaiting_ack = True  # until homing attained
             self._controlword(cia.CW_ENABLE_OPERATION | cia.CW_NEW_SETPOINT)
-            homed = self._wait_pdo(
-                until=lambda: (
-                    (self._sw or 0) & cia.SW_SETPOINT_ACK and (self._sw or 0) & cia.SW_TARGET_REACHED
-                ),
+            ended = self._wait_pdo(
+                until=lambda: (sw := self._sw or 0) & cia.SW_FOLLOWING_ERROR
+                or (sw & cia.SW_SETPOINT_ACK and sw & cia.SW_TARGET_REACHED),
                 timeout=timeout,
             )
+            failed = bool((self._sw or 0) & cia.SW_FOLLOWING_ERROR)
             self._awaiting_ack = False
             self._controlword(cia.CW_ENABLE_OPERATION)
-            sdo[0x6060].raw = 1
+            sdo[0x6060].raw = MODE_PROFILE_POSITION
         except (SdoError, can.CanError) as exc:
             self._latch_fault(f"homing failed: {exc}")
             raise StageFault(f"{self.name}: homing failed: {exc}") from exc
-        if not homed:
+        if failed:
+            text = f"homing error (statusword bit 13), homing method {self.homing_method}"
+            self._latch_fault(text)
+            raise StageFault(f"{self.name}: {text}")
+        if not ended:
             self._latch_fault(f"homing not attained within {timeout:g} s")
             raise DriverTimeout(f"{self.name}: homing not attained within {timeout:g} s")
+
+    def _write_homing_method(self) -> None:
+        """0x6098 = ``homing_method``; a drive that refuses 37 or 35 gets the other number of that method."""
+        try:
+            self.node.sdo[0x6098].raw = self.homing_method
+        except SdoAbortedError:
+            other = SAME_HOMING_METHOD.get(self.homing_method)
+            if other is None:
+                raise
+            self.node.sdo[0x6098].raw = other
 
     def _close(self) -> None:
         """Disable the drive if it can hear us, then let go of the bus. Never raises: a bus that failed
