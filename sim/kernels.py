@@ -3,7 +3,7 @@
 :func:`line_integrals` is the per-interval body of :func:`polarstripe.sim.transport.line_radiance`, written
 as one loop: split each interval where the scattering angle crosses the forward lobe and where the excess
 optical path passes 6, 12, 24, 48 e-folds, pick the Gauss–Legendre node count, truncate at 50 excess optical
-depths, sum in log space in the θ / φ form of the ξ-substitution (refs/physics.md §2.2) and accumulate the
+depths, sum in log space in the θ / φ form of the ξ-substitution (docs/physics.md §2.2) and accumulate the
 scattering-plane Stokes on a subset of the nodes (the steps are documented in ``transport``; the arithmetic
 is that of the numpy code this replaced, node for node). Also here: the clip of rays to the pattern's
 half-spaces, D (eq. 11) and the rotation of the Stokes sums into the camera frame. No ``fastmath`` (the

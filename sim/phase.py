@@ -1,7 +1,7 @@
 """Phase functions normalised per steradian: Haltrin's TTHG by mean cosine, single HG, isotropic.
 
 All evaluators take (1 − μ) and (1 + μ) separately (μ = cos θ_s, θ_s = 0 forward) so that the HG denominators
-(1 − g)² + 2g(1 − μ) stay exact near μ = ±1 when |g| → 1 (refs/physics.md §1).
+(1 − g)² + 2g(1 − μ) stay exact near μ = ±1 when |g| → 1 (docs/physics.md §1).
 """
 
 from __future__ import annotations

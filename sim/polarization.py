@@ -1,6 +1,6 @@
 """Polarization: the depolarized-Rayleigh Mueller model of the backscatter DOP and the linear analyzer.
 
-Mueller model (paper appendix eq. 15; refs/physics.md §5): Hansen & Travis' depolarized Rayleigh reduced
+Mueller model (paper appendix eq. 15; docs/physics.md §5): Hansen & Travis' depolarized Rayleigh reduced
 matrix with depolarization factor δ, in the scattering-plane frame with Q = I_∥ − I_⊥ (Bohren–Huffman),
 scaled by the phase function for the intensity. δ = 0.2 gives DOP_B = 0.8 at backscatter.
 """

@@ -267,7 +267,7 @@ def _extend_planes(scene: Scene, cam, gdirs, gval, gobj, a_at) -> dict:
 def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fidelity = "standard",
                       pixels: np.ndarray | None = None,
                       need: tuple[str, ...] = ("D", "A", "B", "p")) -> Components:
-    """Radiance components of one pattern (paper eqs. 11–13, physical form; DESIGN.md §4).
+    """Radiance components of one pattern (paper eqs. 11–13, physical form; docs/physics.md §0).
 
     Parameters
     ----------

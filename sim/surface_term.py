@@ -1,7 +1,7 @@
 """The surface term A from the source side: integrate over the lit projector pixels, then along each beam.
 
 For a pinhole projector the lit volume is a union of beams from L. With X = L + t·k, dV = t² dt dΩ_k cancels
-the 1/d_LX² of eq. 12, so (physical form; DESIGN.md §4)
+the 1/d_LX² of eq. 12, so (physical form; docs/physics.md §0, §2.4)
 
     A(O) = (ρ/π) e^{−σ_t ℓ_CO} ∫_lit dΩ_k ∫ σ_s P(α) I0 e^{−σ_t (ℓ_LX + ℓ_XO)} max(0, n·(X − O))/d_XO³ dt
 

@@ -1,4 +1,4 @@
-"""Physical single scattering: the paper's D, A, B (eqs. 11–13 in their physical form, DESIGN.md §4).
+"""Physical single scattering: the paper's D, A, B (eqs. 11–13 in their physical form, docs/physics.md §0).
 
 B along a ray C + x·d over a lit interval [x0, x1] (eq. 13 with σ_s and the point-source falloff):
 
@@ -6,7 +6,7 @@ B along a ray C + x·d over a lit interval [x0, x1] (eq. 13 with σ_s and the po
 
 with ℓ the path lengths inside the medium box and r_s the source radius (softens the true 1/d² divergence of a
 source on the ray; r_s = 0 is the printed form). The substitution u = x − x_c = h_e·tan θ, h_e² = h² + r_s²
-(Sun et al. 2005; refs/physics.md §2.2, θ = 2ξ − π/2) turns dx/(d² + r_s²) into dθ/h_e, so a Gauss–Legendre
+(Sun et al. 2005; docs/physics.md §2.2, θ = 2ξ − π/2) turns dx/(d² + r_s²) into dθ/h_e, so a Gauss–Legendre
 sum in θ is exact to 1e−8 with 32 nodes for any σ_t. On one side of the source it is written in the
 complementary angle φ = atan2(h_e, |u|), which stays accurate when the source is on or behind the ray
 (h → 0). The interval is truncated where the excess optical path reaches 50 and the sum is done in log space.

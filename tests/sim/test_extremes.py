@@ -1,4 +1,4 @@
-"""Numerical extremes (refs/physics.md §8) and no NaN/inf for random valid scenes."""
+"""Numerical extremes (docs/physics.md §8) and no NaN/inf for random valid scenes."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Mueller DOP (paper eq. 15) against refs/physics.md §5, and the analyzer (Malus)."""
+"""Mueller DOP (paper eq. 15) against docs/physics.md §5, and the analyzer (Malus)."""
 
 import numpy as np
 import pytest

@@ -121,7 +121,7 @@ def test_isotropic_airlight_matches_sun_closed_form():
 
 
 def test_source_behind_camera_matches_e1_closed_form():
-    """Collinear source behind the camera (γ = π): refs/physics.md §8 closed form with E1."""
+    """Collinear source behind the camera (γ = π): docs/physics.md §8 closed form with E1."""
     sig, D, Lr = 3.0, 0.2, 0.4
     box = Medium().extent.replace(min=(-5.0, -5.0, -1.0), max=(5.0, 5.0, Lr))
     scene = Scene(medium=Medium(sigma_t=sig, albedo=1.0, phase=Phase("tthg", 0.8), extent=box),
