@@ -7,6 +7,11 @@ absolute and answers ``PO`` when the move has ended, ``gs`` answers the status (
 …). A move holds the line until its reply, so while it runs :attr:`angle` is ``None`` (the device cannot
 report it). Whether the device reports positions modulo one turn is not known, so a reply is mapped to the
 angle nearest the target that has the same position modulo 360°.
+
+Commands carry no length and no terminator: a device finds where a command ends from the manual's command
+table (:data:`COMMAND_DATA`), so :meth:`Ell14Stage.request` refuses a known command with the wrong number of
+data characters rather than put a frame on the line that would run into the next one. ``ca`` (change address)
+is answered from the new address (:meth:`Ell14Stage.change_address`).
 """
 
 from __future__ import annotations
@@ -16,7 +21,13 @@ import threading
 import time
 
 import serial
-from polarstripe.nodes.drivers.errors import DeviceError, DriverError, DriverTimeout, StageFault
+from polarstripe.nodes.drivers.errors import (
+    DeviceError,
+    DriverError,
+    DriverTimeout,
+    DriverValueError,
+    StageFault,
+)
 from polarstripe.nodes.drivers.stage import RotationStage
 
 #: status codes of the ``GS`` reply (ELLx protocol manual)
@@ -37,6 +48,19 @@ STATUS_CODES = {
     0x0D: "over current error",
 }
 BUSY = 0x09
+
+#: the host commands of the ELLx protocol manual and how many data characters each carries (``ho``: the
+#: direction, ``ca``/``ga``: an address, ``is``: minutes as 2 hex digits, ``sv``: percent as 2 hex digits,
+#: ``f1``/``b1``…: a motor period as 4 hex digits, positions and steps: 8 hex digits)
+COMMAND_DATA = {
+    "in": 0, "gs": 0, "us": 0, "ca": 1, "is": 2, "ga": 1,
+    "i1": 0, "i2": 0, "i3": 0, "f1": 4, "b1": 4, "f2": 4, "b2": 4, "f3": 4, "b3": 4,
+    "s1": 0, "s2": 0, "s3": 0, "c1": 0, "c2": 0, "c3": 0,
+    "ho": 1, "ma": 8, "mr": 8, "go": 0, "so": 8, "gj": 0, "sj": 8, "fw": 0, "bw": 0, "st": 0,
+    "gp": 0, "gv": 0, "sv": 2, "om": 0, "cm": 0,
+}  # fmt: skip
+#: the motor clock: a motor frequency is this over its period (``i1`` reply, ``f1``/``b1`` data)
+MOTOR_CLOCK_HZ = 14_740_000
 
 
 def encode_s32(value: int) -> str:
@@ -116,11 +140,19 @@ class Ell14Stage(RotationStage):
 
         :raises DeviceError: the device answered an error status (e.g. ``GS03`` for a bad command).
         :raises DriverTimeout: no reply in time, or still busy after ``busy_timeout_s``.
+        :raises DriverValueError: a command of the manual with the wrong number of data characters.
         """
+        expected = COMMAND_DATA.get(cmd)
+        if expected is not None and len(data) != expected:
+            raise DriverValueError(
+                f"{self.name}: command {cmd!r} takes {expected} data characters, got data={data!r}"
+            )
+        reply_address = data.upper() if cmd == "ca" else self.address
         deadline = time.monotonic() + self.busy_timeout_s
         with self._line:
             while True:
-                reply = self._exchange(cmd, data, self.timeout_s if timeout_s is None else timeout_s)
+                timeout = self.timeout_s if timeout_s is None else timeout_s
+                reply = self._exchange(cmd, data, timeout, reply_address)
                 code = int(reply[3:5], 16) if reply[1:3] == "GS" else None
                 if code != BUSY:
                     break
@@ -136,7 +168,7 @@ class Ell14Stage(RotationStage):
             )
         return reply
 
-    def _exchange(self, cmd: str, data: str, timeout_s: float) -> str:
+    def _exchange(self, cmd: str, data: str, timeout_s: float, reply_address: str) -> str:
         try:
             self._serial.reset_input_buffer()
             self._serial.write(f"{self.address}{cmd}{data}".encode("ascii"))
@@ -146,10 +178,48 @@ class Ell14Stage(RotationStage):
                 if not raw.endswith(b"\n"):
                     raise DriverTimeout(f"{self.name}: no reply to {cmd + data!r} within {timeout_s:g} s")
                 line = raw.decode("ascii", "replace").strip()
-                if line[:1] == self.address:  # replies of other devices on the line are not ours
+                if line[:1] == reply_address:  # replies of other devices on the line are not ours
                     return line
         except serial.SerialException as exc:
             raise DriverError(f"{self.name}: serial port failed: {exc}") from exc
+
+    # -- device settings ----------------------------------------------------------------------------------
+    def change_address(self, new: str) -> None:
+        """``ca``: the device answers at ``new`` from now on (until power-off, unless saved with ``us``)."""
+        new = new.upper()
+        if len(new) != 1 or new not in "0123456789ABCDEF":
+            raise DriverValueError(f"{self.name}: address={new!r} must be one hex digit 0-F")
+        self.request("ca", new)
+        self.address, self.name = new, self.name.replace(f"ELL14 {self.address}", f"ELL14 {new}", 1)
+
+    @property
+    def velocity(self) -> int:
+        """``gv``: the drive power in percent of the maximum."""
+        return int(self.request("gv")[3:5], 16)
+
+    @velocity.setter
+    def velocity(self, percent: int) -> None:
+        if not 0 <= int(percent) <= 0xFF:
+            raise DriverValueError(f"{self.name}: velocity percent={percent!r} outside 0-255")
+        self.request("sv", f"{int(percent):02X}")
+
+    def motor_info(self, motor: int) -> dict:
+        """``i1``/``i2``: loop and motor state, current [A], ramps and the motor frequencies [Hz]."""
+        if motor not in (1, 2, 3):
+            raise DriverValueError(f"{self.name}: motor={motor!r} must be 1, 2 or 3")
+        body = self.request(f"i{motor}")[3:]
+        if len(body) < 22:
+            raise DeviceError(f"{self.name}: unexpected motor info reply {body!r}")
+        forward, backward = int(body[14:18], 16), int(body[18:22], 16)
+        return {
+            "loop": body[0] == "1",
+            "motor": body[1] == "1",
+            "current_a": int(body[2:6], 16) / 1866.0,
+            "ramp_up": int(body[6:10], 16),
+            "ramp_down": int(body[10:14], 16),
+            "forward_hz": MOTOR_CLOCK_HZ / forward if forward else None,
+            "backward_hz": MOTOR_CLOCK_HZ / backward if backward else None,
+        }
 
     # -- RotationStage ------------------------------------------------------------------------------------
     def _pulses_to_deg(self, pulses: int, near_deg: float) -> float:

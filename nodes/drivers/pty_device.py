@@ -1,7 +1,8 @@
 """A fake serial device on a pseudo-terminal: the driver opens the slave path with real pyserial.
 
 Subclasses implement :meth:`PtyDevice.feed` (bytes the host wrote; return nothing, answer with
-:meth:`PtyDevice.reply`). The device serves the pty master in a thread; ``start``/``stop`` or a context
+:meth:`PtyDevice.reply`) and may implement :meth:`PtyDevice.poll` (called at least every ``poll_s``, for the
+device's own timeouts). The device serves the pty master in a thread; ``start``/``stop`` or a context
 manager.
 """
 
@@ -15,6 +16,8 @@ import tty
 
 class PtyDevice:
     """Serve a pty master in a thread; :attr:`port` is the path the driver opens."""
+
+    poll_s = 0.01
 
     def __init__(self):
         self.port: str | None = None
@@ -39,17 +42,20 @@ class PtyDevice:
     def _serve(self) -> None:
         while not self._stop.is_set():
             try:
-                ready, _, _ = select.select([self._master], [], [], 0.05)
-                if not ready:
-                    continue
-                data = os.read(self._master, 256)
+                ready, _, _ = select.select([self._master], [], [], self.poll_s)
+                data = os.read(self._master, 256) if ready else b""
             except OSError:
                 return
-            self.received += data
-            self.feed(data)
+            if data:
+                self.received += data
+                self.feed(data)
+            self.poll()
 
     def feed(self, data: bytes) -> None:
         raise NotImplementedError
+
+    def poll(self) -> None:
+        """Called after every read and at least every ``poll_s`` seconds; a hook for timeouts."""
 
     def reply(self, data: bytes) -> None:
         """Write ``data`` to the host (thread-safe)."""
