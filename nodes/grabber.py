@@ -1,10 +1,13 @@
 """The grabber node: takes one frame per ``camera/trigger`` and publishes it on ``camera/frame``.
 
 The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``file``, ``sim``), opened when the
-node starts. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one frame
-and publishes it tagged with the pattern, the scan and step, and the analyzer angle of the latest
-``polarizer/state`` (None while the analyzer is out of the path, see ``camera/analyzer``); the reply is sent
-after the frame is published, so a caller that then waits for the frame cannot miss it.
+node starts. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one
+:class:`~polarstripe.nodes.drivers.camera.CameraFrame` and publishes it as one ``Frame`` (the image as the
+camera delivered it, with the exposure, gain and bit depth it was taken with) tagged with the pattern, the
+scan and step, and the analyzer angle. The angle is decided here and only here, where the stage's state is
+known: the newest ``polarizer/state`` when the frame is taken; None while the analyzer is out of the path (see
+``camera/analyzer``) or before any state came (no polarizer node). The reply is sent after the frame is
+published, so a caller that then waits for the frame cannot miss it.
 
 Faults are published, never painted over: a grab that times out, a camera that disappears or a frame of the
 wrong scan is an ``Ack(ok=False, detail=…)`` reply naming the camera and what happened, an ERROR line on the
@@ -20,7 +23,6 @@ from __future__ import annotations
 import math
 import time
 
-import numpy as np
 from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState, RenderRequest
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
@@ -80,7 +82,6 @@ class Grabber(Node):
         p = self.params
         kwargs: dict = {}
         if p.camera == "sim":
-
             if self._render_client is None:
                 self._render_client = self.client(p.render_service, RenderRequest, Frame,
                                                   timeout_s=p.grab_timeout_s)
@@ -113,12 +114,17 @@ class Grabber(Node):
         self.log.error("frame of scan %d step %d (%s): %s", req.scan_id, req.step, req.pattern, text)
         return Ack(ok=False, detail=text)
 
-    def _latest_state(self) -> PolarizerState | None:
-        try:  # the newest state that arrived since the loop last looked (the emitter saw it settle)
+    def analyzer_deg(self) -> float | None:
+        """The frame's analyzer angle: None with the analyzer out of the path, else the newest
+        ``polarizer/state`` (one that arrived since the loop last looked: the emitter saw it settle), None
+        before any."""
+        if not self.analyzer_in:
+            return None
+        try:
             self.state = self.wait_for("polarizer/state", timeout_s=0.0)
         except BusTimeout:
             pass
-        return self.state
+        return self.state.angle_deg if self.state is not None else None
 
     def trigger(self, req: FrameRequest) -> Ack:
         if self.camera is None:
@@ -136,25 +142,21 @@ class Grabber(Node):
                 return self._fault(req, str(exc))
         t0 = time.monotonic()
         try:
-            image, info = cam.grab(timeout=self.params.grab_timeout_s + 1.0)
+            shot = cam.grab(timeout=self.params.grab_timeout_s + 1.0)
         except DriverError as exc:
             if not isinstance(exc, TimeoutError):  # lost: reopen at the next trigger
                 cam.close()
                 self.camera = None
             return self._fault(req, f"{type(exc).__name__}: {exc}")
-        extra = info.extra
-        if "scan_id" in extra and (extra["scan_id"], extra["step"]) != (req.scan_id, req.step):
-            return self._fault(req, f"camera delivered scan {extra['scan_id']} step {extra['step']}")
-        angle = None
-        if self.analyzer_in:
-            state = self._latest_state()
-            angle = state.angle_deg if state is not None else extra.get("polarizer_deg")
-        frame = Frame(image=np.ascontiguousarray(image), exposure_s=float(extra.get("exposure_s",
-                                                                                      info.exposure_s)),
-                      gain=info.gain, bit_depth=info.bit_depth, pattern=req.pattern, polarizer_deg=angle,
-                      scan_id=req.scan_id, step=req.step)
-        self.frames.publish(frame, stamp_ns=info.stamp_ns)
-        return Ack(ok=True, detail=f"{image.shape[1]}x{image.shape[0]} in {time.monotonic() - t0:.3f} s")
+        meta = shot.metadata
+        if "scan_id" in meta and (meta["scan_id"], meta["step"]) != (req.scan_id, req.step):
+            return self._fault(req, f"camera delivered scan {meta['scan_id']} step {meta['step']}")
+        self.frames.publish(Frame(image=shot.image, exposure_s=shot.exposure_s, gain=shot.gain,
+                                  bit_depth=shot.bit_depth, pattern=req.pattern,
+                                  polarizer_deg=self.analyzer_deg(), scan_id=req.scan_id, step=req.step),
+                            stamp_ns=shot.stamp_ns)
+        h, w = shot.image.shape[:2]
+        return Ack(ok=True, detail=f"{w}x{h} in {time.monotonic() - t0:.3f} s")
 
 
 NODE = "Grabber"

@@ -2,7 +2,8 @@
 
 It serves frames rendered by the light-transport model (:mod:`polarstripe.sim.render`) for the pattern asked
 for, at the analyzer angle of its simulated drive's *actual* position (or with no analyzer in the path),
-through the EMVA 1288 sensor; it serves the ground truth the compositor scores against; it hosts a simulated
+through the EMVA 1288 sensor (:func:`polarstripe.sim.sensor.expose`); it publishes the ground truth the
+compositor scores against at every scan start; it hosts a simulated
 CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a python-can bus carried over
 ZeroMQ, which the polarizer node drives with its real CANopen code (or, with ``ell14_link``, a simulated
 Thorlabs ELL14 on a pty for the ``ell14`` backend); and it moves the virtual source when a plan arrives (the
@@ -10,16 +11,18 @@ in-situ loop of the paper's §4).
 
 Services (relative to the namespace):
 
-* ``simulator/render`` (:class:`RenderRequest` → :class:`~polarstripe.msgs.Frame`) — one frame.
-* ``simulator/truth`` (``Empty`` → ``Composite``) — images ``S`` (float64: flood D + A in DN above the dark
-  offset, no analyzer, same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart),
-  ``chart_high`` (bool, bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``.
-  The same ``Composite`` is published on the topic ``simulator/truth`` at every scan start (one render per
-  source pose, cached; re-published as a latch), so a recording carries it and a replay scores like the live
-  run.
+* ``simulator/render`` (:class:`RenderRequest` → :class:`~polarstripe.msgs.Frame`) — one frame; its
+  ``polarizer_deg`` is the angle it was rendered at (the frame's analyzer angle on ``camera/frame`` is the
+  grabber's, from ``polarizer/state``).
 * ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
+
+Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the scan's), published at every
+``emitter/scan`` start — the one way the ground truth reaches the compositor, so a recording carries it and a
+replay scores like the live run: images ``S`` (float64: flood D + A in DN above the dark offset, no analyzer,
+same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart), ``chart_high`` (bool,
+bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``. One render per source pose, cached.
 
 Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
 the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
@@ -33,6 +36,7 @@ mean and variance instead of Poisson + normal.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -40,9 +44,8 @@ import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
-import cv2
 import numpy as np
-from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
+from polarstripe.msgs import Ack, Composite, Frame, Plan, ScanEvent
 from polarstripe.msgs.patterns import following
 from polarstripe.msgs.rig import FAULT_COMMANDS, RenderRequest, SimFault
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
@@ -50,16 +53,18 @@ from polarstripe.nodes.drivers.simell14 import SimEll14
 from polarstripe.nodes.simulator_frames import (
     PREVIEW_WIDTH,
     SimulatorError,
-    expose_fast,
+    exposure_factor,
+    model_scene,
     parse_resolution,
     timed_render,
+    to_camera,
 )
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
-from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn, mean_dn
+from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
 
 __all__ = ["Simulator", "SimulatorError"]
 
@@ -99,7 +104,6 @@ class Simulator(Node):
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
     SERVES = {
         "simulator/render": (RenderRequest, Frame),
-        "simulator/truth": (Empty, Composite),
         "simulator/move_source": (Plan, Ack),
         "simulator/fault": (SimFault, Ack),
     }
@@ -135,7 +139,6 @@ class Simulator(Node):
                       "resize_s": 0.0, "busy_s": 0.0}
         self.drive = None
         if p.can_channel:
-
             self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
                                         settle_s=p.drive_settle_s).start()
         self.ell14 = None
@@ -150,7 +153,6 @@ class Simulator(Node):
         self.subscribe("planner/plan", self.on_plan, mode="latest")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         self.serve("simulator/render", self.render)
-        self.serve("simulator/truth", self.truth)
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %s noise, drive %s", w, cam.resolution[1],
@@ -158,8 +160,7 @@ class Simulator(Node):
                       p.can_channel or "none (fixed analyzer)")
 
     def _host_ell14(self, link: str):
-
-
+        """Start a simulated ELL14 on a pty and symlink it at ``link``."""
         dev = SimEll14()
         dev.start()
         try:
@@ -175,7 +176,6 @@ class Simulator(Node):
 
     def teardown(self):
         if self.ell14 is not None:
-
             self.ell14.stop()
             if os.path.islink(self.params.ell14_link):
                 os.unlink(self.params.ell14_link)
@@ -203,17 +203,6 @@ class Simulator(Node):
     def _truth_key(self) -> tuple:
         return (*self._pose(), self.scene.camera.exposure_s)
 
-    def _model_scene(self, pattern: str) -> Scene:
-        """The scene at the resolution the model runs at for ``pattern``."""
-        scene = self.scene
-        # checkers keep twice the resolution: their edges are what the high-frequency separation measures
-        scale = max(1, self.scale // 2) if pattern.startswith("checker") else self.scale
-        if scale > 1:
-            w, h = scene.camera.resolution
-            small = (max(2, round(w / scale)), max(2, round(h / scale)))
-            scene = scene.replace(camera=scene.camera.replace(resolution=small))
-        return scene
-
     def components(self, pattern: str):
         """Components of ``pattern`` at the current pose, at the model resolution (cached; the next pattern of
         a scan is rendered ahead in a worker thread while this frame travels)."""
@@ -227,7 +216,8 @@ class Simulator(Node):
             if ahead is not None:
                 comp, seconds = ahead.result()
             else:
-                comp, seconds = timed_render(self._model_scene(pattern), pattern, self.fidelity)
+                comp, seconds = timed_render(model_scene(self.scene, pattern, self.scale), pattern,
+                                             self.fidelity)
             self.stats["model_s"] += seconds
             self.stats["renders"] += 1
             self._cache[key] = comp
@@ -244,7 +234,7 @@ class Simulator(Node):
             return
         for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
             self._ahead.pop(old).cancel()
-        scene = self._model_scene(pattern)
+        scene = model_scene(self.scene, pattern, self.scale)
         self._ahead[key] = self._pool.submit(timed_render, scene, pattern, self.fidelity)
 
     def move_to(self, separation_m: float) -> Scene:
@@ -263,15 +253,8 @@ class Simulator(Node):
         factor = 1.0
         if self.params.auto_exposure:
             comp = self.components("flood")
-            radiance = comp.D + comp.A + comp.B
-            w, h = base.resolution
-            if radiance.shape != (h, w):
-                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
-            peak = float(np.percentile(radiance * self._e_map_base, 99.5)) / base.gain_e_per_dn
-            span = min(full_scale_dn(base) - dark_offset_dn(base), base.full_well_e / base.gain_e_per_dn)
-            limit = 0.85 * span
-            if peak > limit:
-                factor = limit / peak
+            radiance = to_camera(comp.D + comp.A + comp.B, base.resolution)
+            factor = exposure_factor(radiance, self._e_map_base, base)
         self.scene = self.scene.replace(camera=base.replace(exposure_s=base.exposure_s * factor))
         self._e_map = self._e_map_base * factor
         if factor < 1.0:
@@ -282,7 +265,8 @@ class Simulator(Node):
     def on_scan(self, event: ScanEvent) -> None:
         if event.event == "start":
             self.scanning.add(event.scan_id)
-            self.truth_pub.publish(self.truth(Empty()))  # the pose cannot change until the scan ends
+            # the pose cannot change until the scan ends: this is the truth of every frame of the scan
+            self.truth_pub.publish(dataclasses.replace(self.truth(), scan_id=event.scan_id))
             return
         self.scanning.discard(event.scan_id)
         if not self.scanning and self.pending_plan is not None:
@@ -333,17 +317,14 @@ class Simulator(Node):
                 raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
             angle = self.analyzer_angle() if req.analyzer else None
             t0 = time.perf_counter()
-            radiance = analyzer(comp, angle)
-            w, h = cam.resolution
-            if radiance.shape != (h, w):
-                radiance = cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+            radiance = to_camera(analyzer(comp, angle), cam.resolution)
             self.stats["resize_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         seed = self.params.seed if self.params.seed is not None else cam.seed
         rng = np.random.default_rng([seed, req.scan_id, req.step, self.stats["frames"]])
         e_map = self._e_map if cam.exposure_s == self.scene.camera.exposure_s else (
             self._e_map * cam.exposure_s / self.scene.camera.exposure_s)
-        image = expose_fast(radiance, e_map, cam, rng, gaussian=self.gaussian)
+        image = expose(radiance, cam, rng, electrons=e_map, gaussian=self.gaussian)
         t_end = time.perf_counter()
         self.stats["sensor_s"] += t_end - t0
         self.stats["frames"] += 1
@@ -353,7 +334,8 @@ class Simulator(Node):
         return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
                      polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
 
-    def truth(self, req: Empty) -> Composite:
+    def truth(self) -> Composite:
+        """The ground truth at the current source pose and exposure (cached; ``scan_id`` 0)."""
         key = self._truth_key()
         if key not in self._truth:
             comp = render_components(self.scene, "flood", self.fidelity, need=("D", "A"))

@@ -1,14 +1,17 @@
-"""What the simulator node computes per frame, as plain functions: a timed component render and the sensor
-exposure with the electrons map precomputed; its error type and the ``resolution`` param's parser."""
+"""What the simulator node computes, as plain functions: the model's resolution per pattern, a timed component
+render, the radiance resized to the camera, the auto-exposure factor; its error type and the ``resolution``
+param's parser. (The sensor is :func:`polarstripe.sim.sensor.expose`, given the node's precomputed electrons
+map.)"""
 
 from __future__ import annotations
 
 import time
 
+import cv2
 import numpy as np
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Scene, SceneError, parse_size
-from polarstripe.sim.sensor import full_scale_dn
+from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
 
@@ -27,49 +30,43 @@ def parse_resolution(text: str) -> tuple[int, int] | None:
     return w, h
 
 
+def model_scene(scene: Scene, pattern: str, scale: int) -> Scene:
+    """``scene`` with its camera at the resolution the model runs at for ``pattern``: 1/``scale`` of the
+    camera's (at least 2x2), checkers at twice that (their edges are what the high-frequency separation
+    measures)."""
+    scale = max(1, scale // 2) if pattern.startswith("checker") else scale
+    if scale <= 1:
+        return scene
+    w, h = scene.camera.resolution
+    small = (max(2, round(w / scale)), max(2, round(h / scale)))
+    return scene.replace(camera=scene.camera.replace(resolution=small))
+
+
 def timed_render(scene: Scene, pattern: str, fidelity):
+    """(components of ``pattern``, seconds the render took)."""
     t0 = time.perf_counter()
     comp = render_components(scene, pattern, fidelity)
     return comp, time.perf_counter() - t0
 
 
-def expose_fast(radiance: np.ndarray, e_map: np.ndarray, camera, rng: np.random.Generator,
-                *, gaussian: bool = False) -> np.ndarray:
-    """One exposure like :func:`polarstripe.sim.sensor.expose`, with the electrons map precomputed.
+def to_camera(radiance: np.ndarray, resolution: tuple[int, int]) -> np.ndarray:
+    """``radiance`` at the camera's ``resolution`` (w, h): as is if it has it, else resized bilinearly."""
+    w, h = resolution
+    if radiance.shape == (h, w):
+        return radiance
+    return cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
 
-    Parameters
-    ----------
-    radiance : (h, w) radiance at the sensor [W sr⁻¹ m⁻²].
-    e_map : (h, w) mean photo-electrons per unit radiance
-        (:func:`~polarstripe.sim.sensor.electrons_per_radiance`).
-    camera : the scene's Camera (dark current, exposure, read noise, full well, gain, offset, bits).
-    rng : Generator.
-    gaussian : draw shot + read noise as one normal variate of the EMVA 1288 variance σ_r² + μ_e (mean and
-        variance exact, shape approximate below ~20 e⁻) instead of Poisson + normal.
 
-    Returns
-    -------
-    uint16 DN (h, w), clipped to [0, 2^bits − 1].
+def exposure_factor(radiance: np.ndarray, e_map: np.ndarray, camera, *, fill: float = 0.85,
+                    percentile: float = 99.5) -> float:
+    """The factor (≤ 1) on ``camera``'s exposure that puts the ``percentile`` of the mean signal of
+    ``radiance`` at ``fill`` of the sensor's range above the dark offset (the ADC's or the full well's, the
+    smaller); 1 when it is already below.
+
+    ``e_map`` is electrons per unit radiance at ``camera``'s exposure; the signal in DN is
+    ``radiance · e_map / K``.
     """
-    dark_e = camera.dark_current_e_s * camera.exposure_s
-    if gaussian:  # float32 in place: ~2x faster than the float64 path, far below the noise in precision
-        lam = np.multiply(radiance, e_map, dtype=np.float32)
-        np.nan_to_num(lam, copy=False, nan=0.0, posinf=0.0)
-        np.clip(lam, 0.0, 1e12, out=lam)
-        lam += np.float32(dark_e)
-        e = rng.standard_normal(lam.shape, dtype=np.float32)
-        sd = lam + np.float32(camera.read_noise_e ** 2)
-        e *= np.sqrt(sd, out=sd)
-        e += lam
-        np.minimum(e, np.float32(camera.full_well_e), out=e)
-        e *= np.float32(1.0 / camera.gain_e_per_dn)
-        e += np.float32(camera.offset_dn)
-        np.rint(e, out=e)
-        np.clip(e, 0, full_scale_dn(camera), out=e)
-        return e.astype(np.uint16)
-    lam = np.clip(np.nan_to_num(radiance, nan=0.0, posinf=0.0), 0.0, None) * e_map + dark_e
-    np.minimum(lam, 1e12, out=lam)
-    e = np.minimum(rng.poisson(lam).astype(float), camera.full_well_e)
-    e += rng.normal(0.0, camera.read_noise_e, size=e.shape)
-    y = np.round(e / camera.gain_e_per_dn + camera.offset_dn)
-    return np.clip(y, 0, full_scale_dn(camera)).astype(np.uint16)
+    peak = float(np.percentile(radiance * e_map, percentile)) / camera.gain_e_per_dn
+    span = min(full_scale_dn(camera) - dark_offset_dn(camera), camera.full_well_e / camera.gain_e_per_dn)
+    limit = fill * span
+    return limit / peak if peak > limit else 1.0

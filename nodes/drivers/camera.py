@@ -1,10 +1,12 @@
-"""The camera role: ``grab(timeout)`` gives an image and what it was taken with.
+"""The camera role: ``grab(timeout)`` gives a :class:`CameraFrame`, the image and what it was taken with.
 
 :class:`Camera` owns the shared behaviour: the grab timeout (a capture call that blocks longer raises
 :class:`DriverTimeout` instead of hanging the node), the check that a frame is a real image (a backend that
 returns nothing raises :class:`DeviceLost`, never a blank frame), exposure and gain validation, the frame
-counter, the context manager and an idempotent :meth:`~Camera.close`. A backend implements ``_grab`` and,
-where the device can, ``_apply_exposure`` / ``_apply_gain``.
+counter, the context manager and an idempotent :meth:`~Camera.close`. A backend implements ``_grab`` (the
+image and the device's own metadata) and, where the device can, ``_apply_exposure`` / ``_apply_gain``; a
+device that reports the exposure or bit depth it actually used (the simulator) sets ``_exposure_s`` /
+``_bit_depth`` in ``_grab``, and the frame carries those.
 """
 
 from __future__ import annotations
@@ -20,21 +22,28 @@ from polarstripe.nodes.drivers.errors import DeviceLost, DriverError, DriverTime
 
 
 @dataclass(frozen=True)
-class FrameInfo:
-    """What a frame was taken with: ``seq`` counts this camera's frames from 0, ``stamp_ns`` is wall-clock
-    time (``time.time_ns``) at the end of the grab, ``source`` names the device or file."""
+class CameraFrame:
+    """One grabbed image and what it was taken with.
 
-    seq: int
-    stamp_ns: int
+    ``image`` is (h, w) or (h, w, c) as the device delivered it (not copied); ``exposure_s`` [s], ``gain``
+    and ``bit_depth`` (significant bits) are those the frame was taken with; ``seq`` counts this camera's
+    frames from 0; ``stamp_ns`` is wall-clock time (``time.time_ns``) at the end of the grab; ``source``
+    names the device or file; ``metadata`` is the backend's own (file name and index, pixel format, the
+    simulator's scan and step).
+    """
+
+    image: np.ndarray
     exposure_s: float
     gain: float
     bit_depth: int
+    seq: int
+    stamp_ns: int
     source: str
-    extra: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
 
 
 class Camera(ABC):
-    """A camera: ``grab(timeout) -> (image, FrameInfo)``; ``exposure_s`` and ``gain`` are settable.
+    """A camera: ``grab(timeout) -> CameraFrame``; ``exposure_s`` and ``gain`` are settable.
 
     :param name: how the camera is named in error texts (device path, file).
     """
@@ -50,8 +59,8 @@ class Camera(ABC):
         self._pending: concurrent.futures.Future | None = None
 
     # -- public --------------------------------------------------------------------------------------------
-    def grab(self, timeout: float = 2.0) -> tuple[np.ndarray, FrameInfo]:
-        """The next frame: an (h, w) or (h, w, c) array and its :class:`FrameInfo`.
+    def grab(self, timeout: float = 2.0) -> CameraFrame:
+        """The next frame: an (h, w) or (h, w, c) image and what it was taken with.
 
         :raises DriverTimeout: no frame within ``timeout`` seconds (the next grab waits for the late one).
         :raises DeviceLost: the device returned no frame (disconnected).
@@ -67,13 +76,13 @@ class Camera(ABC):
         if not done:
             raise DriverTimeout(f"{self.name}: no frame within {timeout:g} s")
         pending, self._pending = self._pending, None
-        image, extra = pending.result()
+        image, metadata = pending.result()
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
             raise DeviceLost(f"{self.name}: returned no image ({type(image).__name__})")
-        info = FrameInfo(self._seq, time.time_ns(), self._exposure_s, self._gain, self._bit_depth, self.name,
-                         extra)
+        frame = CameraFrame(image, self._exposure_s, self._gain, self._bit_depth, self._seq, time.time_ns(),
+                            self.name, metadata)
         self._seq += 1
-        return image, info
+        return frame
 
     @property
     def exposure_s(self) -> float:
@@ -131,7 +140,8 @@ class Camera(ABC):
 
     @abstractmethod
     def _grab(self) -> tuple[np.ndarray, dict]:
-        """Block until the next frame; return it and backend metadata. Runs in the grab worker thread."""
+        """Block until the next frame; return it and the backend's metadata. Runs in the grab worker
+        thread."""
 
     def _apply_exposure(self, value: float) -> None:  # noqa: B027 - optional hook
         pass

@@ -3,15 +3,17 @@
 Like python-can's ``virtual.py``, a real backend that says what it does not model: no free-running stream
 (a frame is rendered when grabbed, for the pattern and analyzer set with :meth:`SimCamera.request`), no
 exposure or gain of its own (``exposure_s`` is sent along only once it has been set; the simulator's scene
-decides otherwise, and the frame's real exposure is in ``FrameInfo.extra["exposure_s"]``), no dropped or
-torn frames. A simulator that does not answer is a :class:`DriverTimeout`; one that answers with an error
-(``camera_lost``) is :class:`DeviceLost`.
+decides otherwise; either way the grabbed frame carries the exposure and bit depth the simulator used), no
+dropped or torn frames. A simulator that does not answer is a :class:`DriverTimeout`; one that answers with
+an error (``camera_lost``) is :class:`DeviceLost`. The image is the received one (a read-only view, not
+copied). Like a real camera it does not say at which analyzer angle the frame was taken: the grabber knows
+that from ``polarizer/state``.
 
 ::
 
     cam = SimCamera(render=client.call)          # client: the node's simulator/render service client
     cam.request("stripe:3/30", analyzer=True, scan_id=7, step=3)
-    image, info = cam.grab(timeout=6.0)   # info.extra: pattern, polarizer_deg, scan_id, step, exposure_s
+    frame = cam.grab(timeout=6.0)   # CameraFrame; frame.metadata: pattern, scan_id, step
 """
 
 from __future__ import annotations
@@ -49,7 +51,6 @@ class SimCamera(Camera):
         self._send_exposure = True
 
     def _grab(self) -> tuple[np.ndarray, dict]:
-
         req = RenderRequest(pattern=self._pattern, analyzer=self._analyzer, scan_id=self._scan_id,
                             step=self._step, exposure_s=self._exposure_s if self._send_exposure else None)
         try:
@@ -58,7 +59,5 @@ class SimCamera(Camera):
             raise DriverTimeout(f"{self.name}: the simulator did not answer: {exc}") from None
         except Exception as exc:  # an error reply: the simulated camera is gone
             raise DeviceLost(f"{self.name}: {exc}") from None
-        self._bit_depth = frame.bit_depth
-        return np.asarray(frame.image), {"pattern": frame.pattern, "polarizer_deg": frame.polarizer_deg,
-                                         "scan_id": frame.scan_id, "step": frame.step,
-                                         "exposure_s": frame.exposure_s}
+        self._bit_depth, self._exposure_s = frame.bit_depth, frame.exposure_s  # what it was taken with
+        return frame.image, {"pattern": frame.pattern, "scan_id": frame.scan_id, "step": frame.step}

@@ -11,12 +11,12 @@ import tempfile
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Empty, Plan, ScanEvent
+from polarstripe.msgs import Plan, ScanEvent
 from polarstripe.runtime.testing import NodeHarness
 from polarstripe.sim.scene import load_scene
 from polarstripe.msgs import RenderRequest, SimFault
 from polarstripe.nodes.simulator import Simulator
-from polarstripe.nodes.simulator_frames import SimulatorError, expose_fast
+from polarstripe.nodes.simulator_frames import SimulatorError
 
 
 def sim(**params):
@@ -29,10 +29,16 @@ def dn(h, pattern="flood", analyzer=True, step=0):
     return f, f.image.astype(float)
 
 
+def truth(h, scan_id=1):
+    """The ground truth the simulator publishes when scan ``scan_id`` starts."""
+    h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="start", method="flood"))
+    return h.published("simulator/truth")[-1]
+
+
 def test_crossed_analyzer_frames_add_up_to_the_frame_without_analyzer():
     for angle in (0.0, 30.0):
         h = sim(analyzer_deg=angle)
-        dark = h.call("simulator/truth", Empty()).metrics["dark_offset_dn"]
+        dark = truth(h).metrics["dark_offset_dn"]
         _, a = dn(h)
         h2 = sim(analyzer_deg=angle + 90.0)
         _, b = dn(h2)
@@ -117,7 +123,8 @@ def test_model_at_lower_resolution_matches_the_full_render_on_average():
 
 def test_truth_marks_the_chart_and_its_bars():
     h = sim()
-    t = h.call("simulator/truth", Empty())
+    t = truth(h, scan_id=5)
+    assert t.scan_id == 5
     s, band, high = t.images["S"], t.images["chart_band"], t.images["chart_high"]
     assert s.shape == band.shape == high.shape == (36, 48) and s.dtype == np.float64
     on = band >= 0
@@ -127,7 +134,7 @@ def test_truth_marks_the_chart_and_its_bars():
 
 def test_truth_is_published_at_every_scan_start_for_the_pose_of_that_scan():
     h = sim()
-    served = h.call("simulator/truth", Empty())
+    served = h.node.truth()
     h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="flood"))
     h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="flood"))
     h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="stripes"))  # the latch again
@@ -141,21 +148,8 @@ def test_truth_is_published_at_every_scan_start_for_the_pose_of_that_scan():
     h.deliver("emitter/scan", ScanEvent(scan_id=3, event="start", method="flood"))
     moved = h.published("simulator/truth")[-1]
     assert len(h.published("simulator/truth")) == 3
+    assert [t.scan_id for t in h.published("simulator/truth")] == [1, 2, 3]  # each names its scan
     assert moved.metrics["separation_m"] == pytest.approx(0.3) and served.metrics["separation_m"] != 0.3
-
-
-def test_expose_fast_has_the_emva_mean_and_variance():
-    cam = load_scene(None).camera
-    lam_e = 500.0
-    e_map = np.full((200, 300), lam_e)  # electrons per unit radiance
-    for gaussian in (False, True):
-        y = expose_fast(np.ones((200, 300)), e_map, cam, np.random.default_rng(1), gaussian=gaussian)
-        dark = cam.dark_current_e_s * cam.exposure_s
-        k = cam.gain_e_per_dn
-        mean = (lam_e + dark) / k + cam.offset_dn
-        var = (cam.read_noise_e ** 2 + lam_e + dark) / k ** 2 + 1 / 12
-        assert y.mean() == pytest.approx(mean, rel=0.01)
-        assert y.var() == pytest.approx(var, rel=0.05)
 
 
 def test_faults_and_bad_requests_are_clear():

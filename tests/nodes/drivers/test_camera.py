@@ -9,7 +9,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from polarstripe.nodes.drivers.camera import Camera, FrameInfo
+from polarstripe.nodes.drivers.camera import Camera, CameraFrame
 from polarstripe.nodes.drivers.errors import (
     DeviceLost,
     DriverError,
@@ -70,11 +70,11 @@ def camera(request, tmp_path):
 def test_grab_gives_an_image_and_what_it_was_taken_with(camera):
     camera.exposure_s = 0.02
     camera.gain = 2.0
-    image, info = camera.grab(timeout=5.0)
-    assert isinstance(info, FrameInfo) and image.ndim in (2, 3) and image.size > 0
-    assert (info.seq, info.exposure_s, info.gain, info.bit_depth) == (0, 0.02, 2.0, camera.bit_depth)
-    assert abs(info.stamp_ns - time.time_ns()) < 5e9
-    assert camera.grab(timeout=5.0)[1].seq == 1
+    frame = camera.grab(timeout=5.0)
+    assert isinstance(frame, CameraFrame) and frame.image.ndim in (2, 3) and frame.image.size > 0
+    assert (frame.seq, frame.exposure_s, frame.gain, frame.bit_depth) == (0, 0.02, 2.0, camera.bit_depth)
+    assert abs(frame.stamp_ns - time.time_ns()) < 5e9
+    assert camera.grab(timeout=5.0).seq == 1
 
 
 @pytest.mark.parametrize(
@@ -101,9 +101,9 @@ def test_png_sequence_is_read_in_order_bit_exact(tmp_path):
     with FileCamera(str(tmp_path / "frame_*.png"), bit_depth=12) as cam:
         assert len(cam) == 5 and cam.bit_depth == 12
         for i, expected in enumerate(frames):
-            image, info = cam.grab()
-            assert image.dtype == np.uint16 and np.array_equal(image, expected)
-            assert info.extra == {"index": i, "file": f"frame_{i:04d}.png"}
+            frame = cam.grab()
+            assert frame.image.dtype == np.uint16 and np.array_equal(frame.image, expected)
+            assert frame.metadata == {"index": i, "file": f"frame_{i:04d}.png"}
         with pytest.raises(EndOfFrames, match="all 5 images"):
             cam.grab()
 
@@ -112,7 +112,7 @@ def test_png_sequence_loops(tmp_path):
     frames = _frames(3)
     _write_pngs(tmp_path, frames)
     with FileCamera(tmp_path, loop=True) as cam:
-        got = [cam.grab()[0] for _ in range(7)]
+        got = [cam.grab().image for _ in range(7)]
     for i, image in enumerate(got):
         assert np.array_equal(image, frames[i % 3])
 
@@ -123,7 +123,7 @@ def test_ffv1_video_is_16_bit_exact(tmp_path):
     with FileCamera(tmp_path / "run.mkv") as cam:
         assert cam.bit_depth == 16
         for expected in frames:
-            assert np.array_equal(cam.grab()[0], expected)
+            assert np.array_equal(cam.grab().image, expected)
         with pytest.raises(EndOfFrames):
             cam.grab()
 
@@ -184,7 +184,7 @@ def test_a_camera_that_disappears_is_device_lost_not_a_blank_frame(tmp_path, mon
         assert fake.props[cv2.CAP_PROP_AUTO_EXPOSURE] == 1
         assert fake.props[cv2.CAP_PROP_EXPOSURE] == 50  # units of 100 us
         assert fake.props[cv2.CAP_PROP_GAIN] == 3 and fake.props[cv2.CAP_PROP_CONVERT_RGB] == 0
-        assert cam.grab()[0].shape == (4, 6)
+        assert cam.grab().image.shape == (4, 6)
         fake.plugged = False
         with pytest.raises(DeviceLost, match="no frame"):
             cam.grab()
@@ -207,7 +207,7 @@ def test_a_grab_that_blocks_times_out_instead_of_hanging():
         cam.grab(timeout=0.2)
     assert time.monotonic() - start < 0.5
     cam.release.set()
-    assert cam.grab(timeout=1.0)[0].shape == (2, 2)  # the late frame is delivered next
+    assert cam.grab(timeout=1.0).image.shape == (2, 2)  # the late frame is delivered next
     cam.close()
 
 
