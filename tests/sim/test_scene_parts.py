@@ -1,0 +1,29 @@
+"""The scene parts validate and normalise themselves on construction and on ``replace``."""
+
+import math
+
+import pytest
+from polarstripe.sim.scene_checks import SceneError
+from polarstripe.sim.scene_parts import Box, BoxObject, Medium, Phase, PlaneObject, Projector, Scene
+
+
+def test_derived_and_normalised_values():
+    assert Medium(sigma_t=4.0, albedo=0.25).sigma_s == 1.0
+    assert PlaneObject(normal=(0, 0, -2)).normal == (0.0, 0.0, -1.0)
+    scene = Scene(projector=Projector(position=(0.3, 0.4, 0.0)))
+    assert scene.separation_m() == pytest.approx(0.5, rel=1e-15)
+
+
+@pytest.mark.parametrize("make, key", [
+    (lambda: Phase("tthg", -0.1), "mean_cosine"),
+    (lambda: Phase("hg", 1.0), "medium.phase.g"),
+    (lambda: Box((0, 0, 0), (1, 1, 0)), "box.max"),
+    (lambda: BoxObject(min=(0, 0, 1), max=(1, 1, 1), key="object[2]"), "object[2]"),
+    (lambda: PlaneObject(normal=(0, 1, 0), up=(0, 2, 0)), "up must not be parallel"),
+    (lambda: PlaneObject(texture="chart"), "size is required"),
+    (lambda: Projector(black_level=1.0), "black_level"),
+    (lambda: Medium().replace(albedo=math.nan), "medium.albedo"),
+])
+def test_invalid_parts_name_the_key(make, key):
+    with pytest.raises(SceneError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        make()
