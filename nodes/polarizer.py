@@ -146,7 +146,7 @@ class Polarizer(Calibrating, Node):
         return open_backend("stage", "sim", deg_per_s=p.speed_deg_s, **limits)
 
     def _connect(self) -> None:
-        self._next_connect = self._bus.now() + self.params.connect_retry_s
+        self._next_connect = self.now() + self.params.connect_retry_s
         sdo_log = logging.getLogger("canopen.sdo.client")  # one error line per failed try is ours, not its
         level = sdo_log.level
         sdo_log.setLevel(logging.CRITICAL)
@@ -200,7 +200,7 @@ class Polarizer(Calibrating, Node):
             self.log.warning("move to %g° failed: %s", angle_deg, exc)
             return
         self.counters["moves"] += 1
-        self._move_started = self._bus.now()
+        self._move_started = self.now()
 
     def _set_node_fault(self, text: str, *, resettable: bool) -> None:
         self._node_fault, self._node_fault_resettable = text, resettable
@@ -249,7 +249,7 @@ class Polarizer(Calibrating, Node):
 
     # ---- the state -----------------------------------------------------------------------------------------
     def poll(self) -> None:
-        now = self._bus.now()
+        now = self.now()
         if self.stage is None and now >= self._next_connect:
             self._connect()
         stage = self.stage

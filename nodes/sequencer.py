@@ -86,7 +86,7 @@ class Sequencer(Node):
     def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
         """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``."""
         client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
-        now = self._bus.now  # the node's clock (virtual in the harness)
+        now = self.now  # the node's clock (virtual in the harness)
         deadline = now() + self.params.startup_timeout_s
         while True:
             try:

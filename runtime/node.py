@@ -1,5 +1,13 @@
 """The Node base class: name, namespace, typed params, publishers, subscriptions, services, timers, heartbeat,
-logging to stderr and to the ``log`` topic, and a loop that reads top to bottom.
+and a loop that reads top to bottom.
+
+**The contract.** A node is constructed with the bus it runs on, ``Node(name, bus=bus, namespace=…,
+params=…)``: a :class:`~polarstripe.runtime.node_bus.NodeBus` that is built first (the real ZeroMQ bus by
+:func:`~polarstripe.runtime.runner.run_node`, the mock bus by
+:class:`~polarstripe.runtime.testing.NodeHarness`) and never swapped. The node uses only its own public
+calls: ``publisher``, ``subscribe``, ``serve``, ``client``, ``every``/``cancel``, ``wait_for``, ``take``,
+``now()`` (the bus clock: monotonic, virtual in the harness), ``graph`` (the launch graph), ``resolve``,
+``stop``/``stopping``/``stop_reason``.
 
 A node declares its interface as class attributes (the launcher reads them to write the graph), then wires
 handlers in :meth:`Node.setup`::
@@ -24,9 +32,11 @@ Or it overrides :meth:`Node.run` and matches typed events (dora-style)::
                     case Received(topic="chatter", msg=msg): ...
                     case Tick(timer="report"): ...
 
-Everything runs in one thread: handlers never race. A bad message is logged once (rate-limited), counted
-(``bad``), dropped, and the node keeps running. SIGINT/SIGTERM end the loop; sockets are closed on the
-way out.
+**The loop.** Everything runs in one thread: handlers never race. :meth:`events` fires due timers, then
+waits in ``bus.poll`` (which also answers service requests) until the next timer at most. Long work is not
+done in one handler — while it runs nothing else is answered — but as a state machine that timers and
+messages step (the emitter's scan). A bad message is logged once (rate-limited), counted (``bad``),
+dropped, and the node keeps running. SIGINT/SIGTERM end the loop; sockets are closed on the way out.
 """
 
 from __future__ import annotations
@@ -34,67 +44,24 @@ from __future__ import annotations
 import heapq
 import logging
 import os
-import signal
-import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from polarstripe.errors import PolarstripeError
-from polarstripe.msgs import Heartbeat, Log, Message, MessageError
+from polarstripe.msgs import Heartbeat, Message, MessageError
 from polarstripe.runtime.bus import BusTimeout
+from polarstripe.runtime.events import Event, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.runtime.graph import resolve
+from polarstripe.runtime.node_bus import BusPublisher, BusSource, NodeBus
 from polarstripe.runtime.params import NodeParams, build_params
 
-
-class NodeError(PolarstripeError):
-    """A node used wrongly (undeclared topic, duplicate timer); the text names the node and what."""
-
-
-class NodeStopping(PolarstripeError):
-    """A blocking call (:meth:`Node.wait_for`) gave up because the node was told to stop (SIGINT, SIGTERM,
-    :meth:`Node.stop`). Not a ``TimeoutError``: a caller can tell "stopping" from "nothing came in time".
-
-    Let it propagate to end the node: escaping a callback or :meth:`Node.run`, it ends the node normally
-    (``teardown`` runs, the exit status stays :attr:`Node.exit_code`); catch it only to publish a fault or
-    clean up. Attributes ``node``, ``topic`` and ``reason`` (the stop reason).
-    """
-
-    def __init__(self, node: str, topic: str, reason: str):
-        self.node, self.topic, self.reason = node, topic, reason
-        super().__init__(f"node {node!r}: stopped waiting for {topic!r}: the node is stopping ({reason})")
-
-
-# ---- events -----------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Received:
-    """A message arrived on ``topic`` (the name as the node declared it, e.g. ``"camera/frame"``)."""
-
-    topic: str
-    msg: Message
-
-
-@dataclass(frozen=True)
-class Tick:
-    """Timer ``timer`` fired; ``now_ns`` is the monotonic clock [ns]."""
-
-    timer: str
-    now_ns: int
-
-
-@dataclass(frozen=True)
-class Stop:
-    """The loop is ending (``reason``: ``"SIGINT"``, ``"SIGTERM"``, or the text given to
-    :meth:`Node.stop`)."""
-
-    reason: str
-
-
-Event = Received | Tick | Stop
+__all__ = ["STOP_CHECK_S", "Event", "Node", "NodeError", "NodeStopping", "Received", "Stop", "Tick"]
 
 STOP_CHECK_S = 0.05
 """How often a blocking :meth:`Node.wait_for` looks whether the node was told to stop [s]."""
+
+_COUNTERS = ("published", "received", "bad", "gaps", "skipped", "restarts", "requests", "service_errors")
 
 
 @dataclass
@@ -112,7 +79,7 @@ class _Sub:
     msg_type: type[Message]
     callback: Callable[[Message], Any] | None
     mode: str
-    source: Any  # a bus Subscriber (or the harness' stand-in)
+    source: BusSource
 
 
 class Node:
@@ -125,31 +92,50 @@ class Node:
     SERVES: ClassVar[dict[str, tuple[type[Message], type[Message]]]] = {}
 
     def __init__(
-        self, name: str, *, namespace: str = "", params: dict[str, Any] | None = None, bus: Any = None
+        self,
+        name: str,
+        *,
+        bus: NodeBus,
+        namespace: str = "",
+        params: NodeParams | dict[str, Any] | None = None,
     ):
+        """``params``: overrides as a dict (typed and validated here: ``ParamError``), or a built
+        ``Params`` instance. ``bus``: the bus this node runs on (required; see the module docstring)."""
+        if bus is None:
+            raise NodeError(f"node {name!r}: needs a bus (build it first and pass bus=...)")
         self.name, self.namespace = name, namespace
-        self.params = build_params(self.Params, params or {}, node=name)
-        self._resolve = lambda n: resolve(n, namespace, name)
+        if isinstance(params, self.Params):
+            self.params = params
+        else:
+            self.params = build_params(self.Params, params or {}, node=name)
         self.log = logging.getLogger(f"polarstripe.node.{name}")
-        self.counters: dict[str, int] = {
-            "published": 0,
-            "received": 0,
-            "bad": 0,
-            "gaps": 0,
-            "skipped": 0,
-            "restarts": 0,
-            "requests": 0,
-            "service_errors": 0,
-        }
+        self.counters: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
         self.exit_code = 0
-        self._bus = bus
+        self._bus = bus  # the runtime's; node code goes through the public calls
         self._subs: dict[str, _Sub] = {}
-        self._pubs: dict[str, Any] = {}
+        self._pubs: dict[str, _CountingPublisher] = {}
         self._timers: dict[str, _Timer] = {}
         self._services: dict[str, Callable] = {}
         self._stop_reason: str | None = None
         self._started = time.monotonic()
         self._bad_logged: dict[str, int] = {}
+
+    # ---- what the node may ask of its runtime ------------------------------------------------------------
+    def now(self) -> float:
+        """The node's clock [s] (monotonic; virtual in the harness): use it for deadlines and durations."""
+        return self._bus.now()
+
+    @property
+    def graph(self) -> dict:
+        """The launch graph this node runs in (``{}`` when started by hand or in the harness)."""
+        return self._bus.graph or {}
+
+    def resolve(self, name: str) -> str:
+        """The full name of topic or service ``name`` as this node sees it (namespace, ``~/`` private)."""
+        return resolve(name, self.namespace, self.name)
+
+    def _resolve(self, name: str) -> str:  # the old spelling, kept for code that still uses it
+        return self.resolve(name)
 
     # ---- wiring (call from setup) ------------------------------------------------------------------------
     def setup(self) -> None:
@@ -158,7 +144,7 @@ class Node:
     def teardown(self) -> None:
         """Called once after the loop ends, before the sockets close."""
 
-    def publisher(self, topic: str, msg_type: type[Message] | None = None):
+    def publisher(self, topic: str, msg_type: type[Message] | None = None) -> _CountingPublisher:
         """A publisher for ``topic`` (declared in ``PUBLISHES``, or give ``msg_type``); ``.publish(msg)``."""
         msg_type = msg_type or self.PUBLISHES.get(topic)
         if msg_type is None:
@@ -168,7 +154,7 @@ class Node:
         pub = self._pubs.get(topic)
         if pub is None:
             pub = self._pubs[topic] = _CountingPublisher(
-                self, self._bus.publisher(self._resolve(topic), msg_type)
+                self, self._bus.publisher(self.resolve(topic), msg_type)
             )
         return pub
 
@@ -193,15 +179,9 @@ class Node:
             )
         if topic in self._subs:
             raise NodeError(f"node {self.name!r}: already subscribed to {topic!r}")
-        full = self._resolve(topic)
-        self._subs[topic] = _Sub(
-            topic,
-            full,
-            msg_type,
-            callback,
-            mode,
-            self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes),
-        )
+        full = self.resolve(topic)
+        source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes)
+        self._subs[topic] = _Sub(topic, full, msg_type, callback, mode, source)
 
     def serve(self, service: str, handler: Callable[[Message], Message]) -> None:
         """Answer ``service`` (declared in ``SERVES`` as ``(request type, reply type)``) with ``handler``."""
@@ -209,13 +189,13 @@ class Node:
             raise NodeError(f"node {self.name!r}: service {service!r} is not in SERVES")
         req, resp = self.SERVES[service]
         self._services[service] = handler
-        self._bus.serve(self._resolve(service), req, resp, handler)
+        self._bus.serve(self.resolve(service), req, resp, handler)
 
     def client(
         self, service: str, req_type: type[Message], resp_type: type[Message], *, timeout_s: float = 2.0
     ):
         """A client of ``service`` (served by some node of the launch): ``.call(request, timeout_s=None)``."""
-        return self._bus.client(self._resolve(service), req_type, resp_type, timeout_s)
+        return self._bus.client(self.resolve(service), req_type, resp_type, timeout_s)
 
     def every(
         self, period_s: float, callback: Callable[[], Any] | None = None, *, name: str | None = None
@@ -227,40 +207,61 @@ class Node:
         name = name or getattr(callback, "__name__", None) or f"timer{len(self._timers)}"
         if name in self._timers:
             raise NodeError(f"node {self.name!r}: timer {name!r} exists")
-        self._timers[name] = _Timer(name, period_s, callback, self._bus.now() + period_s)
+        self._timers[name] = _Timer(name, period_s, callback, self.now() + period_s)
         return name
 
     def cancel(self, timer: str) -> None:
         self._timers.pop(timer, None)
 
+    # ---- reading subscriptions outside the loop ------------------------------------------------------------
     def wait_for(self, topic: str, match: Callable[[Message], bool] = lambda m: True, timeout_s: float = 1.0):
         """Block until a message on subscribed ``topic`` satisfies ``match``; non-matching messages before it
-        are dropped, those after it stay queued for the next call or the loop.
+        are dropped, those after it stay queued for the next call or the loop. Nothing else is handled
+        meanwhile (no service is answered): keep it for scripts and short waits.
 
         Raises :class:`~polarstripe.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic
         after ``timeout_s``, or :class:`NodeStopping` within ~``STOP_CHECK_S`` of the node being told to
         stop (SIGINT, SIGTERM, :meth:`stop`; also at once if it already was).
         """
-        sub = self._subs.get(topic)
-        if sub is None:
-            raise NodeError(f"node {self.name!r}: wait_for({topic!r}) needs a subscription first")
-        bus = self._bus
-        deadline = bus.now() + timeout_s
+        sub = self._sub(topic, "wait_for")
+        deadline = self.now() + timeout_s
         while True:
             if self._stop_reason is not None:
                 raise NodeStopping(self.name, sub.full, self._stop_reason)
             # short slices: a signal does not cut a zmq poll short (pyzmq resumes it after the handler)
-            for item in bus.take(sub.source, min(max(0.0, deadline - bus.now()), STOP_CHECK_S)):
+            for item in self._bus.take(sub.source, min(max(0.0, deadline - self.now()), STOP_CHECK_S)):
                 if isinstance(item, MessageError):
                     self._bad(topic, item)
                 elif match(item):
                     return item
-            if bus.now() >= deadline:
-
+            if self.now() >= deadline:
                 raise BusTimeout(
                     f"node {self.name!r}: no matching message on {sub.full!r} within {timeout_s} s"
                 )
 
+    def take(self, topic: str, timeout_s: float = 0.0) -> list[Message]:
+        """Every message that has arrived on subscribed ``topic`` and the loop has not handled yet (in
+        ``latest`` mode the newest), waiting up to ``timeout_s`` for the first; bad ones are logged and
+        counted. Unlike :meth:`wait_for`, nothing is dropped."""
+        sub = self._sub(topic, "take")
+        out: list[Message] = []
+        wait = timeout_s
+        while items := self._bus.take(sub.source, wait):
+            wait = 0.0
+            for item in items:
+                if isinstance(item, MessageError):
+                    self._bad(topic, item)
+                else:
+                    out.append(item)
+        return out
+
+    def _sub(self, topic: str, what: str) -> _Sub:
+        sub = self._subs.get(topic)
+        if sub is None:
+            raise NodeError(f"node {self.name!r}: {what}({topic!r}) needs a subscription first")
+        return sub
+
+    # ---- stopping ------------------------------------------------------------------------------------------
     def stop(self, reason: str = "stop() called", exit_code: int | None = None) -> None:
         """End the loop after the current handler returns."""
         self._stop_reason = self._stop_reason or reason
@@ -271,44 +272,59 @@ class Node:
     def stopping(self) -> bool:
         return self._stop_reason is not None
 
+    @property
+    def stop_reason(self) -> str | None:
+        """Why the node is stopping (``"SIGINT"``, the text given to :meth:`stop`), None while running."""
+        return self._stop_reason
+
     # ---- the loop ------------------------------------------------------------------------------------------
     def events(self) -> Iterator[Event]:
         """Typed events in arrival order until the node stops; ends with one :class:`Stop`.
 
-        Service requests are answered inside (by their handlers), bad messages are logged and counted here.
+        Service requests are answered inside (by their handlers, in ``bus.poll``), bad messages are logged
+        and counted here.
         """
-        bus = self._bus
         while self._stop_reason is None:
-            now = bus.now()
-            due = [t for t in self._timers.values() if t.next_s <= now]
-            for t in heapq.nsmallest(len(due), due, key=lambda t: t.next_s):
-                t.next_s += t.period_s
-                if t.next_s <= now:  # fell behind: skip the missed periods
-                    t.next_s = now + t.period_s
-                if t.name.startswith("_"):  # the runtime's own timers (heartbeat) are not the node's events
-                    t.callback()
-                else:
-                    yield Tick(t.name, int(now * 1e9))
-                if self._stop_reason is not None:
-                    break
+            yield from self._due_timers()
             if self._stop_reason is not None:
                 break
-            next_due = min((t.next_s for t in self._timers.values()), default=now + 0.1)
-            ready = bus.poll(list(self._subs.values()), min(max(0.0, next_due - bus.now()), 0.1))
-            batch = []
-            for sub, items in ready:
-                for item in items:
-                    if isinstance(item, MessageError):
-                        self._bad(sub.topic, item)
-                    else:
-                        batch.append((item.header.stamp_ns, sub.topic, item))
-            if len(ready) > 1:  # several topics at once: deliver in publication order, not topic by topic
-                batch.sort(key=lambda b: b[0])
-            for _, topic, item in batch:
-                yield Received(topic, item)
-                if self._stop_reason is not None:
-                    break
+            yield from self._arrived()
         yield Stop(self._stop_reason)
+
+    def _due_timers(self) -> Iterator[Tick]:
+        now = self.now()
+        due = [t for t in self._timers.values() if t.next_s <= now]
+        for t in heapq.nsmallest(len(due), due, key=lambda t: t.next_s):
+            t.next_s += t.period_s
+            if t.next_s <= now:  # fell behind: skip the missed periods
+                t.next_s = now + t.period_s
+            if t.name.startswith("_"):  # the runtime's own timers (heartbeat) are not the node's events
+                t.callback()
+            else:
+                yield Tick(t.name, int(now * 1e9))
+            if self._stop_reason is not None:
+                return
+
+    def _arrived(self) -> Iterator[Received]:
+        """Wait until the next timer (0.1 s at most) for messages; yield them in publication order."""
+        now = self.now()
+        next_due = min((t.next_s for t in self._timers.values()), default=now + 0.1)
+        subs = {id(s.source): s for s in self._subs.values()}
+        ready = self._bus.poll([s.source for s in subs.values()], min(max(0.0, next_due - self.now()), 0.1))
+        batch = []
+        for source, items in ready:
+            sub = subs[id(source)]
+            for item in items:
+                if isinstance(item, MessageError):
+                    self._bad(sub.topic, item)
+                else:
+                    batch.append((item.header.stamp_ns, sub.topic, item))
+        if len(ready) > 1:  # several topics at once: deliver in publication order, not topic by topic
+            batch.sort(key=lambda b: b[0])
+        for _, topic, item in batch:
+            yield Received(topic, item)
+            if self._stop_reason is not None:
+                return
 
     def run(self) -> None:
         """The default loop: call the callbacks given to :meth:`subscribe` and :meth:`every`."""
@@ -337,10 +353,14 @@ class Node:
             self.log.warning("dropped bad message: %s%s", exc, more)
 
     def heartbeat(self) -> Heartbeat:
+        """The :class:`Heartbeat` as things stand: the node's counters with its subscriptions' and
+        services' statistics."""
         c = dict(self.counters)
         for key in ("received", "gaps", "skipped", "restarts"):
             c[key] = sum(getattr(s.source.stats, key, 0) for s in self._subs.values())
-        c["bad"] = self.counters["bad"] + self._bus.server_bad()
+        requests, errors, bad = self._bus.service_stats()
+        c["bad"] = self.counters["bad"] + bad
+        c["requests"], c["service_errors"] = requests, errors
         return Heartbeat(
             node=self.name, pid=os.getpid(), uptime_s=time.monotonic() - self._started, counters=c
         )
@@ -349,7 +369,7 @@ class Node:
 class _CountingPublisher:
     """Wraps a bus publisher to count what the node publishes."""
 
-    def __init__(self, node: Node, pub: Any):
+    def __init__(self, node: Node, pub: BusPublisher):
         self._node, self._pub = node, pub
         self.topic, self.msg_type = pub.topic, pub.msg_type
 
@@ -357,57 +377,3 @@ class _CountingPublisher:
         seq = self._pub.publish(msg, stamp_ns=stamp_ns)
         self._node.counters["published"] += 1
         return seq
-
-
-class BusLogHandler(logging.Handler):
-    """Publishes log records as :class:`~polarstripe.msgs.Log` on the namespace's ``log`` topic."""
-
-    def __init__(self, node: Node):
-        super().__init__()
-        self._node = node
-        self._pub = None
-        self._busy = False
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if self._busy:
-            return
-        self._busy = True
-        try:
-            if self._pub is None:
-                self._pub = self._node._bus.publisher(self._node._resolve("log"), Log)
-            level = (
-                record.levelname if record.levelname in ("DEBUG", "INFO", "WARNING", "ERROR") else "CRITICAL"
-            )
-            self._pub.publish(Log(level=level, node=self._node.name, text=record.getMessage()))
-        except Exception:  # logging must never take the node down
-            pass
-        finally:
-            self._busy = False
-
-
-def install_logging(node: Node, *, to_bus: bool = True) -> None:
-    """stderr lines ``time LEVEL node: text`` and, if ``to_bus``, the ``log`` topic."""
-    log = node.log
-    log.setLevel(node.params.log_level)
-    log.propagate = False
-    for h in list(log.handlers):
-        log.removeHandler(h)
-    err = logging.StreamHandler(sys.stderr)
-    err.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(nodename)s: %(message)s"))
-    err.addFilter(lambda r: setattr(r, "nodename", node.name) or True)
-    log.addHandler(err)
-    if to_bus:
-        log.addHandler(BusLogHandler(node))
-
-
-def install_signals(node: Node) -> None:
-    """SIGINT and SIGTERM stop the node's loop (the second SIGINT raises KeyboardInterrupt)."""
-
-    def on_signal(signum, frame):
-        name = signal.Signals(signum).name
-        if node.stopping and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        node.stop(name)
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)

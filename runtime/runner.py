@@ -1,6 +1,10 @@
-"""Running a node as a process: its ZeroMQ sockets (from the graph file or explicit endpoints), logging,
+"""Running a node as a process: its ZeroMQ bus (from the graph file or explicit endpoints), logging,
 signals, heartbeat, and an orderly close. ``polarstripe node`` and the launcher's children end up in
-:func:`run_node`."""
+:func:`run_node`.
+
+Order: the params are typed and checked (a bad one fails before any socket is bound), the bus is built
+(:class:`ZmqNodeBus`, the real :class:`~polarstripe.runtime.node_bus.NodeBus`), the node is constructed on it,
+then ``setup``, the loop (``run``), ``teardown`` and the bus closes."""
 
 from __future__ import annotations
 
@@ -16,7 +20,10 @@ from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat, Message
 from polarstripe.runtime import bus as zbus
 from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir
-from polarstripe.runtime.node import Node, NodeStopping, install_logging, install_signals
+from polarstripe.runtime.node import Node, NodeStopping
+from polarstripe.runtime.node_bus import Handler
+from polarstripe.runtime.params import build_params
+from polarstripe.runtime.process import install_logging, install_signals
 from polarstripe.runtime.service import ServiceClient, ServiceServer
 
 
@@ -40,8 +47,9 @@ def load_node_class(spec: str) -> type[Node]:
 
 
 class ZmqNodeBus:
-    """The node's view of the bus: one PUB socket, one ROUTER socket (made when the first service is served),
-    subscribers connected to the publishers the graph lists, service clients pointed by the graph."""
+    """The real :class:`~polarstripe.runtime.node_bus.NodeBus`: one PUB socket, one ROUTER socket (made when
+    the first service is served), subscribers connected to the publishers the graph lists (and ``connect``),
+    service clients pointed by the graph (or ``services``); ``time.monotonic`` as the clock."""
 
     def __init__(
         self,
@@ -79,7 +87,7 @@ class ZmqNodeBus:
         self.poller.register(sub.socket, zmq.POLLIN)
         return sub
 
-    def serve(self, service: str, req: type[Message], resp: type[Message], handler) -> None:
+    def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:
         if self.server is None:
             self.server = ServiceServer(self._srv_endpoint, curve=self.curve)
             self.poller.register(self.server.socket, zmq.POLLIN)
@@ -99,12 +107,12 @@ class ZmqNodeBus:
         self.clients.append(c)
         return c
 
-    def poll(self, subs: list, timeout_s: float) -> list[tuple[Any, list]]:
+    def poll(self, sources: list[zbus.Subscriber], timeout_s: float) -> list[tuple[zbus.Subscriber, list]]:
         # Round up: rounding down would spin through the last millisecond before every timer.
         ready = dict(self.poller.poll(max(0, math.ceil(timeout_s * 1000))))
         if self.server is not None and self.server.socket in ready:
             self.server.handle_ready()
-        return [(s, s.source.take()) for s in subs if s.source.socket in ready]
+        return [(s, s.take()) for s in sources if s.socket in ready]
 
     def take(self, sub: zbus.Subscriber, timeout_s: float) -> list:
         """For ``wait_for``: one message at a time in ``all`` mode, so nothing after a match is taken off the
@@ -113,11 +121,9 @@ class ZmqNodeBus:
             return sub.take(limit=1 if sub.mode == "all" else 1000)
         return []
 
-    def server_bad(self) -> int:
-        return self.server.stats.bad if self.server else 0
-
-    def server_counts(self) -> tuple[int, int]:
-        return (self.server.stats.requests, self.server.stats.errors) if self.server else (0, 0)
+    def service_stats(self) -> tuple[int, int, int]:
+        st = self.server.stats if self.server else None
+        return (st.requests, st.errors, st.bad) if st else (0, 0, 0)
 
     def close(self) -> None:
         for s in self.subscribers:
@@ -167,7 +173,7 @@ def run_node(
     key_file = os.environ.get("POLARSTRIPE_CURVE_KEYS")
     if key_file:
         curve = zbus.CurveKeys.load(key_file)
-    node = cls(name, namespace=namespace, params=params, bus=None)
+    typed = build_params(cls.Params, params or {}, node=name)  # a bad param fails before anything binds
     bus = ZmqNodeBus(
         name,
         pub=pub,
@@ -176,29 +182,17 @@ def run_node(
         connect=list(connect),
         services=services,
         curve=curve,
-        pub_hwm=node.params.pub_hwm,
+        pub_hwm=typed.pub_hwm,
     )
-    node._bus = bus
-    install_logging(node)
-    install_signals(node)
+    node: Node | None = None
     try:
-        hb_pub = bus.publisher(node._resolve("heartbeat"), Heartbeat)
-        if node.params.heartbeat_s > 0:
-            node.every(
-                node.params.heartbeat_s, lambda: hb_pub.publish(_heartbeat(node, bus)), name="_heartbeat"
-            )
-        node.setup()
-        node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
-        try:
-            node.run()
-        except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to
-            node.log.debug("%s", exc)
-        finally:
-            node.teardown()
-            if node.params.heartbeat_s > 0:
-                hb_pub.publish(_heartbeat(node, bus))
-            node.log.info("stopped (%s)", node._stop_reason or "loop ended")
+        node = cls(name, namespace=namespace, params=typed, bus=bus)
+        install_logging(node, bus)
+        install_signals(node)
+        _run(node, bus)
     except KeyboardInterrupt:
+        if node is None:
+            raise
         node.exit_code = node.exit_code or 130
     finally:
         bus.close()
@@ -207,8 +201,20 @@ def run_node(
     return node.exit_code
 
 
-def _heartbeat(node: Node, bus: ZmqNodeBus) -> Heartbeat:
-    hb = node.heartbeat()
-    requests, errors = bus.server_counts()
-    hb.counters["requests"], hb.counters["service_errors"] = requests, errors
-    return hb
+def _run(node: Node, bus: ZmqNodeBus) -> None:
+    """Heartbeat timer, ``setup``, the loop, ``teardown`` and the last heartbeat."""
+    hb_pub = bus.publisher(node.resolve("heartbeat"), Heartbeat)
+    beat = node.params.heartbeat_s > 0
+    if beat:
+        node.every(node.params.heartbeat_s, lambda: hb_pub.publish(node.heartbeat()), name="_heartbeat")
+    node.setup()
+    node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
+    try:
+        node.run()
+    except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to
+        node.log.debug("%s", exc)
+    finally:
+        node.teardown()
+        if beat:
+            hb_pub.publish(node.heartbeat())
+        node.log.info("stopped (%s)", node.stop_reason or "loop ended")

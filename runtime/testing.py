@@ -1,4 +1,6 @@
-"""Unit-test a node without processes or sockets (like dora's ``MockNode``).
+"""Unit-test a node without processes or sockets (like dora's ``MockNode``): the node's own event loop
+(:meth:`Node.run` over :meth:`Node.events`, the loop a process runs) over :class:`MockBus`, a bus with a
+virtual clock.
 
 ::
 
@@ -10,6 +12,21 @@
         assert [m.text for m in h.published("chatter")] == ["hello 0", "hello 1", "hello 2"]
         assert h.call("talker/reset", Empty()).ok
 
+How the harness drives the loop: each of :meth:`~NodeHarness.advance`, :meth:`~NodeHarness.deliver` and
+:meth:`~NodeHarness.call` runs the node's ``run()`` until the virtual clock reaches a horizon (now, or now +
+the seconds to advance) with nothing left to hand over; then the mock bus's ``poll`` hands control back to
+the test (:class:`Paused`) and the loop's generator ends there, without a :class:`Stop`. The next call
+starts the loop again where the node's state left it (timers, subscriptions). Waiting in the loop costs no
+real time: ``poll`` moves the clock to the next timer.
+
+* :meth:`~NodeHarness.advance` also hands over what :meth:`~NodeHarness.queue` put on the node's
+  subscriptions (one message per subscription per loop turn, as if they arrived one after another);
+* :meth:`~NodeHarness.deliver` hands over exactly one message, at once (queued ones stay queued);
+* :meth:`~NodeHarness.call` has the loop answer one service request;
+* :meth:`~NodeHarness.queue` only puts a message on a subscription, where :meth:`Node.wait_for` and
+  :meth:`Node.take` (or the loop, during :meth:`~NodeHarness.advance`) find it;
+* :meth:`~NodeHarness.feed` runs ``run()`` over a script of events instead (for loop-style nodes).
+
 Every message crosses the real codec (encode then decode), so a field of the wrong type fails here as it
 would on the wire. Logs are kept in :attr:`NodeHarness.logs` as ``(level, text)``.
 """
@@ -18,18 +35,24 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from polarstripe.msgs import Message, MessageError, decode, encode
 from polarstripe.runtime.bus import ServiceError, ServiceTimeout, SubscriberStats
-from polarstripe.runtime.node import Event, Node, NodeStopping, Received, Stop, Tick
+from polarstripe.runtime.node import Event, Node, NodeStopping, Stop, Tick
+from polarstripe.runtime.node_bus import Handler
 
 
 def roundtrip(msg: Message, topic: str = "") -> Message:
     """``msg`` after the wire: encoded and decoded (arrays become read-only views)."""
     frames = [bytes(f) if isinstance(f, bytes) else f.tobytes() for f in encode(msg, topic=topic)]
     return decode(frames, topic=topic, expect=type(msg))
+
+
+class Paused(BaseException):
+    """Raised by :meth:`MockBus.poll` when the harness's horizon is reached: it ends the node's loop for now
+    and hands control back to the test. A ``BaseException``, so a node's ``except Exception`` lets it by."""
 
 
 class _Pub:
@@ -45,14 +68,17 @@ class _Pub:
             f if isinstance(f, bytes) else f.tobytes()
             for f in encode(msg, topic=self.topic, seq=self.seq, stamp_ns=stamp_ns)
         ]
-        self.bus.sent.setdefault(self.topic, []).append(
-            decode(frames, topic=self.topic, expect=self.msg_type)
-        )
+        sent = decode(frames, topic=self.topic, expect=self.msg_type)
+        self.bus.sent.setdefault(self.topic, []).append(sent)
         self.seq += 1
+        for listener in self.bus.listeners.get(self.topic, []):
+            listener(sent)
         return self.seq - 1
 
 
 class _Source:
+    """A subscription's receiving end: what has arrived (``queue``) and its statistics."""
+
     def __init__(self, topic: str, msg_type: type[Message], mode: str):
         self.topic, self.msg_type, self.mode = topic, msg_type, mode
         self.stats = SubscriberStats()
@@ -61,13 +87,8 @@ class _Source:
 
 class _Client:
     def __init__(self, bus: MockBus, service: str, req: type[Message], resp: type[Message], timeout_s: float):
-        self.bus, self.name, self.req_type, self.resp_type, self.timeout_s = (
-            bus,
-            service,
-            req,
-            resp,
-            timeout_s,
-        )
+        self.bus, self.name, self.req_type, self.resp_type = bus, service, req, resp
+        self.timeout_s = timeout_s
         self.requests: list[Message] = []
 
     def call(self, request: Message, timeout_s: float | None = None) -> Message:
@@ -89,33 +110,81 @@ class _Client:
         pass
 
 
+class _Request:
+    """A service request waiting for the loop, then its outcome."""
+
+    def __init__(self, service: str, request: Message):
+        self.service, self.request = service, request
+        self.done = False
+        self.reply: Message | None = None
+        self.error: BaseException | None = None
+
+
 class MockBus:
-    """The harness's stand-in for :class:`~polarstripe.runtime.runner.ZmqNodeBus` (virtual clock)."""
+    """The harness's :class:`~polarstripe.runtime.node_bus.NodeBus`: no sockets, a virtual clock.
+
+    ``clock`` [s] moves only when the node waits: in :meth:`poll` up to the next timer (never past the
+    harness's horizon), in :meth:`take` by the whole timeout when nothing is queued, and by a client's
+    timeout when no responder answers. What the node published is in ``sent`` (full topic → messages).
+    """
 
     def __init__(self):
         self.clock = 0.0
+        self.graph: dict = {}
         self.sent: dict[str, list[Message]] = {}
         self.sources: dict[str, _Source] = {}
-        self.handlers: dict[str, tuple[type[Message], type[Message], Callable]] = {}
+        self.handlers: dict[str, tuple[type[Message], type[Message], Handler]] = {}
         self.responders: dict[str, Callable[[Message], Message]] = {}
+        self.listeners: dict[str, list[Callable[[Message], Any]]] = {}
         self.clients: dict[str, _Client] = {}
+        self.horizon: float | None = None  # set by the harness while it runs the loop
+        self.drain = False  # hand queued messages to the loop (advance) or not (deliver, call)
+        self.urgent: deque[tuple[_Source, Message | MessageError]] = deque()
+        self.requests: deque[_Request] = deque()
 
     def now(self) -> float:
         return self.clock
 
-    def publisher(self, topic, msg_type):
+    def publisher(self, topic: str, msg_type: type[Message]) -> _Pub:
         return _Pub(self, topic, msg_type)
 
-    def subscribe(self, topic, msg_type, mode, max_bytes):
+    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> _Source:
         src = self.sources[topic] = _Source(topic, msg_type, mode)
         return src
 
-    def serve(self, service, req, resp, handler):
+    def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:
         self.handlers[service] = (req, resp, handler)
 
-    def client(self, service, req, resp, timeout_s):
+    def client(self, service: str, req: type[Message], resp: type[Message], timeout_s: float) -> _Client:
         c = self.clients[service] = _Client(self, service, req, resp, timeout_s)
         return c
+
+    def answer(self) -> None:
+        """Answer the waiting service requests (the handler's exception is kept for the caller)."""
+        while self.requests:
+            r = self.requests.popleft()
+            try:
+                r.reply = self.handlers[r.service][2](r.request)
+            except Exception as exc:  # as a server would: the node keeps running, the caller gets it
+                r.error = exc
+            r.done = True
+
+    def poll(self, sources: Sequence[_Source], timeout_s: float) -> list[tuple[_Source, list]]:
+        self.answer()
+        if self.urgent:
+            source, item = self.urgent.popleft()
+            return [(source, [item])]
+        if self.drain:
+            ready = [(s, [s.queue.popleft()]) for s in sources if s.queue]
+            if ready:
+                return ready
+        if self.horizon is not None:
+            if self.clock >= self.horizon:
+                raise Paused
+            self.clock = min(self.clock + timeout_s, self.horizon)
+        else:
+            self.clock += timeout_s
+        return []
 
     def take(self, source: _Source, timeout_s: float) -> list:
         if source.queue:
@@ -123,12 +192,11 @@ class MockBus:
         self.clock += max(0.0, timeout_s)
         return []
 
-    def poll(self, subs, timeout_s):
-        self.clock += timeout_s
-        return []
+    def service_stats(self) -> tuple[int, int, int]:
+        return (0, 0, 0)
 
-    def server_bad(self) -> int:
-        return 0
+    def close(self) -> None:
+        pass
 
 
 class _Capture(logging.Handler):
@@ -141,7 +209,7 @@ class _Capture(logging.Handler):
 
 
 class NodeHarness:
-    """Build a node on a :class:`MockBus`, run its ``setup``, then drive it event by event.
+    """Build a :class:`MockBus`, the node on it, run its ``setup``, then drive its loop (module docstring).
 
     Parameters
     ----------
@@ -162,25 +230,109 @@ class NodeHarness:
         params: dict[str, Any] | None = None,
     ):
         self.bus = MockBus()
-        self.node = node_cls(
-            name or node_cls.__name__.lower(), namespace=namespace, params=params, bus=self.bus
-        )
+        name = name or node_cls.__name__.lower()
+        self.node = node_cls(name, namespace=namespace, params=params, bus=self.bus)
         self.logs: list[tuple[str, str]] = []
         log = self.node.log
         log.handlers[:] = [_Capture(self.logs)]
         log.setLevel(logging.DEBUG)
         log.propagate = False
+        self._fired: list[str] = []
+        self._stop_delivered = self._torn_down = False
+        self.node.events = self._events  # type: ignore[method-assign]  # the node's own, observed
         self.node.setup()
 
     def full(self, name: str) -> str:
-        return self.node._resolve(name)
+        return self.node.resolve(name)
 
     def published(self, topic: str) -> list[Message]:
         """Messages the node published on ``topic`` (relative or full name), after the codec."""
         return self.bus.sent.get(self.full(topic), [])
 
+    # ---- driving the loop --------------------------------------------------------------------------------
+    def _events(self) -> Iterator[Event]:
+        """The node's :meth:`Node.events`, noting the timers fired and whether its Stop went out."""
+        for event in type(self.node).events(self.node):
+            if isinstance(event, Tick):
+                self._fired.append(event.timer)
+            elif isinstance(event, Stop):
+                self._stop_delivered = True
+            yield event
+
+    def _run(self, horizon: float, *, drain: bool) -> None:
+        """Run the node's ``run()`` until ``horizon`` with nothing left to hand over (or until it stops)."""
+        if self._stop_delivered:
+            return
+        bus = self.bus
+        bus.horizon, bus.drain = horizon, drain
+        try:
+            self.node.run()
+        except Paused:
+            pass
+        except NodeStopping:  # as in a process: a wait cut short by the stop ends the node normally
+            pass
+        finally:
+            bus.horizon, bus.drain = None, False
+
+    def advance(self, seconds: float) -> list[str]:
+        """Run the loop for ``seconds`` of virtual time: due timers fire in order, queued messages are
+        handed over; returns the names of the timers fired."""
+        end = self.bus.clock + seconds
+        self._fired = []
+        if not self.node.stopping:
+            self._run(end, drain=True)
+        self.bus.clock = max(self.bus.clock, end)
+        return self._fired
+
+    def deliver(self, topic: str, msg: Message) -> None:
+        """``msg`` arrives on ``topic`` (as the node named it), through the codec; the loop handles it now."""
+        sub = self.node._subs[topic]
+        self._hand_over(sub.source, roundtrip(msg, sub.full))
+
+    def deliver_raw(self, topic: str, frames: list[bytes]) -> None:
+        """Raw frames arrive on ``topic``: a bad message is logged and counted like in the real loop."""
+        sub = self.node._subs[topic]
+        try:
+            item = decode(frames, topic=sub.full, expect=sub.msg_type)
+        except MessageError as exc:
+            sub.source.stats.bad += 1
+            item = exc
+        self._hand_over(sub.source, item)
+
+    def _hand_over(self, source: _Source, item: Message | MessageError) -> None:
+        if self.node.stopping:  # a stopping node's loop takes nothing more
+            return
+        self.bus.urgent.append((source, item))
+        self._run(self.bus.clock, drain=False)
+        self.bus.urgent.clear()
+
+    def queue(self, topic: str, msg: Message) -> None:
+        """Put ``msg`` on subscription ``topic``: :meth:`Node.wait_for`, :meth:`Node.take` and (during
+        :meth:`advance`) the loop find it."""
+        sub = self.node._subs[topic]
+        sub.source.queue.append(roundtrip(msg, sub.full))
+
+    def call(self, service: str, request: Message) -> Message:
+        """Call the node's service as a client would (codec both ways); the loop answers it. The handler's
+        exception is raised here (a real client would get a ``ServiceError``)."""
+        full = self.full(service)
+        req_type, resp_type, handler = self.bus.handlers[full]
+        pending = _Request(full, roundtrip(request, full))
+        self.bus.requests.append(pending)
+        if not self.node.stopping:
+            self._run(self.bus.clock, drain=False)
+        self.bus.answer()  # a stopped loop answers nothing; the harness still does
+        if pending.error is not None:
+            raise pending.error
+        reply = pending.reply
+        if type(reply) is not resp_type:
+            raise MessageError(
+                full, "reply", f"handler returned {type(reply).__name__}, expected {resp_type.TYPE!r}"
+            )
+        return roundtrip(reply, full)
+
     def feed(self, events: Iterable[Event]) -> None:
-        """Run the node's :meth:`~Node.run` over exactly these events (for loop-style nodes)."""
+        """Run the node's :meth:`~Node.run` over exactly these events (a script, for loop-style nodes)."""
         node = self.node
         script = list(events)
 
@@ -193,66 +345,26 @@ class NodeHarness:
         node.events = scripted  # type: ignore[method-assign]
         try:
             node.run()
-        except NodeStopping:  # as in a process: a wait cut short by the stop ends the node normally
+        except NodeStopping:
             pass
         finally:
-            del node.events
+            node.events = self._events  # type: ignore[method-assign]
 
-    def deliver(self, topic: str, msg: Message) -> None:
-        """``msg`` arrives on ``topic`` (as the node named it): round-trips the codec, then one event."""
-        self.feed([Received(topic, roundtrip(msg, self.full(topic)))])
-
-    def deliver_raw(self, topic: str, frames: list[bytes]) -> None:
-        """Raw frames arrive on ``topic``: a bad message is logged and counted like in the real loop."""
-        sub = self.node._subs[topic]
-        try:
-            msg = decode(frames, topic=sub.full, expect=sub.msg_type)
-        except MessageError as exc:
-            self.node._bad(topic, exc)
-            return
-        self.feed([Received(topic, msg)])
-
-    def queue(self, topic: str, msg: Message) -> None:
-        """Make ``msg`` available to :meth:`Node.wait_for` on ``topic``."""
-        self.node._subs[topic].source.queue.append(roundtrip(msg, self.full(topic)))
-
-    def advance(self, seconds: float) -> list[str]:
-        """Move the virtual clock by ``seconds``, firing due timers in order; returns the timers fired."""
-        end = self.bus.clock + seconds
-        fired = []
-        while not self.node.stopping:
-            timers = [t for t in self.node._timers.values() if t.next_s <= end]
-            if not timers:
-                break
-            t = min(timers, key=lambda t: t.next_s)
-            self.bus.clock = max(self.bus.clock, t.next_s)
-            t.next_s += t.period_s
-            fired.append(t.name)
-            if t.name.startswith("_"):
-                t.callback()
-            else:
-                self.feed([Tick(t.name, int(self.bus.clock * 1e9))])
-        self.bus.clock = max(self.bus.clock, end)
-        return fired
-
-    def call(self, service: str, request: Message) -> Message:
-        """Call the node's service handler as a client would (codec both ways)."""
-        full = self.full(service)
-        req_type, resp_type, handler = self.bus.handlers[full]
-        reply = handler(roundtrip(request, full))
-        if type(reply) is not resp_type:
-            raise MessageError(
-                full, "reply", f"handler returned {type(reply).__name__}, expected {resp_type.TYPE!r}"
-            )
-        return roundtrip(reply, full)
-
+    # ---- fake peers --------------------------------------------------------------------------------------
     def on_call(self, service: str, responder: Callable[[Message], Message]) -> None:
         """Answer the node's calls of ``service`` with ``responder(request)`` (none set: the call times
         out)."""
         self.bus.responders[self.full(service)] = responder
 
+    def on_publish(self, topic: str, listener: Callable[[Message], Any]) -> None:
+        """Call ``listener(msg)`` with each message the node publishes on ``topic`` (after the codec), as it
+        is published: a fake peer, e.g. one that :meth:`queue`\\ s its answer."""
+        self.bus.listeners.setdefault(self.full(topic), []).append(listener)
+
     def stop(self, reason: str = "harness") -> None:
-        """Send :class:`Stop` through the loop and run ``teardown``."""
+        """Stop the node: its loop gets the :class:`Stop` event (once), then ``teardown`` runs (once)."""
         self.node.stop(reason)
-        self.feed([Stop(reason)])
-        self.node.teardown()
+        self._run(self.bus.clock, drain=False)
+        if not self._torn_down:
+            self._torn_down = True
+            self.node.teardown()

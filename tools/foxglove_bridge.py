@@ -73,7 +73,7 @@ class FoxgloveBridge(Node):
             ) from None
 
         self._fox, self._RawImageChannel = foxglove, RawImageChannel
-        graph = getattr(self._bus, "graph", {}) or {}
+        graph = self.graph
         known = graph.get("topics", {})
         wanted = [resolve(t, self.namespace) for t in self.params.topics] or sorted(known)
         self.server = foxglove.start_server(

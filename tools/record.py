@@ -113,8 +113,8 @@ class Recorder(Node):
 
     def setup(self):
         p = self.params
-        graph = load_graph(p.graph) if p.graph else getattr(self._bus, "graph", {}) or {}
-        self.graph = graph
+        graph = load_graph(p.graph) if p.graph else self.graph
+        self.recorded_graph = graph  # the graph whose topics are recorded (its metadata goes in the bag)
         known = graph.get("topics", {})
         wanted = [resolve(t, self.namespace) for t in p.topics] or sorted(known)
         self.types: dict[str, type[Message]] = {}
@@ -156,7 +156,7 @@ class Recorder(Node):
             path, compression=p.compression, chunk_size=p.chunk_size, chunk_age_s=p.chunk_age_s
         ).start()
         self.files.append(str(path))
-        self.writer.add_metadata("launch", launch_metadata(self.graph))
+        self.writer.add_metadata("launch", launch_metadata(self.recorded_graph))
         self.writer.add_metadata("versions", versions())
 
     def _close(self) -> None:
@@ -183,10 +183,9 @@ class Recorder(Node):
 
     def _drain(self) -> None:
         """Write what has already arrived when the loop stops (a stop must not drop queued messages)."""
-        for sub in self._subs.values():
-            for item in sub.source.take(limit=1_000_000):
-                if isinstance(item, Message):
-                    self.write(sub.full, item)
+        for topic in self.types:  # full names: subscribed as such
+            for msg in self.take(topic):
+                self.write(topic, msg)
 
     def _housekeeping(self) -> None:
         self.writer.flush_stale()

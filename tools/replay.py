@@ -77,7 +77,7 @@ class Replayer(Node):
         self._seen: set[str] = set()
         if p.wait_for:
             self.subscribe("heartbeat", self._on_heartbeat, msg_type=Heartbeat, mode="all")
-        self._ready_at = self._bus.now() + p.delay_s  # the bus clock: monotonic [s], virtual in the harness
+        self._ready_at = self.now() + p.delay_s  # the node's clock: monotonic [s], virtual in the harness
         self._t0: float | None = None
         self._done_at: float | None = None
         self._iter = self._next = None
@@ -91,7 +91,7 @@ class Replayer(Node):
         start_ns = self.bag.start_ns + int(self.params.start_s * 1e9)
         self._iter = self.bag.messages(self.topics, start_ns=start_ns)
         self._next = next(self._iter, None)  # the first read may take a while: start the clock after it
-        self._t0, self._b0 = self._bus.now(), start_ns
+        self._t0, self._b0 = self.now(), start_ns
         if self.params.progress:
 
             if self._bar is None:
@@ -100,7 +100,7 @@ class Replayer(Node):
                 self._bar.reset()
 
     def _pump(self) -> None:
-        now = self._bus.now()
+        now = self.now()
         if self._done_at is not None:
             if self.params.exit_when_done and now - self._done_at >= self.params.linger_s:
                 self.stop(f"replayed {self.sent} messages")
@@ -109,7 +109,7 @@ class Replayer(Node):
             if now < self._ready_at or not set(self.params.wait_for) <= self._seen:
                 return
             self._begin()
-            now = self._bus.now()
+            now = self.now()
             self.log.info(
                 "replaying %d messages of %s at rate %g", self.total, self.params.path, self.params.rate
             )
@@ -121,7 +121,7 @@ class Replayer(Node):
                     self.loops += 1
                     if self.params.loop and self.total:
                         self._begin()
-                        now = self._bus.now()
+                        now = self.now()
                         continue
                     self._done_at = now
                     self.log.info("replay done: %d messages", self.sent)

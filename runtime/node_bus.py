@@ -1,0 +1,95 @@
+"""The node contract: what a :class:`~polarstripe.runtime.node.Node` needs from a bus, and nothing more.
+
+A node never builds sockets or reads a clock itself; it is given a bus when it is constructed
+(``Node(name, bus=...)``) and goes through it for everything. Two buses implement :class:`NodeBus`:
+
+* :class:`~polarstripe.runtime.runner.ZmqNodeBus`, the real one: one PUB socket, one ROUTER socket for the
+  node's services, SUB sockets and DEALER clients pointed by the launch graph, ``time.monotonic`` as clock;
+* :class:`~polarstripe.runtime.testing.MockBus`, the harness's: no sockets, every message through the codec,
+  a virtual clock that only moves when the node waits.
+
+The bus owns the sockets and the clock; the node owns the loop (:meth:`Node.events`), the timers, the
+counters and the names (the bus only sees full names, e.g. ``/rig/camera/frame``). Node code uses the node's
+public calls (``publisher``, ``subscribe``, ``serve``, ``client``, ``every``, ``wait_for``, ``take``,
+``now``, ``graph``), never the bus directly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+from polarstripe.msgs import Message, MessageError
+
+Handler = Callable[[Message], Message]
+Item = Message | MessageError
+"""What a subscription yields: a decoded message, or the error of one that failed to decode."""
+
+
+class BusPublisher(Protocol):
+    """Publishes one topic (full name) with one message type."""
+
+    topic: str
+    msg_type: type[Message]
+
+    def publish(self, msg: Message, *, stamp_ns: int | None = None) -> int:
+        """Send ``msg`` without blocking; its sequence number (``MessageError`` if not a ``msg_type``)."""
+        ...
+
+
+class BusSource(Protocol):
+    """One subscription's receiving end, as the bus made it (:meth:`NodeBus.subscribe`)."""
+
+    mode: str  # "latest" | "all"
+    stats: Any  # received delivered skipped bad gaps restarts (SubscriberStats)
+
+
+class BusClient(Protocol):
+    """A client of one service (full name): request/reply with a timeout."""
+
+    def call(self, request: Message, timeout_s: float | None = None) -> Message:
+        """The reply; ``ServiceTimeout`` without one in time, ``ServiceError`` if the handler failed."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class NodeBus(Protocol):
+    """Everything a node asks of a bus (all names are full names)."""
+
+    graph: dict
+    """The launch graph the node runs in (``{}`` when started by hand or in the harness)."""
+
+    def now(self) -> float:
+        """The node's clock [s]: monotonic; virtual in the harness. Timers and timeouts use it."""
+        ...
+
+    def publisher(self, topic: str, msg_type: type[Message]) -> BusPublisher: ...
+
+    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> BusSource: ...
+
+    def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:
+        """Answer ``service`` with ``handler``; requests are answered inside :meth:`poll`."""
+        ...
+
+    def client(self, service: str, req: type[Message], resp: type[Message], timeout_s: float) -> BusClient:
+        """A client of ``service``; ``BusError`` if no node of the launch serves it."""
+        ...
+
+    def poll(self, sources: Sequence[BusSource], timeout_s: float) -> list[tuple[BusSource, list[Item]]]:
+        """Wait up to ``timeout_s`` for messages on ``sources``; answer waiting service requests; return
+        what arrived, per source (sources with nothing are left out). The one place the loop waits."""
+        ...
+
+    def take(self, source: BusSource, timeout_s: float) -> list[Item]:
+        """Wait up to ``timeout_s`` for ``source`` alone (services are not answered meanwhile). In ``all``
+        mode one message at a time, so nothing after it is taken off the socket; in ``latest`` mode the
+        newest of what has arrived."""
+        ...
+
+    def service_stats(self) -> tuple[int, int, int]:
+        """``(requests, errors, bad)`` of the node's services so far (for the heartbeat)."""
+        ...
+
+    def close(self) -> None: ...
