@@ -26,7 +26,8 @@ canopen's ``NmtSlave`` does:
 * **Modes.** 0x6060 accepts 0 and the modes 0x6502 lists (1 profile position, 6 homing), else SDO abort
   0x06090030 and 0x6061 keeps the current mode. 0x6098 accepts 0, 35 and 37.
 
-Injectable faults: :meth:`inject_emcy` (FAULT state plus an EMCY), :meth:`inject_heartbeat_stop`,
+Injectable faults: :meth:`inject_emcy` (FAULT state plus an EMCY), :meth:`inject_reboot` (a power cycle:
+reset node without an NMT command), :meth:`inject_heartbeat_stop`,
 :meth:`inject_bus_off` (an error frame 0x040, silence, then 0x100 "restarted"), :meth:`inject_never_settle`,
 :meth:`inject_position_limit`. Not modelled: following error, acceleration and quick-stop ramps, SYNC, PDO
 remapping and COB-ID changes, LSS, the drive's own bus-off counters, storing parameters (0x1010).
@@ -36,7 +37,7 @@ Embedded: ``SimCia402Drive(channel=…, node_id=5).start()`` … ``.stop()``. As
     python -m polarstripe.nodes.drivers.simdrive --channel ipc:///tmp/rig-can --node-id 5
 
 prints ``ready`` and then reads commands on stdin, one a line, answering ``ok <command>``: ``emcy [CODE]``,
-``heartbeat_stop [SECONDS]``, ``heartbeat_resume``, ``bus_off SECONDS``, ``never_settle on|off``,
+``reboot``, ``heartbeat_stop [SECONDS]``, ``heartbeat_resume``, ``bus_off SECONDS``, ``never_settle on|off``,
 ``position_limit MIN MAX`` (counts), ``quit``.
 """
 
@@ -53,40 +54,11 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError
 from polarstripe.nodes.drivers.cia402_states import EDS_PATH
 from polarstripe.nodes.drivers.sim402_axis import HOMING_METHODS, MODE_BITS, Axis402
-from polarstripe.nodes.drivers.zmqcan import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED
+from polarstripe.nodes.drivers.zmqcan import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, GatedBus
 
 NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 ABORT_VALUE_RANGE = 0x06090030  # "value range of parameter exceeded" (CiA 301)
 _COB_INVALID = 1 << 31
-
-
-class _GatedBus(can.BusABC):
-    """Wraps the drive's bus so the simulation can make the drive fall silent (bus-off) in both directions."""
-
-    def __init__(self, inner: can.BusABC):
-        self._inner = inner
-        self.silent = False
-        super().__init__(channel=getattr(inner, "channel_info", "sim"))
-        self.channel_info = inner.channel_info
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        if not self.silent:
-            self._inner.send(msg, timeout)
-
-    def send_raw(self, msg: can.Message) -> None:
-        self._inner.send(msg)
-
-    def _recv_internal(self, timeout):
-        msg = self._inner.recv(timeout)
-        if msg is not None and self.silent:
-            return None, True
-        return msg, True
-
-    def shutdown(self) -> None:
-        if self._is_shutdown:
-            return
-        super().shutdown()
-        self._inner.shutdown()
 
 
 class SimCia402Drive:
@@ -120,7 +92,7 @@ class SimCia402Drive:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.network: canopen.Network | None = None
-        self._gate: _GatedBus | None = None
+        self._gate: GatedBus | None = None
         self.node = canopen.LocalNode(node_id, eds)
         self._power_on_values = {(0x6081, 0): struct.pack("<I", int(speed_counts_s))}
         self.axis = Axis402(self.od, settle_s)
@@ -133,7 +105,7 @@ class SimCia402Drive:
     # -- life cycle ----------------------------------------------------------------------------------------
     def start(self) -> SimCia402Drive:
         inner = can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs)
-        self._gate = _GatedBus(inner)
+        self._gate = GatedBus(inner)
         self.network = canopen.Network(self._gate)
         self.network.NOTIFIER_CYCLE = 0.05
         self.network.add_node(self.node)
@@ -319,6 +291,12 @@ class SimCia402Drive:
             self._emcy(code)
             self._send_tpdo(time.monotonic())
 
+    def inject_reboot(self) -> None:
+        """A power cycle: what NMT reset node does (power-on values, boot-up), with no NMT command on the
+        bus."""
+        with self._lock:
+            self._reset(application=True)
+
     def inject_heartbeat_stop(self, duration_s: float | None = None) -> None:
         """Stop the heartbeat producer, for ``duration_s`` seconds or until :meth:`resume_heartbeat`."""
         self._hb_muted = True
@@ -384,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     commands = {
         "emcy": lambda a: drive.inject_emcy(int(a[0], 0) if a else 0x8611),
+        "reboot": lambda a: drive.inject_reboot(),
         "heartbeat_stop": lambda a: drive.inject_heartbeat_stop(float(a[0]) if a else None),
         "heartbeat_resume": lambda a: drive.resume_heartbeat(),
         "bus_off": lambda a: drive.inject_bus_off(float(a[0])),

@@ -329,6 +329,36 @@ class ZmqCanBus(can.BusABC):
             self._close_sockets()
 
 
+class GatedBus(can.BusABC):
+    """Wraps a bus so a simulated device can fall silent (bus-off) in both directions: while :attr:`silent`,
+    nothing is sent and nothing is received; :meth:`send_raw` still sends (the error frames)."""
+
+    def __init__(self, inner: can.BusABC):
+        self._inner = inner
+        self.silent = False
+        super().__init__(channel=getattr(inner, "channel_info", "sim"))
+        self.channel_info = inner.channel_info
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if not self.silent:
+            self._inner.send(msg, timeout)
+
+    def send_raw(self, msg: can.Message) -> None:
+        self._inner.send(msg)
+
+    def _recv_internal(self, timeout):
+        msg = self._inner.recv(timeout)
+        if msg is not None and self.silent:
+            return None, True
+        return msg, True
+
+    def shutdown(self) -> None:
+        if self._is_shutdown:
+            return
+        super().shutdown()
+        self._inner.shutdown()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m polarstripe.nodes.drivers.zmqcan",

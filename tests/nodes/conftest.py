@@ -1,5 +1,11 @@
 """Fixtures for the driver and polarizer tests: a CAN segment on ipc, a simulated CiA 402 drive in
-another process.
+another process; the ``--hardware`` options of the device contract suites.
+
+Like python-can's back-to-back tests, each device contract suite (``tests/nodes/drivers/test_*_contract.py``)
+runs on the simulated device always and, given ``--hardware DEVICE``, on a real one as well: a CAN channel
+(``--hardware can0``: socketcan, the drive at ``--hardware-node-id``) for the CiA 402 suite, a serial port
+(``--hardware /dev/ttyUSB0``: the ELLx device at ``--hardware-address``) for the ELLx suite. The options belong
+to this directory: ``python -m pytest tests/nodes/drivers --hardware can0 --hardware /dev/ttyUSB0``.
 """
 
 from __future__ import annotations
@@ -11,6 +17,34 @@ import tempfile
 
 import pytest
 from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("hardware", "device contract suites on real hardware")
+    group.addoption(
+        "--hardware",
+        action="append",
+        default=[],
+        metavar="DEVICE",
+        help="also run the device contract suites on this real device: a CAN channel (can0) for the CiA 402 "
+        "suite, a serial port (/dev/ttyUSB0) for the ELLx suite; repeatable",
+    )
+    group.addoption("--hardware-node-id", type=int, default=5, help="CANopen node id of the real drive")
+    group.addoption("--hardware-eds", default=None, help="EDS of the real drive (default: the shipped one)")
+    group.addoption("--hardware-address", default="0", help="ELLx address of the real device")
+
+
+def _is_serial(device: str) -> bool:
+    return device.startswith("/") or "://" in device or device.upper().startswith("COM")
+
+
+def pytest_generate_tests(metafunc):
+    """``can_device`` / ``ell_device``: "sim", then every ``--hardware`` device of that kind."""
+    devices = metafunc.config.getoption("hardware", default=None) or []
+    for name, serial_kind in (("can_device", False), ("ell_device", True)):
+        if name in metafunc.fixturenames:
+            targets = ["sim", *[d for d in devices if _is_serial(d) == serial_kind]]
+            metafunc.parametrize(name, targets, scope="module")
 
 
 @pytest.fixture
