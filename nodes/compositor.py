@@ -1,27 +1,31 @@
-"""The compositor node: folds each scan's frames into running reductions and, when the scan is done, makes the
-method's composite, scores it and writes it out.
+"""The compositor node: folds each scan's frames into running reductions and, when the scan is complete,
+makes the method's composite, scores it and writes it out.
 
-* subscribes ``camera/frame`` and ``emitter/scan`` (every message, frames first in each poll);
+* subscribes ``camera/frame``, ``emitter/scan`` and ``simulator/truth`` (every message); each handler does
+  its own work and returns (an event-driven state machine, never waiting on the bus):
+
+  - a frame of the running scan is folded in; a frame whose scan has not started yet (scan events come from
+    another publisher, so a ``start`` can trail the first frames) is held, at most ``early_frames`` of them,
+    and folded in when its ``start`` comes (a held frame whose ``start`` never comes is dropped, counted);
+  - a scan is complete when its ``done`` has come *and* all its expected frames (the method's patterns
+    times the analyzer angles) are in; if frames are missing, a deadline timer (``done_grace_s`` after the
+    last of them) ends it anyway, with a fault "n of m frames" in the log and the metrics;
+  - a complete scan whose ``simulator/truth`` message (the simulator publishes it with the scan id at every
+    scan start) has not come is held for it up to ``truth_wait_s`` (a timer; in a replay the truth can trail
+    the frames on its own socket); then it is composited without (the log says so, the error vs truth is
+    None). A topic silent for a whole wait is not waited for again (a rig without a simulator);
+
 * per scan, a :class:`~polarstripe.imaging.composite.RunningComposite` keeps one per-pixel max and min per
   analyzer angle (buffers reused from scan to scan): memory does not grow with the number of stripes;
-* on "done" it makes the composite of the scan's method (dark offset subtracted, saturated pixels masked):
-  ``flood`` the frame; ``polarized_flood`` eq. 6 on the two analyzer frames with p estimated over an
-  object-free region; ``stripes`` the max composite (eq. 7); ``polarized_stripes`` the max composites at E_b
-  and E_w, then eq. 6; ``hf_separation`` the direct image from the max and min over the complementary checkers
-  (Nayar et al. 2006). E_b is whichever analyzer angle passes less light over the object-free region;
-* scores it: Michelson contrast over the chart's bright and dark bars, and ``error_vs_truth`` (relative RMS,
-  gain fitted) against the simulator's ground truth: the newest ``simulator/truth`` message (the simulator
-  publishes it at every scan start, so a recording carries it), else the ``simulator/truth`` service when a
-  node serves it, else none (contrast only, with bar and object-free regions from params);
-* publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, and ``saturated``
-  uint8; ``e_b``/``e_w`` or ``global`` where the method has them) and, after a polarized method,
-  ``medium/estimate`` (p; σ_t is not estimated);
-* writes ``<out>/<method>.png`` (16-bit DN, clipped), ``<out>/<method>.tiff`` (float32 DN, NaN where masked;
-  ``.npy`` with ``image_format = "npy"``), ``<out>/metrics.json`` (method → metrics, rewritten after every
-  scan) and ``<out>/comparison.png`` (the methods side by side, like the paper's Fig. 6).
+* the composite and its scores: :func:`polarstripe.imaging.compose.compose` and ``score`` (the pipeline of
+  ``polarstripe compare`` too), in DN above the dark offset, saturated pixels masked; Michelson contrast over
+  the chart's bars, ``error_vs_truth`` (relative RMS, gain fitted) against the truth's S;
+* publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, ``saturated`` uint8,
+  ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``medium/estimate`` (p; σ_t is not
+  estimated); writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``.
 
 Calibration frames of the polarizer (scan ids from 2**30) are ignored. Frames that do not belong are dropped
-and counted (heartbeat counters ``frames_unexpected`` no scan running,
+and counted (heartbeat counters ``frames_unexpected`` no scan running / never started,
 ``frames_mismatched`` another scan id, ``frames_bad`` shape/dtype/ndim, ``frames_duplicate`` a step seen
 twice, ``frames_bad_pattern`` a pattern the method does not use, ``frames_bad_angle`` an analyzer angle not in
 the scan).
@@ -32,34 +36,31 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.compose import compose, score
 from polarstripe.imaging.composite import RunningComposite
-from polarstripe.imaging.metrics import michelson_contrast, signal_error
-from polarstripe.imaging.polarization import estimate_p, recover_signal
-from polarstripe.imaging.separation import separate_direct_global
-from polarstripe.imaging.validation import ImagingError, roi_slices
 from polarstripe.msgs import (
     CALIBRATION_SCAN_ID,
     METHOD_NAMES,
     Composite,
-    Empty,
     Frame,
     MediumEstimate,
-    MessageError,
     Method,
     ScanEvent,
 )
 from polarstripe.nodes.compositor_output import write_comparison, write_method
-from polarstripe.runtime.bus import BusError
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
 _DROPS = ("frames_unexpected", "frames_mismatched", "frames_bad", "frames_duplicate", "frames_bad_pattern",
           "frames_bad_angle")
+FRAMES_DEADLINE, TRUTH_DEADLINE = "frames_deadline", "truth_deadline"  # the node's two one-shot timers
+TRUTHS_KEPT = 8  # truth messages of scans not finished yet
 
 
 def _roi(values: list[int]):
@@ -73,9 +74,23 @@ class _Scan:
     stripes: int
     analyzer_deg: list[float]
     steps: set[int] = field(default_factory=set)
-    frames: int = 0
-    dropped: int = 0
+    frames: int = 0  # folded in
+    dropped: int = 0  # of this scan, dropped
     bit_depth: int = 12
+    done: bool = False  # its "done" event came
+    waiting_truth: bool = False  # complete, held for its simulator/truth message
+    fault: str = ""
+
+    @property
+    def expected(self) -> int | None:
+        """Frames the scan takes: its method's patterns at each analyzer angle; None when unknown (a
+        stripe scan announced without its stripe count)."""
+        n = len(Method(self.method).patterns(self.stripes, 1)) * max(1, len(self.analyzer_deg))
+        return n or None
+
+    @property
+    def complete(self) -> bool:
+        return self.expected is not None and self.frames + self.dropped >= self.expected
 
 
 class Compositor(Node):
@@ -92,10 +107,10 @@ class Compositor(Node):
         lit_fraction: float = 0.5  # of the checker patterns
         black_level: float = 0.0  # projector "off" relative to "on"
         p_min: float = 0.05
-        use_truth: bool = True  # ask simulator/truth when a node of the launch serves it
-        truth_timeout_s: float = 10.0
-        truth_wait_s: float = 1.0  # without a service, wait this long for the scan's simulator/truth message
-        done_grace_s: float = 0.3  # after "done", wait this long for frames still in flight
+        use_truth: bool = True  # score against each scan's simulator/truth message
+        truth_wait_s: float = 1.0  # hold a complete scan this long for its truth (until the topic is silent)
+        done_grace_s: float = 0.3  # after "done", wait this long since the last frame for frames in flight
+        early_frames: int = 16  # frames held ahead of their scan's "start"
         image_format: Literal["tiff", "npy"] = "tiff"
         comparison: bool = True
 
@@ -106,6 +121,8 @@ class Compositor(Node):
                     raise ValueError(f"{key} must be [row0, row1, col0, col1], got {getattr(self, key)}")
             if bool(self.chart_bright_roi) != bool(self.chart_dark_roi):
                 raise ValueError("give both chart_bright_roi and chart_dark_roi, or neither")
+            if not (self.truth_wait_s > 0 and self.done_grace_s > 0 and self.early_frames >= 0):
+                raise ValueError("truth_wait_s and done_grace_s must be > 0 s, early_frames >= 0")
 
     PUBLISHES = {"compositor/composite": Composite, "medium/estimate": MediumEstimate}
     SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
@@ -115,20 +132,18 @@ class Compositor(Node):
         self.running = None  # RunningComposite, reused across scans of one shape and dtype
         self.results: dict[str, np.ma.MaskedArray] = {}  # the last composite of each method
         self.metrics: dict[str, dict] = {}
-        self._truth_client = None
-        self._draining = False
-        self._truth_served = self.params.use_truth
+        self.early: deque[Frame] = deque()  # frames ahead of their scan's start
+        self.truths: dict[int, Composite] = {}  # scan id -> its simulator/truth message
+        self._last_start = -1  # the newest scan id started
+        self._truth_heard = self._truth_silent = False
         for key in (*_DROPS, "frames_calibration", "scans_done", "scans_failed"):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("medium/estimate")
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
-        self.topic_truth: Composite | None = None  # the newest simulator/truth message
-        self._truth_fresh = False  # one came since the running scan's start
-        self._truth_heard = self._truth_silent = False
         if self.params.use_truth:
-            self.subscribe("simulator/truth", self.on_truth, mode="latest")
+            self.subscribe("simulator/truth", self.on_truth, mode="all")
         if self.params.out:
             os.makedirs(self.params.out, exist_ok=True)
             path = os.path.join(self.params.out, "metrics.json")
@@ -137,6 +152,23 @@ class Compositor(Node):
                     self.metrics = json.load(f)
 
     # ---- frames ----------------------------------------------------------------------------------------
+    def on_frame(self, frame: Frame) -> None:
+        if frame.scan_id >= CALIBRATION_SCAN_ID:
+            self.counters["frames_calibration"] += 1  # the polarizer's, not a scan's
+            return
+        scan = self.scan
+        if scan is not None and frame.scan_id == scan.scan_id:
+            self._fold(scan, frame)
+            self._advance(scan)
+        elif frame.scan_id > self._last_start:  # its "start" has not come yet: held
+            self.early.append(frame)
+            if len(self.early) > self.params.early_frames:
+                self._drop("frames_unexpected", self.early.popleft(), "held, but its scan did not start")
+        elif scan is None:
+            self._drop("frames_unexpected", frame, "no scan running")
+        else:
+            self._drop("frames_mismatched", frame, f"the running scan is {scan.scan_id}")
+
     def _drop(self, why: str, frame: Frame, detail: str = "") -> None:
         self.counters[why] += 1
         if self.scan is not None and frame.scan_id == self.scan.scan_id:
@@ -147,19 +179,8 @@ class Compositor(Node):
                              frame.step, why.removeprefix("frames_").replace("_", " "),
                              f": {detail}" if detail else "", n)
 
-    def on_frame(self, frame: Frame) -> None:
-
-        if frame.scan_id >= CALIBRATION_SCAN_ID:
-            self.counters["frames_calibration"] += 1  # the polarizer's, not a scan's
-            return
-
-        if (self.scan is None or frame.scan_id != self.scan.scan_id) and not self._draining:
-            self._catch_up()  # scan events come on another socket: a "start" may wait behind the frames
-        scan = self.scan
-        if scan is None:
-            return self._drop("frames_unexpected", frame, "no scan running")
-        if frame.scan_id != scan.scan_id:
-            return self._drop("frames_mismatched", frame, f"the running scan is {scan.scan_id}")
+    def _fold(self, scan: _Scan, frame: Frame) -> None:
+        """Check a frame of ``scan`` and fold it into the running reductions, or drop it."""
         image = frame.image
         if image.ndim != 2 or image.dtype.kind not in "uif" or image.size == 0:
             return self._drop("frames_bad", frame, f"image {image.dtype} {image.shape}")
@@ -183,24 +204,6 @@ class Compositor(Node):
         scan.frames += 1
         scan.bit_depth = frame.bit_depth
 
-    def _take(self, topic: str, timeout_s: float) -> list:
-        """Every message already arrived on ``topic`` (waiting up to ``timeout_s`` for the first). Unlike
-        :meth:`Node.wait_for`, which keeps one message of what it takes, nothing is dropped."""
-
-        out = []
-        for item in self._bus.take(self._subs[topic].source, timeout_s):
-            if isinstance(item, MessageError):
-                self._bad(topic, item)
-            else:
-                out.append(item)
-        return out
-
-    def _catch_up(self) -> None:
-        """Handle the scan events that have already arrived, before judging a frame."""
-        while events := self._take("emitter/scan", 0.0):
-            for ev in events:
-                self.on_scan(ev)
-
     def _angle_key(self, angle: float | None, scan: _Scan):
         """The scan's nominal analyzer angle nearest ``angle`` (modulo 180), None without one, or False."""
         if not scan.analyzer_deg:
@@ -214,187 +217,182 @@ class Compositor(Node):
     # ---- scans -----------------------------------------------------------------------------------------
     def on_scan(self, ev: ScanEvent) -> None:
         if ev.event == "start":
-            if self.scan is not None:
-                self.log.warning("scan %d started before scan %d ended: the old one is dropped", ev.scan_id,
-                                 self.scan.scan_id)
-            if ev.method not in METHOD_NAMES:
-                self.log.error("scan %d: unknown method %r (known: %s)", ev.scan_id, ev.method,
-                               ", ".join(METHOD_NAMES))
-                self.scan = None
-                return
-            self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
-            # the simulator publishes the truth of this scan after its start (it may be handled first)
-            t = self.topic_truth
-            self._truth_fresh = t is not None and t.header.stamp_ns >= ev.header.stamp_ns
-            if self.running is not None:
-                self.running.reset()
-        elif self.scan is None or ev.scan_id != self.scan.scan_id:
+            return self._start(ev)
+        scan = self.scan
+        if scan is None or ev.scan_id != scan.scan_id:
             self.log.warning("scan %d %s: not the running scan", ev.scan_id, ev.event)
         elif ev.event == "fault":
-            self.log.error("scan %d (%s) ended on a fault: %s", ev.scan_id, self.scan.method, ev.detail)
+            self.log.error("scan %d (%s) ended on a fault: %s", ev.scan_id, scan.method, ev.detail)
             self.counters["scans_failed"] += 1
-            self.scan = None
+            self._close()
         else:
-            scan, self.scan = self.scan, None
-            self._drain(scan)
-            try:
-                self.finish(scan)
-            except PolarstripeError as exc:  # published, so that nobody waits for a composite in vain
-                self.counters["scans_failed"] += 1
-                self.log.error("scan %d (%s): no composite: %s", scan.scan_id, scan.method, exc)
-                self.composite_pub.publish(Composite(images={}, method=scan.method, scan_id=scan.scan_id,
-                                                     metrics={"error": str(exc), "frames": scan.frames}))
+            scan.done = True
+            self._advance(scan)
 
-    def _drain(self, scan: _Scan) -> None:
-        """Take frames of ``scan`` still in flight when "done" arrived (they come on another socket)."""
-        n_angles = max(1, len(scan.analyzer_deg))
-        expected = {"stripes": scan.stripes * n_angles, "polarized_stripes": scan.stripes * n_angles,
-                    "hf_separation": None}.get(scan.method, n_angles)
-        self.scan, self._draining = scan, True
+    def _start(self, ev: ScanEvent) -> None:
+        old = self.scan
+        if old is not None and old.done:  # still waiting for frames or its truth: finished with what it has
+            self._short(old)
+            self._finish(old)
+        elif old is not None:
+            self.log.warning("scan %d started before scan %d ended: the old one is dropped", ev.scan_id,
+                             old.scan_id)
+            self._close()
+        self._last_start = max(self._last_start, ev.scan_id)
+        if ev.method not in METHOD_NAMES:
+            self.log.error("scan %d: unknown method %r (known: %s)", ev.scan_id, ev.method,
+                           ", ".join(METHOD_NAMES))
+            return
+        scan = self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
+        if self.running is not None:
+            self.running.reset()
+        held, self.early = self.early, deque()
+        for frame in held:  # frames that came ahead of this start: its own are folded in
+            if frame.scan_id == scan.scan_id:
+                self._fold(scan, frame)
+            elif frame.scan_id < scan.scan_id:
+                self._drop("frames_unexpected", frame, "its scan never started")
+            else:
+                self.early.append(frame)
+
+    def _advance(self, scan: _Scan) -> None:
+        """After a frame or the "done" event: finish the scan once it is done and complete, else (re)arm the
+        deadline for the frames still in flight."""
+        if not scan.done or scan.waiting_truth:
+            return
+        if scan.complete:
+            self.cancel(FRAMES_DEADLINE)
+            self._settle(scan)
+        else:
+            self._arm(FRAMES_DEADLINE, self.params.done_grace_s, self._frames_deadline)
+
+    def _frames_deadline(self) -> None:
+        self.cancel(FRAMES_DEADLINE)
+        scan = self.scan
+        if scan is not None and scan.done and not scan.waiting_truth:
+            self._short(scan)
+            self._settle(scan)
+
+    def _short(self, scan: _Scan) -> None:
+        """Note a scan that ends with frames missing."""
+        if scan.expected is not None and not scan.complete:
+            scan.fault = f"{scan.frames} of {scan.expected} frames"
+            self.log.warning("scan %d: %s", scan.scan_id, scan.fault)
+
+    def _settle(self, scan: _Scan) -> None:
+        """The frames are in: finish now, or hold the scan for its truth message."""
+        if self.params.use_truth and scan.scan_id not in self.truths and not self._truth_silent:
+            scan.waiting_truth = True
+            self._arm(TRUTH_DEADLINE, self.params.truth_wait_s, self._truth_deadline)
+        else:
+            self._finish(scan)
+
+    def on_truth(self, truth: Composite) -> None:
+        self._truth_heard, self._truth_silent = True, False
+        self.truths[truth.scan_id] = truth
+        while len(self.truths) > TRUTHS_KEPT:
+            del self.truths[next(iter(self.truths))]
+        scan = self.scan
+        if scan is not None and scan.waiting_truth and truth.scan_id == scan.scan_id:
+            self._finish(scan)
+
+    def _truth_deadline(self) -> None:
+        self.cancel(TRUTH_DEADLINE)
+        scan = self.scan
+        if scan is None or not scan.waiting_truth:
+            return
+        if not self._truth_heard:
+            self._truth_silent = True
+            self.log.info("no ground truth on simulator/truth within %g s: not waited for again",
+                          self.params.truth_wait_s)
+        self._finish(scan)
+
+    def _arm(self, timer: str, delay_s: float, callback) -> None:
+        self.cancel(timer)
+        self.every(delay_s, callback, name=timer)
+
+    def _close(self) -> None:
+        self.cancel(FRAMES_DEADLINE)
+        self.cancel(TRUTH_DEADLINE)
+        self.scan = None
+
+    def _finish(self, scan: _Scan) -> None:
+        """The scan's composite, or (nothing to composite) a Composite with ``metrics["error"]``."""
+        self._close()
         try:
-            while expected is None or scan.frames + scan.dropped < expected:
-                frames = self._take("camera/frame", self.params.done_grace_s)
-                if not frames:
-                    if expected is not None:
-                        self.log.warning("scan %d: %d of %d frames", scan.scan_id, scan.frames, expected)
-                    break
-                for frame in frames:
-                    self.on_frame(frame)
-        finally:
-            self.scan, self._draining = None, False
+            self.finish(scan)
+        except PolarstripeError as exc:  # published, so that nobody waits for a composite in vain
+            self.counters["scans_failed"] += 1
+            self.log.error("scan %d (%s): no composite: %s", scan.scan_id, scan.method, exc)
+            m = {"error": str(exc), "frames": scan.frames, **({"fault": scan.fault} if scan.fault else {})}
+            self.composite_pub.publish(Composite(images={}, method=scan.method, scan_id=scan.scan_id,
+                                                 metrics=m))
 
     # ---- the composite ---------------------------------------------------------------------------------
-    def on_truth(self, truth: Composite) -> None:
-        self.topic_truth, self._truth_fresh, self._truth_heard = truth, True, True
-
-    def _truth(self, shape) -> Composite | None:
-        """The ground truth for a scan of frames of ``shape``, in this order: a ``simulator/truth`` message
-        that came since the scan's start; the service's answer (live); a message waited for up to
-        ``truth_wait_s`` (a replay: it has its own socket and may trail the frames; a silent topic is not
-        waited for again); None. A truth of another shape is not used."""
+    def _truth_of(self, scan: _Scan, shape) -> Composite | None:
+        """The scan's ``simulator/truth`` message if it came and fits frames of ``shape``, else None."""
         if not self.params.use_truth:
             return None
-        for truth in self._take("simulator/truth", 0.0):  # one that came with the last frames
-            self.on_truth(truth)
-        if not self._truth_fresh and self._truth_served:
-            truth = self._served_truth()
-            if truth is not None:
-                return self._fits(truth, shape)
-        if not self._truth_fresh and not self._truth_silent:
-            for truth in self._take("simulator/truth", self.params.truth_wait_s):
-                self.on_truth(truth)
-            if not self._truth_heard:
-                self._truth_silent = True
-                self.log.info("no ground truth on simulator/truth within %g s: not waited for again",
-                              self.params.truth_wait_s)
-        return self._fits(self.topic_truth, shape) if self._truth_fresh else None
-
-    def _fits(self, truth: Composite | None, shape) -> Composite | None:
-        if truth is not None and truth.images["S"].shape != shape:
+        truth = self.truths.pop(scan.scan_id, None)
+        for old in [k for k in self.truths if k < scan.scan_id]:
+            del self.truths[old]
+        if truth is None:
+            self.log.info("scan %d (%s): no ground truth for it on simulator/truth: no error vs truth",
+                          scan.scan_id, scan.method)
+        elif truth.images["S"].shape != shape:
             self.log.warning("truth is %s, frames are %s: not used", truth.images["S"].shape, shape)
-            return None
+            truth = None
         return truth
 
-    def _served_truth(self) -> Composite | None:
-        """The ``simulator/truth`` service's answer, or None (not served: not asked again)."""
-
-        try:
-            if self._truth_client is None:
-                self._truth_client = self.client("simulator/truth", Empty, Composite,
-                                                 timeout_s=self.params.truth_timeout_s)
-        except BusError as exc:  # no node of this launch serves it: a real rig, or a replay
-            self._truth_served = False
-            self.log.info("no simulator/truth service (%s)", exc)
-            return None
-        try:
-            return self._truth_client.call(Empty())
-        except BusError as exc:  # a timeout or an error reply: try again next scan
-            self.log.warning("no ground truth for this scan: %s", exc)
-            return None
-
     def finish(self, scan: _Scan) -> None:
-
         if scan.frames == 0:
             raise PolarstripeError("no frames")
-        rc = self.running
-        truth = self._truth(rc.shape)
-        dark = self.params.dark_offset_dn
+        rc, p = self.running, self.params
+        truth = self._truth_of(scan, rc.shape)
+        dark = p.dark_offset_dn
         if dark is None:
             dark = float(truth.metrics.get("dark_offset_dn", 0.0)) if truth is not None else 0.0
-        free = _roi(self.params.object_free_roi)
+        free = _roi(p.object_free_roi)
         if free is None and truth is not None and np.any(truth.images["S"] <= 1e-9):
             free = truth.images["S"] <= 1e-9
-        image, extra, p = self._compose(scan, rc, dark, free)
-        bright, dim = _roi(self.params.chart_bright_roi), _roi(self.params.chart_dark_roi)
+        made = compose(scan.method, {a: rc.result(a) for a in rc.angles}, dark_offset=dark,
+                       saturation=rc.saturation, object_free=free, lit_fraction=p.lit_fraction,
+                       black_level=p.black_level, p_min=p.p_min)
+        if made.note:
+            self.log.warning("scan %d: %s", scan.scan_id, made.note)
+        bright, dim = _roi(p.chart_bright_roi), _roi(p.chart_dark_roi)
         if bright is None and truth is not None:
             band, high = truth.images["chart_band"], truth.images["chart_high"]
             if np.any((band >= 0) & high) and np.any((band >= 0) & ~high):
                 bright, dim = (band >= 0) & high, (band >= 0) & ~high
+        image = made.image
         m = {"scan_id": scan.scan_id, "frames": scan.frames, "frames_dropped": scan.dropped,
              "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
-             "saturated_pixels": int(np.ma.count_masked(image)), "contrast": None, "error_vs_truth": None}
-        if p is not None:
-            m["p"] = p
-        try:
-            if bright is not None:
-                m["contrast"] = michelson_contrast(image, bright, dim)
-            if truth is not None:
-                m["error_vs_truth"] = signal_error(image, truth.images["S"], fit_gain=True)
-        except ImagingError as exc:  # e.g. every bar pixel saturated: no number rather than a wrong one
-            m["metrics_error"] = str(exc)
-            self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, exc)
+             "saturated_pixels": made.saturated_pixels}
+        if made.p is not None:
+            m["p"] = made.p
+        if scan.fault:
+            m["fault"] = scan.fault
+        m.update(score(image, bright=bright, dark=dim, truth=None if truth is None else truth.images["S"]))
+        if "metrics_error" in m:  # e.g. every bar pixel saturated: no number rather than a wrong one
+            self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, m["metrics_error"])
         images = {"composite": np.ma.filled(image, 0.0).astype(np.float32),
                   "saturated": np.ma.getmaskarray(image).astype(np.uint8)}
-        images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in extra.items()})
+        images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in made.layers.items()})
         self.composite_pub.publish(Composite(images=images, method=scan.method, scan_id=scan.scan_id,
                                              metrics=m))
-        if p is not None:
-            self.estimate_pub.publish(MediumEstimate(p=p, scan_id=scan.scan_id))
+        if made.p is not None:
+            self.estimate_pub.publish(MediumEstimate(p=made.p, scan_id=scan.scan_id))
         self.results[scan.method], self.metrics[scan.method] = image, m
         self.counters["scans_done"] += 1
         self.log.info("scan %d %s: %d frames, contrast %s, error vs truth %s%s", scan.scan_id, scan.method,
                       scan.frames, _fmt(m["contrast"]), _fmt(m["error_vs_truth"]),
-                      f", p {p:.3f}" if p is not None else "")
-        if self.params.out:
-            self._write(scan.method, image)
-
-    def _compose(self, scan: _Scan, rc, dark: float, free):
-        """(composite, extra images, p or None) for the scan's method; DN above the dark offset, masked."""
-
-        angles = rc.angles
-        method = scan.method
-        if method in ("polarized_flood", "polarized_stripes"):
-            if len(angles) != 2:
-                raise PolarstripeError(f"{method} needs frames at two analyzer angles, got {angles}")
-            a, b = (rc.result(x).maximum for x in angles)
-            region = roi_slices("object_free_roi", free, rc.shape)
-            if np.ma.median(a[region]) > np.ma.median(b[region]):
-                a, b = b, a  # E_b passes less backscatter
-            e_b, e_w = a.astype(np.float64) - dark, b.astype(np.float64) - dark
-            try:
-                p = estimate_p(a.data, b.data, free, dark_offset=dark, saturation=rc.saturation,
-                               p_min=self.params.p_min)
-            except ImagingError as exc:  # no usable object-free pixels: the crossed frame, unrecovered
-                self.log.warning("scan %d: p not estimated (%s): the composite is E_b without eq. 6",
-                                 scan.scan_id, exc)
-                return e_b, {"e_b": e_b, "e_w": e_w}, None
-            return recover_signal(e_b, e_w, p), {"e_b": e_b, "e_w": e_w}, p
-        result = rc.result(angles[0])
-        if method == "hf_separation":
-            direct, glob = separate_direct_global(result.maximum.astype(np.float64) - dark,
-                                                  result.minimum.astype(np.float64) - dark,
-                                                  lit_fraction=self.params.lit_fraction,
-                                                  black_level=self.params.black_level)
-            return direct, {"global": glob}, None
-        return result.maximum.astype(np.float64) - dark, {}, None  # flood: the frame; stripes: eq. 7
-
-    # ---- files -----------------------------------------------------------------------------------------
-    def _write(self, method: str, image: np.ma.MaskedArray) -> None:
-
-        out = self.params.out
-        write_method(out, method, image, self.metrics, image_format=self.params.image_format)
-        if self.params.comparison:
-            write_comparison(os.path.join(out, "comparison.png"), self.results, self.metrics, METHOD_NAMES)
+                      f", p {made.p:.3f}" if made.p is not None else "")
+        if p.out:
+            write_method(p.out, scan.method, image, self.metrics, image_format=p.image_format)
+            if p.comparison:
+                write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
+                                 METHOD_NAMES)
 
 
 def _fmt(x) -> str:

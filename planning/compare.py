@@ -5,7 +5,8 @@ flood (eq. 6), light striping (eq. 7), polarized light striping (eq. 7 per analy
 high-frequency direct/global separation at two checker sizes. Each method's frames go through the analyzer
 and the EMVA 1288 sensor (its own exposure: the longest that keeps its brightest frame at 90 % of
 saturation, as the paper lengthened the exposure for the dim stripes), then through the pipeline a rig
-would run (calibrate the analyzer and estimate p on object-free pixels, composite, recover). The table gives
+would run (calibrate the analyzer, then :func:`polarstripe.imaging.compose.compose`, the compositor node's
+own pipeline: reduce, estimate p on object-free pixels, recover, separate). The table gives
 the Michelson contrast of the chart's bars and the error of each estimate of S = D + A against the model's
 ground truth; one figure shows the images side by side like Fig. 6.
 """
@@ -19,10 +20,9 @@ import time
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from polarstripe.imaging.compose import Composition, compose, score
 from polarstripe.imaging.composite import RunningComposite
-from polarstripe.imaging.metrics import michelson_contrast, signal_error
-from polarstripe.imaging.polarization import estimate_p, least_backscatter_angle, recover_signal
-from polarstripe.imaging.separation import separate_direct_global
+from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.sim import sensor
 from polarstripe.sim.polarization import analyzer
@@ -75,29 +75,25 @@ class _Camera:
     def expose(self, radiance: np.ndarray) -> np.ndarray:
         return self.sensor.expose(radiance, self.camera, self.rng)
 
+    def compose(self, method: str, passes: list[list[np.ndarray]], background, black_level: float = 0.0
+                ) -> Composition:
+        """Expose each pass (the radiances at one analyzer angle, in order), reduce it (max and min per
+        pixel, as the compositor does) and compose ``method``; DN above the dark offset."""
+        views = {}
+        for k, radiances in enumerate(passes):
+            rc = RunningComposite(radiances[0].shape, np.uint16, saturation=self.saturation)
+            for r in radiances:
+                rc.add(self.expose(r))
+            views[float(k)] = rc.result()
+        made = compose(method, views, dark_offset=self.offset, saturation=self.saturation,
+                       object_free=background, black_level=black_level)
+        if method.startswith("polarized") and made.p is None:
+            raise ImagingError(f"{method}: {made.note}")
+        return made
+
     def to_radiance(self, dn) -> np.ndarray:
-        """DN (masked where saturated) minus the dark offset, in radiance units."""
-        return (dn - self.offset) / self.dn_per_radiance
-
-
-def _masked(dn: np.ndarray, saturation: float) -> np.ma.MaskedArray:
-    return np.ma.MaskedArray(dn.astype(np.float64), dn >= saturation)
-
-
-def _composite(cam: _Camera, radiances: list[np.ndarray]) -> np.ma.MaskedArray:
-    comp = RunningComposite(radiances[0].shape, np.uint16, saturation=cam.saturation)
-    for r in radiances:
-        comp.add(cam.expose(r))
-    mx = comp.result().maximum
-    return np.ma.MaskedArray(mx.data.astype(np.float64), mx.mask)
-
-
-def _polarized_recovery(cam: _Camera, e_b, e_w, background) -> tuple[np.ma.MaskedArray, float]:
-    off = cam.offset
-    p = estimate_p(e_b.filled(cam.saturation), e_w.filled(cam.saturation), background, dark_offset=off,
-                   saturation=cam.saturation)
-    s_dn = recover_signal(e_b - off, e_w - off, p)
-    return s_dn / cam.dn_per_radiance, p
+        """DN above the dark offset (masked where saturated) in radiance units."""
+        return dn / self.dn_per_radiance
 
 
 def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rng) -> dict:
@@ -128,46 +124,54 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
                                     saturation=cam.saturation)
     ang_w = (ang_b + 90.0) % 180.0
 
-    cam = _Camera(scene.camera, [analyzer(flood, None)], rng)
-    est["flood"] = cam.to_radiance(_masked(cam.expose(analyzer(flood, None)), cam.saturation))
+    plain = [analyzer(flood, None)]
+    cam = _Camera(scene.camera, plain, rng)
+    est["flood"] = cam.to_radiance(cam.compose("flood", [plain], background).image)
 
     pair = [analyzer(flood, ang_b), analyzer(flood, ang_w)]
     cam = _Camera(scene.camera, pair, rng)
-    e_b, e_w = (_masked(cam.expose(r), cam.saturation) for r in pair)
-    est["polarized flood"], p_flood = _polarized_recovery(cam, e_b, e_w, background)
+    made = cam.compose("polarized_flood", [pair[:1], pair[1:]], background)
+    est["polarized flood"], p_flood = cam.to_radiance(made.image), made.p
 
     plain = [analyzer(s, None) for s in stripes]
     cam = _Camera(scene.camera, plain, rng)
-    est["light striping"] = cam.to_radiance(_composite(cam, plain))
+    est["light striping"] = cam.to_radiance(cam.compose("stripes", [plain], background).image)
 
     rb, rw = [analyzer(s, ang_b) for s in stripes], [analyzer(s, ang_w) for s in stripes]
     cam = _Camera(scene.camera, rb + rw, rng)
-    cb, cw = _composite(cam, rb), _composite(cam, rw)
-    est["polarized striping (E_b only)"] = 2.0 * cam.to_radiance(cb)
-    est["polarized striping (eq. 6)"], p_stripes = _polarized_recovery(cam, cb, cw, background)
+    made = cam.compose("polarized_stripes", [rb, rw], background)
+    est["polarized striping (E_b only)"] = 2.0 * cam.to_radiance(made.layers["e_b"])
+    est["polarized striping (eq. 6)"], p_stripes = cam.to_radiance(made.image), made.p
 
     black = scene.projector.black_level
     for c, comp in checker.items():
         shifted = flood.combine(comp, 1.0, -1.0)  # checker:c:c, the complement, by linearity
         pats = [analyzer(comp, None), analyzer(shifted, None)]
         cam = _Camera(scene.camera, pats, rng)
-        f0, f1 = (_masked(cam.expose(r), cam.saturation) for r in pats)
-        l_max, l_min = np.ma.maximum(f0, f1), np.ma.minimum(f0, f1)
-        direct, glob = separate_direct_global(l_max - cam.offset, l_min - cam.offset, black_level=black)
-        est[f"high-frequency {c}px (direct)"] = direct / cam.dn_per_radiance
-        extra[f"high-frequency {c}px (direct)"] = {"global": glob / cam.dn_per_radiance}
+        made = cam.compose("hf_separation", [pats], background, black)
+        est[f"high-frequency {c}px (direct)"] = cam.to_radiance(made.image)
+        extra[f"high-frequency {c}px (direct)"] = {"global": cam.to_radiance(made.layers["global"])}
 
-    rows = {"ground truth S": {"contrast": michelson_contrast(truth, bright, dark), "error": 0.0,
+    rows = {"ground truth S": {**_scores(truth, truth, bright, dark, chart), "error": 0.0,
                                "error_gain_fitted": 0.0}}
     for name, img in est.items():
-        rows[name] = {"contrast": michelson_contrast(img, bright, dark),
-                      "error": signal_error(img, truth, chart),
-                      "error_gain_fitted": signal_error(img, truth, chart, fit_gain=True)}
+        rows[name] = _scores(img, truth, bright, dark, chart)
     return {"sigma_t": sigma_t, "optical_thickness": sigma_t * (scene.medium.extent.max[2] -
                                                                  scene.medium.extent.min[2]),
             "analyzer_deg": {"crossed": ang_b, "parallel": ang_w},
             "p_estimate": {"flood": p_flood, "stripes": p_stripes}, "model_seconds": model_s,
             "rows": rows, "images": {"ground truth S": truth, **est}, "chart": chart}
+
+
+def _scores(image, truth, bright, dark, chart) -> dict:
+    """Contrast and the error against ``truth`` over ``chart``, plain and gain fitted (:func:`score`)."""
+    plain = score(image, bright=bright, dark=dark, truth=truth, region=chart, fit_gain=False)
+    fitted = score(image, truth=truth, region=chart, fit_gain=True)
+    for s in (plain, fitted):
+        if "metrics_error" in s:
+            raise ImagingError(s["metrics_error"])
+    return {"contrast": plain["contrast"], "error": plain["error_vs_truth"],
+            "error_gain_fitted": fitted["error_vs_truth"]}
 
 
 def _figure(levels: list[dict], path: str) -> None:

@@ -7,6 +7,7 @@ back exactly); complementary checkers give L+ = D + G/2, L- = G/2 (direct = D).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import tracemalloc
 
@@ -33,9 +34,11 @@ def _scene():
     return s
 
 
-def _scan(h, scan_id, method, frames, *, stripes=0, analyzer=()):
+def _scan(h, scan_id, method, frames, *, stripes=0, analyzer=(), truth=None):
     h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="start", method=method, stripes=stripes,
                                         analyzer_deg=list(analyzer)))
+    if truth is not None:  # as the simulator publishes it, after the start
+        h.deliver("simulator/truth", dataclasses.replace(truth, scan_id=scan_id))
     for step, (image, pattern, angle) in enumerate(frames):
         h.deliver("camera/frame", Frame(image=image, exposure_s=0.01, pattern=pattern, polarizer_deg=angle,
                                         scan_id=scan_id, step=step))
@@ -127,7 +130,8 @@ def test_bad_and_mismatched_frames_are_dropped_and_counted():
     s, b = _scene(), 100.0
     h = _harness()
     good = list(_stripe_frames(s, b, 4))
-    no_scan_yet = Frame(image=good[0][0], exposure_s=0.01, pattern="stripe:0/4", scan_id=9)
+    # a frame of a scan whose start never comes: held, then dropped when a later scan starts
+    no_scan_yet = Frame(image=good[0][0], exposure_s=0.01, pattern="stripe:0/4", scan_id=8)
     h.deliver("camera/frame", no_scan_yet)
     h.deliver("emitter/scan", ScanEvent(scan_id=9, event="start", method="stripes", stripes=4))
     for step, (img, pat, _) in enumerate(good):
@@ -195,16 +199,15 @@ def test_truth_gives_error_and_contrast_and_files_are_written(tmp_path):
     h = _harness(out=str(tmp_path), use_truth=True, dark_offset_dn=None)
     truth = Composite(images={"S": s, "chart_band": band, "chart_high": high}, method="truth",
                       metrics={"dark_offset_dn": float(DARK)})
-    h.on_call("simulator/truth", lambda req: truth)
     frames = [(_dn(s + b), "flood", None)]
-    comp = _scan(h, 11, "flood", frames)
+    comp = _scan(h, 11, "flood", frames, truth=truth)
     # relative RMS after the least-squares gain g = <E, S>/<E, E>, computed plainly
     e = (s + b).ravel()
     g = (e @ s.ravel()) / (e @ e)
     expected_err = np.sqrt(np.sum((g * e - s.ravel()) ** 2)) / np.sqrt(np.sum(s ** 2))
     assert comp.metrics["error_vs_truth"] == pytest.approx(expected_err, rel=1e-6)
     assert comp.metrics["contrast"] == pytest.approx((1400.0 - 600.0) / (1400.0 + 600.0))
-    _scan(h, 12, "stripes", list(_stripe_frames(s, 20.0, 4)), stripes=4)
+    _scan(h, 12, "stripes", list(_stripe_frames(s, 20.0, 4)), stripes=4, truth=truth)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert set(metrics) == {"flood", "stripes"}
     assert metrics["stripes"]["contrast"] > metrics["flood"]["contrast"]
@@ -218,6 +221,16 @@ def test_truth_gives_error_and_contrast_and_files_are_written(tmp_path):
     assert set(h2.node.metrics) == {"flood", "stripes"}
 
 
+def _truth(s, dark=float(DARK), high=None):
+    band = np.full((H, W), -1, np.int32)
+    band[:, 8:] = 0
+    if high is None:
+        high = np.zeros((H, W), bool)
+        high[4:12, 8:] = True
+    return Composite(images={"S": s, "chart_band": band, "chart_high": high}, method="truth",
+                     metrics={"dark_offset_dn": dark})
+
+
 def _truth_scan(h, scan_id, image, truth=None):
     """A flood scan during which the simulator publishes ``truth`` (after the start, as it does)."""
     h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="start", method="flood"))
@@ -225,56 +238,54 @@ def _truth_scan(h, scan_id, image, truth=None):
         h.deliver("simulator/truth", truth)
     h.deliver("camera/frame", Frame(image=image, exposure_s=0.01, pattern="flood", scan_id=scan_id, step=0))
     h.deliver("emitter/scan", ScanEvent(scan_id=scan_id, event="done", method="flood"))
-    return h.published("compositor/composite")[-1]
+    return h.published("compositor/composite")
 
 
-def test_truth_on_the_topic_is_taken_before_the_service():
-    """A replay has no simulator: the truth recorded on the topic must score the scan as the service did."""
+def test_a_scan_is_scored_against_its_own_truth_message_only():
+    """The truth comes one way, on the topic, naming its scan: another scan's truth is never used; without
+    its own the scan waits ``truth_wait_s`` (a timer), then is composited without an error vs truth."""
     s, b = _scene(), 200.0
-    band = np.full((H, W), -1, np.int32)
-    band[:, 8:] = 0
-    high = np.zeros((H, W), bool)
-    high[4:12, 8:] = True
-    topic = Composite(images={"S": s, "chart_band": band, "chart_high": high}, method="truth",
-                      metrics={"dark_offset_dn": float(DARK)})
-    served = Composite(images={"S": 2 * s + 1, "chart_band": band, "chart_high": ~high}, method="truth",
-                       metrics={"dark_offset_dn": 0.0})
-    h = _harness(use_truth=True, dark_offset_dn=None)
-    h.on_call("simulator/truth", lambda req: served)  # must not be asked while the scan has its message
-    comp = _truth_scan(h, 3, _dn(s + b), topic)
-    assert not h.bus.clients.get(h.full("simulator/truth"), type("c", (), {"requests": []})).requests
+    h = _harness(use_truth=True, dark_offset_dn=None, truth_wait_s=0.5)
+    comp = _truth_scan(h, 3, _dn(s + b), dataclasses.replace(_truth(s), scan_id=3))[-1]
     assert comp.metrics["dark_offset_dn"] == DARK
     assert comp.metrics["contrast"] == pytest.approx((1400.0 - 600.0) / (1400.0 + 600.0))
     e = (s + b).ravel()
     g = (e @ s.ravel()) / (e @ e)
     expected_err = np.sqrt(np.sum((g * e - s.ravel()) ** 2)) / np.sqrt(np.sum(s ** 2))
     assert comp.metrics["error_vs_truth"] == pytest.approx(expected_err, rel=1e-6)
-    # no message for this scan (the last one is another pose's): the service answers
-    comp = _truth_scan(h, 4, _dn(s + b))
-    assert comp.metrics["dark_offset_dn"] == 0.0 and comp.metrics["contrast"] < 0
+    # scan 4 hears only the truth of scan 9 (another pose's): held for its own, then scored without
+    other = dataclasses.replace(_truth(2 * s + 1, dark=0.0), scan_id=9)
+    assert len(_truth_scan(h, 4, _dn(s + b), other)) == 1  # not yet
+    h.advance(0.49)
+    assert len(h.published("compositor/composite")) == 1
+    h.advance(0.02)
+    comp = h.published("compositor/composite")[-1]
+    assert comp.scan_id == 4 and comp.metrics["dark_offset_dn"] == 0.0
+    assert comp.metrics["error_vs_truth"] is None and comp.metrics["contrast"] is None
+    assert any("scan 4" in text and "no ground truth" in text for _, text in h.logs)
+    assert not h.bus.clients  # nobody is asked: no service call toward the simulator
 
 
-def test_without_a_service_the_scans_truth_message_is_waited_for_once_the_topic_is_silent():
+def test_a_truth_that_trails_the_frames_is_still_taken_and_a_silent_topic_is_not_waited_for():
     s = _scene()
-    truth = Composite(images={"S": s, "chart_band": np.zeros((H, W), np.int32),
-                              "chart_high": np.zeros((H, W), bool)}, method="truth",
-                      metrics={"dark_offset_dn": float(DARK)})
+    truth = dataclasses.replace(_truth(s), scan_id=1)
     h = _harness(use_truth=True, dark_offset_dn=None, truth_wait_s=0.5)
-    h.node._truth_served = False  # as when no node serves simulator/truth (a replay)
-    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="flood"))
-    h.deliver("camera/frame", Frame(image=_dn(s), exposure_s=0.01, pattern="flood", scan_id=1, step=0))
-    h.queue("simulator/truth", truth)  # trails the frame: taken while waiting, not dispatched yet
-    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="flood"))
-    assert h.published("compositor/composite")[-1].metrics["dark_offset_dn"] == DARK
-    t0 = h.bus.now()
-    comp = _truth_scan(h, 2, _dn(s))  # no message: waited for (the topic has spoken before), then none
-    assert comp.metrics["dark_offset_dn"] == 0.0 and h.bus.now() - t0 >= 0.5
+    assert _truth_scan(h, 1, _dn(s)) == []  # done and every frame in, but no truth yet: held
+    h.advance(0.3)
+    h.deliver("simulator/truth", truth)  # a replay: it trails the frames on its own socket
+    comp = h.published("compositor/composite")[-1]
+    assert comp.metrics["dark_offset_dn"] == DARK and comp.metrics["error_vs_truth"] is not None
+    h.advance(1.0)
+    assert len(h.published("compositor/composite")) == 1  # the cancelled timer did not finish it twice
+    # a truth that came before its scan's start (another publisher) is kept for it
+    h.deliver("simulator/truth", dataclasses.replace(truth, scan_id=2))
+    assert _truth_scan(h, 2, _dn(s))[-1].metrics["dark_offset_dn"] == DARK
     h2 = _harness(use_truth=True, dark_offset_dn=None, truth_wait_s=0.5)
-    h2.node._truth_served = False
-    _truth_scan(h2, 1, _dn(s))
-    t0 = h2.bus.now()
-    _truth_scan(h2, 2, _dn(s))  # a silent topic is not waited for again
-    assert h2.bus.now() - t0 < 0.5
+    assert _truth_scan(h2, 1, _dn(s)) == []
+    h2.advance(0.5)
+    assert h2.published("compositor/composite")[-1].metrics["dark_offset_dn"] == 0.0
+    assert any("not waited for again" in text for _, text in h2.logs)
+    assert len(_truth_scan(h2, 2, _dn(s))) == 2  # a silent topic is not waited for again: at once
 
 
 def test_a_fault_ends_the_scan_without_a_composite():
@@ -290,6 +301,7 @@ def test_a_scan_without_usable_frames_publishes_a_failed_composite_at_once():
     h = _harness()
     h.deliver("emitter/scan", ScanEvent(scan_id=6, event="start", method="flood"))
     h.deliver("emitter/scan", ScanEvent(scan_id=6, event="done", method="flood"))
+    h.advance(0.05)  # the grace for frames in flight
     comp = h.published("compositor/composite")[-1]
     assert comp.scan_id == 6 and comp.images == {} and "no frames" in comp.metrics["error"]
     assert h.node.counters["scans_failed"] == 1
@@ -305,12 +317,12 @@ def test_saturated_bars_give_no_contrast_rather_than_a_wrong_one():
 
 def test_frames_ahead_of_their_start_event_are_kept():
     """Scan events and frames come from two publishers: a busy compositor may see a scan's first frames
-    before its "start"; the pending start is taken first, so no frame is lost."""
+    before its "start"; they are held and folded in when the start comes, so no frame is lost."""
     s, b = _scene(), 100.0
     h = _harness()
-    h.queue("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes", stripes=4))
     for step, (img, pat, _) in enumerate(_stripe_frames(s, b, 4)):
         h.deliver("camera/frame", Frame(image=img, exposure_s=0.01, pattern=pat, scan_id=4, step=step))
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes", stripes=4))
     h.deliver("emitter/scan", ScanEvent(scan_id=4, event="done", method="stripes", stripes=4))
     comp = h.published("compositor/composite")[-1]
     assert comp.metrics["frames"] == 4 and h.node.counters["frames_unexpected"] == 0
@@ -324,3 +336,62 @@ def test_the_polarizers_calibration_frames_are_ignored_quietly():
                                     scan_id=CALIBRATION_SCAN_ID + 1))
     assert h.node.counters["frames_calibration"] == 1 and h.node.counters["frames_unexpected"] == 0
     assert not [text for level, text in h.logs if level == "WARNING"]
+
+
+def test_frames_held_ahead_of_their_start_are_bounded():
+    s, b = _scene(), 100.0
+    h = _harness(early_frames=2)
+    for step, (img, pat, _) in enumerate(_stripe_frames(s, b, 4)):
+        h.deliver("camera/frame", Frame(image=img, exposure_s=0.01, pattern=pat, scan_id=4, step=step))
+    assert h.node.counters["frames_unexpected"] == 2 and len(h.node.early) == 2  # steps 0 and 1 let go
+    h.deliver("emitter/scan", ScanEvent(scan_id=4, event="start", method="stripes", stripes=4))
+    assert h.node.scan.steps == {2, 3}
+
+
+def test_the_scan_ends_when_done_and_its_last_frame_are_in_whichever_comes_last():
+    s, b = _scene(), 100.0
+    frames = [Frame(image=img, exposure_s=0.01, pattern=pat, scan_id=2, step=k)
+              for k, (img, pat, _) in enumerate(_stripe_frames(s, b, 4))]
+    h = _harness()
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="stripes", stripes=4))
+    for f in frames[:3]:
+        h.deliver("camera/frame", f)
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="done", method="stripes", stripes=4))
+    assert h.published("compositor/composite") == []  # 3 of 4: the fourth is in flight
+    h.advance(0.04)
+    h.deliver("camera/frame", frames[3])  # within the grace: complete, at once
+    comp = h.published("compositor/composite")[-1]
+    assert comp.metrics["frames"] == 4 and "fault" not in comp.metrics
+    np.testing.assert_allclose(comp.images["composite"], s + b)
+
+
+def test_frames_missing_at_the_deadline_are_a_fault_n_of_m():
+    s, b = _scene(), 100.0
+    h = _harness(done_grace_s=0.2)
+    event = dict(scan_id=5, method="polarized_stripes", stripes=4, analyzer_deg=[0.0, 90.0])
+    h.deliver("emitter/scan", ScanEvent(event="start", **event))
+    for k, (img, pat, _) in enumerate(list(_stripe_frames(s, b, 4))[:2]):
+        h.deliver("camera/frame", Frame(image=img, exposure_s=0.01, pattern=pat, polarizer_deg=0.0, scan_id=5,
+                                        step=k))
+    h.deliver("emitter/scan", ScanEvent(event="done", **event))
+    assert h.published("compositor/composite") == []
+    h.advance(0.19)
+    assert h.published("compositor/composite") == []
+    h.advance(0.02)
+    comp = h.published("compositor/composite")[-1]
+    assert comp.metrics["fault"] == "2 of 8 frames"  # 4 stripes at 2 angles
+    assert any(level == "WARNING" and "scan 5: 2 of 8 frames" in text for level, text in h.logs)
+    assert "error" in comp.metrics and "two analyzer angles" in comp.metrics["error"]  # only one came
+
+
+def test_a_new_start_finishes_a_scan_still_waiting_for_frames():
+    s, b = _scene(), 100.0
+    h = _harness()
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="stripes", stripes=4))
+    h.deliver("camera/frame", Frame(image=_dn(s + b), exposure_s=0.01, pattern="stripe:0/4", scan_id=1))
+    h.deliver("emitter/scan", ScanEvent(scan_id=1, event="done", method="stripes", stripes=4))
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="flood"))
+    comp = h.published("compositor/composite")[-1]
+    assert comp.scan_id == 1 and comp.metrics["fault"] == "1 of 4 frames"
+    np.testing.assert_allclose(comp.images["composite"], s + b)
+    assert h.node.scan.scan_id == 2

@@ -1,0 +1,182 @@
+"""One scan's composite and its scores: the processing the compositor node and ``polarstripe compare`` share.
+
+:func:`compose` turns the per-pixel reductions of a scan (one :class:`~.composite.CompositeImage`, max and
+min, per analyzer angle) into the method's estimate of the signal S = D + A; :func:`score` measures an
+estimate (Michelson contrast over a chart's bars, relative error against a ground truth). Both are pure:
+arrays in, arrays and numbers out; bad input raises :class:`~.validation.ImagingError`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from polarstripe.imaging.composite import CompositeImage
+from polarstripe.imaging.metrics import michelson_contrast, signal_error
+from polarstripe.imaging.polarization import estimate_p, recover_signal
+from polarstripe.imaging.separation import separate_direct_global
+from polarstripe.imaging.validation import ImagingError, roi_slices
+
+#: the methods :func:`compose` knows (the rig's ``Method`` values)
+METHODS = ("flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation")
+POLARIZED = ("polarized_flood", "polarized_stripes")
+
+
+@dataclass(frozen=True)
+class Composition:
+    """What :func:`compose` made.
+
+    Attributes
+    ----------
+    image : numpy.ma.MaskedArray (h, w), float64
+        The method's estimate of S, in frame units (DN) above the dark offset; masked where a frame it
+        comes from was saturated.
+    layers : dict of str to numpy.ma.MaskedArray
+        The images it was made from or beside: ``e_b`` and ``e_w`` (polarized methods, offset subtracted,
+        E_b the crossed one) or ``global`` (``hf_separation``).
+    p : float or None
+        The backscatter DOP estimated for eq. 6 (polarized methods), None otherwise or when it could not be
+        estimated (then ``image`` is E_b, unrecovered, and ``note`` says why).
+    note : str
+        Why a step was skipped; "" when none was.
+    """
+
+    image: np.ma.MaskedArray
+    layers: dict[str, np.ma.MaskedArray] = field(default_factory=dict)
+    p: float | None = None
+    note: str = ""
+
+    @property
+    def saturated_pixels(self) -> int:
+        """Pixels of ``image`` masked because a frame was saturated there."""
+        return int(np.ma.count_masked(self.image))
+
+
+def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_offset: float = 0.0,
+            saturation: float | None = None, object_free=None, lit_fraction: float = 0.5,
+            black_level: float = 0.0, p_min: float = 0.05) -> Composition:
+    r"""The composite of one scan of ``method`` from its per-angle reductions.
+
+    Parameters
+    ----------
+    method : {"flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"}
+    views : mapping of analyzer angle [deg] (None: no analyzer) to CompositeImage
+        Per-pixel max and min over the scan's frames at that angle (masked where saturated), e.g.
+        ``{a: rc.result(a) for a in rc.angles}`` of a :class:`~.composite.RunningComposite`. Polarized
+        methods need two angles; the others use the first.
+    dark_offset : float
+        Black level [DN] subtracted from every frame.
+    saturation : float, optional
+        Saturation level [DN]: pixels at or above it in either polarized frame are left out of p̂.
+    object_free : (row0, row1, col0, col1) or bool mask (h, w), optional
+        Where S = 0 (no object): p is estimated there, and E_b is the angle darker there. None: the whole
+        frame.
+    lit_fraction, black_level : float
+        α and b of the high-frequency patterns (``hf_separation``).
+    p_min : float
+        Lower clamp of p̂ (eq. 6 divides by p).
+
+    Returns
+    -------
+    Composition
+
+    Raises
+    ------
+    ImagingError
+        An unknown method, no views, a polarized method without exactly two angles, a bad region.
+
+    Notes
+    -----
+    With SI_k the k-th frame at one analyzer angle and o the dark offset:
+
+    * ``flood``: Ŝ = SI_0 − o (the flood frame: S plus all the backscatter B).
+    * ``stripes``: the light-stripe composite of eq. 7, Ŝ = CI − o with CI(x, y) = max_k SI_k(x, y).
+    * ``polarized_flood`` / ``polarized_stripes``: the frame (or eq. 7 composite) at each of the two angles.
+      Through an analyzer crossed to the backscatter and parallel to it (eqs. 4–5)
+
+      .. math:: E_b = S/2 + B(1 - p)/2, \qquad E_w = S/2 + B(1 + p)/2,
+
+      so E_b is the angle passing less light over the object-free region (median). With S = 0 there,
+      p̂ = median(E_w − E_b) / median(E_w + E_b) (:func:`~.polarization.estimate_p`, clipped to
+      [p_min, 1]), and eq. 6 recovers the signal:
+
+      .. math:: \hat S = E_b (1 + 1/p) + E_w (1 - 1/p).
+
+      Without usable object-free pixels p is not estimated and Ŝ = E_b (``note`` says why).
+    * ``hf_separation``: Nayar et al. (2006) with L⁺ = max and L⁻ = min over the complementary checkers,
+      α the lit fraction, b the projector's black level (:func:`~.separation.separate_direct_global`):
+
+      .. math:: L_d = \frac{(1 - α + α b) L^+ - (α + b - α b) L^-}{(1 - α)(1 - b^2)}, \qquad
+                L_g = \frac{L^- - b L^+}{(1 - α)(1 - b^2)},
+
+      (α = ½, b = 0: L_d = L⁺ − L⁻, L_g = 2 L⁻); Ŝ = L_d, the direct image (in water the global part
+      holds A and B together, the paper's eq. 3).
+    """
+    if method not in METHODS:
+        raise ImagingError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    angles = list(views)
+    if not angles:
+        raise ImagingError("views: no frames")
+    if method in POLARIZED:
+        return _polarized(method, views, dark_offset, saturation, object_free, p_min)
+    view = views[angles[0]]
+    if method == "hf_separation":
+        direct, glob = separate_direct_global(view.maximum.astype(np.float64) - dark_offset,
+                                              view.minimum.astype(np.float64) - dark_offset,
+                                              lit_fraction=lit_fraction, black_level=black_level)
+        return Composition(direct, {"global": glob})
+    return Composition(view.maximum.astype(np.float64) - dark_offset)  # flood: the frame; stripes: eq. 7
+
+
+def _polarized(method, views, dark_offset, saturation, object_free, p_min) -> Composition:
+    angles = list(views)
+    if len(angles) != 2:
+        raise ImagingError(f"{method} needs frames at two analyzer angles, got {angles}")
+    a, b = (views[x].maximum for x in angles)
+    region = roi_slices("object_free", object_free, a.shape)
+    if np.ma.median(a[region]) > np.ma.median(b[region]):
+        a, b = b, a  # E_b passes less backscatter
+    e_b, e_w = a.astype(np.float64) - dark_offset, b.astype(np.float64) - dark_offset
+    layers = {"e_b": e_b, "e_w": e_w}
+    try:
+        p = estimate_p(a.data, b.data, object_free, dark_offset=dark_offset, saturation=saturation,
+                       p_min=p_min)
+    except ImagingError as exc:  # no usable object-free pixels: the crossed frame, unrecovered
+        return Composition(e_b, layers, None, f"p not estimated ({exc}): the composite is E_b without eq. 6")
+    return Composition(recover_signal(e_b, e_w, p), layers, p)
+
+
+def score(image, *, bright=None, dark=None, truth=None, region=None, fit_gain: bool = True) -> dict:
+    """How good an estimate of S is: contrast of the chart's bars and error against the ground truth.
+
+    Parameters
+    ----------
+    image : array (h, w), may be masked
+        The estimate (masked pixels are left out of both measures).
+    bright, dark : (row0, row1, col0, col1) or bool mask (h, w), optional
+        The chart's bright and dark bars; no contrast without them.
+    truth : array (h, w), optional
+        The true S in the units of ``image`` (up to a gain when ``fit_gain``); no error without it.
+    region : (row0, row1, col0, col1) or bool mask (h, w), optional
+        Pixels the error is taken over; None: the whole frame.
+    fit_gain : bool
+        Fit the least-squares gain of the estimate first (:func:`~.metrics.signal_error`).
+
+    Returns
+    -------
+    dict
+        ``contrast``: Michelson contrast (I_bright − I_dark)/(I_bright + I_dark) of the bar means, or None;
+        ``error_vs_truth``: ‖g Ŝ − S‖ / ‖S‖ over ``region`` (g = 1 unless ``fit_gain``), or None; and
+        ``metrics_error`` (the reason) when a measure cannot be taken, e.g. every bar pixel saturated: then
+        that measure and the ones after it (contrast, then error) are None rather than wrong.
+    """
+    out: dict = {"contrast": None, "error_vs_truth": None}
+    try:
+        if bright is not None:
+            out["contrast"] = michelson_contrast(image, bright, dark)
+        if truth is not None:
+            out["error_vs_truth"] = signal_error(image, truth, region, fit_gain=fit_gain)
+    except ImagingError as exc:
+        out["metrics_error"] = str(exc)
+    return out
