@@ -192,7 +192,7 @@ class Simulator(Node):
         """The analyzer angle [deg]: the simulated CiA 402 drive's actual position, else the simulated
         ELL14's, else the ``analyzer_deg`` param."""
         if self.drive is not None:
-            return float(self.drive.position) / self.params.counts_per_deg
+            return float(self.drive.axis.position) / self.params.counts_per_deg  # counts, the model's own
         if self.ell14 is not None:
             return self.ell14.position * 360.0 / self.ell14.pulses_per_rev
         return self.params.analyzer_deg
