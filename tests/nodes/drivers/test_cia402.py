@@ -15,6 +15,7 @@ import pytest
 from polarstripe.nodes.drivers import cia402_states as cia
 from polarstripe.nodes.drivers.cia402 import Cia402Stage
 from polarstripe.nodes.drivers.errors import DriverError, StageFault
+from polarstripe.nodes.drivers.sim402_axis import Axis402
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
 from polarstripe.nodes.drivers.zmqcan import ZmqCanBus
 
@@ -48,10 +49,53 @@ def test_statusword_patterns_are_the_standards():
     assert cia.decode_statusword(0x021F) is cia.State.FAULT_REACTION_ACTIVE
     assert cia.decode_statusword(0x0218) is cia.State.FAULT
     assert cia.decode_statusword(0x0000) is cia.State.NOT_READY_TO_SWITCH_ON
-    for number in cia.TRANSITIONS:
-        assert number in range(17)
     assert cia.TRANSITIONS[15][2] == 0x80 and cia.TRANSITIONS[2][2] == 0x06
     assert cia.TRANSITIONS[3][2] == 0x07 and cia.TRANSITIONS[4][2] == 0x0F
+
+
+_WALK = {  # controlwords that bring a freshly powered axis into a state
+    cia.State.SWITCH_ON_DISABLED: [],
+    cia.State.READY_TO_SWITCH_ON: [0x06],
+    cia.State.SWITCHED_ON: [0x06, 0x07],
+    cia.State.OPERATION_ENABLED: [0x06, 0x07, 0x0F],
+    cia.State.QUICK_STOP_ACTIVE: [0x06, 0x07, 0x0F, 0x02],
+}
+
+
+def _axis_in(state):
+    axis = Axis402(lambda index, subindex: 0)
+    if state is cia.State.FAULT:
+        axis.fault()
+    for cw in _WALK.get(state, []):
+        axis.controlword(cw)
+    assert cia.decode_statusword(axis.statusword()) is state
+    return axis
+
+
+@pytest.mark.parametrize("number", [n for n, (src, _, cw) in cia.TRANSITIONS.items() if src and cw is not None])
+def test_every_commanded_transition_of_the_table_takes_the_simulated_drive_there(number):
+    """The table the driver walks (TRANSITIONS) against the device: the controlword moves the drive from the
+    transition's state to its target state, and the statusword says so."""
+    source, destination, cw = cia.TRANSITIONS[number]
+    axis = _axis_in(source)
+    axis.controlword(cw)
+    assert cia.decode_statusword(axis.statusword()) is destination
+
+
+@pytest.mark.parametrize("start", list(_WALK) + [cia.State.FAULT])
+def test_the_drivers_path_reaches_operation_enabled_from_every_state(start):
+    """PATH_TO_OPERATION_ENABLED as Cia402Stage._enable walks it (disable voltage before a fault reset, so
+    bit 7 rises) ends in OPERATION ENABLED within four commands."""
+    axis = _axis_in(start)
+    for _ in range(4):
+        state = cia.decode_statusword(axis.statusword())
+        if state is cia.State.OPERATION_ENABLED:
+            break
+        number = cia.PATH_TO_OPERATION_ENABLED[state]
+        if number == 15:
+            axis.controlword(cia.CW_DISABLE_VOLTAGE)
+        axis.controlword(cia.TRANSITIONS[number][2])
+    assert cia.decode_statusword(axis.statusword()) is cia.State.OPERATION_ENABLED
 
 
 def test_simulated_drive_walks_the_state_machine_for_raw_controlwords():
