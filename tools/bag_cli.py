@@ -1,5 +1,7 @@
-"""``polarstripe bag info FILE …`` and ``polarstripe bag recover IN -o OUT``: look into MCAP recordings and
-repair one whose writer died.
+"""``polarstripe bag info FILE …``, ``bag recover IN -o OUT``, ``bag export IN --to ros2|foxglove OUT`` and
+``bag import ROSBAG2 -o OUT``: look into MCAP recordings, repair one whose writer died, and convert to and
+from the formats the robotics tools open (:mod:`polarstripe.tools.bag_export`,
+:mod:`polarstripe.tools.bag_import`).
 
 ``info`` prints, per topic, the message type and schema version, the count, the rate and the gaps (the
 recorder's count of messages lost upstream, from the bag's ``recording`` metadata; ``--scan`` also reads
@@ -14,9 +16,10 @@ import json
 import time
 
 from polarstripe.tools.bag import COMPRESSIONS
+from polarstripe.tools.bag_export import FORMATS
 from polarstripe.tools.bag_reader import BagReader, recover
 
-HELP = "inspect or recover MCAP recordings"
+HELP = "inspect, recover, export (ROS 2, Foxglove) or import (ROS 2) recordings"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -33,6 +36,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("input", metavar="IN")
     rec.add_argument("-o", "--output", required=True, metavar="OUT")
     rec.add_argument("--compression", choices=COMPRESSIONS, default="none")
+    exp = sub.add_parser("export", help="write a rosbag2 (ROS 2) or a Foxglove MCAP of a bag")
+    exp.add_argument("input", metavar="IN")
+    exp.add_argument("output", metavar="OUT", help="a new folder (ros2) or file (foxglove)")
+    exp.add_argument("--to", required=True, choices=FORMATS, help="ros2: rosbag2 (MCAP, CDR); foxglove: MCAP")
+    exp.add_argument("--topics", nargs="+", metavar="T", help="topics or shell patterns (default: all)")
+    exp.add_argument("--start", type=float, metavar="S", help="from S seconds after the recording's start")
+    exp.add_argument("--end", type=float, metavar="S", help="up to S seconds after the recording's start")
+    exp.add_argument("--image-every", type=int, default=1, metavar="N",
+                     help="keep every N-th camera frame and projector pattern of each topic (default 1)")
+    exp.add_argument("--scene", metavar="FILE", help="the rig's scene TOML (default: the recording's)")
+    exp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    exp.add_argument("--json", action="store_true", help="print one JSON object")
+    imp = sub.add_parser("import", help="convert a rosbag2 of camera frames into a bag replay reads")
+    imp.add_argument("input", metavar="ROSBAG2", help="a rosbag2 folder")
+    imp.add_argument("-o", "--output", required=True, metavar="OUT", help="the new .mcap file")
+    imp.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def info(path, *, scan: bool = False) -> dict:
@@ -106,6 +125,21 @@ def _print(d: dict) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.action == "export":
+        from polarstripe.tools import bag_export
+
+        opt = bag_export.ExportOptions(topics=args.topics, start_s=args.start, end_s=args.end,
+                                       image_every=args.image_every, scene=args.scene,
+                                       progress=False if args.no_progress else None)
+        res = bag_export.export(args.input, args.output, args.to, opt)
+        print(bag_export.as_json(res) if args.json else bag_export.summary(res))
+        return 0
+    if args.action == "import":
+        from polarstripe.tools import bag_import
+
+        print(bag_import.summary(bag_import.import_ros2(args.input, args.output,
+                                                       progress=False if args.no_progress else None)))
+        return 0
     if args.action == "info":
         for i, f in enumerate(args.files):
             d = info(f, scan=args.scan)
