@@ -1,20 +1,23 @@
 """A live view in the Foxglove app: a node that serves the bus over Foxglove's WebSocket protocol.
 
 Needs the optional extra ``foxglove`` (``pip install 'polarstripe[foxglove]'``, i.e. ``foxglove-sdk``). Add it
-to a launch file::
+to a launch file (``launch/sim.toml`` and ``launch/rov.toml`` have it behind the launch argument
+``foxglove=true``)::
 
     [[node]]
     name = "foxglove"
     module = "polarstripe.tools.foxglove_bridge:FoxgloveBridge"
     params = { port = 8765 }          # then open ws://<host>:8765 in the Foxglove app
 
-It subscribes (``mode="latest"``: a viewer drops what it cannot show) to the chosen topics (default: every
-topic of the launch) and logs
-
-* each message as it is on the wire of a bag: channel ``<topic>``, ``message_encoding = "msgpack"``, the
-  type's JSON Schema (the app shows it like schemaless JSON: fields in the raw-message and plot panels);
-* each image as ``foxglove.RawImage`` for the image panel: frames on ``<topic>/image`` (``mono16`` for
-  uint16, ``mono8``, or ``32FC1``) and each image of a composite on ``<topic>/<name>``.
+It subscribes to the chosen topics (default: every topic of the launch; camera frames and projector patterns
+``mode="latest"``, a viewer drops what it cannot show; everything else ``mode="all"``) and logs each message
+as the views of :mod:`polarstripe.tools.rig_views` in the schemas of :mod:`polarstripe.tools.foxglove_schemas`
+(the same channels as ``polarstripe bag export --to foxglove``): images as ``foxglove.RawImage``
+(``<topic>/image`` for frames and patterns, ``<topic>/<name>`` per composite image), camera intrinsics as
+``foxglove.CameraCalibration``, the rig's poses as ``foxglove.FrameTransforms`` on ``/tf_static`` (sent
+again to each new client), logs as ``foxglove.Log``, numbers as JSON records (``polarstripe.*``: plottable).
+Message log times are the messages' stamps. ``image_max_hz`` caps the images per topic (0: every one; the
+tether of ``rov.toml`` carries 2 per second).
 
 The server binds ``host`` (default ``127.0.0.1``: this machine only; use the rig's address to reach it from
 topside, with the same care as any unauthenticated port).
@@ -23,34 +26,19 @@ topside, with the same care as any unauthenticated port).
 from __future__ import annotations
 
 import json
+import time
 
-import numpy as np
-from polarstripe.msgs import REGISTRY, Composite, Frame, Message, json_schema, pack
+from polarstripe.msgs import REGISTRY, Frame, Message, Pattern
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.node import Node, NodeError
 from polarstripe.runtime.params import NodeParams
+from polarstripe.sim.scene import SceneError
+from polarstripe.tools.bag import BagError
+from polarstripe.tools.foxglove_schemas import FoxgloveEncoder
+from polarstripe.tools.rig_geometry import geometry_from_metadata
+from polarstripe.tools.rig_views import TF_STATIC, Image, RigViews, Transforms
 
-_ENCODINGS = {
-    np.dtype("<u2"): ("mono16", np.dtype("<u2")),
-    np.dtype("u1"): ("mono8", np.dtype("u1")),
-    np.dtype("<f4"): ("32FC1", np.dtype("<f4")),
-}
-
-
-def raw_image_fields(img: np.ndarray) -> dict:
-    """``foxglove.RawImage`` fields (width, height, encoding, step, data) for a 2-D image; other dtypes are
-    sent as ``32FC1``."""
-    if img.ndim != 2:
-        raise ValueError(f"image must be 2-D, got shape {img.shape}")
-    enc, dt = _ENCODINGS.get(img.dtype, ("32FC1", np.dtype("<f4")))
-    a = np.ascontiguousarray(img, dtype=dt)
-    return {
-        "width": a.shape[1],
-        "height": a.shape[0],
-        "encoding": enc,
-        "step": a.shape[1] * dt.itemsize,
-        "data": a.tobytes(),
-    }
+_LATEST = (Frame, Pattern)  # big and frequent: the newest only
 
 
 class FoxgloveBridge(Node):
@@ -60,69 +48,95 @@ class FoxgloveBridge(Node):
         host: str = "127.0.0.1"
         port: int = 8765  # 0 picks a free port (logged)
         topics: list[str] = []  # full or relative; empty: every topic of the graph
-        images: bool = True  # also foxglove.RawImage channels for frames and composites
+        images: bool = True  # send images (frames, patterns, composites)
+        image_max_hz: float = 0.0  # images per topic and second at most; 0: every one
+        scene: str = ""  # the rig's scene TOML for tf and camera info; "": the launch's
 
     def setup(self):
         try:
             import foxglove
-            from foxglove.channels import RawImageChannel
-        except ImportError:
+
+            self.encoder = FoxgloveEncoder()
+        except (ImportError, BagError):
             raise NodeError(
                 f"node {self.name!r}: needs the optional extra 'foxglove' "
                 "(pip install 'polarstripe[foxglove]')"
             ) from None
-
-        self._fox, self._RawImageChannel = foxglove, RawImageChannel
+        self._fox = foxglove
         graph = self.graph
         known = graph.get("topics", {})
         wanted = [resolve(t, self.namespace) for t in self.params.topics] or sorted(known)
+        meta = {"launch": {"graph": json.dumps(graph), "file": graph.get("file", "")}}
+        try:
+            geometry, note = geometry_from_metadata(meta, self.params.scene or None)
+        except (SceneError, OSError) as exc:
+            raise NodeError(f"node {self.name!r}: scene: {exc}") from None
+        self.views = RigViews(geometry)
+        self.context = foxglove.Context()
+        self.channels: dict[str, object] = {}
+        self._last_image: dict[str, float] = {}
+        self._static: list = self.views.start(time.time_ns())
         self.server = foxglove.start_server(
             host=self.params.host,
             port=self.params.port,
             name=f"polarstripe {graph.get('launch', '')}".strip(),
+            context=self.context,
         )
         self.port = self.server.port
-        self.channels: dict[str, object] = {}
-        self.image_channels: dict[str, object] = {}
+        self.topics = []
         for topic in wanted:
             cls = REGISTRY.get(known.get(topic, {}).get("type", ""))
             if cls is None:
                 self.log.warning("not serving %s: unknown message type", topic)
                 continue
-            self.add_topic(topic, cls)
-            self.subscribe(topic, lambda m, t=topic: self.forward(t, m), msg_type=cls, mode="latest")
+            mode = "latest" if issubclass(cls, _LATEST) else "all"
+            self.subscribe(topic, lambda m, t=topic: self.forward(t, m), msg_type=cls, mode=mode)
+            self.topics.append(topic)
+        self._send(self._static)
+        self.every(1.0, self._resend_static)
         self.log.info(
-            "Foxglove WebSocket on ws://%s:%d (%d topics)", self.params.host, self.port, len(self.channels)
+            "Foxglove WebSocket on ws://%s:%d (%d topics; geometry: %s)",
+            self.params.host, self.port, len(self.topics), note,
         )
 
-    def add_topic(self, topic: str, cls: type[Message]) -> None:
-        """Advertise ``topic`` as a msgpack channel with its JSON Schema."""
-        schema = self._fox.Schema(
-            name=f"polarstripe/{cls.TYPE}", encoding="jsonschema", data=json.dumps(json_schema(cls)).encode()
-        )
-        self.channels[topic] = self._fox.Channel(topic, schema=schema, message_encoding="msgpack")
+    def _send(self, views) -> None:
+        for v in views:
+            e = self.encoder.encode(v)
+            if e is None:
+                continue
+            ch = self.channels.get(e.topic)
+            if ch is None:
+                s = e.schema
+                ch = self.channels[e.topic] = self._fox.Channel(
+                    e.topic,
+                    schema=self._fox.Schema(name=s.name, encoding=s.encoding, data=s.data),
+                    message_encoding=s.message_encoding,
+                    context=self.context,
+                )
+            ch.log(b"".join(e.parts), log_time=v.stamp_ns)
 
-    def _image(self, topic: str, stamp_ns: int, frame_id: str, img: np.ndarray) -> None:
-        from foxglove.messages import RawImage, Timestamp
-
-        ch = self.image_channels.get(topic)
-        if ch is None:
-            ch = self.image_channels[topic] = self._RawImageChannel(topic)
-        ts = Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
-        ch.log(RawImage(timestamp=ts, frame_id=frame_id, **raw_image_fields(img)), log_time=stamp_ns)
+    def _resend_static(self) -> None:
+        """The latched poses again (a client that connected since gets them)."""
+        if self._static:
+            self._send(self._static)
 
     def forward(self, topic: str, msg: Message) -> None:
-        """Log one received message (and its images) to the Foxglove server."""
-        stamp = msg.header.stamp_ns
-        self.channels[topic].log(pack(msg, topic=topic), log_time=stamp)
-        if not self.params.images:
-            return
-        if isinstance(msg, Frame):
-            self._image(f"{topic}/image", stamp, msg.header.frame_id or "camera", msg.image)
-        elif isinstance(msg, Composite):
-            for name, img in msg.images.items():
-                if img.ndim == 2:
-                    self._image(f"{topic}/{name}", stamp, msg.method, img)
+        """Log one received message (as its views) to the Foxglove server."""
+        views = self.views.views(topic, msg.header.stamp_ns or time.time_ns(), msg)
+        now = time.monotonic()
+        out = []
+        for v in views:
+            if isinstance(v, Transforms) and v.topic == TF_STATIC:
+                self._static = [v]
+            if isinstance(v, Image):
+                if not self.params.images:
+                    continue
+                hz = self.params.image_max_hz
+                if hz > 0 and now - self._last_image.get(v.topic, -1e9) < 1.0 / hz:
+                    continue
+                self._last_image[v.topic] = now
+            out.append(v)
+        self._send(out)
 
     def teardown(self):
         server = getattr(self, "server", None)
