@@ -2,25 +2,35 @@
 
 ``emitter/start_scan`` (:class:`~polarstripe.msgs.ScanRequest` → :class:`~polarstripe.msgs.ScanEvent`)
 checks the request and answers at once: ``event="start"`` with the new scan id, or ``event="fault"`` naming
-what is wrong. The scan then runs in the node's loop, one at a time (requests queue up):
+what is wrong. Scans run one at a time, in request order (at most ``max_queued`` wait):
 
 1. ``emitter/scan`` ScanEvent ``start``; the analyzer is put out of the path for unpolarized methods
    (``camera/analyzer``).
 2. For each analyzer angle: ``PolarizerCommand`` on ``polarizer/cmd``, then wait until ``polarizer/state``
    is settled at that target (``settle_timeout_s``; a state with a fault ends the scan at once).
 3. For each pattern: ``display.show``, ``emitter/pattern``, call ``camera/trigger`` (scan id, step, pattern
-   tag) and wait for the matching ``camera/frame`` (``frame_timeout_s``).
+   tag; bounded by ``trigger_timeout_s``) and wait for the matching ``camera/frame`` (``frame_timeout_s``).
 4. The display is blanked, the analyzer put back, and ``emitter/scan`` says ``done`` — or ``fault`` with
    ``detail`` naming the step, the topic or service and what happened. A fault never hangs the node.
 
+**A scan is a state machine stepped by the node's loop**, not a loop inside one handler: the ``scan`` timer
+(every 10 ms) starts the next queued scan and enforces the timeouts; a ``polarizer/state`` or
+``camera/frame`` that the scan waits for moves it on. Between those events the loop answers services, so
+``emitter/show`` is refused at once while a scan runs (``scan N running``), ``emitter/start_scan`` queues
+another, and a stop (SIGINT, SIGTERM) ends the running scan with a published ``fault`` (``stopped (SIGTERM)
+waiting for camera/frame``), the display blanked and the analyzer put back. The one blocking step is the
+``camera/trigger`` call (the grabber answers once the frame is taken), bounded by ``trigger_timeout_s``.
+
 Methods (:class:`~polarstripe.msgs.Method`): ``flood``, ``polarized_flood`` (flood at E_b and E_w),
 ``stripes`` (N stripes), ``polarized_stripes`` (N stripes at E_b and E_w), ``hf_separation`` (two
-complementary checkers, Nayar et al.'s high-frequency separation). Polarized methods take the analyzer angles of the request: two
-angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg`` param. Unpolarized methods
-with angles are taken at those angles; without, with no analyzer (frames carry ``polarizer_deg`` None).
+complementary checkers, Nayar et al.'s high-frequency separation). Polarized methods take the analyzer
+angles of the request: two angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg``
+param. Unpolarized methods with angles are taken at those angles; without, with no analyzer (frames carry
+``polarizer_deg`` None).
 
 ``emitter/show`` (:class:`~polarstripe.msgs.Pattern` → :class:`~polarstripe.msgs.Ack`) lights one pattern
-between scans (``polarizer/calibrate`` shows flood through it, then ``off``); refused while a scan runs.
+between scans (``polarizer/calibrate`` shows flood through it, then ``off``); refused while a scan runs or
+waits.
 
 Display backends come from :mod:`polarstripe.nodes.drivers` (``null`` for the simulator and CI, ``window``,
 ``serial``).
@@ -29,9 +39,8 @@ Display backends come from :mod:`polarstripe.nodes.drivers` (``null`` for the si
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from polarstripe.msgs import (
     Ack,
@@ -47,8 +56,8 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
-from polarstripe.runtime.bus import BusError, BusTimeout
-from polarstripe.runtime.node import Node, NodeStopping
+from polarstripe.runtime.bus import BusError
+from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
 
@@ -90,8 +99,33 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
     return ScanPlan(scan_id, req.method, patterns, resolved, stripes if family == "stripe" else 0)
 
 
+@dataclass
+class _Run:
+    """The scan being run: the next step, what it waits for and until when."""
+
+    plan: ScanPlan
+    requested_s: float  # when it was asked for (node clock)
+    started_s: float
+    step: int = 0  # the next frame to take: angle index * len(patterns) + pattern index
+    settled: int = -1  # the angle index the analyzer is known settled at
+    waiting: str = ""  # "polarizer/state" | "camera/frame" | "" (between steps)
+    angle: float | None = None  # the angle being settled at
+    deadline: float = math.inf
+    since: float = 0.0  # when the wait began
+    timing: dict = field(default_factory=lambda: {"analyzer_s": 0.0, "camera_s": 0.0, "frame_wait_s": 0.0,
+                                                  "frames": 0})
+
+    @property
+    def unpolarized(self) -> bool:
+        return self.plan.angles == (None,)
+
+    def where(self) -> str:
+        tag = self.plan.patterns[self.step % len(self.plan.patterns)]
+        return f"step {self.step} ({tag})"
+
+
 class Emitter(Node):
-    """Runs scans (see the module docstring)."""
+    """Runs scans as a state machine stepped by the loop (see the module docstring)."""
 
     class Params(NodeParams):
         display: str = "null"  # display backend: null | window | serial
@@ -125,8 +159,8 @@ class Emitter(Node):
         self.pattern_pub = self.publisher("emitter/pattern")
         self.scan_pub = self.publisher("emitter/scan")
         self.cmd_pub = self.publisher("polarizer/cmd")
-        self.subscribe("polarizer/state", mode="latest")
-        self.subscribe("camera/frame", mode="all")
+        self.subscribe("polarizer/state", self.on_state, mode="latest")
+        self.subscribe("camera/frame", self.on_frame, mode="all")
         self.serve("emitter/start_scan", self.start_scan)
         self.serve("emitter/show", self.show)
         self.trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.trigger_timeout_s)
@@ -137,16 +171,27 @@ class Emitter(Node):
         elif p.display == "window":
             kwargs["display_index"] = p.display_index
         self.display = open_backend("display", p.display, **kwargs)
-        self.queue: deque[ScanPlan] = deque()
+        self.queue: deque[tuple[ScanPlan, float]] = deque()  # (plan, when requested)
         self.next_id = 1
         self.results: dict[int, ScanEvent] = {}
-        self.scanning: ScanPlan | None = None  # the scan being run
-        self.every(0.01, self.run_queued, name="scan")
+        self.current: _Run | None = None  # the scan being run
+        self._state: tuple[PolarizerState, float] | None = None  # newest polarizer/state not yet looked at
+        self.every(0.01, self.on_tick, name="scan")
+
+    @property
+    def scanning(self) -> ScanPlan | None:
+        """The scan being run (None between scans)."""
+        return self.current.plan if self.current is not None else None
 
     def teardown(self):
+        run = self.current
+        if run is not None:  # stopped mid-scan: its fault is published, the rig left as between scans
+            what = f" waiting for {run.waiting}" if run.waiting else ""
+            where = f"{run.where()}: " if run.waiting == "camera/frame" else ""
+            self._fail(f"{where}stopped ({self.stop_reason}){what}")
         self.display.close()
 
-    # ---- service -------------------------------------------------------------------------------------------
+    # ---- services ------------------------------------------------------------------------------------------
     def start_scan(self, req: ScanRequest) -> ScanEvent:
         p = self.params
         if len(self.queue) >= p.max_queued:
@@ -158,15 +203,16 @@ class Emitter(Node):
         except ValueError as exc:
             return ScanEvent(scan_id=0, event="fault", method=req.method, detail=f"emitter/start_scan: {exc}")
         self.next_id += 1
-        self.queue.append(plan)
+        self.queue.append((plan, self.now()))
         return self._event(plan, "start")
 
     def show(self, req: Pattern) -> Ack:
         """``emitter/show``: light one pattern between scans (e.g. flood for ``polarizer/calibrate``, then
         ``off``); published on ``emitter/pattern`` as given. Refused while a scan runs or is queued."""
-        if self.scanning is not None or self.queue:
-            busy = self.scanning.scan_id if self.scanning is not None else self.queue[0].scan_id
-            return Ack(ok=False, detail=f"emitter/show: scan {busy} is running or queued")
+        if self.current is not None:
+            return Ack(ok=False, detail=f"emitter/show: scan {self.current.plan.scan_id} running")
+        if self.queue:
+            return Ack(ok=False, detail=f"emitter/show: scan {self.queue[0][0].scan_id} queued")
         try:
             if req.kind == "off":
                 self.display.blank()
@@ -181,59 +227,136 @@ class Emitter(Node):
         return ScanEvent(scan_id=plan.scan_id, event=event, method=plan.method, stripes=plan.stripes,
                          analyzer_deg=[a for a in plan.angles if a is not None], detail=detail)
 
-    # ---- the scan ------------------------------------------------------------------------------------------
-    def run_queued(self) -> None:
-        while self.queue and not self.stopping:
-            self.scanning = self.queue.popleft()
-            try:
-                self.run_scan(self.scanning)
-            finally:
-                self.scanning = None
+    # ---- the events that step a scan ---------------------------------------------------------------------
+    def on_tick(self) -> None:
+        """Every 10 ms: a wait past its deadline is a fault; between scans, the next queued one starts."""
+        run, p = self.current, self.params
+        if run is not None:
+            if self.now() >= run.deadline:
+                if run.waiting == "polarizer/state":
+                    text = (f"polarizer/state: analyzer not settled at {run.angle:g} deg within "
+                            f"{p.settle_timeout_s:g} s")
+                else:
+                    text = (f"{run.where()}: camera/frame: no frame within {p.frame_timeout_s:g} s "
+                            "after the trigger")
+                self._fail(text)
+        elif self.queue and not self.stopping:
+            self._start(*self.queue.popleft())
 
-    def run_scan(self, plan: ScanPlan) -> ScanEvent:
-        """Run one scan to its end; publish and return its final event (done or fault)."""
+    def on_state(self, state: PolarizerState) -> None:
+        self._state = (state, self.now())
+        run = self.current
+        if run is not None and run.waiting == "polarizer/state":
+            self._check_settled()
+
+    def on_frame(self, frame: Frame) -> None:
+        run = self.current
+        if run is None or run.waiting != "camera/frame" or (frame.scan_id, frame.step) != (run.plan.scan_id,
+                                                                                           run.step):
+            return  # not the frame this scan waits for (a late one of a timed-out step): dropped
+        run.timing["frame_wait_s"] += self.now() - run.since
+        run.timing["frames"] += 1
+        run.step += 1
+        self._wait("")
+        self._steps()
+
+    # ---- the scan ------------------------------------------------------------------------------------------
+    def _start(self, plan: ScanPlan, requested_s: float) -> None:
         self.scan_pub.publish(self._event(plan, "start"))
         self.log.info("scan %d (%s): %d patterns x %d analyzer angles", plan.scan_id, plan.method,
                       len(plan.patterns), len(plan.angles))
-        unpolarized = plan.angles == (None,)
-        self.timing = {"analyzer_s": 0.0, "camera_s": 0.0, "frame_wait_s": 0.0, "frames": 0}
-        t_scan = time.monotonic()
-        try:
-            if unpolarized:
-                self._mount(False)
-            step = 0
-            for angle in plan.angles:
-                if angle is not None:
-                    t0 = time.monotonic()
-                    self._set_analyzer(angle)
-                    self.timing["analyzer_s"] += time.monotonic() - t0
-                for tag in plan.patterns:
-                    if self.stopping:
-                        raise ScanFault(f"stopped ({self._stop_reason})")
-                    self._take(plan, tag, step)
-                    step += 1
-            final = self._event(plan, "done")
-        except ScanFault as exc:
-            final = self._event(plan, "fault", str(exc))
-            self.log.error("scan %d (%s) fault: %s", plan.scan_id, plan.method, exc)
-        finally:
+        self.current = _Run(plan, requested_s, self.now())
+        if self.current.unpolarized:
             try:
-                self.display.blank()
-            except DriverError as exc:
-                self.log.error("display: %s", exc)
-            if unpolarized:
-                try:
-                    self._mount(True)
-                except ScanFault as exc:
-                    self.log.error("%s", exc)
+                self._mount(False)
+            except ScanFault as exc:
+                return self._fail(str(exc))
+        self._steps()
+
+    def _steps(self) -> None:
+        """Go as far as the scan can without waiting: command the analyzer, or take the next frame."""
+        run = self.current
+        n = len(run.plan.patterns)
+        try:
+            if run.step == n * len(run.plan.angles):
+                return self._finish(self._event(run.plan, "done"))
+            i = run.step // n
+            angle = run.plan.angles[i]
+            if angle is not None and run.settled != i:
+                run.angle = angle
+                self.cmd_pub.publish(PolarizerCommand(target_deg=angle))
+                self._wait("polarizer/state", self.params.settle_timeout_s)
+                return self._check_settled()
+            if self.stopping:
+                raise ScanFault(f"stopped ({self.stop_reason})")
+            self._trigger()
+        except ScanFault as exc:
+            self._fail(str(exc))
+
+    def _check_settled(self) -> None:
+        """The newest polarizer/state since the scan was asked for (each looked at once) against the
+        commanded angle: settled there moves the scan on, a fault ends it."""
+        run, seen = self.current, self._state
+        if seen is None or seen[1] < run.requested_s:
+            return
+        self._state = None
+        state, angle, tol = seen[0], run.angle, self.params.settle_tolerance_deg
+        if state.fault:
+            return self._fail(f"polarizer/state: fault at {state.angle_deg:g} deg: {state.fault}")
+        if state.settled and abs(state.target_deg - angle) <= tol and abs(state.angle_deg - angle) <= tol:
+            run.timing["analyzer_s"] += self.now() - run.since
+            run.settled = run.step // len(run.plan.patterns)
+            self._wait("")
+            self._steps()
+
+    def _trigger(self) -> None:
+        """Light the step's pattern and have the grabber take it (the one blocking call, bounded)."""
+        run = self.current
+        plan, step = run.plan, run.step
+        tag, where = plan.patterns[step % len(plan.patterns)], run.where()
+        try:
+            self.display.show(tag)
+        except DriverError as exc:
+            raise ScanFault(f"{where}: display: {exc}") from None
+        self.pattern_pub.publish(Pattern.of(tag, plan.scan_id, step))
+        t0 = self.now()
+        try:
+            ack = self.trigger.call(FrameRequest(scan_id=plan.scan_id, step=step, pattern=tag))
+        except (BusError, TimeoutError) as exc:
+            raise ScanFault(f"{where}: camera/trigger: {exc}") from None
+        if not ack.ok:
+            raise ScanFault(f"{where}: camera/trigger: {ack.detail}")
+        run.timing["camera_s"] += self.now() - t0
+        self._wait("camera/frame", self.params.frame_timeout_s)
+
+    def _wait(self, what: str, timeout_s: float = math.inf) -> None:
+        run = self.current
+        run.waiting, run.since, run.deadline = what, self.now(), self.now() + timeout_s
+
+    def _fail(self, text: str) -> None:
+        run = self.current
+        self.log.error("scan %d (%s) fault: %s", run.plan.scan_id, run.plan.method, text)
+        self._finish(self._event(run.plan, "fault", text))
+
+    def _finish(self, final: ScanEvent) -> None:
+        """Blank the display, put the analyzer back, publish the scan's final event (done or fault)."""
+        run, self.current = self.current, None
+        try:
+            self.display.blank()
+        except DriverError as exc:
+            self.log.error("display: %s", exc)
+        if run.unpolarized:
+            try:
+                self._mount(True)
+            except ScanFault as exc:
+                self.log.error("%s", exc)
         self.scan_pub.publish(final)
-        self.results[plan.scan_id] = final
+        self.results[run.plan.scan_id] = final
         if final.event == "done":
-            t = self.timing
+            t = run.timing
             self.log.info("scan %d (%s) done in %.3f s: %d frames, analyzer %.3f s, camera %.3f s, "
-                          "frame wait %.3f s", plan.scan_id, plan.method, time.monotonic() - t_scan,
+                          "frame wait %.3f s", run.plan.scan_id, run.plan.method, self.now() - run.started_s,
                           t["frames"], t["analyzer_s"], t["camera_s"], t["frame_wait_s"])
-        return final
 
     def _mount(self, inserted: bool) -> None:
         try:
@@ -242,51 +365,6 @@ class Emitter(Node):
             raise ScanFault(f"camera/analyzer: {exc}") from None
         if not ack.ok:
             raise ScanFault(f"camera/analyzer: {ack.detail}")
-
-    def _set_analyzer(self, angle: float) -> None:
-        tol = self.params.settle_tolerance_deg
-        self.cmd_pub.publish(PolarizerCommand(target_deg=angle))
-
-        def settled_or_faulted(s: PolarizerState) -> bool:
-            return bool(s.fault) or (s.settled and abs(s.target_deg - angle) <= tol
-                                     and abs(s.angle_deg - angle) <= tol)
-
-        try:
-            state = self.wait_for("polarizer/state", settled_or_faulted, self.params.settle_timeout_s)
-        except BusTimeout:
-            raise ScanFault(f"polarizer/state: analyzer not settled at {angle:g} deg within "
-                            f"{self.params.settle_timeout_s:g} s") from None
-        except NodeStopping as exc:
-            raise ScanFault(f"stopped ({exc.reason}) waiting for polarizer/state") from None
-        if state.fault:
-            raise ScanFault(f"polarizer/state: fault at {state.angle_deg:g} deg: {state.fault}")
-
-    def _take(self, plan: ScanPlan, tag: str, step: int) -> None:
-        where = f"step {step} ({tag})"
-        try:
-            self.display.show(tag)
-        except DriverError as exc:
-            raise ScanFault(f"{where}: display: {exc}") from None
-        self.pattern_pub.publish(Pattern.of(tag, plan.scan_id, step))
-        t0 = time.monotonic()
-        try:
-            ack = self.trigger.call(FrameRequest(scan_id=plan.scan_id, step=step, pattern=tag))
-        except (BusError, TimeoutError) as exc:
-            raise ScanFault(f"{where}: camera/trigger: {exc}") from None
-        if not ack.ok:
-            raise ScanFault(f"{where}: camera/trigger: {ack.detail}")
-        t1 = time.monotonic()
-        try:
-            self.wait_for("camera/frame", lambda f: (f.scan_id, f.step) == (plan.scan_id, step),
-                          self.params.frame_timeout_s)
-        except BusTimeout:
-            raise ScanFault(f"{where}: camera/frame: no frame within {self.params.frame_timeout_s:g} s "
-                            "after the trigger") from None
-        except NodeStopping as exc:
-            raise ScanFault(f"{where}: stopped ({exc.reason}) waiting for camera/frame") from None
-        self.timing["camera_s"] += t1 - t0
-        self.timing["frame_wait_s"] += time.monotonic() - t1
-        self.timing["frames"] += 1
 
 
 NODE = "Emitter"

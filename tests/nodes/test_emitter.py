@@ -1,5 +1,5 @@
 """The emitter through the node harness: scan order, tags, analyzer handling and every fault path ends in a
-published fault (virtual clock: timeouts cost no real time)."""
+published fault (virtual clock: timeouts cost no real time); its services are answered while a scan runs."""
 
 import numpy as np
 import pytest
@@ -15,6 +15,11 @@ def make(params=None, *, frames=True, settle=True):
     h = NodeHarness(Emitter, name="emitter", namespace="/rig", params={"stripes": 4, **(params or {})})
     mounts = []
 
+    def polarizer(cmd):  # the stage reports settled at each commanded angle
+        if settle:
+            a = cmd.target_deg
+            h.queue("polarizer/state", PolarizerState(angle_deg=a, target_deg=a, settled=True))
+
     def trigger(req):
         if frames:
             h.queue("camera/frame", Frame(image=np.zeros((2, 3), np.uint16), exposure_s=0.01,
@@ -23,23 +28,21 @@ def make(params=None, *, frames=True, settle=True):
 
     h.on_call("camera/trigger", trigger)
     h.on_call("camera/analyzer", lambda req: mounts.append(req.inserted) or Ack(ok=True))
+    h.on_publish("polarizer/cmd", polarizer)
     h.mounts = mounts
-    h.settle = settle
     return h
 
 
-def run(h, request):
-    """Start a scan, let the queue timer run it, return (reply, emitter/scan events)."""
+def run(h, request, limit_s=60.0):
+    """Start a scan, run the loop until it has ended (or ``limit_s`` of virtual time), return (reply,
+    emitter/scan events)."""
     reply = h.call("emitter/start_scan", request)
-    if h.settle:  # the polarizer reports settled at each commanded angle: feed them in order
-        for a in _angles(reply):
-            h.queue("polarizer/state", PolarizerState(angle_deg=a, target_deg=a, settled=True))
     h.advance(0.05)
+    t0 = h.bus.now()
+    while h.node.scanning is not None or h.node.queue:
+        assert h.bus.now() - t0 < limit_s, "the scan never ended"
+        h.advance(0.05)
     return reply, h.published("emitter/scan")
-
-
-def _angles(reply):
-    return list(reply.analyzer_deg)
 
 
 def triggers(h):
@@ -168,3 +171,40 @@ def test_show_is_refused_while_scans_are_queued():
     h.call("emitter/start_scan", ScanRequest(method="flood"))  # queued, not run yet (no timer fired)
     ack = h.call("emitter/show", Pattern(kind="flood"))
     assert not ack.ok and "scan" in ack.detail and h.published("emitter/pattern") == []
+
+
+def test_services_are_answered_while_a_scan_waits_and_a_stop_ends_it_with_a_fault():
+    """The scan is stepped by the loop: while it waits for a frame that never comes, emitter/show is
+    refused at once, another scan is queued, and a stop publishes the fault and puts the rig back."""
+    from polarstripe.msgs import Pattern
+
+    h = make(frames=False)
+    first = h.call("emitter/start_scan", ScanRequest(method="flood"))
+    h.advance(0.05)  # started: the trigger answered, the frame is awaited (frame_timeout_s = 5 s)
+    assert h.node.scanning is not None and h.node.scanning.scan_id == first.scan_id
+    t0 = h.bus.now()
+    ack = h.call("emitter/show", Pattern(kind="flood"))
+    assert not ack.ok and ack.detail == f"emitter/show: scan {first.scan_id} running"
+    second = h.call("emitter/start_scan", ScanRequest(method="stripes"))
+    assert second.event == "start" and second.scan_id == first.scan_id + 1
+    assert h.bus.now() == t0  # answered at once, mid-scan
+    h.advance(1.0)  # still waiting: the frame timeout is 5 s
+    assert [e.event for e in h.published("emitter/scan")] == ["start"]
+    h.stop("SIGTERM")
+    events = h.published("emitter/scan")
+    assert [(e.scan_id, e.event) for e in events] == [(1, "start"), (1, "fault")]
+    assert events[-1].detail == "step 0 (flood): stopped (SIGTERM) waiting for camera/frame"
+    assert h.mounts == [False, True] and h.node.display.current.kind == "off"
+    assert [r.pattern for r in triggers(h)] == ["flood"]  # the queued scan never started
+
+
+def test_a_queued_scan_starts_when_the_running_one_times_out():
+    h = make({"frame_timeout_s": 0.5}, frames=False)
+    h.call("emitter/start_scan", ScanRequest(method="flood"))
+    h.call("emitter/start_scan", ScanRequest(method="flood"))
+    h.advance(0.3)
+    assert [(e.scan_id, e.event) for e in h.published("emitter/scan")] == [(1, "start")]
+    h.advance(0.5)
+    events = [(e.scan_id, e.event) for e in h.published("emitter/scan")]
+    assert events == [(1, "start"), (1, "fault"), (2, "start")]
+    assert "no frame within 0.5 s" in h.published("emitter/scan")[1].detail
