@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Empty, MediumEstimate, Plan
+from polarstripe.msgs import Empty, MediumEstimate
 from polarstripe.nodes.planner import Planner
+from polarstripe.planning.planner import SceneModel, default_separations
+from polarstripe.planning.planner import plan as plan_separations
 from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
 
@@ -25,9 +27,18 @@ def test_plan_is_served_and_published(harness):
     h.advance(3.0)
     assert len(h.published("planner/plan")) == 1
     plan = h.call("planner/plan", Empty())
-    assert isinstance(plan, Plan) and plan.modality == "stripes"
+    assert plan.modality == "stripes"
     seps = plan.curves["separation_m"]
     np.testing.assert_allclose(seps, np.linspace(0.05, 0.45, 6))
+    # the plan is the planner's on the node's scene: in the configured range, and within one grid step of
+    # the best separation planning.planner.plan finds for the same scene, modality and polarization
+    assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
+    model = SceneModel(h.node.scene, fidelity=FAST["fidelity"], n_stripes=h.node.params.stripes)
+    reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",))
+    step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
+    best = reference["stripes_polarized"].curve
+    assert abs(plan.separation_m - best.best_separation_m) <= step + 1e-12
+    np.testing.assert_allclose(plan.curves["objective"], best.objective)
     # the best objective among the separations that do not saturate a flood frame
     ok = plan.curves["flood_saturated_fraction"] <= 0.02
     assert ok.any() and plan.separation_m == seps[ok][int(np.argmax(plan.curves["objective"][ok]))]
