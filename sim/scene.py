@@ -2,8 +2,10 @@
 
 ``load_scene(None)`` is the paper's tank: 60×60×38 cm of dilute milk, camera and projector on the front face
 (z = 0), a contrast chart of albedo up to 0.6 on the back wall (z = 0.38 m). Every key, unit and default is
-documented in ``docs/scene-format.md``. Variants: ``scene.replace(...)`` / ``dataclasses.replace`` on any part
-(every part validates itself on construction), :func:`with_separation` for the camera–source distance.
+documented in ``docs/scene-format.md``; a file's objects are the ``[[object]]`` tables it lists (none listed:
+no objects, the tank's chart is not inherited). Variants: ``scene.replace(...)`` / ``dataclasses.replace`` on
+any part (every part validates itself on construction), :func:`with_separation` for the camera–source
+distance.
 
 This module is the public face: the file format (:func:`load_scene`, :func:`scene_from_dict`,
 :func:`scene_to_dict`) and every scene name; the parts live in :mod:`polarstripe.sim.scene_parts`, the value
@@ -143,7 +145,12 @@ def _object(i: int, t: dict, base: Path | None) -> SceneObject:
 
 
 def scene_from_dict(data: dict, base: Path | None = None) -> Scene:
-    """Build a :class:`Scene` from a parsed TOML mapping; missing keys take the default tank's values."""
+    """Build a :class:`Scene` from a parsed TOML mapping; missing keys take the default tank's values.
+
+    The objects are the ``[[object]]`` tables the mapping lists, none when it lists none: the default chart
+    hangs on the default tank's back wall, which a file may have moved (a file that set the medium to ±1 m
+    and listed no object used to get that 0.3 × 0.2 m chart at z = 0.38 m, cutting the view rays that hit it).
+    """
     _check_keys("scene", data, {"medium", "camera", "projector", "object"})
     kw: dict[str, Any] = {}
     if "medium" in data:
@@ -152,11 +159,10 @@ def scene_from_dict(data: dict, base: Path | None = None) -> Scene:
         kw["camera"] = _camera(data["camera"])
     if "projector" in data:
         kw["projector"] = _projector(data["projector"])
-    if "object" in data:
-        objs = data["object"]
-        if not isinstance(objs, list):
-            raise SceneError("object must be an array of tables ([[object]])")
-        kw["objects"] = tuple(_object(i, o, base) for i, o in enumerate(objs))
+    objs = data.get("object", [])
+    if not isinstance(objs, list):
+        raise SceneError("object must be an array of tables ([[object]])")
+    kw["objects"] = tuple(_object(i, o, base) for i, o in enumerate(objs))
     return Scene(**kw)
 
 

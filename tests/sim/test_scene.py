@@ -84,3 +84,13 @@ def test_replace_validates_and_separation_moves_along_front_face():
     same_dir = with_separation(s, 0.3, aim=False)
     np.testing.assert_allclose(np.subtract(same_dir.projector.look_at, same_dir.projector.position),
                                np.subtract(s.projector.look_at, s.projector.position))
+
+
+def test_a_file_has_the_objects_it_lists(tmp_path):
+    """No [[object]] (or ``object = []``): no objects; the tank's chart comes only with the tank itself."""
+    for name, text in (("none.toml", "[medium]\nsigma_t = 2.0\n"), ("empty.toml", "object = []\n"),
+                       ("blank.toml", "")):
+        p = tmp_path / name
+        p.write_text(text)
+        assert load_scene(p).objects == ()
+    assert scene_from_dict({}).objects == () and load_scene(None).objects[0].texture == "chart"
