@@ -7,7 +7,13 @@ import time
 import pytest
 import serial
 from polarstripe.nodes.drivers.ell14 import Ell14Stage, decode_s32, encode_s32
-from polarstripe.nodes.drivers.errors import DeviceError, DriverError, DriverTimeout, StageFault
+from polarstripe.nodes.drivers.errors import (
+    DeviceError,
+    DriverError,
+    DriverTimeout,
+    DriverValueError,
+    StageFault,
+)
 from polarstripe.nodes.drivers.simell14 import SimEll14
 
 
@@ -73,6 +79,37 @@ def test_a_bad_command_is_a_device_error_naming_the_status(device):
         with pytest.raises(DeviceError, match=r"'zz' failed: GS03 command error or not supported"):
             stage.request("zz")
         assert stage.fault is None  # a rejected query does not fault the stage
+        assert stage.request("gs") == "0GS00"
+
+
+def test_any_command_of_the_manual_keeps_the_line_in_step(device):
+    with Ell14Stage(device.port) as stage:
+        assert stage.request("sv", "32") == "0GS00"
+        assert stage.request("gs") == "0GS00"
+        assert stage.request("gp") == "0PO00000000"
+        assert stage.velocity == 0x32
+        stage.velocity = 80
+        assert device.velocity == 80
+        info = stage.motor_info(1)
+        assert info["loop"] and info["motor"] and 60e3 < info["forward_hz"] < 120e3
+        assert stage.request("s1", timeout_s=2.0) == "0GS00"
+
+
+def test_a_command_with_the_wrong_data_length_is_not_sent(device):
+    with Ell14Stage(device.port) as stage:
+        sent = len(device.received)
+        with pytest.raises(DriverValueError, match=r"'sv' takes 2 data characters, got data='032'"):
+            stage.request("sv", "032")
+        assert len(device.received) == sent
+
+
+def test_change_address_follows_the_device_to_its_new_address(device):
+    with Ell14Stage(device.port) as stage:
+        stage.change_address("3")
+        assert device.address == "3" and stage.address == "3" and stage.name.startswith("ELL14 3 ")
+        stage.move_to(45.0)
+        assert stage.wait_settled(2.0) == pytest.approx(45.0)
+        stage.change_address("0")
         assert stage.request("gs") == "0GS00"
 
 
