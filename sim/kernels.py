@@ -8,110 +8,18 @@ scattering-plane Stokes on a subset of the nodes (the steps are documented in ``
 is that of the numpy code this replaced, node for node). Also here: the clip of rays to the pattern's
 half-spaces, D (eq. 11) and the rotation of the Stokes sums into the camera frame. No ``fastmath`` (the
 reference tests compare to 1e-6; it bought 8 %). Compiled once per machine (``cache=True``, ``__pycache__``).
+The arguments are the records of :mod:`polarstripe.sim.kernel_records`.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 _FOUR_PI = 4.0 * math.pi
 _G_MAX = 1.0 - 1e-6
-
-
-# The kernels' arguments, bundled by kind. Module-level NamedTuples are plain tuples to numba (free to pass,
-# and ``cache=True`` keeps working); :mod:`polarstripe.sim.transport` builds them with fixed field types
-# (float64 / int64 / bool, C-contiguous arrays) so each kernel compiles once.
-
-
-class Light(NamedTuple):
-    """The source as the line integral sees it."""
-
-    position: np.ndarray        # (1, 3) shared or (n, 3) one per ray
-    radius: float               # r_s [m]
-    intensity: float            # I0 [W/sr]
-    inside: bool                # inside (or on) the medium box: the exact truncation applies
-    facing: np.ndarray          # (0, 3) none, (1, 3) or (n, 3): normals of a surface point "source" (A)
-
-
-class Medium(NamedTuple):
-    """Extinction and scattering coefficients [1/m] and the medium box."""
-
-    sigma_t: float
-    sigma_s: float
-    box_lo: np.ndarray          # (3,)
-    box_hi: np.ndarray          # (3,)
-
-
-class PhaseArgs(NamedTuple):
-    """The phase function: code 0 isotropic, 1 HG(g1), 2 TTHG α·HG(g1) + (1 − α)·HG(−g2) (scalars only, so
-    passing it to :func:`phase_value` in the inner loop costs nothing)."""
-
-    code: int
-    g1: float
-    g2: float
-    alpha: float
-
-
-class Quadrature(NamedTuple):
-    """How each interval is cut and summed: Gauss–Legendre rules of n = (nodes, nodes/2, nodes/4) points
-    padded into (3, nodes) ``t``/``w``, the polarization node subsets ``subs`` (3, 5) of each rule (``nsubs``
-    (3,) long), the phase function's forward-lobe width [rad] and the scattering angles [rad] where intervals
-    are split."""
-
-    nodes: int
-    t: np.ndarray
-    w: np.ndarray
-    n: np.ndarray
-    subs: np.ndarray
-    nsubs: np.ndarray
-    width: float
-    split_alphas: np.ndarray
-
-
-class Polarization(NamedTuple):
-    """Whether to accumulate the Stokes sums, the source's unit E-field (3,), its DOP and the medium's δ."""
-
-    on: bool
-    e_field: np.ndarray
-    dop_l: float
-    depol: float
-
-
-class Rays(NamedTuple):
-    """View rays origin + x·dirs; the view path enters the medium at x = view_start."""
-
-    origin: np.ndarray          # (1, 3) shared or (n, 3)
-    dirs: np.ndarray            # (n, 3) unit
-    view_start: np.ndarray      # (n,)
-
-
-class Intervals(NamedTuple):
-    """Lit intervals [lo, hi] of ray index ``ray`` (from :func:`polarstripe.sim.patterns.lit_intervals`)."""
-
-    ray: np.ndarray             # (m,) int64
-    lo: np.ndarray
-    hi: np.ndarray
-
-
-class Stokes(NamedTuple):
-    """Per-ray radiance b and its B-weighted linear Stokes sums q, u (each (n,))."""
-
-    b: np.ndarray
-    q: np.ndarray
-    u: np.ndarray
-
-
-class SurfacePoints(NamedTuple):
-    """Surface points (m, 3), unit normals (m, 3), albedo (m,) and whether the pattern lights them (m,)."""
-
-    points: np.ndarray
-    normals: np.ndarray
-    albedo: np.ndarray
-    lit: np.ndarray
 
 
 @njit(cache=True)
@@ -129,7 +37,7 @@ def _hg(omm, opm, g):
 
 @njit(cache=True)
 def phase_value(phase, omm, opm):
-    """P [1/sr] of a :class:`PhaseArgs` given 1 − μ and 1 + μ."""
+    """P [1/sr] of a ``PhaseArgs`` record given 1 − μ and 1 + μ."""
     if phase.code == 0:
         return 1.0 / _FOUR_PI
     if phase.code == 1:
@@ -179,9 +87,9 @@ def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
 def line_integrals(light, medium, phase, quad, polarization, rays, intervals, out):
     """Accumulate the eq. 13 line integral of each interval into its ray (see the module docstring).
 
-    Arguments are the records above (:class:`Light`, :class:`Medium`, :class:`PhaseArgs`,
-    :class:`Quadrature`, :class:`Polarization`, :class:`Rays`, :class:`Intervals`); the sums are added into
-    ``out`` (:class:`Stokes`; q and u only with ``polarization.on``).
+    Arguments are the records of :mod:`~polarstripe.sim.kernel_records` (``Light``, ``Medium``,
+    ``PhaseArgs``, ``Quadrature``, ``Polarization``, ``Rays``, ``Intervals``); the sums are added into ``out``
+    (``Stokes``; q and u only with ``polarization.on``).
     """
     src_pos, radius, inten, inside, facing = light
     st, ss, box_lo, box_hi = medium
@@ -374,7 +282,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
 
 @njit(cache=True)
 def camera_stokes(src, origin, dirs, cr, cu, sums, q_out, u_out):
-    """Rotate per-ray (q, u) of ``sums`` (:class:`Stokes`) from the scattering-plane frame (e_par_out =
+    """Rotate per-ray (q, u) of ``sums`` (a ``Stokes`` record) from the scattering-plane frame (e_par_out =
     e_perp × (−d)) into the camera's (r, u) axes ``cr``, ``cu`` (render._camera_stokes)."""
     b, q, u = sums
     lx, ly, lz = src[0] - origin[0], src[1] - origin[1], src[2] - origin[2]
@@ -423,7 +331,7 @@ def clip_rays(origin, dirs, x0, x1, apex, normals, eps, lo_out, hi_out):
 
 @njit(cache=True)
 def direct_kernel(light, medium, cam, surface, out):
-    """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at the lit :class:`SurfacePoints`, else 0
+    """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at the lit ``SurfacePoints``, else 0
     (transport.direct); ``light.position`` is (1, 3), ``cam`` (3,)."""
     src, inten, radius = light.position[0], light.intensity, light.radius
     st, box_lo, box_hi = medium.sigma_t, medium.box_lo, medium.box_hi

@@ -20,7 +20,8 @@ from polarstripe.sim.geometry import (
     pixel_rays,
     projector_coords,
 )
-from polarstripe.sim.kernels import Stokes, camera_stokes
+from polarstripe.sim.kernel_records import Stokes
+from polarstripe.sim.kernels import camera_stokes
 from polarstripe.sim.patterns import Pattern, lit_intervals, parse_pattern, stripe_columns
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from polarstripe.sim import kernel_records as records
 from polarstripe.sim import kernels
 from polarstripe.sim import phase as phase_fn
 from polarstripe.sim.geometry import Frame, box_interval, pinhole_frame, point_in_box, segment_length_in_box
@@ -118,27 +119,27 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     f64 = np.ascontiguousarray
     face = np.zeros((0, 3)) if facing is None else f64(facing, float).reshape(-1, 3)
     kernels.line_integrals(
-        _light(src, face), _medium(src), kernels.PhaseArgs(*_phase_code(src.phase)),
+        _light(src, face), _medium(src), records.PhaseArgs(*_phase_code(src.phase)),
         _quadrature(int(nodes), src.phase, tuple(splits)), _polarization(src, pol),
-        kernels.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
-        kernels.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
-        kernels.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
+        records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
+        records.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
+        records.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
     return (b_out, q_out, u_out) if polarization else b_out
 
 
-def _light(src: Source, facing: np.ndarray) -> kernels.Light:
-    return kernels.Light(np.ascontiguousarray(src.position, float).reshape(-1, 3), float(src.radius),
+def _light(src: Source, facing: np.ndarray) -> records.Light:
+    return records.Light(np.ascontiguousarray(src.position, float).reshape(-1, 3), float(src.radius),
                          float(src.intensity), bool(src.inside), facing)
 
 
-def _medium(src: Source) -> kernels.Medium:
-    return kernels.Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
+def _medium(src: Source) -> records.Medium:
+    return records.Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
                           np.asarray(src.box_hi, float))
 
 
-def _polarization(src: Source, on: bool) -> kernels.Polarization:
+def _polarization(src: Source, on: bool) -> records.Polarization:
     depol = float(src.dop_model.depolarization) if on else 0.0
-    return kernels.Polarization(on, np.asarray(src.e_field, float), float(src.dop_l), depol)
+    return records.Polarization(on, np.asarray(src.e_field, float), float(src.dop_l), depol)
 
 
 def _phase_code(phase) -> tuple[int, float, float, float]:
@@ -153,9 +154,9 @@ def _phase_code(phase) -> tuple[int, float, float, float]:
     return 2, float(gf), float(gb), float(alpha)
 
 
-def _quadrature(nodes: int, phase, splits: tuple[float, ...]) -> kernels.Quadrature:
+def _quadrature(nodes: int, phase, splits: tuple[float, ...]) -> records.Quadrature:
     """The kernel's quadrature record: :func:`_rules` of ``nodes``, the forward width, the split angles."""
-    return kernels.Quadrature(*_rules(nodes), float(forward_width(phase)), _split_angles(phase, splits))
+    return records.Quadrature(*_rules(nodes), float(forward_width(phase)), _split_angles(phase, splits))
 
 
 @lru_cache(maxsize=32)
@@ -199,7 +200,7 @@ def direct(src: Source, objects, camera_pos: np.ndarray, points: np.ndarray, nor
     """
     out = np.empty(points.shape[0])
     f64 = np.ascontiguousarray
-    surface = kernels.SurfacePoints(f64(points, float), f64(normals, float),
+    surface = records.SurfacePoints(f64(points, float), f64(normals, float),
                                     f64(np.broadcast_to(albedo, points.shape[:1]), float),
                                     f64(np.broadcast_to(lit, points.shape[:1]), bool))
     kernels.direct_kernel(_light(src, np.zeros((0, 3))), _medium(src),

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 from polarstripe.sim import kernels
-from polarstripe.sim.kernels import (
+from polarstripe.sim.kernel_records import (
     Intervals,
     Light,
     Medium,
