@@ -1,4 +1,5 @@
-"""Quality measures of the paper's §3.1: CQM (eq. 8), GQM (eq. 9) and the SNR weight W (eq. 10).
+"""Quality measures of the paper's §3.1: CQM (eq. 8), GQM (eq. 9), the SNR weight W (eq. 10), and the
+delineation margin the stripe planner uses in place of eq. 9 (docs/planning.md).
 
 All are evaluated in log space so they stay finite when the components span hundreds of orders of magnitude
 (optical thickness 100): a ratio x/(x + y) is computed as expit(log x - log y), never as a quotient of two
@@ -89,6 +90,39 @@ def gqm(direct, indirect, backscatter, p=0.0) -> np.ndarray:
     """
     d, a, b = _nonneg("direct", direct), _nonneg("indirect", indirect), _nonneg("backscatter", backscatter)
     return np.exp(log_gqm(_log(d), _log(a), _log(b), p))
+
+
+def log_margin(log_own, log_competitor) -> np.ndarray:
+    """log of the delineation margin max(0, (E_own - E_comp)/E_own) from log E_own and log E_comp.
+
+    -inf where E_comp >= E_own (no margin) or E_own = 0; 0 where E_comp = 0 < E_own. Computed as
+    log(1 - e^{log E_comp - log E_own}) with ``log1p``, so it stays exact when both underflow.
+    """
+    lo, lc = np.asarray(log_own, np.float64), np.asarray(log_competitor, np.float64)
+    if np.any(np.isnan(lo)) or np.any(np.isnan(lc)):
+        raise ImagingError("log_own/log_competitor: NaN values")
+    with np.errstate(invalid="ignore"):
+        d = lc - lo
+    d = np.where(np.isnan(d), np.inf, d)  # both zero: no stripe, no margin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(d < 0.0, np.log1p(-np.exp(np.minimum(d, 0.0))), -np.inf)
+
+
+def margin(own, competitor) -> np.ndarray:
+    """Delineation margin M = max(0, (E_own - E_comp) / E_own), in [0, 1].
+
+    The relative step by which a lit stripe point O (intensity E_own under its own sheet) exceeds the
+    brightest competitor E_comp that a stripe delineation or the per-pixel maximum of eq. 7 meets at or next
+    to it. Eq. 9 (GQM) is the special case E_comp = A (the unlit neighbour O' receives only the indirect
+    light, Fig. 8c): M = (D + A + B(1 - p) - A) / (D + A + B(1 - p)) = GQM.
+
+    Parameters
+    ----------
+    own, competitor : array_like
+        E_own and E_comp, radiances or electrons (one common unit), >= 0, broadcastable.
+    """
+    o, c = _nonneg("own", own), _nonneg("competitor", competitor)
+    return np.exp(log_margin(_log(o), _log(c)))
 
 
 def log_snr_weight(signal, mu, z) -> np.ndarray:

@@ -14,14 +14,25 @@ import json
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
-from polarstripe.planning.planner import MODALITIES, SCAN_TYPES, Curve, SceneModel, default_separations, plan
+from polarstripe.planning.planner import (
+    EDGES,
+    MODALITIES,
+    SCAN_TYPES,
+    Curve,
+    SceneModel,
+    default_separations,
+    plan,
+)
 from polarstripe.sim.scene import load_scene
 
-HELP = "find the best camera-source separation and stripe scan (CQM*W for flood, GQM*W for stripes)"
+HELP = ("find the best camera-source separation and stripe scan (flood CQM*W, stripes margin*W; "
+        "docs/planning.md)")
+
+MEASURES = {"flood": "CQM*W", "margin": "margin*W", "eq9": "GQM*W"}
 
 
 def _curve_json(c: Curve) -> dict:
-    return {
+    out = {
         "separations": c.separations_m.tolist(),
         "objective": c.objective.tolist(),
         "objective_noise_free": c.objective_noise_free.tolist(),
@@ -30,16 +41,23 @@ def _curve_json(c: Curve) -> dict:
         "saturated": c.saturated.tolist(),
         "best_separation": c.best_separation_m,
     }
+    if c.limited_by is not None:
+        out["limited_by"] = list(c.limited_by)
+    return out
 
 
 def plan_to_json(plans: dict) -> dict:
     """The plan as plain JSON types (validates against :data:`PLAN_SCHEMA`). Separations in metres."""
     out = {}
     for key, mp in plans.items():
-        entry = {"modality": mp.modality, "polarized": mp.polarized,
-                 "measure": "CQM*W" if mp.modality == "flood" else "GQM*W",
-                 "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
+        measure = MEASURES["flood" if mp.modality == "flood" else mp.edge or "eq9"]
+        entry = {"modality": mp.modality, "polarized": mp.polarized, "reading": mp.reading,
+                 "measure": measure, "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
+        if mp.readings:
+            entry["readings"] = {r: _curve_json(c) for r, c in mp.readings.items()}
+            entry["recommendation"] = dict(mp.recommendation)
         if mp.modality == "stripes":
+            entry["edge"] = mp.edge
             entry["locations"] = [{**loc, **_curve_json(c)}
                                   for loc, c in zip(mp.locations, mp.location_curves, strict=True)]
             entry["scan"] = mp.scan
@@ -52,20 +70,31 @@ _CURVE = {
     "separations": _NUMS, "objective": _NUMS, "objective_noise_free": _NUMS, "quality": _NUMS,
     "weight": _NUMS,
     "saturated": {"type": "array", "items": {"type": "boolean"}}, "best_separation": {"type": "number"},
+    "limited_by": {"type": "array", "items": {"enum": ["neighbour", "sheet", ""]}},
 }
+_CURVE_OBJ = {"type": "object", "required": ["separations", "objective", "objective_noise_free",
+                                             "best_separation"], "properties": _CURVE}
 _ENTRY = {
     "type": "object",
-    "required": ["modality", "polarized", "separations", "objective", "objective_noise_free",
+    "required": ["modality", "polarized", "reading", "separations", "objective", "objective_noise_free",
                  "best_separation"],
     "properties": {"modality": {"enum": list(MODALITIES)}, "polarized": {"type": "boolean"},
-                   "measure": {"type": "string"}, "exposure_scale": {"type": "number", "exclusiveMinimum": 0},
+                   "reading": {"enum": ["E", "E_b", "S_hat"]},
+                   "measure": {"enum": sorted(set(MEASURES.values()))},
+                   "exposure_scale": {"type": "number", "exclusiveMinimum": 0},
+                   "readings": {"type": "object", "additionalProperties": _CURVE_OBJ},
+                   "recommendation": {"type": "object", "required": ["reading", "reason"],
+                                      "properties": {"reading": {"enum": ["E_b", "S_hat"]},
+                                                     "reason": {"type": "string"}}},
                    **_CURVE},
 }
+_FLOOD_POL_ENTRY = {**_ENTRY, "required": _ENTRY["required"] + ["readings", "recommendation"]}
 _STRIPE_ENTRY = {
     **_ENTRY,
-    "required": _ENTRY["required"] + ["locations", "scan"],
+    "required": _ENTRY["required"] + ["edge", "locations", "scan"],
     "properties": {
         **_ENTRY["properties"],
+        "edge": {"enum": list(EDGES)},
         "locations": {"type": "array", "minItems": 1, "items": {
             "type": "object", "required": ["pixel", "lateral_position_m", "separations", "objective",
                                            "objective_noise_free", "best_separation"],
@@ -85,7 +114,7 @@ PLAN_SCHEMA = {
     "type": "object",
     "minProperties": 1,
     "additionalProperties": False,
-    "properties": {"flood": _ENTRY, "flood_polarized": _ENTRY, "stripes": _STRIPE_ENTRY,
+    "properties": {"flood": _ENTRY, "flood_polarized": _FLOOD_POL_ENTRY, "stripes": _STRIPE_ENTRY,
                    "stripes_polarized": _STRIPE_ENTRY},
 }
 
@@ -106,11 +135,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="scene: the camera's exposure_s, saturated points score 0 (default); auto: one "
                         "exposure per modality, the longest with no saturation over the sweep")
-    parser.add_argument("--edge", choices=["eq9", "measured"], default="eq9",
-                        help="stripe measure: eq. 9 as printed (default), or the O/O' step rendered with the "
-                        "neighbouring sheet lit (3x the stripe cost)")
+    parser.add_argument("--edge", choices=list(EDGES), default="margin",
+                        help="stripe measure: margin (default), O's own-sheet intensity against the "
+                        "brightest competitor (O under the other sheets, the unlit neighbour O'); eq9, the "
+                        "paper's eq. 9 as printed, which counts the sheet's own backscatter as edge signal "
+                        "and so favours the co-located source (docs/planning.md)")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
+
+
+def _limits(loc: dict) -> str:
+    """'sheets below 7 cm, neighbour above' from a location's limited_by list."""
+    lim, seps = loc.get("limited_by"), loc["separations"]
+    if not lim:
+        return ""
+    runs, start = [], 0
+    for k in range(1, len(lim) + 1):
+        if k == len(lim) or lim[k] != lim[start]:
+            runs.append(f"{lim[start] or 'none'} {seps[start] * 100:.0f}-{seps[k - 1] * 100:.0f} cm")
+            start = k
+    return "; limited by " + ", ".join(runs)
 
 
 def _print_tables(doc: dict) -> None:
@@ -119,54 +163,69 @@ def _print_tables(doc: dict) -> None:
             continue
         plain, pol = doc[modality], doc[modality + "_polarized"]
         measure = plain["measure"]
-        print(f"{modality}: exposure ×{plain['exposure_scale']:.3g} of the scene's")
+        print(f"{modality}: {measure}, exposure ×{plain['exposure_scale']:.3g} of the scene's")
         print(f"  best d_LC = {plain['best_separation'] * 100:.1f} cm without a polarizer "
               f"({measure} = {max(plain['objective']):.4g}), {pol['best_separation'] * 100:.1f} cm with one "
-              f"({measure} = {max(pol['objective']):.4g})")
+              f"({pol['reading']}, {measure} = {max(pol['objective']):.4g})")
+        cols = [("E", plain)]
+        if "readings" in pol:
+            rec = pol["recommendation"]
+            print(f"  polarized reading: {rec['reading']} — {rec['reason']}")
+            cols += [(r, {**c, "saturated": c.get("saturated", [])}) for r, c in pol["readings"].items()]
+        else:
+            cols.append((pol["reading"], pol))
         if modality == "stripes":
             for tag, entry in (("unpolarized", plain), ("polarized", pol)):
-                per = ", ".join(f"O{i + 1} {loc['best_separation'] * 100:.1f} cm"
-                                for i, loc in enumerate(entry["locations"]))
                 scan = entry["scan"]
                 scores = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} n/a"
                                    for k, v in scan["scores"].items())
-                print(f"  {tag}: per-location optima {per}; scan scores {scores}; winner: {scan['winner']}")
-        print(f"  {'d_LC [cm]':>9} {measure:>10} {measure + ' pol':>12} {'noise-free':>11} {'n-f pol':>9}"
-              f" {'W':>6} {'W pol':>6}")
+                print(f"  {tag}: scan scores {scores}; winner: {scan['winner']}")
+                for i, loc in enumerate(entry["locations"]):
+                    print(f"    O{i + 1} best {loc['best_separation'] * 100:.1f} cm{_limits(loc)}")
+        head = "".join(f" {r:>7} {r + ' n-f':>9} {'W ' + r:>7}" for r, _ in cols)
+        print(f"  {'d_LC [cm]':>9}{head}")
         for k, d in enumerate(plain["separations"]):
-            sat = " saturated" if plain["saturated"][k] or pol["saturated"][k] else ""
-            print(f"  {d * 100:9.1f} {plain['objective'][k]:10.4f} {pol['objective'][k]:12.4f} "
-                  f"{plain['objective_noise_free'][k]:11.4f} {pol['objective_noise_free'][k]:9.4f} "
-                  f"{plain['weight'][k]:6.3f} {pol['weight'][k]:6.3f}{sat}")
+            row = "".join(f" {c['objective'][k]:7.4f} {c['objective_noise_free'][k]:9.4f} "
+                          f"{c['weight'][k]:7.3f}" for _, c in cols)
+            sat = " saturated" if any(c["saturated"][k] for _, c in cols if c.get("saturated")) else ""
+            print(f"  {d * 100:9.1f}{row}{sat}")
+
+
+_STYLE = {"E": "-", "E_b": "--", "S_hat": ":"}
+_LABEL = {"E": "no polarizer", "E_b": "best-polarized E_b", "S_hat": "recovered Ŝ (eq. 6)"}
 
 
 def plot_plan(doc: dict, path: str) -> None:
-    """Curves like the paper's Fig. 9a (flood CQM·W) and Fig. 10d (GQM·W per stripe location)."""
+    """Curves like the paper's Fig. 9a (flood CQM·W: E, E_b and Ŝ) and Fig. 10d (stripes per location)."""
 
     matplotlib.use("Agg")
 
     panels = [m for m in ("flood", "stripes") if m in doc]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.4 * len(panels), 4.6), squeeze=False)
     for ax, modality in zip(axes[0], panels, strict=True):
-        for suffix, style in (("", "-"), ("_polarized", "--")):
-            entry = doc[modality + suffix]
-            tag = "polarized" if suffix else "unpolarized"
-            d = np.asarray(entry["separations"]) * 100
-            if modality == "flood":
-                line, = ax.plot(d, entry["objective"], style, lw=2, label=f"{tag}, with sensor noise")
-                ax.plot(d, entry["objective_noise_free"], style, lw=1, color=line.get_color(), alpha=0.5,
-                        label=f"{tag}, zero noise")
-                ax.axvline(entry["best_separation"] * 100, color=line.get_color(), lw=0.8, ls=":")
-            else:
+        plain, pol = doc[modality], doc[modality + "_polarized"]
+        if modality == "flood":
+            curves = [("E", plain)] + list(pol.get("readings", {pol["reading"]: pol}).items())
+            for i, (reading, entry) in enumerate(curves):
+                d = np.asarray(entry["separations"]) * 100
+                ax.plot(d, entry["objective"], _STYLE[reading], color=f"C{i}", lw=2,
+                        label=f"{_LABEL[reading]}, with sensor noise")
+                ax.plot(d, entry["objective_noise_free"], _STYLE[reading], color=f"C{i}", lw=1, alpha=0.45,
+                        label=f"{_LABEL[reading]}, zero noise")
+                ax.axvline(entry["best_separation"] * 100, color=f"C{i}", lw=0.8, ls=":")
+            title = f"flood lighting (cf. Fig. 9a); polarized: {pol['reading']} recommended"
+        else:
+            for suffix, style, entry in (("", "-", plain), ("_polarized", "--", pol)):
+                tag = "polarized E_b" if suffix else "unpolarized"
+                d = np.asarray(entry["separations"]) * 100
                 for i, loc in enumerate(entry["locations"]):
                     ax.plot(d, loc["objective"], style, color=f"C{i}", lw=2 if not suffix else 1.5,
                             label=f"O{i + 1}, {tag}")
                     ax.plot(d, loc["objective_noise_free"], style, color=f"C{i}", lw=0.8, alpha=0.4)
+            title = f"light striping (cf. Fig. 10d), {plain['measure']}; scan: {pol['scan']['winner']}"
         ax.set_xlabel("sensor–source separation d_LC [cm]")
-        ax.set_ylabel("CQM × W" if modality == "flood" else "GQM × W")
-        title = "flood lighting (cf. Fig. 9a)" if modality == "flood" else \
-            f"light striping (cf. Fig. 10d); scan: {doc['stripes']['scan']['winner']}"
-        ax.set_title(title)
+        ax.set_ylabel(plain["measure"].replace("*", " × "))
+        ax.set_title(title, fontsize=10)
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
