@@ -154,7 +154,7 @@ def find_launch_file(path: str | Path) -> Path:
     """``path`` if it exists, else the launch file of that name shipped with polarstripe (``sim``,
     ``sim.toml`` and ``launch/sim.toml`` all name the embedded ``launch/sim.toml``), else ``path``."""
     path = Path(path)
-    if path.exists() or path.is_absolute():
+    if path.is_file() or path.is_absolute():  # not a directory: "sim" in the repository root is a package
         return path
 
     shipped = Path(polarstripe.__file__).parent / "launch" / path.name

@@ -1,21 +1,11 @@
-import threading
 import time
 
 import msgpack
 import numpy as np
 import pytest
 import zmq
-from polarstripe.msgs import Ack, Empty, Frame, Log, MessageError, encode
-from polarstripe.runtime.bus import (
-    BusError,
-    BusTimeout,
-    CurveKeys,
-    PubSocket,
-    ServiceError,
-    ServiceTimeout,
-    Subscriber,
-)
-from polarstripe.runtime.service import ServiceClient, ServiceServer
+from polarstripe.msgs import Frame, Log, MessageError, encode
+from polarstripe.runtime.bus import BusError, BusTimeout, CurveKeys, PubSocket, Subscriber
 
 
 def _log(i):
@@ -209,87 +199,6 @@ def test_tcp_and_curve(ipc):
 def test_bind_failure_names_the_endpoint(tmp_path):
     with pytest.raises(BusError, match="cannot bind tcp://256.0.0.1:1"):
         PubSocket("tcp://256.0.0.1:1")
-
-
-class _Serving:
-    """A ServiceServer answered by a thread (the node loop does this in real nodes)."""
-
-    def __init__(self, endpoint):
-        self.server = ServiceServer(endpoint)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._loop)
-
-    def _loop(self):
-        while not self.stop.is_set():
-            if self.server.socket.poll(20):
-                self.server.handle_ready()
-
-    def __enter__(self):
-        self.thread.start()
-        return self.server
-
-    def __exit__(self, *exc):
-        self.stop.set()
-        self.thread.join()
-        self.server.close()
-
-
-def test_service_call_error_and_unknown_service(ipc):
-    served = _Serving(ipc("s.srv"))
-    calls = []
-
-    def echo(req):
-        calls.append(req.text)
-        if req.text == "boom":
-            raise RuntimeError("handler exploded")
-        return Ack(ok=True, detail=req.text.upper())
-
-    served.server.add("/t/echo", Log, Ack, echo)
-    with served as server:
-        with ServiceClient(server.endpoint, "/t/echo", Log, Ack, timeout_s=2) as c:
-            assert c.call(_log("hi")).detail == "HI"
-            with pytest.raises(ServiceError, match="RuntimeError: handler exploded"):
-                c.call(_log("boom"))
-            assert c.call(_log("again")).detail == "AGAIN"
-        with ServiceClient(server.endpoint, "/t/nonesuch", Empty, Ack, timeout_s=2) as c:
-            with pytest.raises(ServiceError, match="'/t/nonesuch' is not served"):
-                c.call(Empty())
-        with ServiceClient(server.endpoint, "/t/echo", Empty, Ack, timeout_s=2) as c:  # wrong request type
-            with pytest.raises(ServiceError, match="expected 'log', got 'empty'"):
-                c.call(Empty())
-        # a raw malformed request (garbage header) gets an error reply and is counted
-        dealer = zmq.Context.instance().socket(zmq.DEALER)
-        dealer.connect(server.endpoint)
-        dealer.send_multipart([b"/t/echo", b"12345678", b"\xc1"])
-        assert dealer.poll(2000)
-        reply = dealer.recv_multipart()
-        assert reply[2] == b"error" and b"not a MessagePack header" in reply[3]
-        dealer.close(0)
-    assert calls == ["hi", "boom", "again"]
-    assert server.stats.bad == 3 and server.stats.errors == 1
-
-
-def test_service_timeout_when_the_server_is_down_and_no_stale_request_later(ipc):
-    ep = ipc("s.srv")
-    client = ServiceClient(ep, "/t/echo", Log, Ack, timeout_s=0.3)
-    t0 = time.monotonic()
-    with pytest.raises(ServiceTimeout, match=r"service '/t/echo' at ipc://.*s.srv: no reply within 0.3 s"):
-        client.call(_log("lost"))
-    assert 0.25 < time.monotonic() - t0 < 1.5
-    assert isinstance(ServiceTimeout("x"), TimeoutError)
-    served = _Serving(ep)
-    seen = []
-    served.server.add("/t/echo", Log, Ack, lambda r: seen.append(r.text) or Ack(ok=True))
-    with served:
-        assert client.call(_log("now"), timeout_s=3).ok
-        time.sleep(0.1)
-    assert seen == ["now"]  # the request of the timed-out call was dropped with its socket
-
-
-def test_request_type_is_checked_before_sending(ipc):
-    c = ServiceClient(ipc("none.srv"), "/t/echo", Log, Ack)
-    with pytest.raises(MessageError, match="expected 'log', got Empty"):
-        c.call(Empty())
 
 
 def test_wire_layout_is_topic_header_buffers(ipc):

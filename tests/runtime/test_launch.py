@@ -17,7 +17,6 @@ import zmq
 from polarstripe.msgs import Ack, Empty, Frame, Heartbeat, Log, encode
 from polarstripe.runtime.bus import BusTimeout, ServiceTimeout, Subscriber
 from polarstripe.runtime.graph import pub_endpoints
-from polarstripe.runtime.launch_file import LaunchError, load_launch
 from polarstripe.runtime.service import ServiceClient
 
 TEST_NODES = """
@@ -330,58 +329,6 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
     assert "stubborn: killed by SIGKILL after the launcher's SIGKILL, 0 respawns" in out
     assert not any(_alive(n["pid"]) for n in g["nodes"].values())
     assert _processes_mentioning(g["run_dir"]) == []
-
-
-@pytest.mark.parametrize(
-    ("toml", "error"),
-    [
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\ncolour="red"',
-            "node[0] ('a'): unknown key 'colour'",
-        ),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\nrespawn="often"',
-            "respawn: expected bool",
-        ),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.nonesuch:X"',
-            "module 'polarstripe.nodes.nonesuch' not found",
-        ),
-        ('[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Nope"', "has no class 'Nope'"),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\nparams={rate_hz="fast"}',
-            "param 'rate_hz'",
-        ),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\nparams={speed=1}',
-            "unknown param 'speed'",
-        ),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\nparams={rate_hz="${r}"}',
-            "unknown arg ${r}",
-        ),
-        ('[launch]\nnamespace=3\n[[node]]\nname="a"\nmodule="m"', "namespace: expected str, got int"),
-        (
-            '[launch]\ntransport="udp"\n[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"',
-            "'ipc' or 'tcp'",
-        ),
-        ('[[node]]\nname="a"\n', "missing key 'module'"),
-        ("[[nodes]]\nname='a'", "unknown top-level key 'nodes'"),
-        ("[args]\nx=1", "needs at least one [[node]]"),
-        (
-            '[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\n[[node]]\nname="a"\n'
-            'module="polarstripe.nodes.demo:Talker"',
-            "duplicate node name 'a'",
-        ),
-        ("[[node]\n", "not valid TOML"),
-    ],
-)
-def test_bad_launch_files_are_rejected_with_one_clear_line(tmp_path, toml, error):
-    f = tmp_path / "bad.toml"
-    f.write_text(toml)
-    with pytest.raises(LaunchError) as info:
-        load_launch(f)
-    assert error in str(info.value) and "\n" not in str(info.value)
 
 
 def test_cli_rejects_before_anything_starts_and_dry_run_prints_the_graph(tmp_path):

@@ -6,7 +6,7 @@ from polarstripe.msgs import Ack, Empty, Frame, Log, PolarizerState, ScanEvent, 
 from polarstripe.nodes.demo import Listener, Talker
 from polarstripe.runtime.bus import BusTimeout, ServiceTimeout
 from polarstripe.runtime.node import Node, NodeError, NodeStopping, Received, Stop, Tick
-from polarstripe.runtime.params import NodeParams, ParamError, build_params, parse_assignments
+from polarstripe.runtime.params import NodeParams
 from polarstripe.runtime.testing import NodeHarness
 
 
@@ -131,30 +131,6 @@ def test_names_resolve_in_the_namespace():
     h = NodeHarness(Talker, namespace="/rig/")
     assert h.full("chatter") == "/rig/chatter" and h.full("/abs/x") == "/abs/x"
     assert NodeHarness(Talker).full("chatter") == "/chatter"
-
-
-def test_params_are_typed_coerced_and_validated():
-    p = build_params(
-        _Scanner.Params, {"mode": "stripes", "angles": "0,45,90", "limit": "none", "heartbeat_s": "2"}
-    )
-    assert (p.mode, p.angles, p.limit, p.heartbeat_s) == ("stripes", [0.0, 45.0, 90.0], None, 2.0)
-    assert build_params(_Scanner.Params, {"angles": "[1, 2]", "limit": "3"}).limit == 3
-    assert build_params(Talker.Params, {}).rate_hz == 10.0
-    with pytest.raises(
-        ParamError, match="node 'x': param 'mode': bad value 'checker': expected one of flood"
-    ):
-        build_params(_Scanner.Params, {"mode": "checker"}, node="x")
-    with pytest.raises(ParamError, match="unknown param 'speed'"):
-        build_params(Talker.Params, {"speed": 1}, node="x")
-    with pytest.raises(ParamError, match="param 'rate_hz': bad value 'fast'"):
-        build_params(Talker.Params, {"rate_hz": "fast"}, node="x")
-    with pytest.raises(ParamError, match="rate_hz must be > 0, got -1.0"):
-        build_params(Talker.Params, {"rate_hz": -1}, node="x")
-    with pytest.raises(ParamError, match="param 'count': bad value True"):
-        build_params(Talker.Params, {"count": True}, node="x")
-    with pytest.raises(ParamError, match="expected KEY=VALUE"):
-        parse_assignments(["novalue"])
-    assert parse_assignments(["a=b=c"]) == {"a": "b=c"}
 
 
 def test_stop_event_reaches_a_loop_style_node():
