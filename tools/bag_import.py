@@ -149,10 +149,24 @@ def _namespace(reader, frame_topics: list[str]) -> str:
     return f"/{heads.pop()}" if len(heads) == 1 else ""
 
 
+def _open(src: Path):
+    """An open ``AnyReader`` of ``src``; BagError for anything rosbags cannot read (its errors vary: a
+    definition it cannot parse is a KeyError, a torn file a ReaderError)."""
+    from rosbags.highlevel import AnyReader
+
+    reader = AnyReader([src], default_typestore=typestore())
+    try:
+        reader.open()
+    except Exception as exc:  # noqa: BLE001  (the library's many error classes, one line for the user)
+        raise BagError(f"bag import: {src}: unreadable rosbag2 ({type(exc).__name__}: {exc})") from None
+    return reader
+
+
 def import_ros2(src, dst, *, progress: bool | None = None) -> Imported:
     """Convert rosbag2 ``src`` (a folder) into a new polarstripe bag ``dst`` (module docstring)."""
     require()
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag2 import ReaderError
     from tqdm import tqdm
 
     src, dst = Path(src), Path(dst)
@@ -164,32 +178,33 @@ def import_ros2(src, dst, *, progress: bool | None = None) -> Imported:
         raise BagError(f"bag import: {src}: not a rosbag2 folder (give the folder with metadata.yaml)")
     res = Imported(dst)
     tmp = dst.parent / f".{dst.name}.partial-{os.getpid()}"
+    reader = _open(src)
     try:
-        with AnyReader([src], default_typestore=typestore()) as reader:
-            conns = {c.id: c for c in reader.connections}
-            types = {c.topic: c.msgtype for c in conns.values()}
-            frames = {b for t, ty in types.items() if ty == f"{PACKAGE}/msg/FrameInfo"
-                      if (b := _base(t, "info")) and types.get(f"{b}/image") == "sensor_msgs/msg/Image"}
-            if not frames:
-                images = sorted(t for t, ty in types.items() if ty == "sensor_msgs/msg/Image")
-                raise BagError(
-                    f"bag import: {src}: no camera frames (a sensor_msgs/msg/Image on T/image with a "
-                    f"{PACKAGE}/msg/FrameInfo on T/info); image topics: {', '.join(images) or 'none'}")
-            res.namespace = _namespace(reader, sorted(frames))
-            meta = {"launch": {"launch": "import", "namespace": res.namespace, "file": "", "args": "{}"},
-                    "imported": {"source": str(src), "polarstripe": __version__,
-                                 "types": json.dumps(types, sort_keys=True)}}
-            with BagWriter(tmp) as w:
-                for name, data in meta.items():
-                    w.add_metadata(name, data)
-                total = sum(c.msgcount for c in conns.values())
-                with tqdm(total=total, unit="msg", unit_scale=True, desc=f"import {src.name}", leave=False,
-                          disable=None if progress is None else not progress, mininterval=0.5) as bar:
-                    _copy(reader, frames, w, res, bar)
+        conns = {c.id: c for c in reader.connections}
+        types = {c.topic: c.msgtype for c in conns.values()}
+        frames = {b for t, ty in types.items() if ty == f"{PACKAGE}/msg/FrameInfo"
+                  if (b := _base(t, "info")) and types.get(f"{b}/image") == "sensor_msgs/msg/Image"}
+        if not frames:
+            images = sorted(t for t, ty in types.items() if ty == "sensor_msgs/msg/Image")
+            raise BagError(
+                f"bag import: {src}: no camera frames (a sensor_msgs/msg/Image on T/image with a "
+                f"{PACKAGE}/msg/FrameInfo on T/info); image topics: {', '.join(images) or 'none'}")
+        res.namespace = _namespace(reader, sorted(frames))
+        meta = {"launch": {"launch": "import", "namespace": res.namespace, "file": "", "args": "{}"},
+                "imported": {"source": str(src), "polarstripe": __version__,
+                             "types": json.dumps(types, sort_keys=True)}}
+        with BagWriter(tmp) as w:
+            for name, data in meta.items():
+                w.add_metadata(name, data)
+            total = sum(c.msgcount for c in conns.values())
+            with tqdm(total=total, unit="msg", unit_scale=True, desc=f"import {src.name}", leave=False,
+                      disable=None if progress is None else not progress, mininterval=0.5) as bar:
+                _copy(reader, frames, w, res, bar)
         os.rename(tmp, dst)
-    except AnyReaderError as exc:
-        raise BagError(f"bag import: {src}: unreadable rosbag2 ({exc})") from None
+    except (AnyReaderError, ReaderError) as exc:
+        raise BagError(f"bag import: {src}: unreadable rosbag2 ({type(exc).__name__}: {exc})") from None
     finally:
+        reader.close()
         if tmp.exists():
             tmp.unlink()
     return res
