@@ -4,8 +4,7 @@ disappears (published fault, no frame, reopened at the next trigger)."""
 import cv2
 import numpy as np
 import pytest
-from polarstripe.msgs import Frame, FrameRequest, PolarizerState
-from polarstripe.msgs import AnalyzerMount
+from polarstripe.msgs import AnalyzerMount, Frame, FrameRequest, PolarizerState
 from polarstripe.nodes.grabber import Grabber
 from polarstripe.runtime.testing import NodeHarness
 
@@ -54,6 +53,14 @@ def test_newest_state_is_used_even_if_the_loop_has_not_seen_it(sim):
     h.queue("polarizer/state", PolarizerState(angle_deg=90.0, target_deg=90.0, settled=True))
     h.call("camera/trigger", FrameRequest(scan_id=1, step=0, pattern="flood"))
     assert h.published("camera/frame")[-1].polarizer_deg == 90.0
+
+
+def test_the_angle_is_the_grabbers_alone_none_before_any_polarizer_state(sim):
+    h, fake = sim
+    h.call("camera/trigger", FrameRequest(scan_id=1, step=0, pattern="flood"))
+    frame = h.published("camera/frame")[-1]
+    assert frame.polarizer_deg is None  # the simulator rendered at 33 deg, but only the stage's state counts
+    assert fake.requests[-1].analyzer and int(frame.image[0, 0]) == 100
 
 
 def test_analyzer_out_gives_untagged_frames_and_tells_the_simulator(sim):

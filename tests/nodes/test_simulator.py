@@ -11,12 +11,11 @@ import tempfile
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Plan, ScanEvent
-from polarstripe.runtime.testing import NodeHarness
-from polarstripe.sim.scene import load_scene
-from polarstripe.msgs import RenderRequest, SimFault
+from polarstripe.msgs import Plan, RenderRequest, ScanEvent, SimFault
 from polarstripe.nodes.simulator import Simulator
 from polarstripe.nodes.simulator_frames import SimulatorError
+from polarstripe.runtime.testing import NodeHarness
+from polarstripe.sim.scene import load_scene
 
 
 def sim(**params):

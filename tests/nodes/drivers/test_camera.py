@@ -233,3 +233,45 @@ def test_a_timeout_inside_the_backend_keeps_its_own_text(exc):
 def test_camera_backends_are_registered():
     assert load_backend("camera", "file") is FileCamera
     assert load_backend("camera", "v4l2") is V4l2Camera
+
+
+# -- the simulator's camera --------------------------------------------------------------------------------
+class _Simulator:
+    """Answers render requests with a frame of its own exposure (0.004 s) and bit depth (10), unless asked."""
+
+    def __init__(self):
+        self.requests = []
+
+    def __call__(self, req):
+        from polarstripe.msgs import Frame
+
+        self.requests.append(req)
+        exposure = 0.004 if req.exposure_s is None else req.exposure_s
+        return Frame(image=np.full((3, 4), 7, np.uint16), exposure_s=exposure, bit_depth=10,
+                     pattern=req.pattern, polarizer_deg=12.0, scan_id=req.scan_id, step=req.step)
+
+
+def test_sim_camera_frame_carries_what_the_simulator_used_and_no_angle():
+    from polarstripe.nodes.drivers.sim_camera import SimCamera
+
+    sim = _Simulator()
+    with SimCamera(sim, exposure_s=0.01) as cam:
+        cam.request("stripe:2/8", analyzer=False, scan_id=3, step=2)
+        frame = cam.grab(timeout=2.0)
+        assert (frame.exposure_s, frame.bit_depth) == (0.004, 10)  # the simulator's, not the constructor's
+        assert frame.metadata == {"pattern": "stripe:2/8", "scan_id": 3, "step": 2}  # no analyzer angle
+        assert sim.requests[-1].exposure_s is None and not sim.requests[-1].analyzer
+        cam.exposure_s = 0.02  # once set, it is sent
+        assert cam.grab(timeout=2.0).exposure_s == 0.02 and sim.requests[-1].exposure_s == 0.02
+
+
+@pytest.mark.parametrize(("exc", "kind"), [(TimeoutError("no reply"), DriverTimeout),
+                                           (RuntimeError("camera lost"), DeviceLost)])
+def test_sim_camera_faults(exc, kind):
+    from polarstripe.nodes.drivers.sim_camera import SimCamera
+
+    def render(req):
+        raise exc
+
+    with SimCamera(render) as cam, pytest.raises(kind, match="sim camera"):
+        cam.grab(timeout=2.0)
