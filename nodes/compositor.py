@@ -53,7 +53,7 @@ from polarstripe.msgs import (
     Method,
     ScanEvent,
 )
-from polarstripe.nodes.compositor_output import write_comparison, write_method
+from polarstripe.nodes.compositor_output import fmt, write_comparison, write_method
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -386,17 +386,13 @@ class Compositor(Node):
         self.results[scan.method], self.metrics[scan.method] = image, m
         self.counters["scans_done"] += 1
         self.log.info("scan %d %s: %d frames, contrast %s, error vs truth %s%s", scan.scan_id, scan.method,
-                      scan.frames, _fmt(m["contrast"]), _fmt(m["error_vs_truth"]),
+                      scan.frames, fmt(m["contrast"]), fmt(m["error_vs_truth"]),
                       f", p {made.p:.3f}" if made.p is not None else "")
         if p.out:
             write_method(p.out, scan.method, image, self.metrics, image_format=p.image_format)
             if p.comparison:
                 write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
                                  METHOD_NAMES)
-
-
-def _fmt(x) -> str:
-    return "n/a" if x is None else f"{x:.3f}"
 
 
 NODE = Compositor

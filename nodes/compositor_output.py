@@ -44,7 +44,7 @@ def write_comparison(path: str, results: dict, metrics: dict, order) -> None:
         lo, hi = np.percentile(valid, (1, 99.5)) if valid.size else (0.0, 1.0)
         ax.imshow(np.ma.filled(img, hi), cmap="gray", vmin=lo, vmax=max(hi, lo + 1e-9))
         m = metrics[method]
-        ax.set_title(f"{method}\ncontrast {_fmt(m['contrast'])}, error {_fmt(m['error_vs_truth'])}",
+        ax.set_title(f"{method}\ncontrast {fmt(m['contrast'])}, error {fmt(m['error_vs_truth'])}",
                      fontsize=8)
         ax.axis("off")
     fig.tight_layout()
@@ -52,5 +52,6 @@ def write_comparison(path: str, results: dict, metrics: dict, order) -> None:
     plt.close(fig)
 
 
-def _fmt(x) -> str:
+def fmt(x) -> str:
+    """A metric for a person: 3 decimals, or n/a when there is none."""
     return "n/a" if x is None else f"{x:.3f}"

@@ -5,7 +5,7 @@ import json
 
 import cv2
 import numpy as np
-from polarstripe.nodes.compositor_output import write_comparison, write_method
+from polarstripe.nodes.compositor_output import fmt, write_comparison, write_method
 
 
 def _image():
@@ -43,3 +43,7 @@ def test_comparison_shows_the_methods_in_order(tmp_path):
     write_comparison(str(path), results, metrics, ["flood", "polarized_flood", "stripes"])
     img = cv2.imread(str(path))
     assert img is not None and img.shape[1] == 2 * 320  # two methods, 3.2 in at 100 dpi each
+
+
+def test_fmt():
+    assert (fmt(None), fmt(0.12345), fmt(1)) == ("n/a", "0.123", "1.000")
