@@ -113,8 +113,8 @@ class SerialTriggerDisplay(Display):
 
     def trigger(self, exposure_s: float) -> float:
         """Fire one camera trigger pulse of ``exposure_s`` seconds; return the time the box confirmed it."""
-        if not 0 < exposure_s < 100:
-            raise DriverValueError(f"{self.name}: exposure_s={exposure_s} must be in (0, 100) s")
+        if not 0.5e-6 <= exposure_s < 100:  # the box counts whole microseconds, at least 1
+            raise DriverValueError(f"{self.name}: exposure_s={exposure_s} must be in [0.5 µs, 100 s)")
         return self._command(f"TRIG {round(exposure_s * 1e6)}")
 
     def _close(self) -> None:

@@ -55,7 +55,9 @@ class SimTriggerBox(PtyDevice):
         if self._fault:
             self._fault = False
             return "ERR 5 lamp driver fault"
-        if words[0] == "TRIG" and len(words) == 2 and words[1].isdigit() and int(words[1]) > 0:
+        if words[0] == "TRIG":
+            if len(words) != 2 or not words[1].isdigit() or int(words[1]) <= 0:
+                return f"ERR 2 bad arguments for TRIG: {' '.join(words[1:])}"
             self.triggers.append(int(words[1]))
             return self._ok()
         if words[0] != "PAT" or len(words) < 2:

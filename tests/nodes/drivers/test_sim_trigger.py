@@ -54,8 +54,6 @@ def test_refusals_carry_the_documented_codes_and_change_nothing(line, reply):
     assert box.handle("PAT OFF") == "OK 1"
 
 
-@pytest.mark.xfail(strict=True, reason="sim_trigger.py: 'TRIG 0' / 'TRIG -5' / 'TRIG x' get 'ERR 1 unknown "
-                   "command TRIG'; protocol 1 (docs/hardware.md) says a bad argument is ERR 2")
 @pytest.mark.parametrize("line", ["TRIG 0", "TRIG -5", "TRIG x", "TRIG"])
 def test_a_bad_trigger_argument_is_err_2(line):
     assert _box().handle(line).startswith("ERR 2 ")
