@@ -18,6 +18,7 @@ BENCHES: dict[str, str] = {
     "fidelity": "model time and error per fidelity level",
     "compositor": "per-frame cost of the running reductions",
     "planner": "time per full plan and optimum error per fidelity",
+    "sweep": "design-study sweep: scenes per second with 1 and 2 workers",
     "pipeline": "a full simulated scan: simulation, transport, compositing",
     "record": "recorder sustained frame rate vs a plain file write",
 }

@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "figure": ("polarstripe.planning.figures", "plot the model's curves (D/S vs optical thickness, DOP vs angle)"),
     "plan": ("polarstripe.planning.plan_cli", "find the best camera-source separation and stripe scan"),
     "compare": ("polarstripe.planning.compare", "reproduce the paper's comparison of imaging methods"),
+    "sweep": ("polarstripe.planning.sweep_cli", "run the planner over a grid of scenes (design studies)"),
     "record": ("polarstripe.tools.record", "record topics to an MCAP file"),
     "bag": ("polarstripe.tools.bag_cli", "inspect or recover MCAP recordings"),
     "replay": ("polarstripe.tools.replay", "publish a recording on its original topics"),
