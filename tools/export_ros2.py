@@ -280,5 +280,8 @@ class Ros2Sink:
         self.writer.close()
 
     def abort(self) -> None:
-        """Stop without finishing (the caller removes the folder)."""
-        self.writer.abort()
+        """Stop without finishing (the caller removes the folder); rosbags' own ``Writer.abort`` is newer than
+        0.11.0, so the storage is closed directly."""
+        storage, self.writer.storage = self.writer.storage, None
+        if storage is not None:
+            storage.abort()
