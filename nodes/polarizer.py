@@ -20,7 +20,9 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
   ``calibrate_pattern`` lit through ``emitter/show`` (when a node serves it; ``off`` afterwards), and
   fits Malus's law over a region (:func:`polarstripe.imaging.polarization.least_backscatter_angle`) for the
   angle of least backscatter, E_b. Calibration frames carry scan ids from :data:`CALIBRATION_SCAN_ID`
-  (2**30) up, apart from the emitter's scans (the compositor ignores them).
+  (2**30) up, apart from the emitter's scans (the compositor ignores them). The calibration is stepped by
+  the loop (:mod:`polarstripe.nodes.polarizer_calibration`): the state keeps being published and
+  ``polarizer/reset`` answered while it runs, and its reply comes at the end.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ class Polarizer(Calibrating, Node):
             self.counters[key] = 0
         self.state_pub = self.publisher("polarizer/state")
         self.subscribe("polarizer/cmd", self.on_command, mode="all")
-        self.subscribe("camera/frame", mode="latest")  # only read by calibrate (wait_for)
+        self.subscribe("camera/frame", self.on_calibration_frame, mode="latest")  # calibration frames
         self.serve("polarizer/calibrate", self.calibrate)
         self.serve("polarizer/reset", self.on_reset)
         self._poll_fast = True
@@ -127,6 +129,7 @@ class Polarizer(Calibrating, Node):
         self.poll()
 
     def teardown(self):
+        self.calibration_stop()  # a calibration under way gets its (failed) reply
         if self.stage is not None:
             self.stage.close()  # never raises (a failed bus is logged by the driver)
             self.stage = None
@@ -278,6 +281,7 @@ class Polarizer(Calibrating, Node):
             self.state_pub.publish(state)
             self._last_key, self._last_pub = key, now
         self._set_poll(fast=bool(self._move_started is not None or fault))
+        self.calibration_poll()  # a calibration under way moves on (or fails) with what was seen here
 
     def _set_poll(self, *, fast: bool) -> None:
         """Poll every ``poll_s`` while a move or a fault is in progress, else every ``idle_poll_s`` (capped

@@ -7,24 +7,63 @@ through ``emitter/show`` when a node of the launch serves it (``off`` afterwards
 otherwise shows whatever it shows), and Malus's law is fitted over an object-free region
 (:func:`polarstripe.imaging.polarization.least_backscatter_angle`). Calibration frames carry scan ids from
 :data:`CALIBRATION_SCAN_ID` up, apart from the emitter's scans (the compositor ignores them).
-:class:`Calibrating` is a mixin of :class:`~polarstripe.nodes.polarizer.Polarizer` (it uses the node's stage,
-``_move``, ``poll``, ``state`` and params).
+
+The calibration is a state machine stepped by the node's loop, not a wait inside the service handler: the
+handler starts it and returns a :class:`~polarstripe.runtime.node_bus.Deferred`, the ``poll`` timer moves
+it on once the stage has settled (and enforces ``settle_timeout_s`` and ``frame_timeout_s``), the matching
+``camera/frame`` moves it to the next angle, and the :class:`Calibration` reply goes out at the end. In
+between the node keeps publishing ``polarizer/state`` and answers ``polarizer/reset``; a second
+``polarizer/calibrate`` is refused while one runs, and a stop answers the running one with a failure.
+:class:`Calibrating` is a mixin of :class:`~polarstripe.nodes.polarizer.Polarizer` (it uses the node's
+stage, ``_move``, ``_fault_text``, ``state`` and params; ``poll`` calls :meth:`Calibrating.calibration_poll`).
 """
 
 from __future__ import annotations
 
-import time
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import roi_slices
-from polarstripe.msgs import CALIBRATION_SCAN_ID, Ack, CalibrateRequest, Calibration, FrameRequest, Pattern
+from polarstripe.msgs import (
+    CALIBRATION_SCAN_ID,
+    Ack,
+    CalibrateRequest,
+    Calibration,
+    Frame,
+    FrameRequest,
+    Pattern,
+)
 from polarstripe.runtime.bus import BusError
+from polarstripe.runtime.node_bus import Deferred
+
+_FAILURES = (PolarstripeError, BusError, TimeoutError)
+
+
+@dataclass
+class _Run:
+    """A calibration under way: the reply to give, the next step and what it waits for until when."""
+
+    reply: Deferred
+    request: CalibrateRequest
+    angles: list[float]
+    roi: list[int] | None
+    scan_id: int
+    lit: bool = False
+    step: int = 0
+    waiting: str = ""  # "settle" | "frame" | "" (between steps)
+    deadline: float = math.inf
+    measured: list[float] = field(default_factory=list)
+    frames: list[np.ndarray] = field(default_factory=list)
+    bit_depth: int = 12
 
 
 class Calibrating:
-    """``polarizer/calibrate`` and its helpers, mixed into the polarizer node."""
+    """``polarizer/calibrate`` and its steps, mixed into the polarizer node."""
+
+    _calibration: _Run | None = None
 
     def in_range(self, angle_deg: float) -> float:
         """The analyzer angle equivalent to ``angle_deg`` (modulo 180°) within the limits: the one in [0, 180)
@@ -37,21 +76,125 @@ class Calibrating:
                                    f"[{self.params.min_deg:g}, {self.params.max_deg:g}]")
         return min(inside, key=lambda a: abs(a - here))
 
-    def _wait_settled(self, timeout_s: float) -> float:
-        """Block (publishing the state) until settled at the target; the measured angle [deg]."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self.poll()
+    # ---- the service -------------------------------------------------------------------------------------
+    def calibrate(self, request: CalibrateRequest) -> Calibration | Deferred:
+        """Start a calibration; its :class:`Calibration` comes when the loop has taken every angle."""
+        p = self.params
+        if self.stage is None:
+            return Calibration(ok=False, detail=self._connect_error)
+        if self._calibration is not None:
+            return Calibration(ok=False, detail=f"calibration {self._calibration.scan_id} is running")
+        self._calibrations += 1
+        run = self._calibration = _Run(
+            Deferred(), request, list(request.angles_deg) or list(p.calibrate_angles_deg),
+            list(request.roi) or list(p.calibrate_roi) or None, CALIBRATION_SCAN_ID + self._calibrations)
+        self._calibration_step(self._calibration_start, run)
+        return run.reply
+
+    def _calibration_start(self, run: _Run) -> None:
+        if self._trigger is None:
+            timeout_s = self.params.frame_timeout_s
+            self._trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=timeout_s)
+        run.lit = self._light(self.params.calibrate_pattern, run.scan_id)
+        self._calibration_next(run)
+
+    # ---- the events that step it ---------------------------------------------------------------------------
+    def calibration_poll(self) -> None:
+        """From :meth:`poll`: settled at the angle → trigger the frame; a fault or a deadline → failure."""
+        run = self._calibration
+        if run is not None and run.waiting:
+            self._calibration_step(self._calibration_check, run)
+
+    def on_calibration_frame(self, frame: Frame) -> None:
+        run = self._calibration
+        if run is None or run.waiting != "frame" or (frame.scan_id, frame.step) != (run.scan_id, run.step):
+            return  # not the frame the calibration waits for (an emitter scan's, a late one)
+        run.frames.append(np.asarray(frame.image))
+        run.bit_depth = frame.bit_depth
+        run.step += 1
+        run.waiting, run.deadline = "", math.inf
+        self._calibration_step(self._calibration_next, run)
+
+    def calibration_stop(self) -> None:
+        """The node is stopping: a running calibration is answered with a failure."""
+        run = self._calibration
+        if run is not None:
+            self._calibration_failed(run, PolarstripeError(f"stopped ({self.stop_reason})"))
+
+    # ---- its steps -----------------------------------------------------------------------------------------
+    def _calibration_step(self, step, run: _Run) -> None:
+        """Run one step; a failure ends the calibration with its reply (never an exception in the loop)."""
+        try:
+            step(run)
+        except _FAILURES as exc:
+            self._calibration_failed(run, exc)
+        except Exception as exc:  # unexpected: an error reply, as a handler raising it would give
+            self.log.exception("calibration failed")
+            self._calibration_end(run)
+            run.reply.fail(exc)
+
+    def _calibration_next(self, run: _Run) -> None:
+        """Turn to the next angle (or fit when every frame is in)."""
+        if run.step == len(run.angles):
+            return self._calibration_fit(run)
+        self._move(self.in_range(run.angles[run.step]))
+        run.waiting, run.deadline = "settle", self.now() + self.params.settle_timeout_s
+
+    def _calibration_check(self, run: _Run) -> None:
+        p = self.params
+        if run.waiting == "settle":
             fault = self._fault_text()
             if fault:
                 raise PolarstripeError(f"stage fault: {fault}")
             state = self.state()
             if state.settled:
-                return state.angle_deg
-            if time.monotonic() > deadline:
-                raise PolarstripeError(f"target {self.target_deg:g}° not reached within {timeout_s:g} s")
-            time.sleep(min(self.params.poll_s, 0.01))
+                run.measured.append(state.angle_deg)
+                return self._calibration_trigger(run)
+            if self.now() > run.deadline:
+                raise PolarstripeError(f"target {self.target_deg:g}° not reached within "
+                                       f"{p.settle_timeout_s:g} s")
+        elif run.waiting == "frame" and self.now() >= run.deadline:
+            raise PolarstripeError(f"node {self.name!r}: no matching message on "
+                                   f"{self.resolve('camera/frame')!r} within {p.frame_timeout_s} s")
 
+    def _calibration_trigger(self, run: _Run) -> None:
+        """Have the grabber take the step's frame (a short call, bounded by ``frame_timeout_s``)."""
+        ask = FrameRequest(scan_id=run.scan_id, step=run.step, pattern=self.params.calibrate_pattern)
+        reply = self._trigger.call(ask)
+        if not reply.ok:
+            raise PolarstripeError(f"camera/trigger refused step {run.step}: {reply.detail}")
+        run.waiting, run.deadline = "frame", self.now() + self.params.frame_timeout_s
+
+    def _calibration_fit(self, run: _Run) -> None:
+        p = self.params
+        frames = run.frames
+        sat = p.saturation_dn if p.saturation_dn is not None else float((1 << run.bit_depth) - 1)
+        best = least_backscatter_angle(run.measured, frames, run.roi, dark_offset=p.dark_offset_dn,
+                                       saturation=sat)
+        best = self.in_range(best)
+        index = roi_slices("roi", run.roi, frames[0].shape)
+        means = [float(np.mean(f[index])) - p.dark_offset_dn for f in frames]
+        self._calibration_end(run)
+        self.least_backscatter_deg = best
+        if run.request.apply:
+            self._move(best)
+        self.log.info("least backscatter at %.2f° (from %d angles)", best, len(run.measured))
+        run.reply.reply(Calibration(ok=True, angle_deg=best, detail=f"E_b at {best:.2f}°, E_w at "
+                                    f"{best + 90.0:.2f}°", angles_deg=run.measured, means_dn=means))
+
+    def _calibration_failed(self, run: _Run, exc: Exception) -> None:
+        self.log.error("calibration failed: %s", exc)
+        self._calibration_end(run)
+        run.reply.reply(Calibration(ok=False, detail=f"calibration failed: {exc}", angles_deg=run.measured))
+
+    def _calibration_end(self, run: _Run) -> None:
+        self._calibration = None
+        run.waiting = ""
+        if run.lit:
+            run.lit = False
+            self._unlight(run.scan_id)
+
+    # ---- lighting the scene --------------------------------------------------------------------------------
     def _show_client(self):
         """The ``emitter/show`` client, or None when calibration is not to light the scene or no node of
         the launch serves it (then the projector shows whatever it shows)."""
@@ -89,48 +232,3 @@ class Calibrating:
                 self.log.warning("%s off: %s", self.params.calibrate_show_service, reply.detail)
         except (BusError, TimeoutError) as exc:
             self.log.warning("%s off: %s", self.params.calibrate_show_service, exc)
-
-    def calibrate(self, request: CalibrateRequest) -> Calibration:
-
-        p = self.params
-        angles = list(request.angles_deg) or list(p.calibrate_angles_deg)
-        roi = list(request.roi) or list(p.calibrate_roi) or None
-        if self.stage is None:
-            return Calibration(ok=False, detail=self._connect_error)
-        self._calibrations += 1
-        scan_id = CALIBRATION_SCAN_ID + self._calibrations
-        measured, frames = [], []
-        lit = False
-        try:
-            if self._trigger is None:
-                self._trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.frame_timeout_s)
-            lit = self._light(p.calibrate_pattern, scan_id)
-            for step, angle in enumerate(angles):
-                self._move(self.in_range(angle))
-                measured.append(self._wait_settled(p.settle_timeout_s))
-                ask = FrameRequest(scan_id=scan_id, step=step, pattern=p.calibrate_pattern)
-                reply = self._trigger.call(ask)
-                if not reply.ok:
-                    raise PolarstripeError(f"camera/trigger refused step {step}: {reply.detail}")
-                frame = self.wait_for("camera/frame", lambda m, s=step: m.scan_id == scan_id and m.step == s,
-                                      timeout_s=p.frame_timeout_s)
-                frames.append(np.asarray(frame.image))
-            sat = p.saturation_dn if p.saturation_dn is not None else float((1 << frame.bit_depth) - 1)
-            best = least_backscatter_angle(measured, frames, roi, dark_offset=p.dark_offset_dn,
-                                           saturation=sat)
-            best = self.in_range(best)
-            index = roi_slices("roi", roi, frames[0].shape)
-            means = [float(np.mean(f[index])) - p.dark_offset_dn for f in frames]
-        except (PolarstripeError, BusError, TimeoutError) as exc:
-            self.log.error("calibration failed: %s", exc)
-            return Calibration(ok=False, detail=f"calibration failed: {exc}", angles_deg=measured)
-        finally:
-            if lit:
-                self._unlight(scan_id)
-        self.least_backscatter_deg = best
-        if request.apply:
-            self._move(best)
-        self.log.info("least backscatter at %.2f° (from %d angles)", best, len(measured))
-        return Calibration(ok=True, angle_deg=best, detail=f"E_b at {best:.2f}°, E_w at {best + 90.0:.2f}°",
-                           angles_deg=measured, means_dn=means)
-

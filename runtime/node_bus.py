@@ -21,9 +21,45 @@ from typing import Any, Protocol, runtime_checkable
 
 from polarstripe.msgs import Message, MessageError
 
-Handler = Callable[[Message], Message]
 Item = Message | MessageError
 """What a subscription yields: a decoded message, or the error of one that failed to decode."""
+
+
+class Deferred:
+    """A service reply that comes later. A handler returns one instead of its reply when the answer needs
+    work that the loop steps (the polarizer's calibration), then calls :meth:`reply` (or :meth:`fail`) once,
+    from the loop, when the work is done. The caller waits as for any reply, up to its own timeout; the
+    node answers its other services meanwhile. The bus checks the reply's type as for a direct one."""
+
+    def __init__(self):
+        self.done = False
+        self._sink: Callable[[Message | None, Exception | None], Any] | None = None
+        self._outcome: tuple[Message | None, Exception | None] | None = None
+
+    def reply(self, msg: Message) -> None:
+        self._settle(msg, None)
+
+    def fail(self, exc: Exception) -> None:
+        """Answer with an error (the caller gets a ``ServiceError`` with its text)."""
+        self._settle(None, exc)
+
+    def bind(self, sink: Callable[[Message | None, Exception | None], Any]) -> None:
+        """For the bus: where the outcome goes (at once if it is already known)."""
+        self._sink = sink
+        if self._outcome is not None:
+            sink(*self._outcome)
+
+    def _settle(self, msg: Message | None, exc: Exception | None) -> None:
+        if self.done:
+            raise RuntimeError("this deferred service reply was already given")
+        self.done = True
+        if self._sink is not None:
+            self._sink(msg, exc)
+        else:
+            self._outcome = (msg, exc)
+
+
+Handler = Callable[[Message], "Message | Deferred"]
 
 
 class BusPublisher(Protocol):
@@ -70,7 +106,8 @@ class NodeBus(Protocol):
     def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> BusSource: ...
 
     def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:
-        """Answer ``service`` with ``handler``; requests are answered inside :meth:`poll`."""
+        """Answer ``service`` with ``handler``; requests are answered inside :meth:`poll`, or later when
+        the handler returns a :class:`Deferred`."""
         ...
 
     def client(self, service: str, req: type[Message], resp: type[Message], timeout_s: float) -> BusClient:

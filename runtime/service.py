@@ -25,8 +25,9 @@ from polarstripe.runtime.bus import (
     _connect,
     _SocketOwner,
 )
+from polarstripe.runtime.node_bus import Deferred
 
-Handler = Callable[[Message], Message]
+Handler = Callable[[Message], "Message | Deferred"]
 
 
 @dataclass
@@ -120,17 +121,31 @@ class ServiceServer(_SocketOwner):
             return exc
         svc.calls += 1
         st.per_service[name] = st.per_service.get(name, 0) + 1
+        seq = svc.calls - 1
         try:
             resp = svc.handler(req)
-            if type(resp) is not svc.resp_type:
-                raise MessageError(
-                    name, "reply", f"handler returned {type(resp).__name__}, expected {svc.resp_type.TYPE!r}"
-                )
-            payload = encode(resp, topic=name, seq=svc.calls - 1)
         except Exception as exc:  # the handler's failure goes back to the caller, the node keeps serving
+            return self._answer(svc, seq, reply, None, exc)
+        if isinstance(resp, Deferred):  # answered later, from the node's loop
+            resp.bind(lambda msg, exc: self._answer(svc, seq, reply, msg, exc))
+            return None
+        return self._answer(svc, seq, reply, resp, None)
+
+    def _answer(self, svc: _Service, seq: int, reply: Callable, resp: Message | None, exc: Exception | None):
+        """Send the reply (or the error) of one request; returns the problem, if any (counted)."""
+        if exc is None:
+            try:
+                if type(resp) is not svc.resp_type:
+                    raise MessageError(svc.name, "reply", f"handler returned {type(resp).__name__}, "
+                                       f"expected {svc.resp_type.TYPE!r}")
+                payload = encode(resp, topic=svc.name, seq=seq)
+            except Exception as e:
+                exc = e
+        if exc is not None:
+            st = self.stats
             svc.errors += 1
             st.errors += 1
-            st.last_error = f"service {name!r}: {type(exc).__name__}: {exc}"
+            st.last_error = f"service {svc.name!r}: {type(exc).__name__}: {exc}"
             reply(b"error", [st.last_error.encode()])
             return exc
         reply(b"ok", payload)

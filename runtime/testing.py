@@ -34,6 +34,7 @@ would on the wire. Logs are kept in :attr:`NodeHarness.logs` as ``(level, text)`
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
@@ -41,7 +42,12 @@ from typing import Any
 from polarstripe.msgs import Message, MessageError, decode, encode
 from polarstripe.runtime.bus import ServiceError, ServiceTimeout, SubscriberStats
 from polarstripe.runtime.node import Event, Node, NodeStopping, Stop, Tick
-from polarstripe.runtime.node_bus import Handler
+from polarstripe.runtime.node_bus import Deferred, Handler
+
+CALL_LIMIT_S = 120.0
+"""How long :meth:`NodeHarness.call` runs the loop for a deferred reply before giving up [s]."""
+CALL_STEP_S = 0.005
+"""The steps [s] in which it does, virtual time kept in step with real time."""
 
 
 def roundtrip(msg: Message, topic: str = "") -> Message:
@@ -110,14 +116,30 @@ class _Client:
         pass
 
 
-class _Request:
-    """A service request waiting for the loop, then its outcome."""
+class Pending:
+    """A request to one of the node's services (:meth:`NodeHarness.request`): ``done`` once the loop has
+    answered it (at once, or later for a :class:`~polarstripe.runtime.node_bus.Deferred` reply)."""
 
-    def __init__(self, service: str, request: Message):
-        self.service, self.request = service, request
+    def __init__(self, service: str, request: Message, resp_type: type[Message]):
+        self.service, self.request, self.resp_type = service, request, resp_type
         self.done = False
         self.reply: Message | None = None
         self.error: BaseException | None = None
+
+    def settle(self, reply: Message | None, error: BaseException | None) -> None:
+        self.reply, self.error, self.done = reply, error, True
+
+    def result(self) -> Message:
+        """The reply after the codec; the handler's exception is raised here (a real client would get a
+        ``ServiceError``), as is a reply of the wrong type or none yet (``ServiceTimeout``)."""
+        if not self.done:
+            raise ServiceTimeout(f"service {self.service!r} at <harness>: not answered (yet)")
+        if self.error is not None:
+            raise self.error
+        if type(self.reply) is not self.resp_type:
+            raise MessageError(self.service, "reply", f"handler returned {type(self.reply).__name__}, "
+                               f"expected {self.resp_type.TYPE!r}")
+        return roundtrip(self.reply, self.service)
 
 
 class MockBus:
@@ -140,7 +162,7 @@ class MockBus:
         self.horizon: float | None = None  # set by the harness while it runs the loop
         self.drain = False  # hand queued messages to the loop (advance) or not (deliver, call)
         self.urgent: deque[tuple[_Source, Message | MessageError]] = deque()
-        self.requests: deque[_Request] = deque()
+        self.requests: deque[Pending] = deque()
 
     def now(self) -> float:
         return self.clock
@@ -164,10 +186,14 @@ class MockBus:
         while self.requests:
             r = self.requests.popleft()
             try:
-                r.reply = self.handlers[r.service][2](r.request)
+                reply = self.handlers[r.service][2](r.request)
             except Exception as exc:  # as a server would: the node keeps running, the caller gets it
-                r.error = exc
-            r.done = True
+                r.settle(None, exc)
+                continue
+            if isinstance(reply, Deferred):
+                reply.bind(r.settle)
+            else:
+                r.settle(reply, None)
 
     def poll(self, sources: Sequence[_Source], timeout_s: float) -> list[tuple[_Source, list]]:
         self.answer()
@@ -312,24 +338,32 @@ class NodeHarness:
         sub = self.node._subs[topic]
         sub.source.queue.append(roundtrip(msg, sub.full))
 
-    def call(self, service: str, request: Message) -> Message:
-        """Call the node's service as a client would (codec both ways); the loop answers it. The handler's
-        exception is raised here (a real client would get a ``ServiceError``)."""
+    def request(self, service: str, request: Message) -> Pending:
+        """Put a request to the node's service ``service`` (codec) where its loop answers it the next time
+        it runs (e.g. from a fake peer while a long piece of work is under way); returns its
+        :class:`Pending`."""
         full = self.full(service)
-        req_type, resp_type, handler = self.bus.handlers[full]
-        pending = _Request(full, roundtrip(request, full))
+        pending = Pending(full, roundtrip(request, full), self.bus.handlers[full][1])
         self.bus.requests.append(pending)
+        return pending
+
+    def call(self, service: str, request: Message) -> Message:
+        """Call the node's service as a client would (codec both ways): the loop answers it. For a
+        deferred reply the loop runs on, queued messages handed over, until it comes (``CALL_LIMIT_S`` at
+        most), its virtual clock never ahead of real time: such work waits on stages, cameras and other
+        processes, which run in real time. The handler's exception is raised here (a real client would get
+        a ``ServiceError``)."""
+        pending = self.request(service, request)
         if not self.node.stopping:
             self._run(self.bus.clock, drain=False)
+        t0, real0 = self.bus.clock, time.monotonic()
+        while not pending.done and not self._stop_delivered and self.bus.clock - t0 < CALL_LIMIT_S:
+            ahead = (self.bus.clock - t0) - (time.monotonic() - real0)
+            if ahead > 0:  # never ahead of real time: the work waits on devices and processes that are not
+                time.sleep(ahead)
+            self._run(self.bus.clock + CALL_STEP_S, drain=True)
         self.bus.answer()  # a stopped loop answers nothing; the harness still does
-        if pending.error is not None:
-            raise pending.error
-        reply = pending.reply
-        if type(reply) is not resp_type:
-            raise MessageError(
-                full, "reply", f"handler returned {type(reply).__name__}, expected {resp_type.TYPE!r}"
-            )
-        return roundtrip(reply, full)
+        return pending.result()
 
     def feed(self, events: Iterable[Event]) -> None:
         """Run the node's :meth:`~Node.run` over exactly these events (a script, for loop-style nodes)."""

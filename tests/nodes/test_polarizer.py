@@ -14,9 +14,8 @@ import time
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Ack, Empty, Frame, PolarizerCommand
+from polarstripe.msgs import Ack, CalibrateRequest, Empty, Frame, PolarizerCommand
 from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
-from polarstripe.msgs import CalibrateRequest
 from polarstripe.nodes.polarizer import Polarizer
 from polarstripe.runtime.testing import NodeHarness
 
@@ -325,3 +324,38 @@ def test_polls_fast_only_while_a_move_or_a_fault_is_in_progress():
         assert 4 <= h.advance(0.05).count("poll") <= 6  # and polled fast while it stands
     finally:
         h.stop()
+
+
+def test_the_node_keeps_serving_and_publishing_while_it_calibrates():
+    """The calibration is stepped by the loop: while it waits for a frame the state is still published, a
+    reset is answered and a second calibration refused; the reply comes when the frame times out."""
+    h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
+                    params={"backend": "sim", "speed_deg_s": 1e5, "frame_timeout_s": 0.5, "rate_hz": 10.0,
+                            "calibrate_show_service": "", "calibrate_angles_deg": [0.0, 60.0]})
+    asked = []
+
+    def trigger(req):  # the frame never comes; meanwhile clients ask for a reset and another calibration
+        asked.append(h.request("polarizer/reset", Empty()))
+        asked.append(h.request("polarizer/calibrate", CalibrateRequest()))
+        return Ack(ok=True)
+
+    h.on_call("camera/trigger", trigger)
+    before = len(h.published("polarizer/state"))
+    reply = h.call("polarizer/calibrate", CalibrateRequest())
+    assert not reply.ok and "camera/frame" in reply.detail and "within 0.5 s" in reply.detail
+    reset, second = asked
+    assert reset.done and reset.result().ok
+    assert second.done and not second.result().ok and "is running" in second.result().detail
+    assert len(h.published("polarizer/state")) - before >= 3  # 10 Hz during the 0.5 s wait
+    h.stop()
+
+
+def test_a_stop_answers_a_calibration_under_way():
+    h = NodeHarness(Polarizer, params={"backend": "sim", "speed_deg_s": 1e5, "calibrate_show_service": ""})
+    h.on_call("camera/trigger", lambda req: Ack(ok=True))
+    pending = h.request("polarizer/calibrate", CalibrateRequest(angles_deg=[0.0, 90.0]))
+    h.advance(0.1)
+    assert not pending.done
+    h.stop("SIGTERM")
+    reply = pending.result()
+    assert not reply.ok and reply.detail == "calibration failed: stopped (SIGTERM)"

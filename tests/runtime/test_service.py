@@ -149,3 +149,46 @@ def test_a_late_reply_to_an_abandoned_call_is_not_taken_for_the_next(ipc):
             c.call(_log("0.5"))
         assert c.call(_log("0"), timeout_s=3).detail == "0"
         assert c.calls == 2 and c.timeouts == 1
+
+
+def test_a_deferred_reply_goes_out_when_the_node_gives_it_and_is_checked_like_any(ipc):
+    """A handler may return a Deferred and answer later from its loop; the server answers others meanwhile."""
+    from polarstripe.runtime.node_bus import Deferred
+
+    later: dict[str, Deferred] = {}
+
+    def slow(req):
+        later[req.text] = Deferred()
+        return later[req.text]
+
+    def call(endpoint, service, request, out, key):
+        with ServiceClient(endpoint, service, type(request), Ack, timeout_s=5) as c:
+            try:
+                out[key] = c.call(request).detail
+            except ServiceError as exc:
+                out[key] = str(exc)
+
+    with ServiceServer(ipc("s.srv")) as server:
+        server.add("/t/slow", Log, Ack, slow)
+        server.add("/t/fast", Empty, Ack, lambda r: Ack(ok=True, detail="fast"))
+        out: dict[str, str] = {}
+        threads = [threading.Thread(target=call, args=(server.endpoint, "/t/slow", _log(k), out, k))
+                   for k in ("ok", "wrong", "fail")]
+        threads.append(threading.Thread(target=call, args=(server.endpoint, "/t/fast", Empty(), out, "fast")))
+        for t in threads:
+            t.start()
+        deadline = time.monotonic() + 5
+        while (len(later) < 3 or "fast" not in out) and time.monotonic() < deadline:  # the node's loop
+            if server.socket.poll(20):
+                server.handle_ready()
+        assert out == {"fast": "fast"} and sorted(later) == ["fail", "ok", "wrong"]  # three still waiting
+        later["ok"].reply(Ack(ok=True, detail="later"))
+        later["wrong"].reply(Empty())
+        later["fail"].fail(RuntimeError("gave up"))
+        for t in threads:
+            t.join(5)
+    assert out["ok"] == "later"
+    assert "handler returned Empty, expected 'ack'" in out["wrong"] and "RuntimeError: gave up" in out["fail"]
+    assert server.stats.errors == 2 and server.services["/t/slow"].errors == 2
+    with pytest.raises(RuntimeError, match="already given"):
+        later["ok"].reply(Ack(ok=True))

@@ -160,3 +160,37 @@ def test_fake_peers_answer_calls_and_react_to_publications():
     h.on_call("peer/echo", lambda req: Ack(ok=True, detail="hi"))
     assert h.node.client_.call(Empty()).detail == "hi"
     assert [type(r) for r in h.bus.clients["/peer/echo"].requests] == [Empty, Empty]
+
+
+def test_a_deferred_reply_is_waited_for_by_call_and_requests_wait_for_the_loop():
+    from polarstripe.runtime.node_bus import Deferred
+
+    class Later(Node):
+        SERVES = {"work": (Empty, Ack), "now": (Empty, Ack)}
+
+        def setup(self):
+            self.waiting = []
+            self.serve("work", self.work)
+            self.serve("now", lambda req: Ack(ok=True, detail=str(len(self.waiting))))
+            self.every(0.02, self.finish)
+
+        def work(self, req):
+            self.waiting.append((Deferred(), self.now()))
+            return self.waiting[-1][0]
+
+        def finish(self):  # a piece of work takes 0.05 s of the node's clock
+            while self.waiting and self.now() - self.waiting[0][1] >= 0.05:
+                self.waiting.pop(0)[0].reply(Ack(ok=True, detail=f"done at {self.now():.2f}"))
+
+    h = NodeHarness(Later)
+    t0 = time.monotonic()
+    assert h.call("work", Empty()).detail == "done at 0.06"
+    assert time.monotonic() - t0 >= 0.05  # virtual time kept in step with real time while waiting
+    first, second = h.request("work", Empty()), h.request("now", Empty())
+    assert not first.done and not second.done  # nothing runs until the loop does
+    h.advance(0.01)
+    assert second.result().detail == "1" and not first.done
+    with pytest.raises(ServiceTimeout, match="not answered"):
+        first.result()
+    h.advance(0.1)
+    assert first.result().detail == "done at 0.12"
