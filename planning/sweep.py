@@ -12,10 +12,10 @@ CSV table, one row per scene and separation (docs/planning.md §4).
 * ``jobs=0``: in this process, one scene after another (tests, debugging).
 
 A Python error in a scene is reported at once (``failed: <error>``). A worker that dies takes the scenes it
-was running with it: locally each of them is retried once, alone in a fresh worker, and reported failed if
-that worker dies too; on Dask the scheduler retries it (its ``allowed-failures``), then it is retried once
-more and reported failed. Ctrl-C stops the sweep and keeps every finished scene; the others are marked
-missing.
+was running with it: locally each of them then runs alone in a fresh worker, where a death is surely its
+own, is retried once after one, and is reported failed after a second; on Dask the scheduler retries a task
+whose worker died (its ``allowed-failures``), then it is submitted once more and reported failed if that
+dies too. Ctrl-C stops the sweep and keeps every finished scene; the others are marked missing.
 """
 
 from __future__ import annotations
@@ -166,16 +166,19 @@ def _local(result: SweepResult, evaluate, bar, jobs: int) -> None:
                 suspects += list(in_flight.values())
                 in_flight.clear()
                 executor = get_reusable_executor(max_workers=jobs, initializer=warm_worker)
-        for job in suspects:  # each alone in a fresh worker: a second death is its own
-            executor = get_reusable_executor(max_workers=1, initializer=warm_worker)
-            fut = executor.submit(_run_one, evaluate, job)
-            in_flight = {fut: job}
-            try:
-                idx, status, value = fut.result()
-            except (BrokenProcessPool, OSError, EOFError):
-                result.failed[job.index] = "the worker died twice (retried once, alone)"
-            else:
+        for job in suspects:  # each alone in a fresh worker; only a death there is surely its own
+            for attempt in (1, 2):
+                executor = get_reusable_executor(max_workers=1, initializer=warm_worker)
+                fut = executor.submit(_run_one, evaluate, job)
+                in_flight = {fut: job}
+                try:
+                    idx, status, value = fut.result()
+                except (BrokenProcessPool, OSError, EOFError):
+                    if attempt == 2:
+                        result.failed[job.index] = "the worker died twice (retried once, alone)"
+                    continue
                 (result.results if status == STATUS_OK else result.failed)[idx] = value
+                break
             in_flight = {}
             bar.update()
     except KeyboardInterrupt:
