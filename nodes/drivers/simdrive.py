@@ -13,8 +13,9 @@ canopen's ``NmtSlave`` does:
 * **Services per NMT state.** PRE-OPERATIONAL: SDO, EMCY, heartbeat. OPERATIONAL: also the PDOs. STOPPED:
   only NMT and heartbeat (an SDO request gets no answer, an RPDO is ignored, no EMCY). The drive state machine
   does not react to the NMT state (0x6007, abort connection option, is not modelled: "no action").
-* **Heartbeat** (0x1017 [ms], 0 = off): produced by the drive's own timer and composed when it is sent, under the
-  same lock as the NMT state changes, so no heartbeat can report a state the drive already left.
+* **Heartbeat** (0x1017 [ms], 0 = off): one producer, the drive's own clock thread; composed when it is sent,
+  under the same lock as the NMT state changes, so no heartbeat reports a state the drive already left. Nothing
+  is served before the boot-up (INITIALISING).
 * **TPDO1** (statusword, position actual value, mode display; COB-ID 0x1800:01, bit 31 = not valid): in
   OPERATIONAL only, on every change of its data (no more often than the inhibit time 0x1800:03 [100 µs]) and
   every event timer 0x1800:05 [ms] (0 = off; 10 ms at power-on); transmission types 254/255 only (no SYNC).
@@ -182,6 +183,8 @@ class SimCia402Drive:
             return
         with self._lock:
             command = data[0]
+            if self.nmt_state == NMT_INITIALISING:
+                return  # not booted yet: no service at all
             if command == 0x01:
                 self._enter(NMT_OPERATIONAL)
             elif command == 0x02:

@@ -10,9 +10,11 @@ import threading
 import time
 
 import can
+import canopen
 import pytest
 from polarstripe.nodes.drivers import simdrive
 from polarstripe.nodes.drivers.cia402 import Cia402Stage
+from polarstripe.nodes.drivers.cia402_states import EDS_PATH
 from polarstripe.nodes.drivers.errors import DriverError, StageFault
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
 from polarstripe.nodes.drivers.zmqcan import ZmqCanBus
@@ -163,3 +165,43 @@ def test_a_drive_found_in_nmt_stopped_is_brought_back():
             assert drive.nmt_state == simdrive.NMT_OPERATIONAL
             stage.move_to(3.0)
             assert stage.wait_settled(2.0) == pytest.approx(3.0)
+
+
+def test_a_drive_configured_while_it_boots_keeps_one_heartbeat_producer():
+    """The launcher starts the simulator (and its drive) and the polarizer together, so 0x1017 can be written
+    while the drive boots. That must not leave a second heartbeat producer still reporting PRE-OPERATIONAL
+    once the drive is OPERATIONAL (canopen's NmtSlave, started from two threads, did: "drive left NMT
+    OPERATIONAL (heartbeat reports PRE-OPERATIONAL)" right at start-up)."""
+    for attempt in range(5):
+        channel = f"ps-boot-{attempt}"
+        master = canopen.Network()
+        master.NOTIFIER_CYCLE = 0.05
+        master.connect(interface="virtual", channel=channel)
+        node = master.add_node(5, EDS_PATH)
+        node.sdo.RESPONSE_TIMEOUT = 0.005
+        heartbeats, stop = [], threading.Event()
+        master.subscribe(0x705, lambda can_id, data, t: heartbeats.append((time.monotonic(), data[0])))
+
+        def configure():
+            while not stop.is_set():
+                try:
+                    node.sdo[0x1017].raw = 20
+                except canopen.SdoCommunicationError:
+                    pass
+
+        writer = threading.Thread(target=configure, daemon=True)
+        writer.start()
+        try:
+            with SimCia402Drive(channel, 5, interface="virtual"):
+                time.sleep(0.03)
+                stop.set()
+                writer.join(1.0)
+                node.nmt.send_command(0x01)
+                time.sleep(0.03)
+                mark = time.monotonic()
+                time.sleep(0.1)
+        finally:
+            stop.set()
+            master.disconnect()
+        states = [s for t, s in heartbeats if t >= mark]
+        assert states and set(states) == {0x05} and len(states) <= 7, (attempt, states)
