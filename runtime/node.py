@@ -53,7 +53,7 @@ from polarstripe.msgs import Heartbeat, Message, MessageError
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.events import Event, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.runtime.graph import resolve
-from polarstripe.runtime.node_bus import BusPublisher, BusSource, NodeBus
+from polarstripe.runtime.node_bus import BusPublisher, BusSource, Handler, NodeBus
 from polarstripe.runtime.params import NodeParams, build_params
 
 __all__ = ["STOP_CHECK_S", "Event", "Node", "NodeError", "NodeStopping", "Received", "Stop", "Tick"]
@@ -115,7 +115,7 @@ class Node:
         self._subs: dict[str, _Sub] = {}
         self._pubs: dict[str, _CountingPublisher] = {}
         self._timers: dict[str, _Timer] = {}
-        self._services: dict[str, Callable] = {}
+        self._services: dict[str, Handler] = {}
         self._stop_reason: str | None = None
         self._started = time.monotonic()
         self._bad_logged: dict[str, int] = {}
@@ -183,8 +183,10 @@ class Node:
         source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes)
         self._subs[topic] = _Sub(topic, full, msg_type, callback, mode, source)
 
-    def serve(self, service: str, handler: Callable[[Message], Message]) -> None:
-        """Answer ``service`` (declared in ``SERVES`` as ``(request type, reply type)``) with ``handler``."""
+    def serve(self, service: str, handler: Handler) -> None:
+        """Answer ``service`` (declared in ``SERVES`` as ``(request type, reply type)``) with ``handler``:
+        ``handler(request) -> reply``, or a :class:`~polarstripe.runtime.node_bus.Deferred` to reply later
+        from the loop (work the loop steps)."""
         if service not in self.SERVES:
             raise NodeError(f"node {self.name!r}: service {service!r} is not in SERVES")
         req, resp = self.SERVES[service]
