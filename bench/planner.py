@@ -1,10 +1,12 @@
 """``polarstripe bench planner``: time per full plan and how far each optimum lands from the reference's.
 
 A full plan is the paper's: 60 separations × (flood + 3 stripe locations), with and without a polarizer
-(both polarizations share one model evaluation). Measured in one run at each model fidelity, beside the
-alternative that renders whole frames: one full flood frame of the scene timed, times the number of model
-evaluations a plan makes (not for ``reference``, which computes A at every pixel). Target: ≤ 1 s per plan
-on one core, optimum within one grid step of ``reference``.
+(every reading shares one model evaluation per separation and modality). With the default stripe margin an
+evaluation of the stripes is one own-sheet call per location (O and its neighbours O′) plus one B-only call
+per other sheet that crosses an observed ray (docs/planning.md §1.3). Measured in one run at each model
+fidelity, beside the alternative that renders whole frames: one full flood frame of the scene timed, times
+the number of model evaluations a plan makes (not for ``reference``, which computes A at every pixel).
+Target: ≤ 1 s per plan on one core, optimum within one grid step of ``reference``.
 """
 
 from __future__ import annotations
