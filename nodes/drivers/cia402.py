@@ -1,19 +1,19 @@
 """A rotation stage on a CANopen CiA 402 drive in profile position mode, through ``canopen`` on python-can.
 
 Setup (SDO): check the device type (0x1000, profile 402) and the supported drive modes (0x6502: profile
-position, and homing for :meth:`home`), then write the configuration: the producer heartbeat time (0x1017), the
-mode of operation (0x6060 = 1, profile position), the profile velocity (0x6081) and the drive's own software
-position limit (0x607D) from this stage's limits; then NMT start and walk the state machine to OPERATION
-ENABLED. Runtime (PDO): RPDO1 carries controlword + target position, TPDO1 statusword + position actual value
-+ mode display. A move writes the target, raises controlword bit 4 (new set-point, bit 5 change immediately),
-waits for the set-point acknowledge (statusword bit 12), lowers bit 4; "settled" is target reached (bit 10)
-after that acknowledge, with the position inside the tolerance.
+position, and homing for :meth:`home`), then write the configuration: the producer heartbeat time (0x1017),
+the mode of operation (0x6060 = 1, profile position), the profile velocity (0x6081) and the drive's own
+software position limit (0x607D) from this stage's limits; then NMT start and walk the state machine to
+OPERATION ENABLED. Runtime (PDO): RPDO1 carries controlword + target position, TPDO1 statusword + position
+actual value + mode display. A move writes the target, raises controlword bit 4 (new set-point, bit 5 change
+immediately), waits for the set-point acknowledge (statusword bit 12), lowers bit 4; "settled" is target
+reached (bit 10) after that acknowledge, with the position inside the tolerance.
 
 Faults become text in :attr:`fault`, never a wrong angle: an EMCY, the FAULT state, internal limit active (bit
 11), a lost heartbeat (consumer heartbeat timeout), a drive that left NMT OPERATIONAL or rebooted (boot-up, or
 another master's NMT reset), stale TPDOs, CAN error frames (bus-off, no ACK, TX timeout, bus error), a receive
-error and a failed send (see :mod:`.cia402_watch`). :meth:`reset_fault` runs the drive's recovery: NMT start if
-needed, the configuration again (a rebooted drive is back on its power-on values), controlword bit 7 rising
+error and a failed send (see :mod:`.cia402_watch`). :meth:`reset_fault` runs the drive's recovery: NMT start
+if needed, the configuration again (a rebooted drive is back on its power-on values), controlword bit 7 rising
 edge (transition 15), then shutdown → switch on → enable operation (2, 3, 4), holding the current position.
 :meth:`home` writes the homing method it means (0x6098, ``homing_method``; 37, "home on the current position",
 by default, falling back to its older number 35) and the home offset 0x607C = 0 where the drive has one.
@@ -252,11 +252,12 @@ class Cia402Stage(Cia402Watch, RotationStage):
         if self.network.bus is not None and self.network.bus.state is can.BusState.ERROR:
             raise StageFault(f"{self.name}: cannot reset, the CAN bus is still off (no restart seen)")
         if self._nmt_state != 5:
-            self._nmt_start()  # a drive serves SDO in OPERATIONAL as in PRE-OPERATIONAL, in STOPPED not at all
+            self._nmt_start()  # a drive serves SDO in OPERATIONAL and PRE-OPERATIONAL, not in STOPPED
         try:
             self._configure()  # always: a drive that rebooted unseen runs on its power-on values too
         except DriverError as exc:
-            raise StageFault(f"{self.name}: cannot reset, {exc.args[0].removeprefix(self.name + ': ')}") from exc
+            text = exc.args[0].removeprefix(f"{self.name}: ")
+            raise StageFault(f"{self.name}: cannot reset, {text}") from exc
         if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
             # give a recovering drive one heartbeat period to show up
             self._wait_pdo(
@@ -307,8 +308,10 @@ class Cia402Stage(Cia402Watch, RotationStage):
                 self._awaiting_ack = True  # until homing attained
             self._controlword(cia.CW_ENABLE_OPERATION | cia.CW_NEW_SETPOINT)
             ended = self._wait_pdo(
-                until=lambda: (sw := self._sw or 0) & cia.SW_FOLLOWING_ERROR
-                or (sw & cia.SW_SETPOINT_ACK and sw & cia.SW_TARGET_REACHED),
+                until=lambda: (
+                    (sw := self._sw or 0) & cia.SW_FOLLOWING_ERROR
+                    or (sw & cia.SW_SETPOINT_ACK and sw & cia.SW_TARGET_REACHED)
+                ),
                 timeout=timeout,
             )
             failed = bool((self._sw or 0) & cia.SW_FOLLOWING_ERROR)

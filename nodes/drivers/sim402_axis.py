@@ -5,18 +5,18 @@ parameters from the object dictionary through a function (``od(index, subindex) 
 of the drive reset them too. What it does, against CiA 402-2 (IEC 61800-7-201):
 
 * **Device control.** The controlword command (bits 0-3, 7) takes the numbered transitions of
-  :mod:`.cia402_states`; FAULT is left only on the rising edge of bit 7 (15). Quick stop stops at once and stays
-  in QUICK STOP ACTIVE (as quick stop option code 6 would), so 16 leads back to OPERATION ENABLED. Leaving
-  OPERATION ENABLED drops every set-point.
-* **Profile position (0x6060 = 1).** Bit 4 rising edge takes 0x607A as a new set-point; bit 6 makes it relative
-  to the preceding (internal absolute) target, or to the actual position when there is none (after power-on,
-  a disable or a mode change); the software position limit 0x607D clamps it and sets bit 11 (internal limit
-  active). Bit 5 = 1 starts it at once; bit 5 = 0 while a set-point is in progress buffers it (one deep, a later
-  one overwrites it) and starts it when the current target is reached. Bit 12 (set-point acknowledge) is 1 from
-  the accepted edge while bit 4 is high, and stays 1 while a buffered set-point waits. Bit 8 (halt) stops the
-  axis; bit 10 is then 1 at standstill ("velocity 0"), and releasing halt resumes the set-point. Otherwise bit
-  10 (target reached) is 1 when the axis stood at the target for ``settle_s`` and nothing is buffered. Speed:
-  0x6081 [counts/s]; acceleration is not modelled (a halt stops at once).
+  :mod:`.cia402_states`; FAULT is left only on the rising edge of bit 7 (15). Quick stop stops at once and
+  stays in QUICK STOP ACTIVE (as quick stop option code 6 would), so 16 leads back to OPERATION ENABLED.
+  Leaving OPERATION ENABLED drops every set-point.
+* **Profile position (0x6060 = 1).** Bit 4 rising edge takes 0x607A as a new set-point; bit 6 makes it
+  relative to the preceding (internal absolute) target, or to the actual position when there is none (after
+  power-on, a disable or a mode change); the software position limit 0x607D clamps it and sets bit 11
+  (internal limit active). Bit 5 = 1 starts it at once; bit 5 = 0 while a set-point is in progress buffers it
+  (one deep, a later one overwrites it) and starts it when the current target is reached. Bit 12 (set-point
+  acknowledge) is 1 from the accepted edge while bit 4 is high, and stays 1 while a buffered set-point waits.
+  Bit 8 (halt) stops the axis; bit 10 is then 1 at standstill ("velocity 0"), and releasing halt resumes the
+  set-point. Otherwise bit 10 (target reached) is 1 when the axis stood at the target for ``settle_s`` and
+  nothing is buffered. Speed: 0x6081 [counts/s]; acceleration is not modelled (a halt stops at once).
 * **Homing (0x6060 = 6).** Bit 4 rising edge starts the method in 0x6098. 35 and 37 ("home on the current
   position", 35 being the older number of 37) do not move: the position actual value becomes the home offset
   0x607C, and bits 12 + 10 say "homing completed". Method 0 ("no method assigned", the power-on value) ends in
@@ -91,7 +91,7 @@ class Axis402:
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def set_mode(self, mode: int) -> None:
-        """0x6060 written (the drive checked it against 0x6502): the set-points of the old mode are dropped."""
+        """0x6060 written (the drive checked it against 0x6502): the old mode's set-points are dropped."""
         if mode != self.mode:
             self.mode = mode
             self._drop_setpoints()

@@ -2,20 +2,21 @@
 
 Its object dictionary is the shipped EDS (``data/sim402.eds``), served by canopen's SDO server of a
 :class:`canopen.LocalNode`; the drive behind it is :class:`~.sim402_axis.Axis402` (device control, profile
-position, homing). The CiA 301 communication is this module's own, because the standard's NMT slave is more than
-canopen's ``NmtSlave`` does:
+position, homing). The CiA 301 communication is this module's own, because the standard's NMT slave is more
+than canopen's ``NmtSlave`` does:
 
 * **NMT** (COB-ID 0x000, node id or 0). Start (0x01), stop (0x02), enter PRE-OPERATIONAL (0x80). Reset node
-  (0x81): every object back to its power-on value and the drive state machine to SWITCH ON DISABLED (transitions
-  0, 1), then reset communication. Reset communication (0x82): the communication objects 0x1000-0x1FFF back to
-  their power-on values. Both end in one boot-up message (0x700 + id, 0x00) and PRE-OPERATIONAL. The power-on
-  values are the EDS defaults (0x6081 from ``speed_counts_s``); the position is kept (an absolute encoder).
+  (0x81): every object back to its power-on value and the drive state machine to SWITCH ON DISABLED
+  (transitions 0, 1), then reset communication. Reset communication (0x82): the communication objects
+  0x1000-0x1FFF back to their power-on values. Both end in one boot-up message (0x700 + id, 0x00) and
+  PRE-OPERATIONAL. The power-on values are the EDS defaults (0x6081 from ``speed_counts_s``); the position is
+  kept (an absolute encoder).
 * **Services per NMT state.** PRE-OPERATIONAL: SDO, EMCY, heartbeat. OPERATIONAL: also the PDOs. STOPPED:
   only NMT and heartbeat (an SDO request gets no answer, an RPDO is ignored, no EMCY). The drive state machine
   does not react to the NMT state (0x6007, abort connection option, is not modelled: "no action").
 * **Heartbeat** (0x1017 [ms], 0 = off): one producer, the drive's own clock thread; composed when it is sent,
-  under the same lock as the NMT state changes, so no heartbeat reports a state the drive already left. Nothing
-  is served before the boot-up (INITIALISING).
+  under the same lock as the NMT state changes, so no heartbeat reports a state the drive already left.
+  Nothing is served before the boot-up (INITIALISING).
 * **TPDO1** (statusword, position actual value, mode display; COB-ID 0x1800:01, bit 31 = not valid): in
   OPERATIONAL only, on every change of its data (no more often than the inhibit time 0x1800:03 [100 µs]) and
   every event timer 0x1800:05 [ms] (0 = off; 10 ms at power-on); transmission types 254/255 only (no SYNC).
@@ -111,7 +112,7 @@ class SimCia402Drive:
         self.network.NOTIFIER_CYCLE = 0.05
         self.network.add_node(self.node)
         node, net = self.node, self.network
-        # this module is the NMT slave and gates the SDO server by NMT state (canopen's LocalNode does neither)
+        # this module is the NMT slave and gates the SDO server by NMT state (canopen's LocalNode does not)
         net.unsubscribe(0, node.nmt.on_command)
         net.unsubscribe(node.sdo.rx_cobid, node.sdo.on_request)
         node._write_callbacks.remove(node.nmt.on_write)

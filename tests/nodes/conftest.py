@@ -4,8 +4,8 @@ another process; the ``--hardware`` options of the device contract suites.
 Like python-can's back-to-back tests, each device contract suite (``tests/nodes/drivers/test_*_contract.py``)
 runs on the simulated device always and, given ``--hardware DEVICE``, on a real one as well: a CAN channel
 (``--hardware can0``: socketcan, the drive at ``--hardware-node-id``) for the CiA 402 suite, a serial port
-(``--hardware /dev/ttyUSB0``: the ELLx device at ``--hardware-address``) for the ELLx suite. The options belong
-to this directory: ``python -m pytest tests/nodes/drivers --hardware can0 --hardware /dev/ttyUSB0``.
+(``--hardware /dev/ttyUSB0``: the ELLx device at ``--hardware-address``) for the ELLx suite. The options
+belong to this directory: ``python -m pytest tests/nodes/drivers --hardware can0 --hardware /dev/ttyUSB0``.
 """
 
 from __future__ import annotations

@@ -72,7 +72,10 @@ def _axis_in(state):
     return axis
 
 
-@pytest.mark.parametrize("number", [n for n, (src, _, cw) in cia.TRANSITIONS.items() if src and cw is not None])
+COMMANDED = [n for n, (src, _, cw) in cia.TRANSITIONS.items() if src and cw is not None]
+
+
+@pytest.mark.parametrize("number", COMMANDED)
 def test_every_commanded_transition_of_the_table_takes_the_simulated_drive_there(number):
     """The table the driver walks (TRANSITIONS) against the device: the controlword moves the drive from the
     transition's state to its target state, and the statusword says so."""
@@ -268,8 +271,9 @@ def test_embedded_drive_and_stage_in_one_process_on_the_virtual_bus():
 
 
 def test_close_after_the_bus_failed_logs_and_never_raises(drive_process, caplog):
-    stage = Cia402Stage(drive_process.channel, drive_process.node_id, counts_per_deg=1000, min_deg=-90,
-                        max_deg=90)
+    stage = Cia402Stage(
+        drive_process.channel, drive_process.node_id, counts_per_deg=1000, min_deg=-90, max_deg=90
+    )
     stage.network.bus.shutdown()  # the interface goes away under the stage (a pulled adapter)
     assert _wait_fault(stage, "CAN receive failed")  # the notifier thread died with an exception
     with caplog.at_level("WARNING", logger="polarstripe.nodes.drivers.cia402"):

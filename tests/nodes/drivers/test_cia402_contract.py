@@ -2,10 +2,11 @@
 
 The client is ``canopen.profiles.p402.BaseNode402`` plus raw frames where the standard is about frames (NMT,
 heartbeat, RPDO, TPDO timing, EMCY). One suite for the role, like python-can's back-to-back tests: it runs on
-the simulated drive (another process on a zmq CAN segment) always, and on a real drive with ``--hardware can0``
-(socketcan; ``--hardware-node-id``, ``--hardware-eds``). Tests that inject a fault are skipped on hardware. On
-a real drive the suite enables the power stage and moves the axis by at most ``2 * STEP`` counts from where it
-stands, at ``SPEED`` counts/s; every test starts with an NMT reset node, and the module ends with one.
+the simulated drive (another process on a zmq CAN segment) always, and on a real drive with ``--hardware
+can0`` (socketcan; ``--hardware-node-id``, ``--hardware-eds``). Tests that inject a fault are skipped on
+hardware. On a real drive the suite enables the power stage and moves the axis by at most ``2 * STEP`` counts
+from where it stands, at ``SPEED`` counts/s; every test starts with an NMT reset node, and the module ends
+with one.
 
 The numbers in the test names are the points of the conformance list in ``docs/hardware.md``.
 """
@@ -48,8 +49,13 @@ def target(can_device, request):
         yield Target("sim", drive.channel, "zmq", drive.node_id, EDS_PATH, drive.cmd, {"hub": False})
         return
     config = request.config
-    hw = Target(can_device, can_device, "socketcan", config.getoption("hardware_node_id"),
-                config.getoption("hardware_eds") or EDS_PATH)
+    hw = Target(
+        can_device,
+        can_device,
+        "socketcan",
+        config.getoption("hardware_node_id"),
+        config.getoption("hardware_eds") or EDS_PATH,
+    )
     yield hw
     with Peer(hw) as peer:
         peer.reset_node()  # leave the drive on its power-on values
@@ -119,7 +125,7 @@ class Peer(can.Listener):
 
     # -- profile position through BaseNode402 -------------------------------------------------------------
     def enable_pp(self) -> int:
-        """Reset node, profile velocity SPEED, NMT start, profile position, OPERATION ENABLED; the position."""
+        """Reset node, 0x6081 = SPEED, NMT start, profile position, OPERATION ENABLED; the position."""
         self.reset_node()
         self.node.setup_402_state_machine()
         self.write(0x6081, 0, SPEED)
@@ -233,7 +239,8 @@ def test_2_stopped_drive_serves_no_sdo_and_keeps_its_heartbeat(peer):
 
 def test_2_no_heartbeat_reports_a_state_the_drive_has_left(peer):
     """Between the first TPDO after an NMT start (the drive is OPERATIONAL) and the next command, every
-    heartbeat must say OPERATIONAL: one composed before the start and sent after it is a false state change."""
+    heartbeat must say OPERATIONAL: one composed before the start and sent after it is a false state
+    change."""
     peer.reset_node()
     peer.write(0x1017, 0, 1)
     hb, tpdo, stale = 0x700 + peer.id, 0x180 + peer.id, []
@@ -345,8 +352,14 @@ def test_6_a_mode_0x6502_does_not_list_is_refused(peer, target):
     supported = peer.read(0x6502)
     if target.inject is not None:
         assert supported == 0x21  # profile position and homing
-    name = next((n for n in ("PROFILED VELOCITY", "VELOCITY", "PROFILED TORQUE", "INTERPOLATED POSITION")
-                 if not supported & OperationMode.SUPPORTED[n]), None)
+    name = next(
+        (
+            n
+            for n in ("PROFILED VELOCITY", "VELOCITY", "PROFILED TORQUE", "INTERPOLATED POSITION")
+            if not supported & OperationMode.SUPPORTED[n]
+        ),
+        None,
+    )
     if name is None:
         pytest.skip(f"{target.name}: 0x6502 = 0x{supported:X} lists every mode tried")
     before = peer.read(0x6061)
@@ -362,7 +375,7 @@ def test_6_a_mode_0x6502_does_not_list_is_refused(peer, target):
 # -- 7: TPDO1 transmission (CiA 301 7.2.2.3: event timer 0x1800:05, event-driven) --------------------------
 def _intervals(peer, since: float) -> list[float]:
     times = [t for t, _ in peer.seen(0x180 + peer.id, since)]
-    return [b - a for a, b in zip(times, times[1:])]
+    return [b - a for a, b in zip(times, times[1:], strict=False)]
 
 
 def test_7_tpdo1_follows_its_event_timer_and_changes(peer):

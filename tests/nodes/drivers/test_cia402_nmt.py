@@ -41,8 +41,9 @@ CONFIGURED = {"mode": 1, "speed": 360_000, "heartbeat": 50, "limits": (-45_000, 
 
 
 def _stage(channel, **kwargs):
-    return Cia402Stage(channel, counts_per_deg=1000, speed_deg_s=360.0, min_deg=-45, max_deg=45, heartbeat_ms=50,
-                       **kwargs)
+    return Cia402Stage(
+        channel, counts_per_deg=1000, speed_deg_s=360.0, min_deg=-45, max_deg=45, heartbeat_ms=50, **kwargs
+    )
 
 
 def test_a_drive_that_rebooted_is_a_fault_and_the_reset_configures_it_again(drive_process):
@@ -145,7 +146,8 @@ def test_a_homing_error_is_a_fault():
 def test_the_supported_drive_modes_are_checked_before_a_mode_is_chosen():
     with SimCia402Drive("ps-modes", 2, interface="virtual") as drive:
         drive.node.data_store[0x6502] = {0: struct.pack("<I", 0x20)}  # homing only
-        with pytest.raises(DriverError, match=r"does not support profile position mode \(0x6502 = 0x00000020\)"):
+        refused = r"does not support profile position mode \(0x6502 = 0x00000020\)"
+        with pytest.raises(DriverError, match=refused):
             Cia402Stage("ps-modes", 2, interface="virtual", sdo_timeout_s=0.2)
         assert drive.od(0x6060) == 0  # nothing chosen
         drive.node.data_store[0x6502] = {0: struct.pack("<I", 0x01)}  # profile position only
@@ -167,41 +169,46 @@ def test_a_drive_found_in_nmt_stopped_is_brought_back():
             assert stage.wait_settled(2.0) == pytest.approx(3.0)
 
 
+def _heartbeats_of_a_drive_configured_while_it_boots(channel: str) -> list[int]:
+    """Start a drive while another thread writes 0x1017 = 20 ms as fast as it can, NMT start it, and return
+    the states its heartbeats report over the next 100 ms."""
+    master = canopen.Network()
+    master.NOTIFIER_CYCLE = 0.05
+    master.connect(interface="virtual", channel=channel)
+    node = master.add_node(5, EDS_PATH)
+    node.sdo.RESPONSE_TIMEOUT = 0.005
+    heartbeats, stop = [], threading.Event()
+    master.subscribe(0x705, lambda can_id, data, t: heartbeats.append((time.monotonic(), data[0])))
+
+    def configure():
+        while not stop.is_set():
+            try:
+                node.sdo[0x1017].raw = 20
+            except canopen.SdoCommunicationError:
+                pass
+
+    writer = threading.Thread(target=configure, daemon=True)
+    writer.start()
+    try:
+        with SimCia402Drive(channel, 5, interface="virtual"):
+            time.sleep(0.03)
+            stop.set()
+            writer.join(1.0)
+            node.nmt.send_command(0x01)
+            time.sleep(0.03)
+            mark = time.monotonic()
+            time.sleep(0.1)
+    finally:
+        stop.set()
+        master.disconnect()
+    return [state for t, state in heartbeats if t >= mark]
+
+
 def test_a_drive_configured_while_it_boots_keeps_one_heartbeat_producer():
     """The launcher starts the simulator (and its drive) and the polarizer together, so 0x1017 can be written
     while the drive boots. That must not leave a second heartbeat producer still reporting PRE-OPERATIONAL
     once the drive is OPERATIONAL (canopen's NmtSlave, started from two threads, did: "drive left NMT
     OPERATIONAL (heartbeat reports PRE-OPERATIONAL)" right at start-up)."""
     for attempt in range(5):
-        channel = f"ps-boot-{attempt}"
-        master = canopen.Network()
-        master.NOTIFIER_CYCLE = 0.05
-        master.connect(interface="virtual", channel=channel)
-        node = master.add_node(5, EDS_PATH)
-        node.sdo.RESPONSE_TIMEOUT = 0.005
-        heartbeats, stop = [], threading.Event()
-        master.subscribe(0x705, lambda can_id, data, t: heartbeats.append((time.monotonic(), data[0])))
-
-        def configure():
-            while not stop.is_set():
-                try:
-                    node.sdo[0x1017].raw = 20
-                except canopen.SdoCommunicationError:
-                    pass
-
-        writer = threading.Thread(target=configure, daemon=True)
-        writer.start()
-        try:
-            with SimCia402Drive(channel, 5, interface="virtual"):
-                time.sleep(0.03)
-                stop.set()
-                writer.join(1.0)
-                node.nmt.send_command(0x01)
-                time.sleep(0.03)
-                mark = time.monotonic()
-                time.sleep(0.1)
-        finally:
-            stop.set()
-            master.disconnect()
-        states = [s for t, s in heartbeats if t >= mark]
+        states = _heartbeats_of_a_drive_configured_while_it_boots(f"ps-boot-{attempt}")
         assert states and set(states) == {0x05} and len(states) <= 7, (attempt, states)
