@@ -9,7 +9,11 @@ Measured in one run, on the file system of ``--dir`` (default: the system temp d
 * **recorder over the bus** — ``polarstripe record`` in its own process, subscribed (``mode="all"``) to a
   publisher in this process over ipc: frames sent as fast as the publisher can (the recorder's sustained
   rate is the count over its first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no
-  gap, every frame written, and how far behind the recorder ran).
+  gap, every frame written, and how far behind the recorder ran);
+* **export** — ``polarstripe bag export`` of a recording of the frames (a simulator launch's metadata, so
+  camera info and tf go along) to a ROS 2 bag and to a Foxglove MCAP, in frames per second and as a ratio
+  to reading the same bag alone (``BagReader.messages``, every frame decoded); warm, the median of
+  ``--repeats``; target: ratio ≥ 0.5.
 
 Memory **warm** or **cold**: writing into the page cache (and receiving into fresh buffers) costs what
 the kernel pays to hand out a page. Pages freed a moment ago are cheap; on a virtual machine that returns
@@ -52,6 +56,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=100.0, help="paced rate over the bus [frames/s]")
     parser.add_argument("--dir", default=None, help="where to write (default: the system temp dir)")
     parser.add_argument("--no-bus", action="store_true", help="skip the over-the-bus measurements")
+    parser.add_argument("--no-export", action="store_true", help="skip the bag export measurements")
     parser.add_argument("--repeats", type=int, default=3, help="in-process runs; the median is reported")
     parser.add_argument(
         "--cold-pause", type=float, default=3.0, help="idle time before a cold measurement [s] (default 3)"
@@ -211,6 +216,47 @@ def _over_bus(
     }
 
 
+def _export_rows(tmp: Path, frames: list[Frame], repeats: int, warm) -> dict:
+    """Frames per second of reading a bag of ``frames`` alone and of exporting it (ROS 2, Foxglove)."""
+    import shutil
+
+    from polarstripe.tools.bag_export import ExportOptions, export
+
+    src = tmp / "export-src.mcap"
+    graph = {"nodes": {"simulator": {"module": "polarstripe.nodes.simulator", "params": {}}}}
+    with BagWriter(src) as w:
+        w.add_metadata("launch", {"launch": "bench", "namespace": "/rig", "graph": json.dumps(graph)})
+        for k, f in enumerate(frames):
+            w.add_message("/rig/camera/frame", f, log_time_ns=1_800_000_000_000_000_000 + k * 10_000_000)
+
+    def read(_out: Path) -> None:
+        with BagReader(src) as b:
+            for _ in b.messages():
+                pass
+
+    def exporter(fmt: str):
+        return lambda out: export(src, out, fmt, ExportOptions(progress=False))
+
+    fps = {}
+    for name, fn in (("read", read), ("ros2", exporter("ros2")), ("foxglove", exporter("foxglove"))):
+        times = []
+        for _ in range(repeats):
+            warm()
+            out = tmp / f"export-{name}"
+            t0 = time.perf_counter()
+            fn(out)
+            times.append(time.perf_counter() - t0)
+            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
+        fps[name] = len(frames) / sorted(times)[len(times) // 2]
+    src.unlink()
+    return {
+        "read_fps": fps["read"],
+        **{f"{k}_fps": fps[k] for k in ("ros2", "foxglove")},
+        **{f"{k}_ratio": fps[k] / fps["read"] for k in ("ros2", "foxglove")},
+        "target_ratio_ge_0_5": min(fps["ros2"], fps["foxglove"]) / fps["read"] >= 0.5,
+    }
+
+
 def run(
     n: int,
     h: int,
@@ -220,6 +266,7 @@ def run(
     bus: bool,
     repeats: int = 3,
     cold_pause_s: float = 3.0,
+    export: bool = True,
 ) -> dict:
     frames = _frames(n, h, w)
     blobs = [pack(f) for f in frames]
@@ -246,6 +293,8 @@ def run(
                 (tmp / "out.bin").unlink()
             row = rows[f"{name} ({memory})"] = {**sorted(runs, key=lambda r: r["s"])[len(runs) // 2]}
             row["memory"], row["fps"] = memory, n / row["s"]
+        if export:
+            out["export"] = _export_rows(tmp, frames, repeats, warm)
         if bus:
             for name, comp, pace, warm_bytes in (
                 ("recorder over bus, none, max", "none", None, 2 * total),
@@ -291,6 +340,7 @@ def main(args: argparse.Namespace) -> int:
         not args.no_bus,
         args.repeats,
         args.cold_pause,
+        not args.no_export,
     )
     if args.json:
         print(json.dumps(res))
@@ -313,6 +363,12 @@ def main(args: argparse.Namespace) -> int:
         cells = f"{r['fps']:>9.0f} {r['MB_s']:>8.0f} {r['vs_plain']:>8.0%} {r['bytes'] / raw:>9.2f}"
         print(f"{name:<41} {cells}  {notes}")
     print("vs plain: against the plain write with memory in the same state (warm or cold: module docstring)")
+    if "export" in res:
+        e = res["export"]
+        print(f"bag export (warm): reading the bag alone {e['read_fps']:.0f} frames/s; to ROS 2 "
+              f"{e['ros2_fps']:.0f} frames/s ({e['ros2_ratio']:.2f} of reading), to Foxglove "
+              f"{e['foxglove_fps']:.0f} frames/s ({e['foxglove_ratio']:.2f}); target ratio >= 0.5: "
+              + ("yes" if e["target_ratio_ge_0_5"] else "NO"))
     if "target" in res:
         t = res["target"]
         yes = {True: "yes", False: "NO"}

@@ -28,9 +28,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from polarstripe import __version__
-from polarstripe.msgs import Composite, Frame, Pattern, unpack
+from polarstripe.msgs import Composite, Frame, Pattern
 from polarstripe.sim.scene import SceneError
 from polarstripe.tools.bag import BagError
+from polarstripe.tools.bag_fastread import FastReader, parse_packed
 from polarstripe.tools.bag_reader import BagReader
 from polarstripe.tools.rig_geometry import geometry_from_metadata
 from polarstripe.tools.rig_views import Packed, RigViews
@@ -179,27 +180,29 @@ def export(src, dst, fmt: str, options: ExportOptions | None = None) -> ExportRe
 def _run(bag: BagReader, topics, span, opt: ExportOptions, rig: RigViews, sink, res: ExportResult) -> None:
     start_ns, end_ns, total = span
     seen: dict[str, int] = {}
-    with _progress(total, opt.progress, f"export {bag.path.name}") as bar:
-        for topic, log_ns, _seq, data in bag.raw(topics, start_ns):
-            if end_ns is not None and log_ns > end_ns:
-                break
-            res.read += 1
-            bar.update(1)
-            info = bag.topics[topic]
-            if opt.image_every > 1 and info.type in DECIMATED:
-                k = seen[topic] = seen.get(topic, -1) + 1
-                if k % opt.image_every:
-                    res.skipped += 1
-                    continue
-            cls = bag.types.get(topic)
-            if cls is None:  # a type this build does not know: its MessagePack form as it is
-                views = [Packed(topic, log_ns, info.type, info.version, bytes(data))]
-                if not rig.started:
-                    views = rig.start(log_ns) + views
-            else:
-                views = rig.views(topic, log_ns, unpack(data, topic=topic, expect=cls))
-            for v in views:
-                sink.write(v)
+    reader = FastReader(bag)
+    try:
+        with _progress(total, opt.progress, f"export {bag.path.name}") as bar:
+            for topic, log_ns, data in reader.raw(topics, start_ns, end_ns):
+                res.read += 1
+                bar.update(1)
+                info = bag.topics[topic]
+                if opt.image_every > 1 and info.type in DECIMATED:
+                    k = seen[topic] = seen.get(topic, -1) + 1
+                    if k % opt.image_every:
+                        res.skipped += 1
+                        continue
+                cls = bag.types.get(topic)
+                if cls is None:  # a type this build does not know: its MessagePack form as it is
+                    views = [Packed(topic, log_ns, info.type, info.version, bytes(data))]
+                    if not rig.started:
+                        views = rig.start(log_ns) + views
+                else:
+                    views = rig.views(topic, log_ns, parse_packed(data, topic=topic, expect=cls))
+                for v in views:
+                    sink.write(v)
+    finally:
+        reader.close()
 
 
 def summary(res: ExportResult) -> str:

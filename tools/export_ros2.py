@@ -182,6 +182,7 @@ class Ros2Sink:
             raise BagError(f"ros2 bag {path}: {exc}") from None
         self.connections: dict[str, object] = {}
         self.counts: dict[tuple[str, str], int] = {}
+        self._cache: dict[tuple, bytes] = {}
 
     def _stamp(self, ns: int):
         return self._time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
@@ -202,15 +203,45 @@ class Ros2Sink:
     def _obj(self, topic: str, msgtype: str, stamp_ns: int, obj) -> None:
         self._put(topic, msgtype, stamp_ns, self.ts.serialize_cdr(obj, msgtype))
 
+    def _stamped(self, key: tuple, stamp_ns: int, make) -> bytes:
+        """The CDR of a message whose first field is a ``std_msgs/Header``, built once per ``key`` by
+        ``make()`` and re-stamped: the stamp's sec (int32) and nanosec (uint32) follow the 4-byte CDR
+        encapsulation header."""
+        head = self._cache.get(key)
+        if head is None:
+            head = self._cache[key] = bytes(make())
+        sec, nsec = divmod(stamp_ns, 1_000_000_000)
+        return head[:4] + sec.to_bytes(4, "little", signed=True) + nsec.to_bytes(4, "little") + head[12:]
+
     def image(self, v: Image) -> list:
         """The CDR of a ``sensor_msgs/Image`` as buffers: a header, then the pixels without a copy."""
         enc, a = image_encoding(v.array)
-        empty = self.ts.types["sensor_msgs/msg/Image"](
-            header=self.header(v.stamp_ns, v.frame_id), height=a.shape[0], width=a.shape[1], encoding=enc,
-            is_bigendian=0, step=a.shape[1] * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize,
-            data=np.empty(0, np.uint8))
-        head = bytes(self.ts.serialize_cdr(empty, "sensor_msgs/msg/Image"))  # ends with the data length, 0
+        step = a.shape[1] * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize
+        key = ("image", v.frame_id, a.shape[0], a.shape[1], enc, step)
+
+        def make():
+            empty = self.ts.types["sensor_msgs/msg/Image"](
+                header=self.header(0, v.frame_id), height=a.shape[0], width=a.shape[1], encoding=enc,
+                is_bigendian=0, step=step, data=np.empty(0, np.uint8))
+            return self.ts.serialize_cdr(empty, "sensor_msgs/msg/Image")
+
+        head = self._stamped(key, v.stamp_ns, make)
+        # serialized without pixels it ends with the data length, 0
         return [head[:-4] + a.nbytes.to_bytes(4, "little"), memoryview(a.reshape(-1).view(np.uint8))]
+
+    def camera_info(self, v: Calibration) -> bytes:
+        """The CDR of a ``sensor_msgs/CameraInfo`` (built once per frame id and intrinsics)."""
+        t, i = self.ts.types, v.intrinsics
+
+        def make():
+            roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                        do_rectify=False)
+            return self.ts.serialize_cdr(t["sensor_msgs/msg/CameraInfo"](
+                header=self.header(0, v.frame_id), height=i.height, width=i.width,
+                distortion_model="plumb_bob", d=np.zeros(5), k=np.array(i.k), r=np.eye(3).reshape(-1),
+                p=np.array(i.p), binning_x=0, binning_y=0, roi=roi), "sensor_msgs/msg/CameraInfo")
+
+        return self._stamped(("info", v.frame_id, i), v.stamp_ns, make)
 
     def record(self, kind: str, values: dict, header=None):
         """The ``polarstripe_msgs/msg/<kind>`` object of a record's values."""
@@ -242,14 +273,7 @@ class Ros2Sink:
             obj = self.record(v.kind, v.values, self.header(v.stamp_ns, ""))
             self._obj(v.topic, typ, v.stamp_ns, obj)
         elif isinstance(v, Calibration):
-            i = v.intrinsics
-            obj = t["sensor_msgs/msg/CameraInfo"](
-                header=self.header(v.stamp_ns, v.frame_id), height=i.height, width=i.width,
-                distortion_model="plumb_bob", d=np.zeros(5), k=np.array(i.k), r=np.eye(3).reshape(-1),
-                p=np.array(i.p), binning_x=0, binning_y=0,
-                roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                          do_rectify=False))
-            self._obj(v.topic, "sensor_msgs/msg/CameraInfo", v.stamp_ns, obj)
+            self._put(v.topic, "sensor_msgs/msg/CameraInfo", v.stamp_ns, self.camera_info(v))
         elif isinstance(v, Joint):
             obj = t["sensor_msgs/msg/JointState"](
                 header=self.header(v.stamp_ns, ""), name=list(v.names), position=np.array(v.positions, float),
