@@ -110,6 +110,9 @@ class Cia402Stage(Cia402Watch, RotationStage):
             self.node.tpdo[1].subscribe()
             self.node.tpdo[1].add_callback(self._on_tpdo)
             self._enable(connect_timeout_s)
+            if self._needs_config:  # the drive rebooted while we connected: its configuration is gone
+                self._configure()
+                self._enable(connect_timeout_s)
             # a drive found in FAULT was just reset by the enable walk (transition 15): say what it was
             with self._fault_lock:
                 self.startup_faults, self._faults = list(self._faults), []

@@ -212,3 +212,27 @@ def test_a_drive_configured_while_it_boots_keeps_one_heartbeat_producer():
     for attempt in range(5):
         states = _heartbeats_of_a_drive_configured_while_it_boots(f"ps-boot-{attempt}")
         assert states and set(states) == {0x05} and len(states) <= 7, (attempt, states)
+
+
+def test_a_drive_whose_heartbeat_never_reports_operational_is_a_fault():
+    """TPDOs flow (the drive took the NMT start) but every heartbeat says PRE-OPERATIONAL: contradictory, a
+    fault once the heartbeat timeout has passed since the start."""
+    with SimCia402Drive("ps-no-op", 6, interface="virtual") as drive:
+        drive.inject_heartbeat_stop()
+        stop = threading.Event()
+        with can.Bus(interface="virtual", channel="ps-no-op") as liar:
+
+            def pre_operational_heartbeats():
+                while not stop.wait(0.05):
+                    liar.send(can.Message(arbitration_id=0x706, data=[0x7F], is_extended_id=False))
+
+            thread = threading.Thread(target=pre_operational_heartbeats, daemon=True)
+            thread.start()
+            try:
+                with Cia402Stage("ps-no-op", 6, interface="virtual", counts_per_deg=100) as stage:
+                    fault = _wait_fault(stage, "did not enter NMT OPERATIONAL", timeout=2.0)
+                    assert "did not enter NMT OPERATIONAL within 0.5 s of the NMT start" in fault
+                    assert "heartbeat reports PRE-OPERATIONAL" in fault
+            finally:
+                stop.set()
+                thread.join(1.0)
