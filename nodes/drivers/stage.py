@@ -115,7 +115,8 @@ class RotationStage(ABC):
             self._faults.clear()
 
     def home(self, timeout: float = 30.0) -> None:
-        """Run the device's homing (find the index); on return the angle is 0° and settled.
+        """Run the device's homing (the ELL14's ``ho``; a CiA 402 drive's homing method, by default 37: the
+        current position becomes 0°); on return the angle is 0° and settled.
 
         :raises StageFault, DriverTimeout: as for a move.
         """
