@@ -158,6 +158,7 @@ def test_dask_local_cluster_gives_the_local_table(tmp_path):
     assert (tmp_path / "local.csv").read_text() == (tmp_path / "dask.csv").read_text()
 
 
+@pytest.mark.slow
 def test_sweep_command_writes_the_table_and_plots(tmp_path):
     spec = tmp_path / "spec.toml"
     spec.write_text('fidelity = "preview"\nmodalities = ["flood"]\n[grid]\n'
