@@ -16,6 +16,7 @@ The bag must have been opened (and checked) by :class:`~polarstripe.tools.bag_re
 from __future__ import annotations
 
 import mmap
+import os
 import struct
 from collections import OrderedDict
 
@@ -140,8 +141,8 @@ def parse_packed(data: memoryview, *, topic: str, expect: type[Message]) -> Mess
 class FastReader:
     """Messages of an open :class:`BagReader`'s file in log-time order, read from a memory map."""
 
-    def __init__(self, bag: BagReader):
-        self.bag = bag
+    def __init__(self, bag: BagReader, *, mapped: bool = False):
+        self.bag, self.mapped = bag, mapped
         self._f = open(bag.path, "rb")  # noqa: SIM115  (closed by close)
         self._map = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
         self._view = memoryview(self._map)
@@ -161,6 +162,8 @@ class FastReader:
         data = v[pos + 8 : pos + 8 + size]
         if comp:
             data = memoryview(_decompress(comp, data, ci.uncompressed_size))
+        elif not self.mapped:  # one read of the chunk into fresh memory instead of faulting the mapping in
+            data = memoryview(os.pread(self._f.fileno(), size, pos + 8))
         self._chunks[k] = data
         while len(self._chunks) > 4:
             self._chunks.popitem(last=False)

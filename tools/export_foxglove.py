@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from polarstripe.tools.bag import BagWriter
 from polarstripe.tools.foxglove_schemas import FoxgloveEncoder
+from polarstripe.tools.prealloc import Preallocator
 
 
 class FoxgloveSink:
@@ -19,6 +20,7 @@ class FoxgloveSink:
     def __init__(self, path, *, metadata: dict[str, dict[str, str]] | None = None, compression: str = "none"):
         self.encoder = FoxgloveEncoder()
         self.writer = BagWriter(path, compression=compression, chunk_size=1 << 20, chunk_age_s=1e9).start()
+        self.space = Preallocator(path)
         for name, data in (metadata or {}).items():
             self.writer.add_metadata(name, data)
         self.channels: dict[str, int] = {}
@@ -37,11 +39,11 @@ class FoxgloveSink:
         self.writer.add_payload(cid, e.parts, log_time_ns=view.stamp_ns, publish_time_ns=view.stamp_ns,
                                 sequence=self.counts.get((e.topic, e.schema.name), 0))
         self.counts[e.topic, e.schema.name] = self.counts.get((e.topic, e.schema.name), 0) + 1
+        self.space.ahead(self.writer.size)
 
     def close(self) -> None:
         """Write the summary and footer."""
         self.writer.finish(fsync=False)
+        self.space.finish(self.writer.size)
 
-    def abort(self) -> None:
-        """Stop (the caller removes the half-written file)."""
-        self.writer.finish(fsync=False)
+    abort = close  # the caller removes the half-written file

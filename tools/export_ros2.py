@@ -34,6 +34,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Header as McapHeader
 from polarstripe import __version__
 from polarstripe.tools.bag import MAGIC, BagError, BagWriter
+from polarstripe.tools.prealloc import Preallocator
 from polarstripe.tools.rig_views import (
     NESTED,
     RECORDS,
@@ -122,6 +123,7 @@ class _Ros2McapStorage:
     def __init__(self, path: Path, compression) -> None:
         self.path = path / f"{path.name}.mcap"
         self.writer = _Ros2BagWriter(self.path, chunk_size=1 << 20, chunk_age_s=1e9).start()
+        self.space = Preallocator(self.path)
         self.ids: dict[int, int] = {}
 
     def add_msgtype(self, connection) -> None:
@@ -138,13 +140,16 @@ class _Ros2McapStorage:
         self.writer.add_payload(
             self.ids[connection.id], parts, log_time_ns=timestamp, publish_time_ns=timestamp, sequence=0
         )
+        self.space.ahead(self.writer.size)
 
     def close(self, version: int, metadata: str) -> None:
         self.writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
         self.writer.finish(fsync=False)
+        self.space.finish(self.writer.size)
 
     def abort(self) -> None:
         self.writer.finish(fsync=False)  # the caller removes the half-written folder
+        self.space.finish(self.writer.size)
 
 
 class _Ros2BagWriter(BagWriter):
