@@ -1,14 +1,14 @@
-"""Zero-copy reading of a finished polarstripe bag, for the exports: messages come out of a read-only
-``mmap`` of the file, and their arrays are views of it (no copy of the pixels between the page cache and
-the exporter's ``writev``).
+"""Reading a finished polarstripe bag for the exports with one copy of each message: every chunk is read
+once (``pread``) into fresh memory, or decompressed once, and a message's arrays are views of it.
 
 :class:`BagReader` (``mcap``'s reader) copies a camera frame three times: the chunk into a buffer, the
 record out of it, and the MessagePack ``bin`` out of the record. Here the message index of each chunk gives
-the records' offsets, an uncompressed chunk is sliced in the mapping (a compressed one is decompressed once,
-its only copy), and a payload of 64 KiB or more is parsed by :func:`parse_packed`, which returns ``bin``
-values as slices, so :func:`~polarstripe.msgs.codec.decode_views` builds the message on views. A smaller
-payload, or anything the parser does not expect, goes through :func:`~polarstripe.msgs.unpack` as usual;
-either way the message is validated like any decoded message.
+the records' offsets, and a payload of 64 KiB or more is parsed by :func:`parse_packed`, which returns
+``bin`` values as slices, so :func:`~polarstripe.msgs.codec.decode_views` builds the message on views. A
+smaller payload, or anything the parser does not expect, goes through :func:`~polarstripe.msgs.unpack` as
+usual; either way the message is validated like any decoded message. ``mapped=True`` slices a read-only
+``mmap`` of the file instead of reading (no copy at all), but faulting the mapping in page by page cost
+twice the read on the development VM, so reading is the default.
 
 The bag must have been opened (and checked) by :class:`~polarstripe.tools.bag_reader.BagReader`.
 """
@@ -139,7 +139,7 @@ def parse_packed(data: memoryview, *, topic: str, expect: type[Message]) -> Mess
 
 
 class FastReader:
-    """Messages of an open :class:`BagReader`'s file in log-time order, read from a memory map."""
+    """Messages of an open :class:`BagReader`'s file in log-time order (module docstring)."""
 
     def __init__(self, bag: BagReader, *, mapped: bool = False):
         self.bag, self.mapped = bag, mapped
