@@ -79,9 +79,10 @@ def test_changed_p_replans_with_the_measured_medium(harness):
     assert h.node.scene.medium.dop.model == "constant" and h.node.scene.medium.dop.p == pytest.approx(0.2)
     assert h.node.p_assumed == pytest.approx(0.2)
     after = h.published("planner/plan")[-1]
-    # eq. 9, GQM = (D + B(1 - p)) / (D + A + B(1 - p)), rises as p falls wherever A > 0 and B > 0: the
-    # re-plan used the measured p, not the model's
-    assert np.all(after.curves["quality"] > before.curves["quality"])
+    # the stripe margin (docs/planning.md §1), (E_own - max E_comp) / E_own with E = D + A + B(1 - p), falls as
+    # p falls wherever a competitor carries backscatter: less of it is filtered. The re-plan used the measured
+    # p, not the model's
+    assert np.all(after.curves["quality"] < before.curves["quality"])
 
 
 def test_changed_sigma_replans():
