@@ -1,0 +1,17 @@
+"""Options for the whole suite: ``--hardware DEVICE`` runs the device contract suites (tests/nodes/drivers) on a
+real device as well as on the simulated one; registered here so that they work from the repository root."""
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("hardware", "device contract suites on real hardware")
+    group.addoption(
+        "--hardware",
+        action="append",
+        default=[],
+        metavar="DEVICE",
+        help="also run the device contract suites on this real device: a CAN channel (can0) for the CiA 402 "
+        "suite, a serial port (/dev/ttyUSB0) for the ELLx suite; repeatable",
+    )
+    group.addoption("--hardware-node-id", type=int, default=5, help="CANopen node id of the real drive")
+    group.addoption("--hardware-eds", default=None, help="EDS of the real drive (default: the shipped one)")
+    group.addoption("--hardware-address", default="0", help="ELLx address of the real device")
