@@ -22,9 +22,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import os
-import queue
 import shutil
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -179,41 +177,10 @@ def export(src, dst, fmt: str, options: ExportOptions | None = None) -> ExportRe
     return res
 
 
-class _Writer(threading.Thread):
-    """Writes views to the sink in a thread of its own while the caller reads and converts the next ones:
-    the reader's ``pread`` and the sink's ``writev`` release the GIL, so on two cores they overlap. An
-    error in the sink is raised in the caller at its next :meth:`put` or at :meth:`close`."""
-
-    def __init__(self, sink, depth: int = 8):
-        super().__init__(name="export-writer", daemon=True)
-        self.sink, self.q, self.error = sink, queue.Queue(depth), None
-        self.start()
-
-    def run(self) -> None:
-        while (views := self.q.get()) is not None:
-            if self.error is None:
-                try:
-                    for v in views:
-                        self.sink.write(v)
-                except BaseException as exc:  # noqa: BLE001  (handed to the caller)
-                    self.error = exc
-
-    def put(self, views: list) -> None:
-        if self.error is not None:
-            raise self.error
-        self.q.put(views)
-
-    def close(self) -> None:
-        self.q.put(None)
-        self.join()
-        if self.error is not None:
-            raise self.error
-
-
 def _run(bag: BagReader, topics, span, opt: ExportOptions, rig: RigViews, sink, res: ExportResult) -> None:
     start_ns, end_ns, total = span
     seen: dict[str, int] = {}
-    reader, writer = FastReader(bag), _Writer(sink)
+    reader = FastReader(bag)
     try:
         with _progress(total, opt.progress, f"export {bag.path.name}") as bar:
             for topic, log_ns, data in reader.raw(topics, start_ns, end_ns):
@@ -232,12 +199,10 @@ def _run(bag: BagReader, topics, span, opt: ExportOptions, rig: RigViews, sink, 
                         views = rig.start(log_ns) + views
                 else:
                     views = rig.views(topic, log_ns, parse_packed(data, topic=topic, expect=cls))
-                writer.put(views)
+                for v in views:
+                    sink.write(v)
     finally:
-        try:
-            writer.close()
-        finally:
-            reader.close()
+        reader.close()
 
 
 def summary(res: ExportResult) -> str:
