@@ -3,8 +3,8 @@ it with exit status 1 and a line naming the service or topic."""
 
 import numpy as np
 from polarstripe.msgs import Ack, Composite, Plan, PolarizerState, ScanEvent
-from polarstripe.runtime.testing import NodeHarness
 from polarstripe.nodes.sequencer import Sequencer
+from polarstripe.runtime.testing import NodeHarness
 
 
 def rig(params=None, *, scans_end="done", composite=True, stage_ok=True, metrics=None):
