@@ -36,6 +36,15 @@ _packb = msgpack.Packer(use_bin_type=True).pack
 _POPULATE = getattr(mmap, "MADV_POPULATE_READ", 22 if hasattr(mmap.mmap, "madvise") else None)
 
 
+_SIMPLE = {0xC0: None, 0xC2: False, 0xC3: True}
+_FIXED = {0xCA: ">f", 0xCB: ">d", 0xCC: "B", 0xCD: ">H", 0xCE: ">I", 0xCF: ">Q", 0xD0: "b", 0xD1: ">h",
+          0xD2: ">i", 0xD3: ">q"}
+_SIZED = {0xC4: ("bin", "B"), 0xC5: ("bin", ">H"), 0xC6: ("bin", ">I"), 0xD9: ("str", "B"),
+          0xDA: ("str", ">H"), 0xDB: ("str", ">I"), 0xDC: ("array", ">H"), 0xDD: ("array", ">I"),
+          0xDE: ("map", ">H"), 0xDF: ("map", ">I")}
+_STRUCTS = {f: struct.Struct(f) for f in {*_FIXED.values(), *(f for _, f in _SIZED.values())}}
+
+
 class _Parser:
     """A MessagePack reader over a byte view that returns ``bin`` values as sub-views."""
 
@@ -43,9 +52,10 @@ class _Parser:
         self.v, self.i = view, 0
 
     def _take(self, fmt: str):
-        out = struct.unpack_from(fmt, self.v, self.i)
-        self.i += struct.calcsize(fmt)
-        return out[0]
+        st = _STRUCTS[fmt]
+        (out,) = st.unpack_from(self.v, self.i)
+        self.i += st.size
+        return out
 
     def _str(self, n: int) -> str:
         s = str(self.v[self.i : self.i + n], "utf-8")
@@ -59,33 +69,33 @@ class _Parser:
             return b
         if b >= 0xE0:
             return b - 0x100
-        if 0x80 <= b <= 0x8F:
+        if b <= 0x8F:
             return self._map(b & 0x0F)
-        if 0x90 <= b <= 0x9F:
+        if b <= 0x9F:
             return [self.value() for _ in range(b & 0x0F)]
-        if 0xA0 <= b <= 0xBF:
+        if b <= 0xBF:
             return self._str(b & 0x1F)
-        simple = {0xC0: None, 0xC2: False, 0xC3: True}
-        if b in simple:
-            return simple[b]
-        if 0xC4 <= b <= 0xC6:
-            n = self._take({0xC4: "<B", 0xC5: ">H", 0xC6: ">I"}[b])
+        if b in _SIMPLE:
+            return _SIMPLE[b]
+        fmt = _FIXED.get(b)
+        if fmt is not None:
+            return self._take(fmt)
+        size = _SIZED.get(b)
+        if size is None:
+            raise ValueError(f"MessagePack type 0x{b:02x} not expected in a packed message")
+        kind, fmt = size
+        n = self._take(fmt)
+        if kind == "bin":
             out = self.v[self.i : self.i + n]
             if len(out) != n:
                 raise ValueError("bin past the end")
             self.i += n
             return out
-        fmt = {0xCA: ">f", 0xCB: ">d", 0xCC: "B", 0xCD: ">H", 0xCE: ">I", 0xCF: ">Q", 0xD0: "b", 0xD1: ">h",
-               0xD2: ">i", 0xD3: ">q"}.get(b)
-        if fmt is not None:
-            return self._take(fmt)
-        if 0xD9 <= b <= 0xDB:
-            return self._str(self._take({0xD9: "B", 0xDA: ">H", 0xDB: ">I"}[b]))
-        if b in (0xDC, 0xDD):
-            return [self.value() for _ in range(self._take(">H" if b == 0xDC else ">I"))]
-        if b in (0xDE, 0xDF):
-            return self._map(self._take(">H" if b == 0xDE else ">I"))
-        raise ValueError(f"MessagePack type 0x{b:02x} not expected in a packed message")
+        if kind == "str":
+            return self._str(n)
+        if kind == "array":
+            return [self.value() for _ in range(n)]
+        return self._map(n)
 
     def _map(self, n: int) -> dict:
         out = {}
