@@ -1,5 +1,7 @@
 """The sequencer node: runs the demo of ``launch/sim.toml`` from start to end, then exits.
 
+0. Wait until every other node of the launch graph has been heard on ``heartbeat`` (start-up is tied to
+   readiness: a scan that starts before a node has connected loses what that node publishes).
 1. Optionally ask the planner for a plan (``planner/plan``, Empty → Plan) and have the simulator move its
    source there (``simulator/move_source``, Plan → Ack; its reply comes after the move); optionally measure
    E_b, the analyzer angle of least backscatter (``polarizer/calibrate``), else take the ``eb_deg`` param.
@@ -25,6 +27,7 @@ from polarstripe.msgs import (
     Calibration,
     Composite,
     Empty,
+    Heartbeat,
     Plan,
     PolarizerState,
     ScanEvent,
@@ -46,7 +49,8 @@ class Sequencer(Node):
         plan: bool = True  # ask planner/plan first
         move_source: bool = True  # have the simulator move its source to the plan
         wait_composite: bool = True  # wait for compositor/composite after each scan
-        startup_timeout_s: float = 30.0  # services may take this long to come up
+        startup_timeout_s: float = 30.0  # nodes and services may take this long to come up
+        ready_margin_s: float = 0.3  # after every node was heard, for subscriptions to settle
         scan_timeout_s: float = 600.0
         composite_timeout_s: float = 60.0
 
@@ -58,6 +62,7 @@ class Sequencer(Node):
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
 
     SUBSCRIBES = {
+        "heartbeat": Heartbeat,
         "emitter/scan": ScanEvent,
         "compositor/composite": Composite,
         "polarizer/state": PolarizerState,
@@ -67,6 +72,7 @@ class Sequencer(Node):
         self.subscribe("emitter/scan", mode="all")
         self.subscribe("compositor/composite", mode="all")
         self.subscribe("polarizer/state", mode="latest")
+        self.subscribe("heartbeat", mode="all")
         self.results: dict[str, dict] = {}
 
     def run(self) -> None:
@@ -97,8 +103,31 @@ class Sequencer(Node):
             except BusError as exc:
                 raise SequenceError(f"{service}: {exc}") from None
 
+    def wait_graph_ready(self) -> None:
+        """Wait until every other node of the launch graph has been heard (its heartbeat), then one more beat
+        period: a message published before a subscriber has connected is lost (ZeroMQ's slow joiner), and the
+        first scan start makes the simulator publish its ground truth, which the compositor and the recorder
+        must both see. Without a graph (a node run by itself) there is nothing to wait for."""
+        expected = set(self.graph.get("nodes", {})) - {self.name}
+        heard: set[str] = set()
+
+        def beat(hb: Heartbeat) -> bool:
+            heard.add(hb.node)
+            return expected <= heard
+
+        if expected:
+            try:
+                self.wait_for("heartbeat", beat, self.params.startup_timeout_s)
+            except BusTimeout:
+                raise SequenceError(f"heartbeat: {', '.join(sorted(expected - heard))} not heard within "
+                                    f"{self.params.startup_timeout_s:g} s") from None
+            settle = self.now() + self.params.ready_margin_s
+            while self.now() < settle and not self.stopping:
+                self.take("heartbeat", settle - self.now())
+
     def sequence(self) -> bool:
         p = self.params
+        self.wait_graph_ready()
         if p.plan:
             plan = self.call("planner/plan", Empty, Plan, Empty(), timeout_s=30.0)
             self.log.info("plan: %s, d_LC = %.3f m, scan %s", plan.modality, plan.separation_m,

@@ -2,7 +2,7 @@
 it with exit status 1 and a line naming the service or topic."""
 
 import numpy as np
-from polarstripe.msgs import Ack, Composite, Plan, PolarizerState, ScanEvent
+from polarstripe.msgs import Ack, Composite, Heartbeat, Plan, PolarizerState, ScanEvent
 from polarstripe.nodes.sequencer import Sequencer
 from polarstripe.runtime.testing import NodeHarness
 
@@ -101,3 +101,21 @@ def test_the_results_table_lists_each_method_with_its_scores():
     assert table[1].split() == ["method", "contrast", "error", "vs", "truth"]
     assert [row.split() for row in table[2:]] == [["flood", "0.412", "0.250"],
                                                   ["polarized_stripes", "0.412", "0.250"]]
+
+
+def test_it_waits_until_every_node_of_the_graph_is_heard_before_the_first_step():
+    h = rig({"methods": ["flood"], "plan": False})
+    h.bus.graph = {"nodes": {"sequencer": {}, "simulator": {}, "emitter": {}}}
+    h.queue("heartbeat", Heartbeat(node="emitter", pid=1, uptime_s=0.1))
+    h.queue("heartbeat", Heartbeat(node="simulator", pid=2, uptime_s=0.1))
+    h.node.run()
+    assert h.node.exit_code == 0 and h.calls == ["scan flood 0 []"]
+
+
+def test_a_node_never_heard_fails_the_sequence_before_any_scan():
+    h = rig({"methods": ["flood"], "plan": False, "startup_timeout_s": 2.0})
+    h.bus.graph = {"nodes": {"sequencer": {}, "simulator": {}, "emitter": {}}}
+    h.queue("heartbeat", Heartbeat(node="emitter", pid=1, uptime_s=0.1))
+    h.node.run()
+    assert h.node.exit_code == 1 and h.calls == []
+    assert any("heartbeat: simulator not heard within 2 s" in t for _, t in h.logs)
