@@ -41,7 +41,7 @@ def load_node_class(spec: str) -> type[Node]:
     if isinstance(obj, str):
         obj = getattr(module, obj, None)
     if not (isinstance(obj, type) and issubclass(obj, Node)):
-        what = f"class {cls_name!r}" if cls_name else "a NODE attribute naming its Node class"
+        what = f"class {cls_name!r}" if cls_name else "NODE attribute naming its Node class"
         raise PolarstripeError(f"node {spec!r}: module {module_name!r} has no {what} (a Node subclass)")
     return obj
 

@@ -54,9 +54,12 @@ def main(args: argparse.Namespace) -> int:
     params: dict = {}
     if args.params_json:
         try:
-            params.update(json.loads(args.params_json))
+            given = json.loads(args.params_json)
         except json.JSONDecodeError as exc:
             raise ParamError(f"--params-json: not JSON ({exc})") from None
+        if not isinstance(given, dict):
+            raise ParamError(f"--params-json: must be one JSON object {{name: value}}, got {args.params_json!r}")
+        params.update(given)
     params.update(parse_assignments(args.param))
     services = parse_assignments(args.service, what="service")
     return run_node(

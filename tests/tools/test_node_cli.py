@@ -60,15 +60,11 @@ def test_a_module_without_node_names_what_it_needs(capsys):
     assert "module 'polarstripe.nodes.demo' has no" in _one_error_line(capsys)
 
 
-@pytest.mark.xfail(strict=True, reason="runtime/runner.py load_node_class: the text reads 'has no a NODE "
-                   "attribute naming its Node class'")
 def test_a_module_without_node_reads_well(capsys):
     assert main(["node", "polarstripe.nodes.demo"]) == 2
     assert "has no NODE attribute naming its Node class" in _one_error_line(capsys)
 
 
-@pytest.mark.xfail(strict=True, reason="tools/node_cli.py: --params-json that is JSON but not an object "
-                   "('[1, 2]', '\"x\"', '3') ends in a TypeError/ValueError traceback, not one error line")
 @pytest.mark.parametrize("value", ["[1, 2]", '"x"', "3"])
 def test_params_json_must_be_an_object(value, capsys):
     try:
