@@ -14,7 +14,7 @@ copy=False)``,
   difference to this row.
 * **memcpy**: ``np.copyto`` of the same buffer in one process (the physical limit; cache-hot).
 
-Method (as in refs/transport.md): latency = paced sends, one-way = receiver's ``perf_counter_ns``
+Method: latency = paced sends, one-way = receiver's ``perf_counter_ns``
 (CLOCK_MONOTONIC, valid across processes) after reading one element, minus the sender's stamp.
 Throughput = sends for ``--seconds`` limited by a window of un-acknowledged messages (the receiver acks
 how many it has received over a side PUSH/PULL channel), so a lossy path cannot count messages it dropped.

@@ -113,7 +113,7 @@ def recover_backscatter(e_b, e_w, p, *, p_object: float = 0.0):
 
 
 def recovered_signal_variance(var_b, var_w, p, *, p_object: float = 0.0):
-    """Variance of Ŝ for independent noise in E_b and E_w (refs/physics.md §4.2).
+    """Variance of Ŝ for independent noise in E_b and E_w (docs/physics.md §4.2).
 
     Var Ŝ = [(p + 1)² Var E_b + (p - 1)² Var E_w] / (p - p_object)²; with equal variance σ² and p_object = 0
     the noise gain is σ_Ŝ/σ = sqrt(2 (1 + 1/p²)).
@@ -167,7 +167,7 @@ def dolp(s0, s1, s2, *, noise_std: float | None = None) -> np.ndarray:
     """Degree of linear polarization sqrt(S1² + S2²)/S0 (0 where S0 <= 0), optionally debiased.
 
     With ``noise_std`` = σ, the per-frame noise of 4 equally spaced frames, the Rician bias is removed:
-    DoLP² <- max(0, DoLP² - 2·(2σ²)/S0²) (refs/physics.md §4.3).
+    DoLP² <- max(0, DoLP² - 2·(2σ²)/S0²) (docs/physics.md §4.3).
     """
     s0, s1, s2 = (np.asarray(x, np.float64) for x in (s0, s1, s2))
     same_shape(s0=s0, s1=s1, s2=s2)

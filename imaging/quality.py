@@ -4,7 +4,7 @@ delineation margin the stripe planner uses in place of eq. 9 (docs/planning.md).
 All are evaluated in log space so they stay finite when the components span hundreds of orders of magnitude
 (optical thickness 100): a ratio x/(x + y) is computed as expit(log x - log y), never as a quotient of two
 underflowed numbers. W is tied to the sensor model through the noise of the *recovered* signal
-(refs/physics.md §7): W ≈ P(detect) = Φ((S - μ)/σ_S), approximated by a logistic with z = σ_S/1.702 and
+(docs/physics.md §7): W ≈ P(detect) = Φ((S - μ)/σ_S), approximated by a logistic with z = σ_S/1.702 and
 μ = k·σ_S (the Rose criterion, k = 3 by default) plus any offset.
 """
 
@@ -158,7 +158,7 @@ def snr_weight(signal, mu, z) -> np.ndarray:
 
 
 def snr_weight_from_noise(signal, noise_std, *, k_detect: float = 3.0, offset: float = 0.0) -> np.ndarray:
-    """W with μ and z derived from the recovered signal's noise (refs/physics.md §7).
+    """W with μ and z derived from the recovered signal's noise (docs/physics.md §7).
 
     μ = offset + k_detect·σ_S and z = σ_S / 1.702, so W ≈ Φ((S - offset)/σ_S - k_detect), the probability
     that the signal clears a k-sigma detection threshold. σ_S = 0 gives the noise-free step (W = 1 for any
@@ -193,7 +193,7 @@ def recovered_signal_noise_e(signal_e, backscatter_e, p=None, *, read_noise_e: f
     Notes
     -----
     EMVA 1288: Var = σ_read² + μ_e + μ_dark + σ_q². For eq. 6, Var Ŝ = (1 + 1/p)² Var E_b + (1 - 1/p)²
-    Var E_w (refs/physics.md §4.2): the backscatter's shot noise stays even where B itself is removed.
+    Var E_w (docs/physics.md §4.2): the backscatter's shot noise stays even where B itself is removed.
     """
     s, b = _nonneg("signal_e", signal_e), _nonneg("backscatter_e", backscatter_e)
     floor = (finite_param("read_noise_e", read_noise_e, low=0.0) ** 2

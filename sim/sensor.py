@@ -1,4 +1,4 @@
-"""EMVA 1288 linear camera model: radiance → electrons → digital numbers (refs/physics.md §7).
+"""EMVA 1288 linear camera model: radiance → electrons → digital numbers (docs/physics.md §7).
 
 Radiance to photo-electrons per pixel (pinhole camera with a circular aperture of diameter a):
 

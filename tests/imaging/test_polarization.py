@@ -46,7 +46,7 @@ def test_partially_polarized_object():
 
 
 def test_noise_gain_matches_table():
-    # refs/physics.md §4.2 table: sigma_S/sigma for equal frame noise
+    # docs/physics.md §4.2 table: sigma_S/sigma for equal frame noise
     for p, gain in [(0.95, 2.05), (0.8, 2.26), (0.5, 3.16), (0.2, 7.2), (0.1, 14.2), (0.05, 28.3)]:
         assert np.sqrt(recovered_signal_variance(1.0, 1.0, p)) == pytest.approx(gain, rel=6e-3)
 

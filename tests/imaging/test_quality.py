@@ -22,7 +22,7 @@ def test_cqm_gqm_plain_values():
 
 
 def test_sanity_table_refs_section_2_4():
-    # refs/physics.md §2.4: CQM (p = 0.8) from the D and B columns (A ignored)
+    # docs/physics.md §2.4: CQM (p = 0.8) from the D and B columns (A ignored)
     for d, b, want in [(2.84e-2, 0.911, 0.135), (1.60e-2, 3.93e-2, 0.67), (8.70e-4, 7.00e-4, 0.861)]:
         assert cqm(d, b, 0.8) == pytest.approx(want, abs=0.002)
 
