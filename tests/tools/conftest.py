@@ -1,9 +1,14 @@
 """Fixtures of the export / import tests: a small recording of a simulated scan with every message type the
-exports map (written with BagWriter, so the tests need no running rig)."""
+exports map (written with BagWriter, so the tests need no running rig).
+
+In CI (``CI`` set) the optional packages of the export, import and Foxglove tests must be there (the
+``test`` extra installs them): a missing one fails the run instead of skipping those tests."""
 
 from __future__ import annotations
 
+import importlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +29,10 @@ from polarstripe.msgs import (
     ScanEvent,
 )
 from polarstripe.tools.bag import BagWriter
+
+if os.environ.get("CI"):
+    for _name in ("rosbags", "foxglove", "google.protobuf"):
+        importlib.import_module(_name)  # ImportError here: install the test extra (pip install -e '.[test]')
 
 T0 = 1_790_000_000_000_000_000
 NS = "/rig"
