@@ -263,3 +263,23 @@ def test_a_rig_without_a_scene_has_no_tf_unless_given_one(tmp_path, make_rig_bag
     with pytest.raises(BagError, match="--scene"):
         export(tmp_path / "plain.mcap", tmp_path / "c", "ros2",
                ExportOptions(scene=str(tmp_path / "nope.toml")))
+
+
+def test_a_type_this_build_does_not_know_goes_out_packed(tmp_path):
+    import msgpack
+
+    schema = {"properties": {"type": {"const": "mystery"}, "version": {"const": 3}}}
+    blob = msgpack.packb({"type": "mystery", "version": 3, "stamp_ns": 5, "seq": 0, "frame_id": "",
+                          "fields": {"x": 1.5}})
+    path = tmp_path / "mystery.mcap"
+    with BagWriter(path) as w:
+        cid = w.register("/lab/mystery", "polarstripe/mystery", json.dumps(schema).encode(),
+                         {"type": "mystery", "version": "3"})
+        w.add_payload(cid, [blob], log_time_ns=10, publish_time_ns=5, sequence=0)
+    export(path, tmp_path / "r", "ros2", ExportOptions(progress=False))
+    (row,) = [r for r in read_ros2(tmp_path / "r") if r[0] == "/lab/mystery"]
+    assert row[1] == "polarstripe_msgs/msg/Packed" and (row[3].type, row[3].version) == ("mystery", 3)
+    assert bytes(row[3].msgpack) == blob
+    export(path, tmp_path / "f.mcap", "foxglove", ExportOptions(progress=False))
+    (row,) = [r for r in read_foxglove(tmp_path / "f.mcap") if r[0] == "/lab/mystery"]
+    assert row[1] == "polarstripe.mystery" and row[3]["type"] == "mystery"
