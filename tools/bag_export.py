@@ -143,7 +143,7 @@ def export(src, dst, fmt: str, options: ExportOptions | None = None) -> ExportRe
     res = ExportResult(dst, fmt)
     with BagReader(src) as bag:
         topics = select_topics(bag, opt.topics)
-        start_ns = bag.start_ns + int((opt.start_s or 0.0) * 1e9) if opt.start_s else None
+        start_ns = bag.start_ns + int(opt.start_s * 1e9) if opt.start_s else None
         end_ns = bag.start_ns + int(opt.end_s * 1e9) if opt.end_s is not None else None
         try:
             geometry, res.geometry = geometry_from_metadata(bag.metadata, opt.scene)
