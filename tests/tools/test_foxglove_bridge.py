@@ -212,19 +212,32 @@ def sim_run(tmp_path_factory):
         log_time, data = message_data(ws.until(lambda m: message_data(m, 3) is not None, timeout_s=60), 3)
         got.update(channel=ch, log_time=log_time, image=decoder(ch)(data), advertised=set(ws.adv))
         ws.close()
-        out, err = proc.communicate(timeout=120)
+    except (AssertionError, OSError) as exc:  # reported with the launch's own account of what happened
+        got["error"] = f"{type(exc).__name__}: {exc}"
     finally:
-        if proc.poll() is None:
+        try:
+            _, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
             proc.kill()
-            proc.communicate()
+            _, err = proc.communicate()
         shutil.rmtree(can, ignore_errors=True)
-    got.update(tmp=tmp, returncode=proc.returncode, stderr=err, bag=tmp / "run.mcap")
+    logs = {p.stem: p.read_text() for p in (tmp / "runs").glob("*/logs/*.log")}
+    got.update(tmp=tmp, returncode=proc.returncode, stderr=err, bag=tmp / "run.mcap", logs=logs)
     return got
+
+
+def _launch_ok(run) -> None:
+    """The launch ended well and the client got its image; else what the launch and its nodes said."""
+    why = run.get("error") or (run["returncode"] and f"launch exit {run['returncode']}")
+    if why:
+        tails = "\n".join(f"--- {name}:\n{text[-1500:]}" for name, text in sorted(run["logs"].items())
+                          if "Traceback" in text or "ERROR" in text)
+        pytest.fail(f"{why}\n--- launch stderr:\n{run['stderr'][-2000:]}\n{tails}")
 
 
 @pytest.mark.slow
 def test_sim_launch_with_foxglove_serves_a_composite_image(sim_run):
-    assert sim_run["returncode"] == 0, sim_run["stderr"][-3000:]
+    _launch_ok(sim_run)
     img = sim_run["image"]
     assert sim_run["channel"]["schemaName"] == "foxglove.RawImage"
     assert (img.width, img.height, img.encoding, img.step) == (96, 72, "32FC1", 96 * 4)
@@ -241,7 +254,7 @@ def test_sim_recording_exports_imports_and_replays(sim_run):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    assert sim_run["returncode"] == 0, sim_run["stderr"][-3000:]
+    _launch_ok(sim_run)
     tmp, bag = sim_run["tmp"], sim_run["bag"]
     with BagReader(bag) as b:
         frames = {log: m.image for _, log, m in b.messages(["/rig/camera/frame"])}
