@@ -19,6 +19,7 @@ seconds per seed, Mitsuba version and variant, and the seed-to-seed spread on th
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import sys
@@ -27,6 +28,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, load_scene, scene_from_dict, scene_to_dict
 
 SIGMAS = (1.0, 2.5, 5.0, 8.0)
@@ -39,6 +41,19 @@ REGIONS = ("left half", "right half", "centre 8x8")
 RESOLUTION = 32
 OUTSIDE_M = 0.05            # camera and source this far in front of the tank's entry face
 SEPARATION_M = 0.2          # source beside the camera (+x: on the image left)
+
+
+# the single-scattering model: render_components(..., orders="single") where higher orders exist
+SINGLE = {"orders": "single"} if "orders" in inspect.signature(render_components).parameters else {}
+
+
+def single_scattering(scene: Scene) -> np.ndarray:
+    """polarstripe's single-scattering flood image [W sr⁻¹ m⁻²]: D + A + B (``standard``) with objects,
+    B (``reference``) without."""
+    if scene.objects:
+        c = render_components(scene, "flood", "standard", need=("D", "A", "B"), **SINGLE)
+        return c.D + c.A + c.B
+    return render_components(scene, "flood", "reference", need=("B",), **SINGLE).B
 
 
 def reference_scene(sigma_t: float, plane: bool, resolution: int = RESOLUTION) -> Scene:
@@ -134,8 +149,6 @@ _HEADER = ("| file | case | σ_t [1/m] | max_depth | spp | seeds | seconds per s
 
 def _model_section(out: Path) -> str:
     """polarstripe's single-scattering model against the stored references (region means of the seed mean)."""
-    from polarstripe.sim.render import render_components
-
     lines = []
     for sigma in SIGMAS:
         got = {}
@@ -145,18 +158,17 @@ def _model_section(out: Path) -> str:
                 got[case] = regions(np.load(f)["images"].astype(float).mean(0))
         if len(got) < len(CASES):
             continue
-        c = render_components(reference_scene(sigma, True), "flood", "standard", need=("D", "A", "B"))
-        b = render_components(reference_scene(sigma, False), "flood", "reference", need=("B",)).B
-        cells = [got["single_medium"] / regions(b), regions(c.D + c.A + c.B) / got["all_plane"],
-                 regions(b) / got["all_medium"]]
+        plane = regions(single_scattering(reference_scene(sigma, True)))
+        b = regions(single_scattering(reference_scene(sigma, False)))
+        cells = [got["single_medium"] / b, plane / got["all_plane"], b / got["all_medium"]]
         lines.append(f"| {sigma:g} | " + " | ".join(" / ".join(f"{v:.3f}" for v in x) for x in cells) + " |")
     if not lines:
         return ""
     return ("\n## polarstripe's single-scattering model against these references\n\n"
             "Values per region (left half / right half / centre 8×8), from the mean of the seeds. The\n"
-            "model is `render_components(scene, \"flood\")`: D + A + B (`standard`) with the plane,\n"
-            "B (`reference`) without. The gap single ÷ all orders is what a multiple-scattering model\n"
-            "must close.\n\n"
+            "model is `render_components(scene, \"flood\")`, single scattering only: D + A + B (`standard`)\n"
+            "with the plane, B (`reference`) without. The gap single ÷ all orders is what a\n"
+            "multiple-scattering model must close.\n\n"
             "| σ_t [1/m] | Mitsuba max_depth=2 ÷ model B (medium only) | single ÷ all orders, with the plane "
             "| single ÷ all orders, medium only |\n|---|---|---|---|\n" + "\n".join(lines) + "\n")
 

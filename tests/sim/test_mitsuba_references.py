@@ -10,10 +10,12 @@ import pytest
 from polarstripe.bench.mitsuba_references import (
     CASES,
     SIGMAS,
+    SINGLE,
     file_stem,
     reference_scene,
     regions,
     scene_toml,
+    single_scattering,
 )
 from polarstripe.sim.mitsuba_scene import (
     ENDPOINT_OFFSET_M,
@@ -50,11 +52,7 @@ def _load(case: str, sigma: float):
 
 def _model(case: str, sigma: float) -> np.ndarray:
     """polarstripe's single-scattering image of a stored reference's scene (rebuilt from its TOML)."""
-    scene = load_scene(DATA / f"{file_stem(case, sigma)}.toml")
-    if scene.objects:
-        c = render_components(scene, "flood", "standard", need=("D", "A", "B"))
-        return c.D + c.A + c.B
-    return render_components(scene, "flood", "reference", need=("B",)).B
+    return single_scattering(load_scene(DATA / f"{file_stem(case, sigma)}.toml"))
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -244,7 +242,7 @@ def test_render_truth_single_scattering_with_mitsuba():
     img = render_truth(s, "flood", max_depth=2, spp=2048, seed=0)
     assert img.shape == (12, 16) and img.dtype == np.float64
     big = s.replace(camera=s.camera.replace(resolution=(64, 48)))
-    c = render_components(big, "flood", "standard", need=("D", "B"))
+    c = render_components(big, "flood", "standard", need=("D", "B"), **SINGLE)
     ours = (c.D + c.B).reshape(12, 4, 16, 4).mean(axis=(1, 3))
     w = 8
     for a, b in ((img[:, :w], ours[:, :w]), (img[:, w:], ours[:, w:])):
