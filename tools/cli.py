@@ -30,7 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("polarstripe.planning.compare", "reproduce the paper's comparison of imaging methods"),
     "sweep": ("polarstripe.planning.sweep_cli", "run the planner over a grid of scenes (design studies)"),
     "record": ("polarstripe.tools.record", "record topics to an MCAP file"),
-    "bag": ("polarstripe.tools.bag_cli", "inspect or recover MCAP recordings"),
+    "bag": ("polarstripe.tools.bag_cli", "inspect, recover, export (ROS 2, Foxglove) or import recordings"),
     "replay": ("polarstripe.tools.replay", "publish a recording on its original topics"),
     "view": ("polarstripe.tools.view", "contact sheet of the latest frames and composites"),
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
