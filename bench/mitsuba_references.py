@@ -28,6 +28,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from polarstripe.sim.mitsuba_scene import render_truth, select_variant
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, load_scene, scene_from_dict, scene_to_dict
 
@@ -97,7 +98,7 @@ def _toml_value(v) -> str:
 def scene_toml(scene: Scene) -> str:
     """A scene as TOML text that :func:`~polarstripe.sim.scene.load_scene` reads back to an equal Scene."""
     d = scene_to_dict(scene)
-    lines = [] if d["object"] else ["object = []  # none (a missing key means the default chart)", ""]
+    lines = [] if d["object"] else ["object = []  # none", ""]
     for section in ("medium", "camera", "projector"):
         lines.append(f"[{section}]")
         lines += [f"{k} = {_toml_value(v)}" for k, v in d[section].items() if v is not None]
@@ -116,7 +117,6 @@ def render_case(case: str, sigma_t: float, spp: int, seeds: tuple[int, ...], var
                 pass_spp: int) -> dict:
     """Render one reference with every seed; returns the arrays stored in its npz."""
     import mitsuba as mi
-    from polarstripe.sim.mitsuba_scene import render_truth, select_variant
 
     depth, plane, _ = CASES[case]
     scene = reference_scene(sigma_t, plane)

@@ -39,6 +39,7 @@ from polarstripe.planning.planner import plan
 from polarstripe.planning.scene_model import SceneModel
 from polarstripe.planning.sweep_spec import AXES, SweepSpec, scene_for
 from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import Scene
 from tqdm import tqdm
 
 PARAMS = AXES
@@ -116,7 +117,6 @@ def _run_one(evaluate: Callable, job: SceneJob) -> tuple[int, str, Any]:
 
 def warm_worker() -> None:
     """Load the compiled kernels once in this process (numba's on-disk cache): one tiny flood and stripe."""
-    from polarstripe.sim.scene import Scene
 
     scene = Scene()
     w, h = scene.camera.resolution
