@@ -1,0 +1,205 @@
+"""``polarstripe bench depth``: triangulation time per stripe scan, and (``--accuracy``) depth error vs truth.
+
+Timing (1280×1024 uint16, N stripes, the default): per scan, the delineation + ray–plane triangulation the
+compositor runs once a scan is complete (:func:`~polarstripe.imaging.delineation.delineate`,
+:func:`~polarstripe.imaging.triangulation.depth_from_columns`, the point cloud), its target ≤ 20 ms, as a
+ratio to the compositor's own running reductions of the same scan (``RunningComposite.add`` of every frame;
+the running argmax the depth needs is timed too, as the per-frame cost it adds).
+
+Accuracy (``--accuracy``): a sphere in front of a tilted plane in the default tank, rendered by the model
+(:func:`polarstripe.sim.render.render_components`) at a small resolution for σ_t = 2, 5, 10, scanned with
+stripes and polarized stripes; RMS depth error [mm] against the simulator's depth truth
+(:func:`polarstripe.sim.depth_truth.depth_truth`) and the fraction of object pixels with a valid depth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+from polarstripe.imaging.composite import RunningComposite
+from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
+from polarstripe.imaging.triangulation import (
+    RigGeometry,
+    Triangulator,
+    camera_rays,
+    depth_from_columns,
+    stripe_edges,
+)
+from polarstripe.sim.depth_truth import depth_truth, rig_geometry
+from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import PlaneObject, Scene, SphereObject, load_scene
+from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, full_scale_dn
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--width", type=int, default=1280, help="frame width in pixels (default 1280)")
+    parser.add_argument("--height", type=int, default=1024, help="frame height in pixels (default 1024)")
+    parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
+    parser.add_argument("--repeats", type=int, default=5, help="scans timed; the median is reported")
+    parser.add_argument("--accuracy", action="store_true",
+                        help="also the depth error table (renders the model: about a minute)")
+    parser.add_argument("--accuracy-width", type=int, default=160, help="camera width of the accuracy "
+                        "renders (default 160)")
+
+
+# ---- the accuracy scene -----------------------------------------------------------------------------------
+def depth_scene(sigma_t: float, width: int = 160) -> Scene:
+    """The default tank with a sphere (r 5 cm at z 0.26 m) before a plane tilted 19° about the vertical axis,
+    the camera at ``width`` × ¾ ``width`` (exposure scaled by the pixel area)."""
+    s = load_scene(None)
+    n = np.array([0.35, 0.0, -1.0])
+    n /= np.linalg.norm(n)
+    objects = (SphereObject(center=(0.02, 0.0, 0.26), radius=0.05, albedo=0.6),
+               PlaneObject(point=(0.0, 0.0, 0.34), normal=tuple(n), size=(0.4, 0.3), albedo=0.6))
+    cam = s.camera.replace(resolution=(width, width * 3 // 4),
+                           exposure_s=s.camera.exposure_s * (width / s.camera.resolution[0]) ** 2)
+    return s.replace(objects=objects, camera=cam, medium=s.medium.replace(sigma_t=float(sigma_t)))
+
+
+def scan_votes(scene: Scene, stripes: int, angles=(None,), *, orders: str = "single", seed: int = 1,
+               fidelity: str = "preview") -> tuple[dict, Scene]:
+    """Render a stripe scan of ``scene`` at each analyzer angle and fold it into a RunningArgmax; the exposure
+    is first shortened so the flood frame (no analyzer) peaks at 80 % of full scale. Returns
+    ({angle: SheetVotes}, the scene as exposed)."""
+    flood = render_components(scene, "flood", fidelity, orders=orders)
+    cam = scene.camera
+    peak = float(np.max((flood.D + flood.A + flood.B) * electrons_per_radiance(cam))) / cam.gain_e_per_dn
+    limit = 0.8 * min(full_scale_dn(cam) - dark_offset_dn(cam), cam.full_well_e / cam.gain_e_per_dn)
+    if peak > limit:
+        scene = scene.replace(camera=scene.camera.replace(exposure_s=scene.camera.exposure_s * limit / peak))
+    w, h = scene.camera.resolution
+    ra = RunningArgmax((h, w), np.uint16)
+    rng = np.random.default_rng(seed)
+    for k in range(stripes):
+        comp = render_components(scene, f"stripe:{k}/{stripes}", fidelity, orders=orders)
+        for a in angles:
+            ra.add(expose(analyzer(comp, a), scene.camera, rng), k, a)
+    return {a: ra.result(a) for a in angles}, scene
+
+
+def noise_of(scene: Scene) -> NoiseModel:
+    c = scene.camera
+    return NoiseModel(dark_dn=dark_offset_dn(c), read_noise_dn=c.read_noise_e / c.gain_e_per_dn,
+                      dn_per_electron=1.0 / c.gain_e_per_dn, saturation_dn=full_scale_dn(c))
+
+
+def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict:
+    """RMS error [mm] where both are finite, the valid fraction of object pixels, depths where truth has
+    no object."""
+    both = np.isfinite(depth) & np.isfinite(truth)
+    err = (depth - truth)[both]
+    return {"rms_mm": float(1e3 * np.sqrt(np.mean(err ** 2))) if err.size else None,
+            "median_abs_mm": float(1e3 * np.median(np.abs(err))) if err.size else None,
+            "valid_fraction": float(both.sum() / max(1, np.isfinite(truth).sum())),
+            "off_object": int((np.isfinite(depth) & ~np.isfinite(truth)).sum())}
+
+
+def accuracy(sigmas=(2.0, 5.0, 10.0), stripes: int = 30, width: int = 160) -> list[dict]:
+    rows = []
+    for sigma in sigmas:
+        scene = depth_scene(sigma, width)
+        truth = depth_truth(scene)
+        votes, scene = scan_votes(scene, stripes, (None, 0.0, 90.0))
+        geom = RigGeometry.from_dict(rig_geometry(scene))
+        edges = stripe_edges(stripes, geom.proj_size[0])
+        noise = noise_of(scene)
+        # E_b: the analyzer angle passing less backscatter (the default source is polarized at 90°)
+        crossed = min((0.0, 90.0), key=lambda a: float(np.median(votes[a].best)))
+        for method, v in (("stripes", votes[None]), ("polarized_stripes", votes[crossed])):
+            z = depth_from_columns(geom, delineate(v, edges, noise))
+            rows.append({"sigma_t": sigma, "method": method, **depth_error(z, truth)})
+    return rows
+
+
+# ---- timing ----------------------------------------------------------------------------------------------
+def _synthetic(width: int, height: int, stripes: int):
+    """A stripe scan of a plane seen by a 1280-wide rig like the default tank's: frames, geometry."""
+    scene = load_scene(None)
+    geom = RigGeometry.from_dict(rig_geometry(scene)).for_camera(width, height)
+    rr, cc = np.mgrid[0:height, 0:width]
+    rays = camera_rays(geom, rr, cc)
+    x_p = rays * 0.38 @ geom.R.T + geom.T  # points of the plane z = 0.38 in the projector frame
+    col = x_p[..., 0] / x_p[..., 2] * geom.K_proj[0, 0] + geom.K_proj[0, 2] + 0.5
+    edges = stripe_edges(stripes, geom.proj_size[0])
+    sheet = np.searchsorted(edges, col, side="right") - 1
+    rng = np.random.default_rng(0)
+    frames = [np.where(sheet == k, 3000, 200).astype(np.uint16) + rng.integers(0, 8, (height, width),
+                                                                                dtype=np.uint16)
+              for k in range(stripes)]
+    return frames, geom, edges
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def run(width: int, height: int, stripes: int, repeats: int) -> dict:
+    frames, geom, edges = _synthetic(width, height, stripes)
+    shape = (height, width)
+    rc = RunningComposite(shape, np.uint16, saturation=4095)
+    ra = RunningArgmax(shape, np.uint16)
+
+    def reductions():
+        rc.reset()
+        for f in frames:
+            rc.add(f)
+
+    def argmax():
+        ra.reset()
+        for k, f in enumerate(frames):
+            ra.add(f, k)
+
+    argmax()
+    votes = ra.result()
+    tri = Triangulator(geom, shape)
+    noise = NoiseModel(dark_dn=0.0, saturation_dn=4095)
+
+    def triangulate():
+        tri.points(tri.depth(delineate(votes, edges, noise)))
+
+    triangulate()  # compile
+
+    t_red, t_arg, t_tri = (_median_time(fn, repeats) for fn in (reductions, argmax, triangulate))
+    t_del = _median_time(lambda: delineate(votes, edges, noise), repeats)
+    return {"width": width, "height": height, "stripes": stripes,
+            "compositor_scan_ms": 1e3 * t_red, "argmax_scan_ms": 1e3 * t_arg,
+            "delineate_ms": 1e3 * t_del, "triangulation_ms": 1e3 * t_tri,
+            "triangulation_vs_compositor": t_tri / t_red, "target_ms": 20.0}
+
+
+def main(args: argparse.Namespace) -> int:
+    out = run(args.width, args.height, args.stripes, args.repeats)
+    if args.accuracy:
+        out["accuracy"] = accuracy(width=args.accuracy_width, stripes=args.stripes)
+        out["accuracy_model"] = "single scattering (render_components orders='single'), preview fidelity"
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"depth from a stripe scan, {out['width']}x{out['height']} uint16, {out['stripes']} stripes "
+          f"(median of {args.repeats})")
+    print(f"  {'step':<44}{'ms/scan':>9}{'vs compositor':>15}")
+    for key, label in (("compositor_scan_ms", "compositor running max/min (all frames)"),
+                       ("argmax_scan_ms", "running argmax + second (all frames)"),
+                       ("delineate_ms", "delineation (edges, columns)"),
+                       ("triangulation_ms", "delineation + triangulation + points")):
+        print(f"  {label:<44}{out[key]:>9.2f}{out[key] / out['compositor_scan_ms']:>15.2f}")
+    ok = "meets" if out["triangulation_ms"] <= out["target_ms"] else "misses"
+    print(f"  triangulation {ok} the {out['target_ms']:.0f} ms target")
+    if args.accuracy:
+        print(f"\ndepth error vs the simulator's truth ({out['accuracy_model']})")
+        print(f"  {'sigma_t':>7}  {'method':<18}{'RMS mm':>8}{'median mm':>10}{'valid':>7}{'off-obj':>8}")
+        for r in out["accuracy"]:
+            rms = "n/a" if r["rms_mm"] is None else f"{r['rms_mm']:.2f}"
+            med = "n/a" if r["median_abs_mm"] is None else f"{r['median_abs_mm']:.2f}"
+            print(f"  {r['sigma_t']:>7g}  {r['method']:<18}{rms:>8}{med:>10}{r['valid_fraction']:>7.2f}"
+                  f"{r['off_object']:>8d}")
+    return 0

@@ -1,0 +1,205 @@
+"""Stripe delineation for triangulation: which light sheet lit each pixel, and where exactly its edges are.
+
+Over a stripe scan, :class:`RunningArgmax` keeps per pixel the brightest value, the index of the sheet that
+gave it (the argmax over the scan's frames) and the second-brightest value, one set per analyzer angle:
+memory does not grow with the number of stripes (like the running max of eq. 7).
+
+:func:`delineate` turns them into a map of continuous projector (pattern) columns, the per-pixel input of
+the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`):
+
+* along each camera row, where the sheet index steps by one between pixels j and j + 1 (sheets a and a + 1),
+  the edge between them (the projector column ⌊(a + 1)·W/N⌋, known exactly) crosses the row. Its sub-pixel
+  position is the zero of the difference of the two sheets' images, I_a − I_{a+1}, linear between the pixels:
+  at j it is the margin m_j = best − second (the second best there is sheet a + 1), at j + 1 it is −m_{j+1},
+  so x = j + m_j/(m_j + m_{j+1}) — the paper's gradient edge (§2), from the running values alone;
+* a pixel between two such edges of its own stripe gets the column interpolated linearly between them;
+* a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
+  below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is next to an edge,
+  where a small margin is expected), or it is not bracketed by two good edges on its row (the first and last
+  stripe, an object's silhouette, a shadow, a jump of more than one sheet). An edge is good when the margins'
+  sum exceeds ``k_sigma`` σ and ``min_contrast`` times the mean signal of the two pixels (a stripe seen on a
+  surface is sharp; backscatter of the sheets in the water is not).
+
+Noise model (DN): σ²(v) = read_noise_dn² + (v − dark)·dn_per_electron (shot noise, EMVA 1288).
+Stripes are assumed to cross camera rows (a horizontal camera–projector baseline, vertical stripes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from polarstripe.imaging.validation import ImagingError, finite_param
+
+
+@dataclass(frozen=True)
+class SheetVotes:
+    """Per pixel over one angle's frames: ``best`` and ``second`` values (frame units), ``index`` (int32,
+    sheet of the best), ``n_frames``."""
+
+    best: np.ndarray
+    second: np.ndarray
+    index: np.ndarray
+    n_frames: int
+
+
+class RunningArgmax:
+    """Running argmax and second-best value per pixel, one set per analyzer angle (``None``: no analyzer).
+
+    ``add(frame, sheet, angle)``: O(1) memory in the number of stripes; buffers are reused after
+    :meth:`reset`."""
+
+    def __init__(self, shape: tuple[int, int], dtype=np.uint16):
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.dtype = np.dtype(dtype)
+        self._bufs: dict = {}
+        self._count: dict = {}
+
+    @staticmethod
+    def _key(angle_deg):
+        return None if angle_deg is None else round(float(angle_deg) % 180.0, 6)
+
+    def reset(self) -> None:
+        self._count.clear()
+
+    def add(self, frame: np.ndarray, sheet: int, angle_deg: float | None = None) -> None:
+        if frame.shape != self.shape or frame.dtype != self.dtype:
+            raise ImagingError(f"frame: {frame.dtype} {frame.shape}, expected {self.dtype} {self.shape}")
+        key = self._key(angle_deg)
+        if key not in self._bufs:
+            self._bufs[key] = tuple(np.empty(self.shape, t) for t in (self.dtype, self.dtype, np.int32))
+        best, second, index = self._bufs[key]
+        if self._count.get(key, 0) == 0:
+            np.copyto(best, frame)
+            second.fill(-np.inf if self.dtype.kind == "f" else np.iinfo(self.dtype).min)
+            index.fill(sheet)
+        else:  # one compiled pass: a new best pushes the old best down to second
+            _fold(np.ascontiguousarray(frame).reshape(-1), best.reshape(-1), second.reshape(-1),
+                  index.reshape(-1), np.int32(sheet))
+        self._count[key] = self._count.get(key, 0) + 1
+
+    @property
+    def angles(self) -> list:
+        return [k for k, n in self._count.items() if n > 0]
+
+    def result(self, angle_deg: float | None = None) -> SheetVotes:
+        key = self._key(angle_deg)
+        if not self._count.get(key):
+            raise ImagingError(f"angle_deg: no frames at {angle_deg!r} (have {self.angles})")
+        best, second, index = self._bufs[key]
+        return SheetVotes(best, second, index, self._count[key])
+
+
+@njit(cache=True, nogil=True)
+def _fold(frame, best, second, index, sheet):
+    for p in range(frame.size):
+        v, b = frame[p], best[p]
+        if v > b:
+            second[p] = b
+            best[p] = v
+            index[p] = sheet
+        elif v > second[p]:
+            second[p] = v
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """The sensor noise the validity tests use, in DN (see the module docstring)."""
+
+    dark_dn: float = 0.0
+    read_noise_dn: float = 1.0
+    dn_per_electron: float = 1.0 / 12.0
+    saturation_dn: float | None = None
+
+
+def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_sigma: float = 4.0,
+              min_contrast: float = 0.15) -> np.ndarray:
+    """Continuous pattern column per pixel (h, w) float64, NaN where the stripe cannot be delineated.
+
+    Parameters
+    ----------
+    votes : SheetVotes
+        Of one analyzer angle (for polarized striping: the crossed one, E_b).
+    edges : (N + 1,) array
+        Pattern column of the stripe boundaries (:func:`~.triangulation.stripe_edges`); sheet k spans
+        [edges[k], edges[k + 1]).
+    noise : NoiseModel
+    k_sigma, min_contrast : float
+        The validity thresholds (module docstring).
+    """
+    best = np.ascontiguousarray(votes.best, np.float64)
+    second = np.ascontiguousarray(votes.second, np.float64)
+    index = np.ascontiguousarray(votes.index, np.int32)
+    edges = np.ascontiguousarray(edges, np.float64)
+    if best.ndim != 2 or best.shape != index.shape or best.shape != second.shape:
+        raise ImagingError(f"votes: shapes {best.shape}, {second.shape}, {index.shape} differ or are not 2-D")
+    if edges.ndim != 1 or edges.size < 2:
+        raise ImagingError(f"edges: need N + 1 >= 2 boundaries, got {edges.shape}")
+    if index.size and (index.min() < 0 or index.max() >= edges.size - 1):
+        raise ImagingError(f"votes: sheet index outside 0 … {edges.size - 2}")
+    sat = np.inf if noise.saturation_dn is None else finite_param("saturation", noise.saturation_dn)
+    out = np.empty(best.shape)
+    _delineate_rows(best, second, index, edges, float(noise.dark_dn), float(noise.read_noise_dn) ** 2,
+                    float(noise.dn_per_electron), sat, finite_param("k_sigma", k_sigma, low=0.0),
+                    finite_param("min_contrast", min_contrast, low=0.0), out)
+    return out
+
+
+@njit(cache=True)
+def _delineate_rows(best, second, index, edges, dark, read_var, g, sat, k, min_contrast, out):
+    h, w = best.shape
+    ok = np.empty(w, np.bool_)
+    kind = np.empty(w + 1, np.int8)  # gap p sits between pixels p − 1 and p: 0 same stripe, 1 edge, 2 break
+    xs = np.empty(w + 1)
+    cs = np.empty(w + 1)
+    var = np.empty(w)
+    left = np.empty(w, np.int64)
+    for i in range(h):
+        for j in range(w):
+            b, s = best[i, j], second[i, j]
+            sb = b - dark if b > dark else 0.0
+            ss = s - dark if s > dark else 0.0
+            var[j] = 2.0 * read_var + g * (sb + ss)
+            ok[j] = b < sat and sb >= k * np.sqrt(read_var + g * sb)
+        kind[0] = 2
+        kind[w] = 2
+        for p in range(1, w):
+            a, c = p - 1, p
+            if not (ok[a] and ok[c]):
+                kind[p] = 2
+                continue
+            ia, ic = index[i, a], index[i, c]
+            if ia == ic:
+                kind[p] = 0
+                continue
+            ma, mc = best[i, a] - second[i, a], best[i, c] - second[i, c]
+            tot = ma + mc
+            signal = 0.5 * (best[i, a] + best[i, c]) - dark
+            if abs(ia - ic) == 1 and tot > 0 and tot >= k * np.sqrt(var[a] + var[c]) and \
+                    tot >= min_contrast * signal:
+                kind[p] = 1
+                xs[p] = a + ma / tot
+                cs[p] = edges[max(ia, ic)]
+            else:
+                kind[p] = 2
+        last = 0
+        for j in range(w):
+            if kind[j] != 0:
+                last = j
+            left[j] = last
+        nxt = w
+        for j in range(w - 1, -1, -1):
+            if kind[j + 1] != 0:
+                nxt = j + 1
+            pl = left[j]
+            out[i, j] = np.nan
+            if not ok[j] or kind[pl] != 1 or kind[nxt] != 1:
+                continue
+            m = best[i, j] - second[i, j]
+            if m < k * np.sqrt(var[j]) and pl != j and nxt != j + 1:
+                continue
+            xl, xr = xs[pl], xs[nxt]
+            if xr <= xl:
+                continue
+            out[i, j] = cs[pl] + (j - xl) * (cs[nxt] - cs[pl]) / (xr - xl)

@@ -1,0 +1,63 @@
+"""The simulator's depth truth and the rig's geometry as plain numbers (OpenCV conventions).
+
+* :func:`depth_truth` — per camera pixel, the depth z [m] along the camera's optical axis of the nearest
+  object the pixel's centre ray hits (planes, spheres, boxes; :func:`polarstripe.sim.geometry.intersect`),
+  NaN where the ray hits nothing. It is what a stripe scan's triangulation should measure.
+* :func:`rig_geometry` — the scene's camera and projector pinholes as a calibration would give them: 3×3
+  intrinsics ``K_cam``, ``K_proj`` (pixel centres at integer coordinates, so c_x = w/2 − ½), image sizes,
+  and the pose ``R``, ``T`` taking camera-frame points to the projector frame (X_p = R·X_c + T, the
+  ``cv2.stereoCalibrate`` convention). The OpenCV camera frame is x = image right, y = image down, z =
+  forward, i.e. the scene's (r, −u, f) (docs/physics.md §0.2). No lens distortion.
+
+Plain arrays only, so :mod:`polarstripe.imaging` (which must not import the model) can take them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from polarstripe.sim.geometry import Frame, intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.scene import Scene
+
+
+def camera_frame(scene: Scene) -> Frame:
+    c = scene.camera
+    return pinhole_frame(c.position, c.look_at, c.up, c.fov_deg, c.resolution)
+
+
+def projector_frame(scene: Scene) -> Frame:
+    p = scene.projector
+    return pinhole_frame(p.position, p.look_at, p.up, p.fov_deg, p.resolution)
+
+
+def depth_truth(scene: Scene) -> np.ndarray:
+    """Depth z [m] (along the camera axis) of the first object each pixel's centre ray hits, (h, w)
+    float64, NaN where it hits none."""
+    cam = camera_frame(scene)
+    dirs = pixel_rays(cam)
+    hits = intersect(scene.objects, cam.position, dirs)
+    z = hits.t * (dirs @ cam.f)
+    z[~np.isfinite(hits.t) | (hits.index < 0)] = np.nan
+    return z.reshape(cam.h, cam.w)
+
+
+def _intrinsics(frame: Frame) -> np.ndarray:
+    f = 1.0 / frame.s
+    return np.array([[f, 0.0, frame.w / 2.0 - 0.5], [0.0, f, frame.h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _axes(frame: Frame) -> np.ndarray:
+    """Rows: the OpenCV frame's x, y, z axes in world coordinates."""
+    return np.stack([frame.r, -frame.u, frame.f])
+
+
+def rig_geometry(scene: Scene) -> dict:
+    """The rig as a calibration file holds it: ``K_cam``, ``K_proj`` (3, 3), ``cam_size``, ``proj_size``
+    ([w, h]), ``R`` (3, 3), ``T`` (3,) [m] with X_p = R·X_c + T, ``dist_cam`` (5,) zeros."""
+    if scene.projector.model != "pinhole":
+        raise ValueError("the projector is a point source: no light sheets (projector.model = 'pinhole')")
+    cam, proj = camera_frame(scene), projector_frame(scene)
+    a_c, a_p = _axes(cam), _axes(proj)
+    R = a_p @ a_c.T  # camera coords -> world directions (a_c.T) -> projector coords (a_p)
+    T = a_p @ (np.asarray(cam.position, float) - np.asarray(proj.position, float))
+    return {"K_cam": _intrinsics(cam), "K_proj": _intrinsics(proj), "cam_size": [cam.w, cam.h],
+            "proj_size": [proj.w, proj.h], "R": R, "T": T, "dist_cam": np.zeros(5)}
