@@ -4,6 +4,7 @@ See docs/architecture.md, "Bus, messages and nodes"."""
 
 from polarstripe.msgs.base import REGISTRY, Header, Message, MessageError, message
 from polarstripe.msgs.codec import DEFAULT_MAX_BYTES, decode, describe, encode, pack, unpack
+from polarstripe.msgs.depth import DepthMap
 from polarstripe.msgs.methods import METHOD_NAMES, Method
 from polarstripe.msgs.patterns import PatternError, PatternSpec
 from polarstripe.msgs.rig import (
@@ -51,6 +52,7 @@ __all__ = [
     "REGISTRY",
     "Ack",
     "Composite",
+    "DepthMap",
     "Empty",
     "Frame",
     "FrameRequest",

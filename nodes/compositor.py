@@ -2,18 +2,13 @@
 makes the method's composite, scores it and writes it out.
 
 * subscribes ``camera/frame``, ``emitter/scan`` and ``simulator/truth`` (every message); each handler does
-  its own work and returns (an event-driven state machine, never waiting on the bus):
-
-  - a frame of the running scan is folded in; a frame whose scan has not started yet (scan events come from
-    another publisher, so a ``start`` can trail the first frames) is held, at most ``early_frames`` of them,
-    and folded in when its ``start`` comes (a held frame whose ``start`` never comes is dropped, counted);
-  - a scan is complete when its ``done`` has come *and* all its expected frames (the method's patterns
-    times the analyzer angles) are in; if frames are missing, a deadline timer (``done_grace_s`` after the
-    last of them) ends it anyway, with a fault "n of m frames" in the log and the metrics;
-  - a complete scan whose ``simulator/truth`` message (the simulator publishes it with the scan id at every
-    scan start) has not come is held for it up to ``truth_wait_s`` (a timer; in a replay the truth can trail
-    the frames on its own socket); then it is composited without (the log says so, the error vs truth is
-    None). A topic silent for a whole wait is not waited for again (a rig without a simulator);
+  its own work and returns (an event-driven state machine, never waiting on the bus). A frame of the running
+  scan is folded in; one whose scan's ``start`` has not come yet is held (at most ``early_frames``; dropped,
+  counted, if the start never comes). A scan is complete when its ``done`` has come and all its expected
+  frames (patterns × analyzer angles) are in, or ``done_grace_s`` after the last frame (fault "n of m frames"
+  in the log and metrics). A complete scan is held up to ``truth_wait_s`` for its ``simulator/truth``
+  message (tagged with the scan id; it can trail the frames in a replay), then composited without (error vs
+  truth None); a topic silent for a whole wait is not waited for again (a rig without a simulator);
 
 * per scan, a :class:`~polarstripe.imaging.composite.RunningComposite` keeps one per-pixel max and min per
   analyzer angle (buffers reused from scan to scan): memory does not grow with the number of stripes;
@@ -22,7 +17,10 @@ makes the method's composite, scores it and writes it out.
   the chart's bars, ``error_vs_truth`` (relative RMS, gain fitted) against the truth's S;
 * publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, ``saturated`` uint8,
   ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``medium/estimate`` (p; σ_t is not
-  estimated); writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``.
+  estimated); writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``;
+* after a stripe scan, its depth (light-stripe triangulation with the ``geometry`` param's rig,
+  :mod:`polarstripe.nodes.compositor_depth`): ``compositor/depth`` (``DepthMap``), ``depth_<method>.npy``
+  and ``.ply``, ``metrics[method]["depth"]``.
 
 Calibration frames of the polarizer (scan ids from 2**30) are ignored. Frames that do not belong are dropped
 and counted (heartbeat counters ``frames_unexpected`` no scan running / never started,
@@ -48,11 +46,13 @@ from polarstripe.msgs import (
     CALIBRATION_SCAN_ID,
     METHOD_NAMES,
     Composite,
+    DepthMap,
     Frame,
     MediumEstimate,
     Method,
     ScanEvent,
 )
+from polarstripe.nodes.compositor_depth import DepthStage
 from polarstripe.nodes.compositor_output import fmt, write_comparison, write_method
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
@@ -113,6 +113,10 @@ class Compositor(Node):
         early_frames: int = 16  # frames held ahead of their scan's "start"
         image_format: Literal["tiff", "npy"] = "tiff"
         comparison: bool = True
+        geometry: str = ""  # rig for depth: "" the default tank, a scene .toml, a calibration file, or "none"
+        depth_k_sigma: float = 4.0  # a stripe is delineated where its margins exceed this many noise sigma
+        depth_min_contrast: float = 0.15  # and its edges this fraction of the signal
+        depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
 
         def validate(self):
             super().validate()
@@ -124,7 +128,8 @@ class Compositor(Node):
             if not (self.truth_wait_s > 0 and self.done_grace_s > 0 and self.early_frames >= 0):
                 raise ValueError("truth_wait_s and done_grace_s must be > 0 s, early_frames >= 0")
 
-    PUBLISHES = {"compositor/composite": Composite, "medium/estimate": MediumEstimate}
+    PUBLISHES = {"compositor/composite": Composite, "medium/estimate": MediumEstimate,
+                 "compositor/depth": DepthMap}
     SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
 
     def setup(self):
@@ -140,6 +145,7 @@ class Compositor(Node):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("medium/estimate")
+        self.depth = DepthStage.of(self.params, self.publisher("compositor/depth"), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         if self.params.use_truth:
@@ -200,9 +206,9 @@ class Compositor(Node):
             return self._drop("frames_bad", frame,
                               f"{image.dtype} {image.shape}, scan has {rc.dtype} {rc.shape}")
         rc.add(image, key)
+        self.depth.add(image, frame.pattern, key)
         scan.steps.add(frame.step)
-        scan.frames += 1
-        scan.bit_depth = frame.bit_depth
+        scan.frames, scan.bit_depth = scan.frames + 1, frame.bit_depth
 
     def _angle_key(self, angle: float | None, scan: _Scan):
         """The scan's nominal analyzer angle nearest ``angle`` (modulo 180), None without one, or False."""
@@ -244,6 +250,7 @@ class Compositor(Node):
                            ", ".join(METHOD_NAMES))
             return
         scan = self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
+        self.depth.start(ev.method, ev.stripes)
         if self.running is not None:
             self.running.reset()
         held, self.early = self.early, deque()
@@ -376,6 +383,8 @@ class Compositor(Node):
         m.update(score(image, bright=bright, dark=dim, truth=None if truth is None else truth.images["S"]))
         if "metrics_error" in m:  # e.g. every bar pixel saturated: no number rather than a wrong one
             self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, m["metrics_error"])
+        if (depth := self.depth.run(scan.method, scan.scan_id, dark, rc.saturation, free, truth, p.out)):
+            m["depth"] = depth
         images = {"composite": np.ma.filled(image, 0.0).astype(np.float32),
                   "saturated": np.ma.getmaskarray(image).astype(np.uint8)}
         images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in made.layers.items()})

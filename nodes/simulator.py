@@ -21,8 +21,9 @@ Services (relative to the namespace):
 Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the scan's), published at every
 ``emitter/scan`` start — the one way the ground truth reaches the compositor, so a recording carries it and a
 replay scores like the live run: images ``S`` (float64: flood D + A in DN above the dark offset, no analyzer,
-same exposure as the frames), ``chart_band`` (int32 band per pixel, −1 off the chart), ``chart_high`` (bool,
-bright bar); metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``. One render per source pose, cached.
+same exposure as the frames), ``depth_m`` (float32 z [m] of the objects, NaN where none), ``chart_band``
+(int32 band per pixel, −1 off the chart), ``chart_high`` (bool, bright bar); metrics ``separation_m``,
+``exposure_s``, ``dark_offset_dn``. One render per source pose, cached.
 
 Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
 the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
@@ -61,6 +62,7 @@ from polarstripe.nodes.simulator_frames import (
 )
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
+from polarstripe.sim.depth_truth import depth_truth
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
@@ -344,7 +346,8 @@ class Simulator(Node):
             self._truth[key] = Composite(
                 images={"S": signal.astype(np.float64),
                         "chart_band": comp.surface.chart_band.astype(np.int32),
-                        "chart_high": comp.surface.chart_high.astype(bool)},
+                        "chart_high": comp.surface.chart_high.astype(bool),
+                        "depth_m": depth_truth(self.scene).astype(np.float32)},  # z [m], NaN: no object
                 method="truth",
                 metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
                          "dark_offset_dn": dark_offset_dn(cam)},

@@ -1,0 +1,217 @@
+"""The compositor's depth: light-stripe triangulation of every stripe scan (docs/depth.md).
+
+* the rig geometry comes from the compositor's ``geometry`` param (:func:`load_geometry`): ``""`` the default
+  tank's scene, a scene ``.toml`` (its camera and projector pinholes), a calibration file
+  (``polarstripe calibrate -o rig.yaml``: OpenCV ``FileStorage`` YAML/XML/JSON with ``K_cam``, ``dist_cam``,
+  ``K_proj``, ``R``, ``T``, ``cam_size``, ``proj_size``), or ``"none"`` (no depth);
+* per stripe scan, a :class:`~polarstripe.imaging.delineation.RunningArgmax` per analyzer angle keeps the
+  brightest value, its sheet (from the frame's ``stripe:K/N`` tag) and the second-brightest value: memory
+  does not grow with the stripes;
+* at the end: the sheets of the crossed angle (E_b, the one passing less light over the object-free region,
+  as :func:`~polarstripe.imaging.compose.compose` chooses) or of the only one are delineated, triangulated,
+  published as a :class:`~polarstripe.msgs.DepthMap` on ``compositor/depth`` and written to
+  ``<out>/depth_<method>.npy`` (z [m], NaN invalid, float32) and ``depth_<method>.ply`` (binary
+  little-endian PLY, float32 x y z in the camera frame, metres).
+"""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
+from polarstripe.imaging.triangulation import RigGeometry, Triangulator, stripe_edges
+from polarstripe.imaging.validation import ImagingError, roi_slices
+from polarstripe.msgs import DepthMap
+from polarstripe.msgs.patterns import PatternError, parse
+from polarstripe.sim.depth_truth import rig_geometry
+from polarstripe.sim.scene import SceneError, load_scene
+
+STRIPE_METHODS = ("stripes", "polarized_stripes")
+CALIBRATION_KEYS = ("K_cam", "dist_cam", "K_proj", "R", "T", "cam_size", "proj_size")
+
+
+class GeometryError(PolarstripeError, ValueError):
+    """A geometry param that names no usable rig geometry; the text names the file and the problem."""
+
+
+def load_geometry(spec: str) -> RigGeometry | None:
+    """The rig geometry a ``geometry`` param names (module docstring); None for ``"none"``."""
+    if spec.strip().lower() == "none":
+        return None
+    try:
+        if spec == "" or spec.endswith(".toml"):
+            try:
+                return RigGeometry.from_dict(rig_geometry(load_scene(spec or None)))
+            except (SceneError, ValueError) as exc:
+                raise GeometryError(f"geometry {spec!r}: {exc}") from None
+        return RigGeometry.from_dict(read_calibration(spec))
+    except ImagingError as exc:
+        raise GeometryError(f"geometry {spec!r}: {exc}") from None
+
+
+def read_calibration(path: str) -> dict:
+    """The matrices of a calibration file written by ``polarstripe calibrate`` (cv2.FileStorage)."""
+    if not os.path.isfile(path):
+        raise GeometryError(f"geometry {path!r}: no such file")
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise GeometryError(f"geometry {path!r}: not an OpenCV FileStorage file")
+        out = {}
+        for key in CALIBRATION_KEYS:
+            node = fs.getNode(key)
+            if node.empty():
+                if key == "dist_cam":
+                    continue
+                raise GeometryError(f"geometry {path!r}: {key} is missing")
+            out[key] = node.mat()
+        return out
+    finally:
+        fs.release()
+
+
+def write_calibration(path: str, geom: dict, extra: dict | None = None) -> None:
+    """Write a calibration atomically (temporary file + rename: a failed run leaves the old file whole)."""
+    base, ext = os.path.splitext(path)
+    tmp = f"{base}.tmp{os.getpid()}{ext or '.yaml'}"
+    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+    try:
+        for key in CALIBRATION_KEYS:
+            fs.write(key, np.asarray(geom[key], np.float64).reshape((-1, 1) if key in ("T", "dist_cam",
+                                                                                         "cam_size",
+                                                                                         "proj_size")
+                                                                     else (3, 3)))
+        for key, value in (extra or {}).items():
+            fs.write(key, value)
+    finally:
+        fs.release()
+    os.replace(tmp, path)
+
+
+def write_ply(path: str, points: np.ndarray | None) -> None:
+    """Binary little-endian PLY of float32 points (n, 3), written atomically."""
+    pts = np.zeros((0, 3), "<f4") if points is None else np.ascontiguousarray(points, "<f4")
+    header = ("ply\nformat binary_little_endian 1.0\ncomment polarstripe depth, camera frame, metres\n"
+              f"element vertex {len(pts)}\n" + "".join(f"property float {c}\n" for c in "xyz")
+              + "end_header\n")
+    tmp = path + ".tmp"
+    with open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(pts.tobytes())
+    os.replace(tmp, path)
+
+
+def read_ply(path: str) -> np.ndarray:
+    """The points of a PLY written by :func:`write_ply`."""
+    with open(path, "rb") as f:
+        data = f.read()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    n = int(next(line.split()[2] for line in data[:end].decode("ascii").splitlines()
+                 if line.startswith("element vertex")))
+    return np.frombuffer(data[end:], "<f4", count=3 * n).reshape(n, 3)
+
+
+class DepthStage:
+    """The compositor's depth, scan by scan: :meth:`start`, :meth:`add` per frame, :meth:`finish`."""
+
+    def __init__(self, geometry: RigGeometry | None, noise: NoiseModel, *, k_sigma: float = 4.0,
+                 min_contrast: float = 0.15, source: str = "", publisher=None, log=None):
+        self.geometry, self.noise, self.source = geometry, noise, source
+        self.k_sigma, self.min_contrast = k_sigma, min_contrast
+        self.publisher, self.log = publisher, log
+        self.running: RunningArgmax | None = None
+        self.triangulator: Triangulator | None = None
+        self.active, self.count = False, 0
+
+    @classmethod
+    def of(cls, params, publisher, log) -> DepthStage:
+        """From the compositor's params (``geometry``, ``depth_k_sigma``, ``depth_min_contrast``,
+        ``depth_noise``)."""
+        if len(params.depth_noise) != 2 or min(params.depth_noise) < 0:
+            raise GeometryError(f"depth_noise must be [read noise DN, DN per electron], got "
+                                f"{params.depth_noise}")
+        read, gain = params.depth_noise
+        return cls(load_geometry(params.geometry), NoiseModel(0.0, read, gain),
+                   k_sigma=params.depth_k_sigma, min_contrast=params.depth_min_contrast,
+                   source=params.geometry, publisher=publisher, log=log)
+
+    def run(self, method: str, scan_id: int, dark: float, saturation, object_free, truth, out: str) -> dict:
+        """:meth:`finish`, then publish and write it; its metrics, or {} (no stripe scan, or no depth: the
+        log says why)."""
+        try:
+            depth = self.finish(method, scan_id, dark=dark, saturation=saturation, object_free=object_free,
+                                truth_depth=None if truth is None else truth.images.get("depth_m"))
+        except PolarstripeError as exc:
+            self.log.warning("scan %d (%s): no depth: %s", scan_id, method, exc)
+            return {}
+        if depth is None:
+            return {}
+        self.publisher.publish(depth)
+        if out:
+            write_depth(out, depth)
+        return depth.metrics
+
+    def start(self, method: str, stripes: int) -> None:
+        self.active = self.geometry is not None and method in STRIPE_METHODS and stripes > 0
+        self.count = stripes
+        if self.running is not None:
+            self.running.reset()
+
+    def add(self, image: np.ndarray, pattern: str, angle) -> None:
+        if not self.active:
+            return
+        try:
+            p = parse(pattern)
+        except PatternError:
+            return
+        if p.kind != "stripe" or p.count != self.count:
+            return
+        if self.running is None or self.running.shape != image.shape or self.running.dtype != image.dtype:
+            self.running = RunningArgmax(image.shape, image.dtype)
+        self.running.add(image, p.index, angle)
+
+    def finish(self, method: str, scan_id: int, *, dark: float, saturation: float | None, object_free=None,
+               truth_depth: np.ndarray | None = None) -> DepthMap | None:
+        """The scan's depth, or None when it is not a stripe scan (or there is no geometry)."""
+        if not self.active or self.running is None or not self.running.angles:
+            return None
+        rc = self.running
+        h, w = rc.shape
+        g = self.geometry
+        if abs(w / h - g.cam_size[0] / g.cam_size[1]) > 0.01:
+            raise GeometryError(f"frames are {w}x{h}, the geometry's camera is {g.cam_size[0]}x"
+                                f"{g.cam_size[1]}: not the same aspect")
+        if self.triangulator is None or self.triangulator.shape != (h, w):
+            self.triangulator = Triangulator(g, (h, w))
+        angles = rc.angles
+        angle = angles[0]
+        if len(angles) == 2:  # E_b: less light over the object-free region
+            region = roi_slices("object_free", object_free, (h, w))
+            angle = min(angles, key=lambda a: float(np.median(rc.result(a).best[region])))
+        noise = NoiseModel(dark, self.noise.read_noise_dn, self.noise.dn_per_electron, saturation)
+        columns = delineate(rc.result(angle), stripe_edges(self.count, g.proj_size[0]), noise,
+                            k_sigma=self.k_sigma, min_contrast=self.min_contrast)
+        depth = self.triangulator.depth(columns)
+        points = self.triangulator.points(depth)
+        valid = int(len(points))
+        m = {"stripes": self.count, "valid_pixels": valid, "valid_fraction": valid / depth.size,
+             "analyzer_deg": angle, "geometry": self.source or "default tank"}
+        if truth_depth is not None and truth_depth.shape == depth.shape:
+            both = np.isfinite(depth) & np.isfinite(truth_depth)
+            err = (depth - truth_depth)[both]
+            m["depth_rms_mm"] = float(1e3 * np.sqrt(np.mean(err ** 2))) if err.size else None
+            m["valid_fraction_of_objects"] = float(both.sum() / max(1, np.isfinite(truth_depth).sum()))
+        return DepthMap(depth_m=depth, points_m=points if valid else None, method=method, scan_id=scan_id,
+                        metrics=m)
+
+
+def write_depth(out: str, depth: DepthMap) -> None:
+    """``depth_<method>.npy`` and ``depth_<method>.ply`` in folder ``out`` (each written atomically)."""
+    path = os.path.join(out, f"depth_{depth.method}")
+    with open(path + ".npy.tmp", "wb") as f:
+        np.save(f, np.asarray(depth.depth_m, np.float32))
+    os.replace(path + ".npy.tmp", path + ".npy")
+    write_ply(path + ".ply", depth.points_m)
