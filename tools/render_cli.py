@@ -14,6 +14,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.runtime.params import check_frame_size
 from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.render import render_frame, resolve_fidelity
 from polarstripe.sim.scene import load_scene, parse_size, scene_to_dict
@@ -45,6 +47,10 @@ def main(args: argparse.Namespace) -> int:
     if args.resolution:
         size = parse_size(args.resolution, "--resolution")
         scene = scene.replace(camera=scene.camera.replace(resolution=size))
+    try:  # before the output folder exists: a refused size leaves nothing behind
+        check_frame_size(*scene.camera.resolution, what="--resolution" if args.resolution else "resolution")
+    except ValueError as exc:
+        raise PolarstripeError(str(exc)) from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
