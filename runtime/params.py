@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import types
 import typing
 from typing import Any, Literal
@@ -135,6 +136,30 @@ def build_params(cls: type[NodeParams], values: dict[str, Any], *, node: str = "
     except ValueError as exc:
         raise ParamError(f"node {node!r}: params: {exc}") from None
     return params
+
+
+DEFAULT_MAX_PIXELS = 16_000_000  # e.g. 4096x3904; $POLARSTRIPE_MAX_PIXELS overrides
+
+
+def max_pixels() -> int:
+    """The largest frame (width × height) a node accepts: ``$POLARSTRIPE_MAX_PIXELS`` or 16 Mpx. Beyond it a
+    frame is refused as a param error, before anything allocates (a 4000×6000 uint16 stream grows a
+    compositor by GBs; 100000×100000 cannot be allocated at all)."""
+    value = os.environ.get("POLARSTRIPE_MAX_PIXELS", "")
+    try:
+        return int(value) if value else DEFAULT_MAX_PIXELS
+    except ValueError:
+        raise ParamError(f"$POLARSTRIPE_MAX_PIXELS: expected a number of pixels, got {value!r}") from None
+
+
+def check_frame_size(width: int, height: int, *, what: str = "frame size") -> None:
+    """Raise ``ValueError`` (one line) when ``width``×``height`` is not positive or exceeds :func:`max_pixels`."""
+    if width < 1 or height < 1:
+        raise ValueError(f"{what} {width}x{height}: width and height must be >= 1")
+    limit = max_pixels()
+    if width * height > limit:
+        raise ValueError(f"{what} {width}x{height} is {width * height / 1e6:.3g} Mpx, beyond the limit of "
+                         f"{limit / 1e6:.3g} Mpx (set $POLARSTRIPE_MAX_PIXELS to allow more)")
 
 
 def parse_assignments(items: list[str], *, what: str = "param") -> dict[str, str]:
