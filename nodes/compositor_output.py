@@ -1,6 +1,7 @@
-"""The compositor's files: ``<method>.png`` (16-bit DN, clipped), ``<method>.tiff`` (float32 DN, NaN where
-masked; or ``.npy``), ``metrics.json`` (rewritten atomically) and ``comparison.png`` (the methods side by
-side, like the paper's Fig. 6)."""
+"""The compositor's files: ``<method>.png`` (8-bit, for a person: stretched from the 1st to the 99.5th
+percentile, saturated pixels white), ``<method>.tiff`` (float32 DN, NaN where masked, for analysis; or
+``.npy``), ``metrics.json`` (rewritten atomically) and ``comparison.png`` (the ground truth and the methods side
+by side, like the paper's Fig. 6, the best method marked, a one-line legend of the two numbers)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,35 @@ import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 
+LEGEND = ("contrast: Michelson (bright − dark)/(bright + dark) of the chart's bars, 0…1, higher is better "
+          "(> 1: the dark bars fell below 0, backscatter over-subtracted — not a contrast)   ·   "
+          "error: relative RMS against the ground truth S (gain fitted), 0 = perfect, lower is better")
+
+
+def display_range(image: np.ma.MaskedArray) -> tuple[float, float]:
+    """The 1st and 99.5th percentile of the unmasked, finite pixels (0, 1 when there are none)."""
+    valid = np.ma.compressed(image)
+    valid = valid[np.isfinite(valid)]
+    if not valid.size:
+        return 0.0, 1.0
+    lo, hi = np.percentile(valid, (1, 99.5))
+    return float(lo), float(max(hi, lo + 1e-9))
+
+
+def to_display(image: np.ma.MaskedArray) -> np.ndarray:
+    """``image`` [DN] as 8 bits a viewer shows: linear from :func:`display_range`, masked (saturated) 255."""
+    lo, hi = display_range(image)
+    data = np.ma.filled(np.ma.masked_invalid(np.ma.asarray(image, dtype=np.float64)), hi)
+    out = np.clip(np.round((data - lo) * (255.0 / (hi - lo))), 0, 255).astype(np.uint8)
+    out[np.ma.getmaskarray(image)] = 255
+    return out
+
 
 def write_method(out: str, method: str, image: np.ma.MaskedArray, metrics: dict, *,
                  image_format: str = "tiff") -> None:
     """Write ``method``'s composite ``image`` [DN] to folder ``out`` and rewrite ``metrics.json``."""
 
-    png = np.clip(np.round(np.ma.filled(image, 0.0)), 0, 65535).astype(np.uint16)
-    cv2.imwrite(os.path.join(out, f"{method}.png"), png)
+    cv2.imwrite(os.path.join(out, f"{method}.png"), to_display(image))
     raw = np.ma.filled(image.astype(np.float32), np.nan)
     if image_format == "tiff":
         cv2.imwrite(os.path.join(out, f"{method}.tiff"), raw)
@@ -30,24 +53,53 @@ def write_method(out: str, method: str, image: np.ma.MaskedArray, metrics: dict,
     os.replace(tmp, os.path.join(out, "metrics.json"))
 
 
-def write_comparison(path: str, results: dict, metrics: dict, order) -> None:
-    """The composites of ``results`` (method -> masked image) side by side in ``order``, each stretched from
-    its 1st to 99.5th percentile, titled with contrast and error."""
+def _number(x) -> float | None:
+    return float(x) if isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x) else None
+
+
+def best_method(metrics: dict, methods) -> str | None:
+    """The method with the lowest error against the truth; without errors, the highest contrast in [0, 1]
+    (a contrast above 1 is not one); None when no method has either."""
+    errors = {m: e for m in methods if (e := _number(metrics.get(m, {}).get("error_vs_truth"))) is not None}
+    if errors:
+        return min(errors, key=errors.get)
+    contrasts = {m: c for m in methods
+                 if (c := _number(metrics.get(m, {}).get("contrast"))) is not None and 0.0 <= c <= 1.0}
+    return max(contrasts, key=contrasts.get) if contrasts else None
+
+
+def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.ndarray | None = None) -> None:
+    """The ground truth ``truth`` (S [DN], when given) and the composites of ``results`` (method -> masked
+    image) side by side in ``order``, each stretched from its 1st to 99.5th percentile, titled with contrast
+    and error; the best method (:func:`best_method`) framed and marked; :data:`LEGEND` below."""
 
     matplotlib.use("Agg")
 
     methods = [m for m in order if m in results]
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.2 * len(methods), 3.0), squeeze=False)
-    for ax, method in zip(axes[0], methods, strict=True):
-        img = results[method]
-        valid = img.compressed()
-        lo, hi = np.percentile(valid, (1, 99.5)) if valid.size else (0.0, 1.0)
-        ax.imshow(np.ma.filled(img, hi), cmap="gray", vmin=lo, vmax=max(hi, lo + 1e-9))
-        m = metrics[method]
-        ax.set_title(f"{method}\ncontrast {fmt(m['contrast'])}, error {fmt(m['error_vs_truth'])}",
-                     fontsize=8)
-        ax.axis("off")
-    fig.tight_layout()
+    panels = ([("ground truth S", np.ma.masked_invalid(np.asarray(truth, np.float64)))] if truth is not None
+              else []) + [(m, results[m]) for m in methods]
+    best = best_method(metrics, methods)
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.3), squeeze=False)
+    for ax, (name, img) in zip(axes[0], panels, strict=True):
+        lo, hi = display_range(img)
+        ax.imshow(np.ma.filled(img, hi), cmap="gray", vmin=lo, vmax=hi)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if name in metrics:
+            m = metrics[name]
+            c = _number(m.get("contrast"))
+            note = " (>1: n/a)" if c is not None and c > 1.0 else ""
+            title = f"{name}{'  ★ best' if name == best else ''}\n" \
+                    f"contrast {fmt(m.get('contrast'))}{note}, error {fmt(m.get('error_vs_truth'))}"
+        else:
+            title = f"{name}\n(reference)"
+        ax.set_title(title, fontsize=8, fontweight="bold" if name == best else "normal")
+        for spine in ax.spines.values():
+            spine.set_visible(name == best)
+            spine.set_color("tab:green")
+            spine.set_linewidth(3)
+    fig.text(0.5, 0.01, LEGEND, ha="center", va="bottom", fontsize=6, wrap=True)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 

@@ -1,11 +1,18 @@
-"""The compositor's files from a small masked composite: PNG rounded and clipped to 16 bits, TIFF/NPY with NaN
-where masked, metrics.json rewritten whole, the comparison figure."""
+"""The compositor's files from a small masked composite: an 8-bit display PNG, TIFF/NPY with NaN where masked,
+metrics.json rewritten whole, the comparison figure with the truth and the best method marked."""
 
 import json
 
 import cv2
 import numpy as np
-from polarstripe.nodes.compositor_output import fmt, write_comparison, write_method
+from polarstripe.nodes.compositor_output import (
+    LEGEND,
+    best_method,
+    fmt,
+    to_display,
+    write_comparison,
+    write_method,
+)
 
 
 def _image():
@@ -13,18 +20,27 @@ def _image():
     return np.ma.MaskedArray(data, [[False, False, False], [False, False, True]])
 
 
-def test_png_is_rounded_and_clipped_and_tiff_keeps_floats_with_nan_where_masked(tmp_path):
+def test_png_is_8_bit_for_a_person_and_tiff_keeps_floats_with_nan_where_masked(tmp_path):
     metrics = {"flood": {"contrast": 0.25, "error_vs_truth": None}}
     write_method(str(tmp_path), "flood", _image(), metrics)
     png = cv2.imread(str(tmp_path / "flood.png"), cv2.IMREAD_UNCHANGED)
-    assert png.dtype == np.uint16
-    # -3 -> 0, 0.4 -> 0, 0.6 -> 1, 1000.5 -> 1000 (round half to even), 70000 -> 65535, masked -> 0
-    assert png.tolist() == [[0, 0, 1], [1000, 65535, 0]]
+    # stretched from the 1st to the 99.5th percentile: the darkest pixel black, the brightest white, order
+    # kept; a masked (saturated) pixel white
+    assert png.dtype == np.uint8 and png.shape == (2, 3)
+    assert png[0, 0] == 0 and png[1, 1] == 255 and png[1, 2] == 255
+    assert png[0, 0] <= png[0, 1] <= png[0, 2] <= png[1, 0] <= png[1, 1]
     tif = cv2.imread(str(tmp_path / "flood.tiff"), cv2.IMREAD_UNCHANGED)
     assert tif.dtype == np.float32 and np.isnan(tif[1, 2])
     np.testing.assert_array_equal(tif.ravel()[:5], np.float32([-3.0, 0.4, 0.6, 1000.5, 70000.0]))
     assert json.loads((tmp_path / "metrics.json").read_text()) == metrics
     assert not (tmp_path / "metrics.json.tmp").exists()  # written aside, then moved over
+
+
+def test_a_dim_composite_fills_the_8_bits():
+    """Raw DN of ~3500 of 65535 were black in a viewer; the display PNG spans the whole range."""
+    ramp = np.ma.MaskedArray(np.linspace(60.0, 3500.0, 200).reshape(10, 20))
+    png = to_display(ramp)
+    assert png.min() == 0 and png.max() == 255 and np.all(np.diff(png.ravel().astype(int)) >= 0)
 
 
 def test_npy_format_and_metrics_rewritten_whole(tmp_path):
@@ -43,6 +59,27 @@ def test_comparison_shows_the_methods_in_order(tmp_path):
     write_comparison(str(path), results, metrics, ["flood", "polarized_flood", "stripes"])
     img = cv2.imread(str(path))
     assert img is not None and img.shape[1] == 2 * 320  # two methods, 3.2 in at 100 dpi each
+
+
+def test_comparison_puts_the_ground_truth_first_and_marks_the_best(tmp_path):
+    results = {"flood": _image(), "stripes": _image() * 2}
+    metrics = {"flood": {"contrast": 0.2, "error_vs_truth": 0.4},
+               "stripes": {"contrast": 0.3, "error_vs_truth": 0.2}}
+    path = tmp_path / "comparison.png"
+    write_comparison(str(path), results, metrics, ["flood", "stripes"], truth=np.arange(6.0).reshape(2, 3))
+    img = cv2.imread(str(path))
+    assert img.shape[1] == 3 * 320  # the truth and two methods
+    green = (img[..., 1].astype(int) - img[..., 0] > 60) & (img[..., 1].astype(int) - img[..., 2] > 60)
+    cols = np.flatnonzero(green.any(axis=0))
+    assert cols.size and cols.min() >= 2 * 320 - 10  # the frame around the best: the third panel
+
+
+def test_the_best_method_is_the_lowest_error_else_the_highest_real_contrast():
+    assert best_method({"a": {"error_vs_truth": 0.5}, "b": {"error_vs_truth": 0.2}}, ["a", "b"]) == "b"
+    no_truth = {"a": {"contrast": 0.4, "error_vs_truth": None}, "b": {"contrast": 3.58, "error_vs_truth": None}}
+    assert best_method(no_truth, ["a", "b"]) == "a"  # 3.58 is not a contrast
+    assert best_method({"a": {}}, ["a"]) is None
+    assert "contrast" in LEGEND and "error" in LEGEND and "\n" not in LEGEND  # one line
 
 
 def test_fmt():
