@@ -1,7 +1,8 @@
 """The compositor's depth: light-stripe triangulation of every stripe scan (docs/depth.md).
 
-* the rig geometry comes from the compositor's ``geometry`` param (:func:`load_geometry`): ``""`` the default
-  tank's scene, a scene ``.toml`` (its camera and projector pinholes), a calibration file
+* the rig geometry comes from the compositor's ``geometry`` param (:func:`load_geometry`): ``""`` the
+  simulator's (``rig_geometry`` in the scan's ``simulator/truth`` metrics: its source moves with the plan),
+  else the default tank's scene, a scene ``.toml`` (its camera and projector pinholes), a calibration file
   (``polarstripe calibrate -o rig.yaml``: OpenCV ``FileStorage`` YAML/XML/JSON with ``K_cam``, ``dist_cam``,
   ``K_proj``, ``R``, ``T``, ``cam_size``, ``proj_size``), or ``"none"`` (no depth);
 * per stripe scan, a :class:`~polarstripe.imaging.delineation.RunningArgmax` per analyzer angle keeps the
@@ -56,7 +57,10 @@ def read_calibration(path: str) -> dict:
     """The matrices of a calibration file written by ``polarstripe calibrate`` (cv2.FileStorage)."""
     if not os.path.isfile(path):
         raise GeometryError(f"geometry {path!r}: no such file")
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise GeometryError(f"geometry {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
     try:
         if not fs.isOpened():
             raise GeometryError(f"geometry {path!r}: not an OpenCV FileStorage file")
@@ -67,8 +71,11 @@ def read_calibration(path: str) -> dict:
                 if key == "dist_cam":
                     continue
                 raise GeometryError(f"geometry {path!r}: {key} is missing")
-            out[key] = node.mat()
+            value = node.mat()
+            out[key] = node.real() if value is None else value
         return out
+    except cv2.error as exc:
+        raise GeometryError(f"geometry {path!r}: {exc.err}") from None
     finally:
         fs.release()
 
@@ -124,6 +131,7 @@ class DepthStage:
         self.publisher, self.log = publisher, log
         self.running: RunningArgmax | None = None
         self.triangulator: Triangulator | None = None
+        self._key: tuple = ()
         self.active, self.count = False, 0
 
     @classmethod
@@ -143,7 +151,8 @@ class DepthStage:
         log says why)."""
         try:
             depth = self.finish(method, scan_id, dark=dark, saturation=saturation, object_free=object_free,
-                                truth_depth=None if truth is None else truth.images.get("depth_m"))
+                                truth_depth=None if truth is None else truth.images.get("depth_m"),
+                                truth_geometry=None if truth is None else truth.metrics.get("rig_geometry"))
         except PolarstripeError as exc:
             self.log.warning("scan %d (%s): no depth: %s", scan_id, method, exc)
             return {}
@@ -174,18 +183,21 @@ class DepthStage:
         self.running.add(image, p.index, angle)
 
     def finish(self, method: str, scan_id: int, *, dark: float, saturation: float | None, object_free=None,
-               truth_depth: np.ndarray | None = None) -> DepthMap | None:
+               truth_depth: np.ndarray | None = None, truth_geometry: dict | None = None) -> DepthMap | None:
         """The scan's depth, or None when it is not a stripe scan (or there is no geometry)."""
         if not self.active or self.running is None or not self.running.angles:
             return None
         rc = self.running
         h, w = rc.shape
-        g = self.geometry
+        g, source = self.geometry, self.source or "default tank"
+        if not self.source and truth_geometry:  # the simulator's rig as it is now (its source moves)
+            g, source = RigGeometry.from_dict(truth_geometry), "simulator/truth"
         if abs(w / h - g.cam_size[0] / g.cam_size[1]) > 0.01:
             raise GeometryError(f"frames are {w}x{h}, the geometry's camera is {g.cam_size[0]}x"
                                 f"{g.cam_size[1]}: not the same aspect")
-        if self.triangulator is None or self.triangulator.shape != (h, w):
-            self.triangulator = Triangulator(g, (h, w))
+        key = (h, w, *(np.asarray(v, float).tobytes() for v in g.to_dict().values()))
+        if self.triangulator is None or self._key != key:  # the per-pixel rays, once per rig and shape
+            self.triangulator, self._key = Triangulator(g, (h, w)), key
         angles = rc.angles
         angle = angles[0]
         if len(angles) == 2:  # E_b: less light over the object-free region
@@ -198,7 +210,7 @@ class DepthStage:
         points = self.triangulator.points(depth)
         valid = int(len(points))
         m = {"stripes": self.count, "valid_pixels": valid, "valid_fraction": valid / depth.size,
-             "analyzer_deg": angle, "geometry": self.source or "default tank"}
+             "analyzer_deg": angle, "geometry": source}
         if truth_depth is not None and truth_depth.shape == depth.shape:
             both = np.isfinite(depth) & np.isfinite(truth_depth)
             err = (depth - truth_depth)[both]

@@ -23,7 +23,8 @@ Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the sc
 replay scores like the live run: images ``S`` (float64: flood D + A in DN above the dark offset, no analyzer,
 same exposure as the frames), ``depth_m`` (float32 z [m] of the objects, NaN where none), ``chart_band``
 (int32 band per pixel, −1 off the chart), ``chart_high`` (bool, bright bar); metrics ``separation_m``,
-``exposure_s``, ``dark_offset_dn``. One render per source pose, cached.
+``exposure_s``, ``dark_offset_dn``, ``rig_geometry`` (camera and projector at the current source pose, as a
+calibration file holds them: sim/depth_truth.py). One render per source pose, cached.
 
 Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
 the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
@@ -62,7 +63,7 @@ from polarstripe.nodes.simulator_frames import (
 )
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
-from polarstripe.sim.depth_truth import depth_truth
+from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
@@ -350,7 +351,8 @@ class Simulator(Node):
                         "depth_m": depth_truth(self.scene).astype(np.float32)},  # z [m], NaN: no object
                 method="truth",
                 metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
-                         "dark_offset_dn": dark_offset_dn(cam)},
+                         "dark_offset_dn": dark_offset_dn(cam), "rig_geometry": {  # the source moves
+                             k: np.asarray(v, float).tolist() for k, v in rig_geometry(self.scene).items()}},
             )
         return self._truth[key]
 
