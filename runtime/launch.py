@@ -17,7 +17,11 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import errno
+import fcntl
+import hashlib
 import json
+import re
 import os
 import signal
 import socket
@@ -28,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from polarstripe.runtime.graph import resolve, runs_dir, write_graph
-from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, load_launch
+from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, load_launch, sock_dir
 from polarstripe.runtime.params import parse_assignments
 from polarstripe.runtime.runner import load_node_class
 
@@ -59,11 +63,7 @@ def _free_port(host: str) -> int:
         return s.getsockname()[1]
 
 
-def _sock_dir(run_dir: Path) -> Path:
-    d = run_dir / "sock"
-    if len(str(d)) > 80:  # ipc paths are limited to ~107 bytes by the kernel
-        d = Path("/tmp") / f"ps-{os.getuid()}-{os.getpid()}-{abs(hash(str(run_dir))) % 10**8}"
-    return d
+_sock_dir = sock_dir
 
 
 def build_graph(spec: LaunchSpec, run_dir: Path) -> dict:
@@ -146,6 +146,8 @@ class _Child:
     done: bool = False  # exited for good
     stopped_by: str | None = None  # the launcher's last signal to it at shutdown (None: it ended by itself)
     echoed: int = 0  # bytes of its log already shown on the console (screen = true)
+    started_at: float = 0.0  # time.monotonic() of its last start
+    delay: float = 0.0  # its last respawn delay [s]
 
 
 class Launcher:
@@ -154,7 +156,7 @@ class Launcher:
     def __init__(self, spec: LaunchSpec, *, once: bool = False, out=sys.stderr):
         self.spec, self.once, self.out = spec, once, out
         stamp = time.strftime("%Y%m%dT%H%M%S")
-        self.run_dir = runs_dir() / f"{spec.name}-{stamp}-{os.getpid()}"
+        self.run_dir = spec.run_dir or runs_dir() / f"{spec.name}-{stamp}-{os.getpid()}"
         self.graph = build_graph(spec, self.run_dir)
         self.graph_file = self.run_dir / "graph.json"
         self.children = [_Child(n) for n in spec.nodes]
@@ -162,9 +164,73 @@ class Launcher:
             raise LaunchError(f"{spec.path.name}: --once needs at least one node with required = true")
         self._stop: str | None = None
         self._ended = ""  # why the launch ended
+        self._claims: list[int] = []  # lock files held for the exclusive args
 
     def say(self, text: str) -> None:
         print(f"[launch {self.spec.name}] {text}", file=self.out, flush=True)
+
+    def claim(self) -> None:
+        """Before anything starts: hold each ``exclusive`` arg's explicit value (a lock file under the runs
+        folder, held while this launch runs), and check that no explicit ipc endpoint is already served.
+
+        :raises LaunchError: (one line) naming the arg, its value and the launch that holds it."""
+        folder = runs_dir().parent / "claims"
+        folder.mkdir(parents=True, exist_ok=True)
+        for arg, value in self.spec.exclusive.items():
+            safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", value)[-40:]
+            path = folder / f"{arg}-{safe}-{hashlib.sha1(value.encode()).hexdigest()[:10]}.lock"
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 4096).decode(errors="replace").strip() or "another launch"
+                os.close(fd)
+                raise LaunchError(
+                    f"{self.spec.path.name}: {arg}={value!r} is in use by {holder}; two launches would share "
+                    f"it: leave {arg} out (one per run) or name another"
+                ) from None
+            os.ftruncate(fd, 0)
+            os.write(fd, f"launch {self.spec.name} (pid {os.getpid()}, {self.run_dir})".encode())
+            self._claims.append(fd)
+        for name, node in self.graph["nodes"].items():
+            spec = next(n for n in self.spec.nodes if n.name == name)
+            for key in ("pub", "srv"):
+                if getattr(spec, key) and _ipc_in_use(node[key]):
+                    raise LaunchError(f"{self.spec.path.name}: node {name!r}: {key} {node[key]} is in use "
+                                      f"(another process serves it): name another or leave {key} out")
+
+    def _release(self) -> None:
+        for fd in self._claims:
+            os.close(fd)
+        self._claims = []
+
+    def prepare(self) -> None:
+        """Run each ``[launch] prepare`` step (``MODULE:FUNCTION``, e.g. compiling the model's kernels) in a
+        process of its own before any node starts, with a progress line; its output goes to
+        ``logs/prepare.log``.
+
+        :raises LaunchError: when a step fails (its last log line) or the launch is stopped meanwhile."""
+        env = {**os.environ, **self.spec.env, "PYTHONUNBUFFERED": "1"}
+        for step in self.spec.prepare:
+            module, _, func = step.partition(":")
+            code = f"import importlib; importlib.import_module({module!r}).{func}()"
+            t0 = time.monotonic()
+            self.say(f"preparing: {step} (a first run on this machine compiles; later runs load the cache) …")
+            with open(self.run_dir / "logs" / "prepare.log", "ab") as log:
+                proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=log,
+                                        stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                        preexec_fn=_die_with_parent)
+            while proc.poll() is None:
+                if self._stop:
+                    proc.terminate()
+                    proc.wait()
+                    raise LaunchError(f"{self._stop} while preparing {step}")
+                time.sleep(0.05)
+            if proc.returncode:
+                lines = (self.run_dir / "logs" / "prepare.log").read_text(errors="replace").splitlines()
+                raise LaunchError(f"prepare {step} failed (exit {proc.returncode})"
+                                  + (f": {lines[-1]}" if lines else ""))
+            self.say(f"prepared {step} in {time.monotonic() - t0:.1f} s")
 
     def _spawn(self, c: _Child) -> None:
         n = c.spec
@@ -196,6 +262,7 @@ class Launcher:
         finally:
             log.close()
         c.restart_at = None
+        c.started_at = time.monotonic()
         self.graph["nodes"][n.name]["pid"] = c.proc.pid
         write_graph(self.graph_file, self.graph)
         self.say(f"{n.name} started (pid {c.proc.pid})" + (f", respawn {c.respawns}" if c.respawns else ""))
@@ -218,11 +285,14 @@ class Launcher:
 
     def run(self) -> int:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        sock_dir(self.run_dir).mkdir(parents=True, exist_ok=True, mode=0o700)  # ${run_sock}: ready for nodes
         write_graph(self.graph_file, self.graph)
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         status = 1  # if something below raises
         try:
             self.say(f"run directory {self.run_dir}")
+            self.claim()
+            self.prepare()
             for c in self.children:
                 if self._stop:
                     break
@@ -230,8 +300,12 @@ class Launcher:
             self.graph["state"] = "running"
             write_graph(self.graph_file, self.graph)
             status = self._supervise()
+        except LaunchError as exc:  # before any node started: one line, status 2 (as a bad file)
+            self._end(str(exc))
+            status = {"SIGINT": 130, "SIGTERM": 143}.get(self._stop, 2)
         finally:
             self._shutdown()
+            self._release()
             self._echo()
             for s, h in old.items():
                 signal.signal(s, h)
@@ -296,6 +370,10 @@ class Launcher:
                 if self.once and failed:
                     self._end(f"required node {failed[0].spec.name} failed: stopping the launch")
                     return 1
+            fatal = [c for c in self.children if c.spec.fails_launch and c.done and c.exit_code]
+            if fatal:
+                self._end(f"{fatal[0].spec.name} failed: stopping the launch")
+                return 1
             if all(c.done for c in self.children):
                 self._end("every node has exited")
                 return 1 if any(c.exit_code for c in self.children) else 0
@@ -308,24 +386,33 @@ class Launcher:
         self._ended = why
         self.say(why)
 
+    def _reason(self, c: _Child) -> str:
+        """The last line of the node's log: why it exited, in its own words."""
+        try:
+            lines = Path(self.graph["nodes"][c.spec.name]["log"]).read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        lines = [ln for ln in lines if ln.strip()]
+        return f" (last line: {lines[-1].strip()})" if lines else ""
+
     def _exited(self, c: _Child, now: float) -> None:
         c.exit_code = code = c.proc.returncode
         n = c.spec
         how = f"exit {code}" if code >= 0 else f"killed by {signal.Signals(-code).name}"
+        ran_s = now - c.started_at
         if n.respawn and c.respawns < n.max_respawns:
+            # a crash loop backs off: the delay doubles after each exit that came soon after its start
+            # (sooner than 10 delays, at least 10 s), up to respawn_max_delay; a long run resets it
+            quick = ran_s < max(10.0, 10 * c.delay)
+            c.delay = min(max(n.respawn_delay, n.respawn_max_delay), c.delay * 2) if quick and c.respawns \
+                else n.respawn_delay
             c.respawns += 1
-            c.restart_at = now + n.respawn_delay
-            self.say(f"{n.name} {how}; respawn {c.respawns}/{n.max_respawns} in {n.respawn_delay:g} s")
+            c.restart_at = now + c.delay
+            self.say(f"{n.name} {how} after {ran_s:.1f} s{self._reason(c) if code else ''}; "
+                     f"respawn {c.respawns}/{n.max_respawns} in {c.delay:g} s")
         else:
             c.done = True
-            tail = ""
-            if code:
-                try:
-                    lines = Path(self.graph["nodes"][n.name]["log"]).read_text(errors="replace").splitlines()
-                    tail = f" (last line: {lines[-1]})" if lines else ""
-                except OSError:
-                    pass
-            self.say(f"{n.name} {how}{tail}")
+            self.say(f"{n.name} {how}{self._reason(c) if code else ''}")
 
     def _shutdown(self) -> None:
         """SIGINT, then SIGTERM, then SIGKILL to every live child (reverse start order), each stage waiting up
@@ -358,14 +445,41 @@ class Launcher:
             sock.rmdir()
 
 
+def _check_writable(path: str) -> None:
+    """``--record FILE``: refuse at once what the recorder could not write (a missing or read-only folder,
+    a folder in place of the file, a read-only file)."""
+    p = Path(path)
+    folder = p.parent
+    if p.is_dir():
+        raise LaunchError(f"--record {path}: is a folder; give a file, e.g. {p / 'run.mcap'}")
+    if not folder.is_dir():
+        raise LaunchError(f"--record {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise LaunchError(f"--record {path}: cannot write there ({os.strerror(errno.EACCES).lower()})")
+
+
 def _with_recorder(spec: LaunchSpec, path: str) -> None:
 
+    _check_writable(path)
     try:
         cls = load_node_class(RECORDER)
     except Exception:
         raise LaunchError(f"--record: recording is not available in this build (needs {RECORDER})") from None
-    recorder = NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls)
+    recorder = NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls,
+                        fails_launch=True)  # a launch that was asked to record and does not, fails
     spec.nodes.insert(0, recorder)  # first up, last down: it sees the whole run
+
+
+def _ipc_in_use(endpoint: str) -> bool:
+    """Whether a process accepts connections at ``ipc://PATH`` (a stale socket file does not count)."""
+    if not endpoint.startswith("ipc://") or not os.path.exists(endpoint[6:]):
+        return False
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        try:
+            s.connect(endpoint[6:])
+        except OSError:
+            return False
+    return True
 
 
 def main(args: argparse.Namespace) -> int:

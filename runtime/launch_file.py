@@ -6,7 +6,9 @@ The format is documented in docs/architecture.md ("Launch files").
 
 from __future__ import annotations
 
+import os
 import re
+import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +16,7 @@ from typing import Any
 
 import polarstripe
 from polarstripe.errors import PolarstripeError
+from polarstripe.runtime.graph import runs_dir
 from polarstripe.runtime.params import ParamError, build_params
 from polarstripe.runtime.runner import load_node_class
 
@@ -29,6 +32,8 @@ _LAUNCH_KEYS = {
     "host": str,
     "shutdown_timeout": float,
     "env": dict,
+    "exclusive": list,
+    "prepare": list,
 }
 _NODE_KEYS = {
     "name": str,
@@ -43,10 +48,29 @@ _NODE_KEYS = {
     "pub": str,
     "srv": str,
     "screen": bool,
+    "respawn_max_delay": float,
 }
 _TOP_KEYS = {"launch", "args", "node"}
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*$")
 _ARG = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+BUILTIN_ARGS = ("run_id", "run_dir", "run_sock")  # per run, given by the launcher (see run_builtins)
+
+
+def sock_dir(run_dir: Path) -> Path:
+    """The folder of a run's ipc sockets: ``<run_dir>/sock``, or a short folder under /tmp when that path
+    would be too long for an ipc endpoint (the kernel limits socket paths to ~107 bytes)."""
+    d = run_dir / "sock"
+    if len(str(d)) > 80:
+        d = Path("/tmp") / f"ps-{os.getuid()}-{os.getpid()}-{abs(hash(str(run_dir))) % 10**8}"
+    return d
+
+
+def run_builtins(run_dir: Path) -> dict[str, str]:
+    """The args every launch file has without declaring them, one value per run: ``run_id``
+    (``<name>-<stamp>-<pid>``), ``run_dir`` (the run directory) and ``run_sock`` (the folder of the run's
+    ipc sockets). A default such as ``can = "ipc://${run_sock}/can"`` names a thing per run, so two launches
+    of one file never meet."""
+    return {"run_id": run_dir.name, "run_dir": str(run_dir), "run_sock": str(sock_dir(run_dir))}
 
 
 @dataclass
@@ -62,7 +86,9 @@ class NodeSpec:
     pub: str = ""
     srv: str = ""
     screen: bool = False  # also show its log lines on the launcher's console
+    respawn_max_delay: float = 60.0  # the respawn delay doubles after each quick exit, up to this [s]
     node_class: Any = None
+    fails_launch: bool = False  # its failure (exit != 0, not respawned) ends the launch with status 1
 
 
 @dataclass
@@ -76,6 +102,9 @@ class LaunchSpec:
     env: dict[str, str] = field(default_factory=dict)
     args: dict[str, Any] = field(default_factory=dict)
     nodes: list[NodeSpec] = field(default_factory=list)
+    exclusive: dict[str, str] = field(default_factory=dict)  # arg -> value given explicitly (not per run)
+    prepare: list[str] = field(default_factory=list)  # "module:function" run before the graph starts
+    run_dir: Path | None = None
 
 
 def _type_ok(value: Any, typ: type) -> bool:
@@ -164,8 +193,18 @@ def find_launch_file(path: str | Path) -> Path:
     return path
 
 
-def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> LaunchSpec:
-    """Read and check a launch file; ``overrides`` are ``key=value`` args from the command line.
+def _builtin_sub(value: Any, builtins: dict[str, str]) -> Any:
+    """``${run_id}``, ``${run_dir}``, ``${run_sock}`` in an arg's value (other ``${…}`` stay as they are)."""
+    if not isinstance(value, str):
+        return value
+    return _ARG.sub(lambda m: builtins.get(m.group(1), m.group(0)), value)
+
+
+def load_launch(path: str | Path, overrides: dict[str, str] | None = None, *,
+                run_dir: Path | None = None) -> LaunchSpec:
+    """Read and check a launch file; ``overrides`` are ``key=value`` args from the command line; ``run_dir``
+    the run directory (default: a new name under :func:`~polarstripe.runtime.graph.runs_dir`), which the
+    built-in args ``${run_id}``, ``${run_dir}``, ``${run_sock}`` name.
 
     Raises :class:`LaunchError` (one line) for a file that cannot be read or parsed, an unknown key, a value
     of the wrong type, an unknown arg, a duplicate node name, a missing module or class, or bad params.
@@ -189,13 +228,42 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
         if not isinstance(v, str | int | float | bool):
             raise LaunchError(f"{where}: args.{k}: expected a string, number or bool, got {type(v).__name__}")
     args = dict(args)
+    for k in BUILTIN_ARGS:
+        if k in args:
+            raise LaunchError(f"{where}: args.{k}: {k} is given by the launcher (one per run); pick another name")
+    explicit = set()
     for k, v in (overrides or {}).items():
         if k not in args:
             raise LaunchError(f"{where}: unknown arg {k!r} on the command line (declared: {_names(args)})")
         args[k] = v
-    launch = _check_table(raw.get("launch", {}), _LAUNCH_KEYS, f"{where}: [launch]", args)
+        explicit.add(k)
+    launch_table = raw.get("launch", {})
+    name = path.stem
+    if isinstance(launch_table, dict) and "name" in launch_table:
+        name = _coerce_typed(_substitute(launch_table["name"], args, f"{where}: [launch].name"), str,
+                             f"{where}: [launch].name")
+    if run_dir is None:
+        run_dir = runs_dir() / f"{name}-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"
+    builtins = run_builtins(Path(run_dir))
+    per_run = {k for k, v in args.items() if isinstance(v, str) and _ARG.search(v)
+               and any(m.group(1) in builtins for m in _ARG.finditer(v))}
+    args = {k: _builtin_sub(v, builtins) for k, v in args.items()}
+    launch = _check_table(launch_table, _LAUNCH_KEYS, f"{where}: [launch]", {**args, **builtins})
+    for key in ("exclusive", "prepare"):
+        if not all(isinstance(x, str) for x in launch.get(key, [])):
+            raise LaunchError(f"{where}: launch.{key} must be a list of strings")
+    for k in launch.get("exclusive", []):
+        if k not in args:
+            raise LaunchError(f"{where}: launch.exclusive names {k!r}, not an arg (declared: {_names(args)})")
+    for entry in launch.get("prepare", []):
+        if ":" not in entry:
+            raise LaunchError(f"{where}: launch.prepare: {entry!r} must be MODULE:FUNCTION")
     spec = LaunchSpec(
         path=path,
+        run_dir=Path(run_dir),
+        exclusive={k: str(args[k]) for k in launch.get("exclusive", [])
+                   if str(args[k]) and (k in explicit or k not in per_run)},
+        prepare=list(launch.get("prepare", [])),
         name=launch.get("name", path.stem),
         args=args,
         namespace=launch.get("namespace", ""),
@@ -214,7 +282,7 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
     seen = set()
     for i, table in enumerate(nodes):
         nwhere = f"{where}: node[{i}]" + (f" ({table.get('name')!r})" if isinstance(table, dict) else "")
-        t = _check_table(table, _NODE_KEYS, nwhere, args)
+        t = _check_table(table, _NODE_KEYS, nwhere, {**args, **builtins})
         for req in ("name", "module"):
             if req not in t:
                 raise LaunchError(f"{nwhere}: missing key {req!r}")
@@ -228,8 +296,8 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
         seen.add(name)
         if not t.pop("enabled", True):
             continue
-        if t.get("respawn_delay", 0) < 0 or t.get("max_respawns", 0) < 0:
-            raise LaunchError(f"{nwhere}: respawn_delay and max_respawns must be >= 0")
+        if t.get("respawn_delay", 0) < 0 or t.get("max_respawns", 0) < 0 or t.get("respawn_max_delay", 0) < 0:
+            raise LaunchError(f"{nwhere}: respawn_delay, respawn_max_delay and max_respawns must be >= 0")
         try:
             cls = load_node_class(t["module"])
         except PolarstripeError as exc:

@@ -3,6 +3,8 @@ shutdown."""
 
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -44,6 +46,11 @@ class Camera(Node):
 
     def setup(self):
         self.serve("camera/trigger", lambda req: Ack(ok=True, detail="click"))
+
+
+class Crashy(Node):
+    def setup(self):
+        raise RuntimeError("the device is not there")
 
 
 class Stubborn(Node):
@@ -251,7 +258,7 @@ def test_respawned_publisher_reaches_subscribers_again_then_ctrl_c_leaves_no_pro
     g = json.loads(Path(g["run_dir"], "graph.json").read_text())
     assert not any(_alive(n["pid"]) for n in g["nodes"].values())
     assert _processes_mentioning(g["run_dir"]) == []
-    assert "talker killed by SIGKILL; respawn 1/5" in _output(tmp_path)
+    assert re.search(r"talker killed by SIGKILL after [0-9.]+ s.*; respawn 1/5 in 0.2 s", _output(tmp_path))
 
 
 def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
@@ -420,3 +427,78 @@ def test_shipped_launch_file_by_name_from_anywhere_with_screen_output(tmp_path):
     listener_lines = [line for line in r.stderr.splitlines() if line.startswith("[listener] ")]
     assert listener_lines, r.stderr[-2000:]
     assert not any(line.startswith("[talker] ") for line in r.stderr.splitlines())  # not a screen node
+
+
+def test_a_crash_loop_backs_off_and_says_why(tmp_path):
+    proc = _launch(
+        tmp_path,
+        """
+        [[node]]
+        name = "crashy"
+        module = "ps_test_nodes:Crashy"
+        respawn = true
+        respawn_delay = 0.1
+        max_respawns = 3
+        required = true
+    """,
+        "--once",
+    )
+    assert proc.wait(60) == 1, _output(tmp_path)
+    out = _output(tmp_path)
+    delays = [float(d) for d in re.findall(r"respawn \d/3 in ([0-9.]+) s", out)]
+    assert delays == [0.1, 0.2, 0.4], out  # doubling after each quick exit
+    assert out.count("(last line: RuntimeError: the device is not there)") == 4, out  # 3 respawns + the end
+
+
+def test_record_to_a_path_that_cannot_be_written_fails_before_anything_starts(tmp_path):
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", "demo", "--once", "count=3",
+                        "--record", "/proc/no/such/run.mcap"], capture_output=True, text=True,
+                       env=_env(tmp_path), timeout=30)
+    assert r.returncode == 2 and time.monotonic() - t0 < 10
+    assert r.stderr.strip().splitlines() == [
+        "polarstripe launch: error: --record /proc/no/such/run.mcap: folder /proc/no/such does not exist"]
+    assert not (tmp_path / "runs").exists()
+
+
+EXCLUSIVE = """
+    [launch]
+    exclusive = ["segment"]
+    [args]
+    segment = "${run_id}"
+    [[node]]
+    name = "talker"
+    module = "polarstripe.nodes.demo:Talker"
+    params = { rate_hz = 5, text = "${segment}" }
+"""
+
+
+def test_an_explicit_shared_name_in_use_by_another_launch_is_refused(tmp_path):
+    first = _launch(tmp_path, EXCLUSIVE, "segment=bus7")
+    try:
+        g = _graph(tmp_path)
+        assert g["nodes"]["talker"]["params"]["text"] == "bus7"
+        r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(tmp_path / "test.toml"),
+                            "segment=bus7"], capture_output=True, text=True, env=_env(tmp_path), timeout=30)
+        assert r.returncode == 2, r.stderr
+        assert "segment='bus7' is in use by launch test (pid " in r.stderr, r.stderr
+        assert "talker started" not in r.stderr
+        # per run (the default) never clashes: a second launch of the same file starts
+        other = tmp_path / "other"
+        other.mkdir()
+        second = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(tmp_path / "test.toml")],
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                  env={**_env(tmp_path), "POLARSTRIPE_RUNS": str(other / "runs")})
+        deadline = time.monotonic() + 15
+        while not list((other / "runs").glob("*/graph.json")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        second.send_signal(signal.SIGINT)
+        assert second.wait(15) == 130, second.stdout.read()
+    finally:
+        assert _stop(first) == 130, _output(tmp_path)
+    # released at the end: the name can be used again
+    shutil.rmtree(tmp_path / "runs")
+    again = _launch(tmp_path, EXCLUSIVE, "segment=bus7")
+    _graph(tmp_path)
+    assert _stop(again) == 130

@@ -120,6 +120,14 @@ def test_shipped_launch_files_are_found_by_name_and_a_missing_file_is_one_line(t
             "duplicate node name 'a'",
         ),
         ("[[node]\n", "not valid TOML"),
+        ('[args]\nrun_id="x"\n[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"',
+         "run_id is given by the launcher"),
+        ('[launch]\nexclusive=["nope"]\n[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"',
+         "launch.exclusive names 'nope', not an arg"),
+        ('[launch]\nprepare=["nocolon"]\n[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"',
+         "must be MODULE:FUNCTION"),
+        ('[[node]]\nname="a"\nmodule="polarstripe.nodes.demo:Talker"\nrespawn_max_delay=-1',
+         "must be >= 0"),
     ],
 )
 def test_bad_launch_files_are_rejected_with_one_clear_line(tmp_path, toml, error):
@@ -130,3 +138,41 @@ def test_bad_launch_files_are_rejected_with_one_clear_line(tmp_path, toml, error
     assert error in str(info.value) and "\n" not in str(info.value)
 
 
+
+
+_PER_RUN = """
+[launch]
+name = "pr"
+exclusive = ["seg"]
+[args]
+seg = "ipc://${run_sock}/seg"
+fixed = "bus0"
+[[node]]
+name = "talker"
+module = "polarstripe.nodes.demo:Talker"
+params = { text = "${seg} ${run_id} ${run_dir}" }
+"""
+
+
+def test_built_in_args_name_things_per_run_and_explicit_names_are_claimed(tmp_path):
+    run = tmp_path / "runs" / "pr-1"
+    spec = load_launch(_file(tmp_path, _PER_RUN), run_dir=run)
+    assert spec.args["seg"] == f"ipc://{run}/sock/seg"
+    assert spec.nodes[0].params["text"] == f"ipc://{run}/sock/seg pr-1 {run}"
+    assert spec.run_dir == run and spec.exclusive == {}  # per run: nothing to claim
+    spec = load_launch(_file(tmp_path, _PER_RUN), {"seg": "bus7"}, run_dir=run)
+    assert spec.exclusive == {"seg": "bus7"}
+    # two runs of one file never name the same thing
+    a = load_launch(_file(tmp_path, _PER_RUN), run_dir=tmp_path / "runs" / "pr-1")
+    b = load_launch(_file(tmp_path, _PER_RUN), run_dir=tmp_path / "runs" / "pr-2")
+    assert a.args["seg"] != b.args["seg"]
+
+
+def test_the_sim_launch_checks_its_args_through_the_nodes_params(tmp_path):
+    with pytest.raises(LaunchError, match=r"node 'planner'.*resolution 100000x100000 is .* beyond the limit"):
+        load_launch("sim", {"resolution": "100000x100000"})
+    with pytest.raises(LaunchError, match="node 'planner'.*resolution 4000x6000"):
+        load_launch("sim", {"resolution": "4000x6000"})
+    spec = load_launch("sim", run_dir=tmp_path / "sim-1")
+    sim = next(n for n in spec.nodes if n.name == "simulator")
+    assert sim.params["can_channel"] == f"ipc://{tmp_path}/sim-1/sock/can"
