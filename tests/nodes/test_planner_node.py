@@ -63,6 +63,23 @@ def test_the_chosen_separation_does_not_saturate_a_flood_frame(harness):
     assert fractions[list(plan.curves["separation_m"]).index(plan.separation_m)] <= 0.02
 
 
+def test_co_located_placements_score_nothing():
+    """Part of what the saturation guard was for (eq. 9's optimum at 1-2 cm, backscatter filling the frame) the
+    delineation margin does itself at d -> 0: a source next to the camera scores 0. (The guard still matters
+    a few cm out, where the objective is flat and a flood frame at the scene's exposure saturates.)"""
+    h = NodeHarness(Planner, name="planner", params={**FAST, "separations": 3, "d_min_m": 0.001,
+                                                        "d_max_m": 0.3, "publish_on_start": False})
+    objective = h.node.plan.curves["objective"]
+    assert objective[0] == 0.0 and objective.max() > 0.3 and h.node.plan.separation_m > 0.1
+
+
+def test_bad_fidelity_and_oversized_resolution_are_param_errors():
+    with pytest.raises(ParamError, match="fidelity 'ultra' is not preview, standard, reference"):
+        NodeHarness(Planner, name="planner", params={**FAST, "fidelity": "ultra"})
+    with pytest.raises(ParamError, match=r"resolution 100000x100000 is .* beyond the limit"):
+        NodeHarness(Planner, name="planner", params={**FAST, "resolution": "100000x100000"})
+
+
 def test_small_change_of_p_does_not_replan(harness):
     h = harness
     n = len(h.published("planner/plan"))
