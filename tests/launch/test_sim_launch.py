@@ -6,9 +6,11 @@ claim on the chart: polarized light striping beats flood lighting in contrast.""
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -112,11 +114,22 @@ def test_camera_that_disappears_ends_in_a_published_fault(tmp_path, can):
     assert_clean_exit(proc, logs, NODES, failed=["sequencer"])
 
 
-def test_sim_launch_polarized_stripes_beat_flood(tmp_path, can):
-    out = tmp_path / "out"
-    proc, logs = launch(tmp_path, ROOT / "launch" / "sim.toml", f"out={out}", "resolution=96x72", "stripes=8",
-                        f"can={can}", timeout=110)
+SMALL = ("resolution=96x72", "stripes=8")
+
+
+@pytest.fixture(scope="module")
+def alone(tmp_path_factory):
+    """One small sim launch by itself (its CAN segment, sockets and files named per run)."""
+    tmp = tmp_path_factory.mktemp("alone")
+    out = tmp / "out"
+    proc, logs = launch(tmp, ROOT / "launch" / "sim.toml", f"out={out}", *SMALL, timeout=150)
+    return tmp, out, proc, logs
+
+
+def test_sim_launch_polarized_stripes_beat_flood(alone):
+    tmp_path, out, proc, logs = alone
     assert proc.returncode == 0, proc.stderr + logs.get("sequencer", "")
+    assert "prepared polarstripe.nodes.planner:warm_kernels in" in proc.stderr  # kernels before the graph
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics) == {"flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"}
     assert metrics["polarized_stripes"]["contrast"] > metrics["flood"]["contrast"]
@@ -125,3 +138,47 @@ def test_sim_launch_polarized_stripes_beat_flood(tmp_path, can):
     for name in ("polarized_stripes", "flood", "comparison"):
         assert (out / f"{name}.png").is_file()
     assert_clean_exit(proc, logs, [*NODES, "compositor", "planner"])
+
+
+def test_two_sim_launches_at_once_do_not_meet(alone, tmp_path):
+    """Two demos at the same time (each its own CAN segment, sockets and out folder) give the numbers of one
+    alone; a CAN segment named on the command line while another launch uses it is refused at once."""
+    _, out_alone, proc, _ = alone
+    assert proc.returncode == 0, proc.stderr
+    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
+    cmd = [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--once", *SMALL]
+    procs = [subprocess.Popen([*cmd, f"out={tmp_path / name}"], cwd=tmp_path, env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for name in ("a", "b")]
+    outputs = [p.communicate(timeout=240)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outputs
+    alone_m = json.loads((out_alone / "metrics.json").read_text())
+    for name in ("a", "b"):
+        m = json.loads((tmp_path / name / "metrics.json").read_text())
+        assert set(m) == set(alone_m)
+        for method in m:
+            for key in ("contrast", "error_vs_truth"):
+                assert m[method][key] == pytest.approx(alone_m[method][key], rel=1e-6, abs=1e-9), \
+                    (name, method, key, m[method][key], alone_m[method][key])
+            assert m[method]["analyzer_deg"] == pytest.approx(alone_m[method]["analyzer_deg"], abs=1e-6)
+
+
+def test_a_named_can_segment_in_use_is_refused(tmp_path):
+    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
+    cmd = [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--once", *SMALL,
+           "can=ps-test-shared", "plan=false", "calibrate=false"]
+    first = subprocess.Popen([*cmd, f"out={tmp_path / 'a'}"], cwd=tmp_path, env=env, text=True,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while not list((tmp_path / "runs").glob("*/graph.json")):
+            assert time.monotonic() < deadline and first.poll() is None
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        second = subprocess.run([*cmd, f"out={tmp_path / 'b'}"], cwd=tmp_path, env=env, text=True,
+                                capture_output=True, timeout=60)
+        assert second.returncode == 2, second.stderr
+        assert "can='ps-test-shared' is in use by launch sim (pid " in second.stderr
+        assert "simulator started" not in second.stderr and time.monotonic() - t0 < 30
+    finally:
+        first.send_signal(signal.SIGINT)
+        first.communicate(timeout=60)
