@@ -37,6 +37,7 @@ from polarstripe.runtime.params import parse_assignments
 from polarstripe.runtime.runner import load_node_class
 
 HELP = "start a rig from a launch file"
+USER_ERROR = 2  # a node's exit status for a one-line PolarstripeError (a bad setting, a missing device)
 RECORDER = "polarstripe.tools.record:Recorder"
 
 
@@ -370,9 +371,12 @@ class Launcher:
                 if self.once and failed:
                     self._end(f"required node {failed[0].spec.name} failed: stopping the launch")
                     return 1
-            fatal = [c for c in self.children if c.spec.fails_launch and c.done and c.exit_code]
-            if fatal:
-                self._end(f"{fatal[0].spec.name} failed: stopping the launch")
+            fatal = [c for c in self.children if c.done and c.exit_code
+                     and (c.spec.fails_launch or c.exit_code == USER_ERROR)]
+            if fatal:  # a recorder that cannot record, or a node refusing its settings: nothing to wait for
+                c = fatal[0]
+                why = "cannot go on without it" if c.spec.fails_launch else "its settings or device refused"
+                self._end(f"{c.spec.name} exit {c.exit_code} ({why}): stopping the launch")
                 return 1
             if all(c.done for c in self.children):
                 self._end("every node has exited")

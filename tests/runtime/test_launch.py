@@ -23,6 +23,7 @@ from polarstripe.runtime.service import ServiceClient
 
 TEST_NODES = """
 import signal
+from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Ack, Empty, Frame
 from polarstripe.runtime.node import Node
 
@@ -46,6 +47,11 @@ class Camera(Node):
 
     def setup(self):
         self.serve("camera/trigger", lambda req: Ack(ok=True, detail="click"))
+
+
+class Refuses(Node):
+    def setup(self):
+        raise PolarstripeError("param 'fidelity': 'ultra' is not a fidelity")
 
 
 class Crashy(Node):
@@ -502,3 +508,29 @@ def test_an_explicit_shared_name_in_use_by_another_launch_is_refused(tmp_path):
     again = _launch(tmp_path, EXCLUSIVE, "segment=bus7")
     _graph(tmp_path)
     assert _stop(again) == 130
+
+
+def test_a_node_refusing_its_settings_ends_the_launch_at_once(tmp_path):
+    t0 = time.monotonic()
+    proc = _launch(
+        tmp_path,
+        """
+        [[node]]
+        name = "talker"
+        module = "polarstripe.nodes.demo:Talker"
+        [[node]]
+        name = "refuses"
+        module = "ps_test_nodes:Refuses"
+        [[node]]
+        name = "listener"
+        module = "polarstripe.nodes.demo:Listener"
+        required = true
+    """,
+        "--once",
+    )
+    assert proc.wait(30) == 1, _output(tmp_path)
+    assert time.monotonic() - t0 < 15  # not the required node's start-up timeout
+    out = _output(tmp_path)
+    assert "refuses exit 2 (last line: polarstripe node: error: param 'fidelity': 'ultra' is not a fidelity)" \
+        in out, out
+    assert "refuses exit 2 (its settings or device refused): stopping the launch" in out
