@@ -63,19 +63,19 @@ def depth_scene(sigma_t: float, width: int = 160) -> Scene:
 def scan_votes(scene: Scene, stripes: int, angles=(None,), *, orders: str = "single", seed: int = 1,
                fidelity: str = "preview") -> tuple[dict, Scene]:
     """Render a stripe scan of ``scene`` at each analyzer angle and fold it into a RunningArgmax; the exposure
-    is first shortened so the flood frame (no analyzer) peaks at 80 % of full scale. Returns
+    is set so the brightest stripe frame (no analyzer) peaks at 80 % of full scale. Returns
     ({angle: SheetVotes}, the scene as exposed)."""
-    flood = render_components(scene, "flood", fidelity, orders=orders)
+    comps = [render_components(scene, f"stripe:{k}/{stripes}", fidelity, orders=orders)
+             for k in range(stripes)]
     cam = scene.camera
-    peak = float(np.max((flood.D + flood.A + flood.B) * electrons_per_radiance(cam))) / cam.gain_e_per_dn
+    e_map = electrons_per_radiance(cam)
+    peak = max(float(np.max((c.D + c.A + c.B) * e_map)) for c in comps) / cam.gain_e_per_dn
     limit = 0.8 * min(full_scale_dn(cam) - dark_offset_dn(cam), cam.full_well_e / cam.gain_e_per_dn)
-    if peak > limit:
-        scene = scene.replace(camera=scene.camera.replace(exposure_s=scene.camera.exposure_s * limit / peak))
+    scene = scene.replace(camera=cam.replace(exposure_s=cam.exposure_s * limit / peak))
     w, h = scene.camera.resolution
     ra = RunningArgmax((h, w), np.uint16)
     rng = np.random.default_rng(seed)
-    for k in range(stripes):
-        comp = render_components(scene, f"stripe:{k}/{stripes}", fidelity, orders=orders)
+    for k, comp in enumerate(comps):
         for a in angles:
             ra.add(expose(analyzer(comp, a), scene.camera, rng), k, a)
     return {a: ra.result(a) for a in angles}, scene

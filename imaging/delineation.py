@@ -9,9 +9,10 @@ the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`)
 
 * along each camera row, where the sheet index steps by one between pixels j and j + 1 (sheets a and a + 1),
   the edge between them (the projector column ⌊(a + 1)·W/N⌋, known exactly) crosses the row. Its sub-pixel
-  position is the zero of the difference of the two sheets' images, I_a − I_{a+1}, linear between the pixels:
-  at j it is the margin m_j = best − second (the second best there is sheet a + 1), at j + 1 it is −m_{j+1},
-  so x = j + m_j/(m_j + m_{j+1}) — the paper's gradient edge (§2), from the running values alone;
+  position is the zero of the normalized difference of the two sheets' images, (I_a − I_{a+1})/(I_a +
+  I_{a+1}) (albedo cancels), linear between the pixels: at j it is n_j = (best − second)/(best + second −
+  2·dark) (the second best there is sheet a + 1), at j + 1 it is −n_{j+1}, so x = j + n_j/(n_j + n_{j+1}) —
+  the paper's gradient edge (§2), from the running values alone;
 * a pixel between two such edges of its own stripe gets the column interpolated linearly between them;
 * a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
   below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is next to an edge,
@@ -178,8 +179,10 @@ def _delineate_rows(best, second, index, edges, dark, read_var, g, sat, k, min_c
             signal = 0.5 * (best[i, a] + best[i, c]) - dark
             if abs(ia - ic) == 1 and tot > 0 and tot >= k * np.sqrt(var[a] + var[c]) and \
                     tot >= min_contrast * signal:
-                kind[p] = 1
-                xs[p] = a + ma / tot
+                kind[p] = 1  # the zero of the normalized difference (I_a − I_a+1)/(I_a + I_a+1): albedo-free
+                na = ma / max(best[i, a] + second[i, a] - 2.0 * dark, 1e-9)
+                nc = mc / max(best[i, c] + second[i, c] - 2.0 * dark, 1e-9)
+                xs[p] = a + na / (na + nc)
                 cs[p] = edges[max(ia, ic)]
             else:
                 kind[p] = 2

@@ -212,6 +212,7 @@ class DepthStage:
         m = {"stripes": self.count, "valid_pixels": valid, "valid_fraction": valid / depth.size,
              "analyzer_deg": angle, "geometry": source}
         if truth_depth is not None and truth_depth.shape == depth.shape:
+            truth_depth = np.where(truth_depth > 0, truth_depth, np.nan)  # the simulator's 0: no object
             both = np.isfinite(depth) & np.isfinite(truth_depth)
             err = (depth - truth_depth)[both]
             m["depth_rms_mm"] = float(1e3 * np.sqrt(np.mean(err ** 2))) if err.size else None

@@ -21,7 +21,7 @@ Services (relative to the namespace):
 Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the scan's), published at every
 ``emitter/scan`` start — the one way the ground truth reaches the compositor, so a recording carries it and a
 replay scores like the live run: images ``S`` (float64: flood D + A in DN above the dark offset, no analyzer,
-same exposure as the frames), ``depth_m`` (float32 z [m] of the objects, NaN where none), ``chart_band``
+same exposure as the frames), ``depth_m`` (float32 z [m] of the objects, 0 where none), ``chart_band``
 (int32 band per pixel, −1 off the chart), ``chart_high`` (bool, bright bar); metrics ``separation_m``,
 ``exposure_s``, ``dark_offset_dn``, ``rig_geometry`` (camera and projector at the current source pose, as a
 calibration file holds them: sim/depth_truth.py). One render per source pose, cached.
@@ -348,7 +348,7 @@ class Simulator(Node):
                 images={"S": signal.astype(np.float64),
                         "chart_band": comp.surface.chart_band.astype(np.int32),
                         "chart_high": comp.surface.chart_high.astype(bool),
-                        "depth_m": depth_truth(self.scene).astype(np.float32)},  # z [m], NaN: no object
+                        "depth_m": np.nan_to_num(depth_truth(self.scene), nan=0.0).astype(np.float32)},
                 method="truth",
                 metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
                          "dark_offset_dn": dark_offset_dn(cam), "rig_geometry": {  # the source moves
