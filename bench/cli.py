@@ -21,6 +21,7 @@ BENCHES: dict[str, str] = {
     "sweep": "design-study sweep: scenes per second with 1 and 2 workers",
     "pipeline": "a full simulated scan: simulation, transport, compositing",
     "record": "recorder sustained frame rate vs a plain file write",
+    "depth": "triangulation time per stripe scan (and --accuracy: depth error vs truth)",
 }
 
 
