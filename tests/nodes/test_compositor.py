@@ -211,8 +211,10 @@ def test_truth_gives_error_and_contrast_and_files_are_written(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert set(metrics) == {"flood", "stripes"}
     assert metrics["stripes"]["contrast"] > metrics["flood"]["contrast"]
-    png = cv2.imread(str(tmp_path / "flood.png"), cv2.IMREAD_UNCHANGED)
-    assert png.dtype == np.uint16 and png[0, 0] == 200 and png[5, 20] == 1400
+    png = cv2.imread(str(tmp_path / "flood.png"), cv2.IMREAD_UNCHANGED)  # for people: 8 bits, stretched
+    assert png.dtype == np.uint8 and png.shape == (H, W) and int(png[5, 20]) > int(png[0, 0])
+    flood = cv2.imread(str(tmp_path / "flood.tiff"), cv2.IMREAD_UNCHANGED)  # for analysis: DN as measured
+    assert flood[0, 0] == 200 and flood[5, 20] == 1400
     tif = cv2.imread(str(tmp_path / "stripes.tiff"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_allclose(tif, s + 20.0)
     assert (tmp_path / "comparison.png").stat().st_size > 1000
