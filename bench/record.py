@@ -264,6 +264,7 @@ def run(
     rate: float,
     directory: str | None,
     bus: bool,
+    *,
     repeats: int = 3,
     cold_pause_s: float = 3.0,
     export: bool = True,
@@ -338,9 +339,9 @@ def main(args: argparse.Namespace) -> int:
         args.rate,
         args.dir,
         not args.no_bus,
-        args.repeats,
-        args.cold_pause,
-        not args.no_export,
+        repeats=args.repeats,
+        cold_pause_s=args.cold_pause,
+        export=not args.no_export,
     )
     if args.json:
         print(json.dumps(res))

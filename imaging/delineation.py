@@ -141,14 +141,18 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
         raise ImagingError(f"votes: sheet index outside 0 … {edges.size - 2}")
     sat = np.inf if noise.saturation_dn is None else finite_param("saturation", noise.saturation_dn)
     out = np.empty(best.shape)
-    _delineate_rows(best, second, index, edges, float(noise.dark_dn), float(noise.read_noise_dn) ** 2,
-                    float(noise.dn_per_electron), sat, finite_param("k_sigma", k_sigma, low=0.0),
-                    finite_param("min_contrast", min_contrast, low=0.0), out)
+    # the noise model and the thresholds, one record for the kernel: dark [DN], read variance [DN²],
+    # gain [DN/e⁻], saturation [DN], k_sigma, min_contrast
+    limits = np.array([float(noise.dark_dn), float(noise.read_noise_dn) ** 2, float(noise.dn_per_electron),
+                       float(sat), finite_param("k_sigma", k_sigma, low=0.0),
+                       finite_param("min_contrast", min_contrast, low=0.0)])
+    _delineate_rows(best, second, index, edges, limits, out)
     return out
 
 
 @njit(cache=True)
-def _delineate_rows(best, second, index, edges, dark, read_var, g, sat, k, min_contrast, out):
+def _delineate_rows(best, second, index, edges, limits, out):
+    dark, read_var, g, sat, k, min_contrast = limits[0], limits[1], limits[2], limits[3], limits[4], limits[5]
     h, w = best.shape
     ok = np.empty(w, np.bool_)
     kind = np.empty(w + 1, np.int8)  # gap p sits between pixels p − 1 and p: 0 same stripe, 1 edge, 2 break
