@@ -42,6 +42,11 @@ def phase_value(phase, omm, opm):
         return 1.0 / _FOUR_PI
     if phase.code == 1:
         return _hg(omm, opm, phase.g1)
+    if phase.code == 3:                  # the scaled P̃: the forward cone 1 − μ < cut is cut out
+        if omm < phase.cut:
+            return 0.0
+        return phase.norm * (phase.alpha * _hg(omm, opm, phase.g1)
+                             + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2))
     return phase.alpha * _hg(omm, opm, phase.g1) + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2)
 
 

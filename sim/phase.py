@@ -53,7 +53,8 @@ def tthg_parameters(mean_cosine: float) -> tuple[float, float, float]:
     a = lo
     while mean(a) >= 0:                        # step off the root of g_B (round-off at tiny g)
         a += 1e-12
-    gf = brentq(mean, a, _G_MAX, xtol=1e-15, rtol=1e-15, maxiter=200)
+    # the closure's largest mean cosine (g_F = 1 − 10⁻⁶) is a hair below 1 − 10⁻⁶: clamp g there
+    gf = _G_MAX if mean(_G_MAX) <= 0 else brentq(mean, a, _G_MAX, xtol=1e-15, rtol=1e-15, maxiter=200)
     gb = gb_of(gf)
     alpha = gb * (1.0 + gb) / ((gf + gb) * (1.0 + gb - gf))
     return gf, gb, alpha

@@ -26,6 +26,7 @@ from polarstripe.sim import phase as phase_fn
 from polarstripe.sim.geometry import Frame, box_interval, pinhole_frame, point_in_box, segment_length_in_box
 from polarstripe.sim.patterns import Pattern, lit_intervals
 from polarstripe.sim.scene import Scene
+from polarstripe.sim.similarity import truncated_code
 
 _POL_NODES = 5
 
@@ -142,8 +143,11 @@ def _polarization(src: Source, on: bool) -> records.Polarization:
     return records.Polarization(on, np.asarray(src.e_field, float), float(src.dop_l), depol)
 
 
-def _phase_code(phase) -> tuple[int, float, float, float]:
-    """The kernel's phase arguments: (0 isotropic | 1 HG g | 2 TTHG g_F, g_B, α)."""
+def _phase_code(phase) -> tuple:
+    """The kernel's phase arguments: (0 isotropic | 1 HG g | 2 TTHG g_F, g_B, α | 3 the similarity-scaled P̃
+    of :class:`~polarstripe.sim.similarity.TruncatedPhase`: g1, g2, α, 1 − cos θ_c, 1/(1 − f))."""
+    if phase.model == "truncated":
+        return truncated_code(phase)
     if phase.model == "isotropic":
         return 0, 0.0, 0.0, 0.0
     if phase.model == "hg":
@@ -182,7 +186,10 @@ def _split_angles(phase, factors: tuple[float, ...]) -> np.ndarray:
 
 
 def forward_width(phase) -> float:
-    """Angular width [rad] of the phase function's forward lobe (1 − g of the most forward HG lobe)."""
+    """Angular width [rad] of the phase function's forward lobe (1 − g of the most forward HG lobe; the
+    forward cone θ_c of a truncated P̃, whose cut is then one of the split angles)."""
+    if phase.model == "truncated":
+        return float(np.arccos(phase.cos_c))
     if phase.model == "isotropic":
         return np.pi
     if phase.model == "hg":

@@ -27,7 +27,8 @@ def test_backscatter_dop_is_one_minus_delta(delta, p):
 
 def test_rendered_p_near_0_8_and_malus_extrema():
     s = load_scene(None)
-    c = render_components(s, "flood", "preview", pixels=np.array([(20, 20), (240, 600), (450, 100)]))
+    c = render_components(s, "flood", "preview", pixels=np.array([(20, 20), (240, 600), (450, 100)]),
+                          orders="single")
     assert np.all((c.p > 0.7) & (c.p <= 0.8 + 1e-9))
     angles = np.arange(0, 180, 0.25)
     k1, k2 = 1.0, 1.0 / s.camera.polarizer.extinction_ratio
@@ -45,5 +46,5 @@ def test_rendered_p_near_0_8_and_malus_extrema():
 def test_constant_dop_model():
     s = load_scene(None)
     s = s.replace(medium=s.medium.replace(dop=s.medium.dop.replace(model="constant", p=0.55)))
-    c = render_components(s, "flood", "preview", pixels=np.array([(20, 20), (240, 600)]))
+    c = render_components(s, "flood", "preview", pixels=np.array([(20, 20), (240, 600)]), orders="single")
     np.testing.assert_allclose(c.p, 0.55, rtol=1e-12)

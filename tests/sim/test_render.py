@@ -34,7 +34,7 @@ def test_constant_dop_model_gives_p_and_the_source_polarization_angle():
     s = _small()
     s = s.replace(medium=s.medium.replace(dop=DopModel(model="constant", p=0.7)),
                   projector=s.projector.replace(polarization=s.projector.polarization.replace(dop=0.9)))
-    c = render_components(s, "flood", "preview", need=("B", "p"))
+    c = render_components(s, "flood", "preview", need=("B", "p"), orders="single")
     lit = c.B > 0
     assert lit.mean() > 0.9
     np.testing.assert_allclose(c.p[lit], 0.63, rtol=1e-12)
@@ -44,8 +44,8 @@ def test_constant_dop_model_gives_p_and_the_source_polarization_angle():
 def test_requested_pixels_are_those_of_the_full_frame():
     s = _small()
     px = np.array([(0, 0), (24, 32), (47, 63), (10, 50)])
-    full = render_components(s, "stripe:14/30", "standard")
-    part = render_components(s, "stripe:14/30", "standard", pixels=px)
+    full = render_components(s, "stripe:14/30", "standard", orders="single")
+    part = render_components(s, "stripe:14/30", "standard", pixels=px, orders="single")
     for name in ("D", "B", "Bq", "Bu"):
         np.testing.assert_array_equal(getattr(part, name), getattr(full, name)[px[:, 0], px[:, 1]])
 
@@ -55,8 +55,8 @@ def test_black_level_adds_that_fraction_of_the_flood():
     s = _small()
     b = 0.05
     dimmed = s.replace(projector=s.projector.replace(black_level=b))
-    dim = render_components(dimmed, "stripe:14/30", "preview")
-    on, flood = (render_components(s, p, "preview") for p in ("stripe:14/30", "flood"))
+    dim = render_components(dimmed, "stripe:14/30", "preview", orders="single")
+    on, flood = (render_components(s, p, "preview", orders="single") for p in ("stripe:14/30", "flood"))
     for name in ("D", "A", "B", "Bq", "Bu"):
         np.testing.assert_allclose(getattr(dim, name), (1 - b) * getattr(on, name) + b * getattr(flood, name),
                                    rtol=1e-12, atol=1e-15)
@@ -66,9 +66,9 @@ def test_camera_grid_a_of_a_sphere_is_near_the_exact_per_pixel_value():
     """Non-planar objects get A on a camera grid, interpolated: against A computed at every pixel. Near the
     silhouette a pixel may lean on one far node (errors of tens of %), so the bound is on the bulk."""
     s = _small().replace(objects=(SphereObject(center=(0.0, 0.0, 0.25), radius=0.08, albedo=0.5),))
-    grid = render_components(s, "flood", "standard", need=("A",))
+    grid = render_components(s, "flood", "standard", need=("A",), orders="single")
     hit = np.argwhere(grid.object_mask)
-    exact = render_components(s, "flood", "standard", pixels=hit, need=("A",)).A
+    exact = render_components(s, "flood", "standard", pixels=hit, need=("A",), orders="single").A
     assert exact.min() > 0
     err = np.abs(grid.A[hit[:, 0], hit[:, 1]] / exact - 1)
     assert np.median(err) < 0.01
@@ -81,7 +81,7 @@ def test_camera_grid_a_of_a_sphere_is_near_the_exact_per_pixel_value():
 def test_bad_pixels_and_patterns_are_scene_errors(pixels):
     s = _small()
     with pytest.raises(SceneError, match="pixels"):
-        render_components(s, "flood", "preview", pixels=pixels)
+        render_components(s, "flood", "preview", pixels=pixels, orders="single")
     point = s.replace(projector=s.projector.replace(model="point"))
     with pytest.raises(SceneError, match="pinhole"):
-        render_components(point, "stripe:1/30", "preview")
+        render_components(point, "stripe:1/30", "preview", orders="single")

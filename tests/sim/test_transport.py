@@ -65,7 +65,8 @@ PIXELS = [(240, 320), (10, 15), (470, 630), (100, 500), (400, 60)]
 @pytest.mark.parametrize("sigma_t", [0.01, 1.0, 5.0, 30.0])
 def test_backscatter_matches_brute_force_quadrature(ref, sigma_t):
     scene = _scene(sigma_t=sigma_t, albedo=0.9)
-    got = render_components(scene, "flood", "reference", pixels=np.array(PIXELS), need=("B",)).B
+    got = render_components(scene, "flood", "reference", pixels=np.array(PIXELS), need=("B",),
+                            orders="single").B
     want = np.array([_brute_b(ref, scene, i, j) for i, j in PIXELS])
     assert np.all(want > 0)
     np.testing.assert_allclose(got, want, rtol=1e-6)
@@ -76,7 +77,7 @@ def test_backscatter_matches_brute_force_quadrature(ref, sigma_t):
 def test_backscatter_phase_models_and_stripe_match_brute_force(ref, phase):
     scene = _scene(sigma_t=3.0, phase=phase)
     px = np.array([(240, 320), (240, 250), (300, 420)])
-    got = render_components(scene, "stripe:13/30", "reference", pixels=px, need=("B",)).B
+    got = render_components(scene, "stripe:13/30", "reference", pixels=px, need=("B",), orders="single").B
     want = np.array([_brute_b(ref, scene, i, j, stripe=(13, 30)) for i, j in px])
     assert want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12 * want.max())
@@ -87,7 +88,7 @@ def test_direct_closed_form(ref):
     c, pr = scene.camera, scene.projector
     cam = ref.frame(c.position, c.look_at, c.up, c.fov_deg, *c.resolution)
     px = np.array([(240, 320), (200, 280), (270, 360)])
-    got = render_components(scene, "flood", "preview", pixels=px, need=("D",))
+    got = render_components(scene, "flood", "preview", pixels=px, need=("D",), orders="single")
     for k, (i, j) in enumerate(px):
         d = ref.ray(cam, i, j)
         t = 0.38 / d[2]
@@ -110,7 +111,8 @@ def test_isotropic_airlight_matches_sun_closed_form():
         extent=Medium().extent.replace(min=(-5.0, -5.0, 0.0), max=(5.0, 5.0, D_vp))),
         projector=Projector(model="point", position=L, source_radius_m=0.0), objects=())
     scene = scene.replace(camera=scene.camera.replace(resolution=(3, 3)))
-    got = render_components(scene, "flood", "reference", pixels=np.array([(1, 1)]), need=("B",)).B[0]
+    got = render_components(scene, "flood", "reference", pixels=np.array([(1, 1)]), need=("B",),
+                            orders="single").B[0]
     T_sv, T_vp = beta * D_sv, beta * D_vp
     A0 = beta ** 2 * np.exp(-T_sv * np.cos(g)) / (2 * np.pi * T_sv * np.sin(g))
     A1 = T_sv * np.sin(g)
@@ -132,7 +134,8 @@ def test_source_behind_camera_matches_e1_closed_form():
     scene = scene.replace(camera=scene.camera.replace(resolution=(2, 2), look_at=(0.0, 0.0, 1.0)))
     # pixel (0, 0) is off-axis; use a 1x1 camera so the only ray is the axis
     scene = scene.replace(camera=scene.camera.replace(resolution=(1, 1)))
-    got = render_components(scene, "flood", "reference", pixels=np.array([(0, 0)]), need=("B",)).B[0]
+    got = render_components(scene, "flood", "reference", pixels=np.array([(0, 0)]), need=("B",),
+                            orders="single").B[0]
     from polarstripe.sim.phase import tthg
     p_pi = float(tthg(np.array(2.0), np.array(0.0), 0.8))
     want = sig * p_pi * np.exp(sig * D) * (np.exp(-2 * sig * D) / D - np.exp(-2 * sig * (D + Lr)) / (D + Lr)
@@ -143,21 +146,21 @@ def test_source_behind_camera_matches_e1_closed_form():
 def test_small_sigma_limit_and_scaling_laws():
     base = _scene(sigma_t=1e-7, albedo=1.0, phase=Phase("isotropic", 0.0))
     px = np.array([(240, 320), (120, 100)])
-    b1 = render_components(base, "flood", "reference", pixels=px, need=("B",)).B
+    b1 = render_components(base, "flood", "reference", pixels=px, need=("B",), orders="single").B
     b2 = render_components(base.replace(medium=base.medium.replace(sigma_t=2e-7)), "flood", "reference",
-                           pixels=px, need=("B",)).B
+                           pixels=px, need=("B",), orders="single").B
     np.testing.assert_allclose(b2 / b1, 2.0, rtol=1e-5)                          # B ∝ σ_s at small σ
     half = render_components(base.replace(medium=base.medium.replace(albedo=0.5)), "flood", "reference",
-                             pixels=px, need=("B",)).B
+                             pixels=px, need=("B",), orders="single").B
     np.testing.assert_allclose(half, 0.5 * b1, rtol=1e-12)                        # B ∝ σ_s exactly
     bright = render_components(base.replace(projector=base.projector.replace(intensity_w_sr=7.0)), "flood",
-                               "reference", pixels=px, need=("B",)).B
+                               "reference", pixels=px, need=("B",), orders="single").B
     np.testing.assert_allclose(bright, 7.0 * b1, rtol=1e-12)                      # B ∝ I0
 
 
 def test_sigma_zero_exactly_gives_closed_form_direct_and_no_scatter(ref):
     scene = _scene(sigma_t=0.0)
-    c = render_components(scene, "flood", "standard", pixels=np.array([(240, 320)]))
+    c = render_components(scene, "flood", "standard", pixels=np.array([(240, 320)]), orders="single")
     assert c.A[0] == 0.0 and c.B[0] == 0.0
     cam = scene.camera
     d = ref.ray(ref.frame(cam.position, cam.look_at, cam.up, cam.fov_deg, *cam.resolution), 240, 320)
@@ -172,8 +175,9 @@ def test_stripes_sum_to_flood(need):
     scene = _scene(sigma_t=4.0)
     px = np.array([(240, 320), (230, 300), (250, 340), (100, 100), (300, 500)])
     fid = "xi=64,theta=2,phi=4,side=0,grid=none"     # the hemisphere rule: same directions for every stripe
-    flood = getattr(render_components(scene, "flood", fid, pixels=px, need=need), need[0])
-    parts = sum(getattr(render_components(scene, f"stripe:{k}/6", fid, pixels=px, need=need), need[0])
+    flood = getattr(render_components(scene, "flood", fid, pixels=px, need=need, orders="single"), need[0])
+    parts = sum(getattr(render_components(scene, f"stripe:{k}/6", fid, pixels=px, need=need,
+                                          orders="single"), need[0])
                 for k in range(6))
     assert flood.max() > 0
     np.testing.assert_allclose(parts, flood, rtol=1e-9, atol=1e-15)
@@ -190,7 +194,8 @@ def test_surface_term_matches_brute_force_hemisphere_quadrature(ref):
                                       intensity_w_sr=I0),
                   objects=(PlaneObject(point=(0, 0, 0.38), normal=(0, 0, -1), albedo=rho),))
     scene = scene.replace(camera=scene.camera.replace(resolution=(1, 1)))
-    got = render_components(scene, "flood", "reference", pixels=np.array([(0, 0)]), need=("A",)).A[0]
+    got = render_components(scene, "flood", "reference", pixels=np.array([(0, 0)]), need=("A",),
+                            orders="single").A[0]
     O = np.array([0.0, 0.0, 0.38])
     n = np.array([0.0, 0.0, -1.0])
     zl = (L - O) / np.linalg.norm(L - O)
@@ -230,10 +235,13 @@ def test_pattern_pixel_rule_for_a_agrees_with_hemisphere_rule_and_sums_over_stri
     eq. 12); the stripe A values of the projector-side rule add up to the flood value."""
     s = load_scene(None)
     px = np.array([(240, 320), (200, 250), (300, 400)])
-    beams = render_components(s, "flood", "xi=32,side=16,grid=none", pixels=px, need=("A",)).A
-    hemi = render_components(s, "flood", "xi=32,side=0,theta=16,phi=64,grid=none", pixels=px, need=("A",)).A
+    beams = render_components(s, "flood", "xi=32,side=16,grid=none", pixels=px, need=("A",),
+                              orders="single").A
+    hemi = render_components(s, "flood", "xi=32,side=0,theta=16,phi=64,grid=none", pixels=px,
+                             need=("A",), orders="single").A
     np.testing.assert_allclose(beams, hemi, rtol=1e-4)
-    parts = sum(render_components(s, f"stripe:{k}/4", "xi=32,side=16,grid=none", pixels=px, need=("A",)).A
+    parts = sum(render_components(s, f"stripe:{k}/4", "xi=32,side=16,grid=none", pixels=px, need=("A",),
+                                  orders="single").A
                 for k in range(4))
     np.testing.assert_allclose(parts, beams, rtol=2e-3)   # slow convergence for O lit near a stripe edge
 
@@ -290,6 +298,6 @@ def test_point_source_in_open_water_matches_quadrature_at_every_pixel(ref, tmp_p
     scene = load_scene(path)
     assert scene.objects == ()
     want = _point_source_quad(ref, scene)
-    got = render_components(scene, "flood", fidelity, need=("B",)).B
+    got = render_components(scene, "flood", fidelity, need=("B",), orders="single").B
     assert got.shape == want.shape == (16, 16) and want.min() > 0
     np.testing.assert_allclose(got, want, rtol=rtol, atol=0)

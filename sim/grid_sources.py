@@ -1,0 +1,277 @@
+"""What feeds the higher-order grid and what is read back from it (:mod:`polarstripe.sim.multiple`).
+
+* :func:`source_field` — the quasi-direct light of the projector (or point source) as fluence and flux per
+  cell: beams from the source through the lit pattern, each carrying I0·ΔΩ·e^{−σ̃_t s} per unit length
+  (dV = s² ds dΩ cancels the 1/s² of the point source, so a cell receives exactly the power that crosses it),
+  ending at the first object. A beam's weight is its solid angle times the lit fraction of its patch of
+  pattern pixels, so the lit power is exact for stripes and checkers finer than the grid.
+* :func:`object_patches` and :func:`glow_field` — objects as Lambertian sources: each patch of area A with
+  exitance M sends beams of power M·A/N_d per unit length along N_d cosine-distributed directions.
+* :func:`view_integral` — the in-scattered radiance J(Y, −d) = c(φ + 3g̃F·(−d)) integrated along the view
+  rays with the view's attenuation, on a coarse set of rays with per-pixel depths.
+* :func:`surface_irradiance` — the P1 irradiance E = φ/4 − F·n/2 onto a surface of outward normal n.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
+from polarstripe.sim.grid_kernels import (
+    Beams,
+    ViewArgs,
+    deposit_beams,
+    sample_fields,
+    view_cumulative,
+    view_lookup,
+)
+from polarstripe.sim.multiple import Field, Grid
+from polarstripe.sim.patterns import stripe_columns
+from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
+from polarstripe.sim.transport import Source
+
+_MAX_BEAMS = 60000
+
+
+def _fibonacci(n: int) -> np.ndarray:
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    r = np.sqrt(np.maximum(1 - z * z, 0.0))
+    a = math.pi * (1 + 5 ** 0.5) * k
+    return np.stack([r * np.cos(a), r * np.sin(a), z], 1)
+
+
+def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
+    """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels (exact for flood and stripes,
+    4 × 4 sub-samples for checkers)."""
+    pat = src.pattern
+    if pat.kind == "flood":
+        return np.ones(c0.shape)
+    if pat.kind == "stripe":
+        s0, s1 = stripe_columns(pat, src.frame.w)
+        return np.clip(np.minimum(c1, s1) - np.maximum(c0, s0), 0.0, None) / (c1 - c0)
+    size, shift = pat.size, pat.shift % (2 * pat.size)
+    u = (np.arange(4) + 0.5) / 4
+    col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]
+    row = r0[:, None, None] + (r1 - r0)[:, None, None] * u[None, None, :]
+    lit = (np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0
+    return lit.mean(axis=(1, 2))
+
+
+def _source_beams(src: Source, grid: Grid, oversample: float):
+    """Beam directions (m, 3) and their power per unit length I0·ΔΩ·lit [W/m] (before attenuation)."""
+    corners = np.array([[x, y, z] for x in (grid.lo[0], grid.hi[0]) for y in (grid.lo[1], grid.hi[1])
+                        for z in (grid.lo[2], grid.hi[2])])
+    far = float(np.linalg.norm(corners - src.position, axis=1).max())
+    step = float(grid.h.min()) / (2.0 * oversample * max(far, 1e-9))   # beam spacing [rad], far side
+    if src.frame is None:
+        m = int(min(max(4 * math.pi / step ** 2, 256), _MAX_BEAMS))
+        return _fibonacci(m), np.full(m, src.intensity * 4 * math.pi / m)
+    fr = src.frame
+    c_lo, c_hi = 0.0, float(fr.w)        # the whole frustum whatever the pattern: stripes add up to the flood
+    nc = int(np.clip(math.ceil((c_hi - c_lo) * fr.s / step), 1, 400))
+    nr = int(np.clip(math.ceil(fr.h * fr.s / step), 1, 400))
+    while nc * nr > _MAX_BEAMS:
+        nc, nr = max(1, nc // 2), max(1, nr // 2)
+    ce = np.linspace(c_lo, c_hi, nc + 1)
+    re = np.linspace(0.0, float(fr.h), nr + 1)
+    C0, R0 = np.meshgrid(ce[:-1], re[:-1], indexing="ij")
+    C1, R1 = np.meshgrid(ce[1:], re[1:], indexing="ij")
+    c0, c1, r0, r1 = C0.ravel(), C1.ravel(), R0.ravel(), R1.ravel()
+    cm, rm = 0.5 * (c0 + c1), 0.5 * (r0 + r1)
+    a, b = (cm - fr.w / 2) * fr.s, (rm - fr.h / 2) * fr.s
+    dirs = fr.f[None, :] + a[:, None] * fr.r - b[:, None] * fr.u
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    solid = (c1 - c0) * (r1 - r0) * fr.s * fr.s * (1 + a * a + b * b) ** -1.5
+    return dirs, src.intensity * solid * _lit_fraction(src, c0, c1, r0, r1)
+
+
+def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0) -> Field:
+    """The quasi-direct light's fluence φ₀ and flux F₀ per cell (module docstring); ``src`` is the scaled
+    source (σ̃_t). ``oversample`` multiplies the beam density (1: beams half a cell apart at the far side)."""
+    phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
+    if src.intensity <= 0.0:
+        return Field(phi, flux)
+    dirs, power = _source_beams(src, grid, oversample)
+    keep = power > 0
+    dirs, power = np.ascontiguousarray(dirs[keep]), power[keep]
+    t0, t1 = box_interval(src.position, dirs, grid.lo, grid.hi)
+    if len(objects):
+        t1 = np.minimum(t1, intersect(objects, src.position, dirs).t)
+    beams = Beams(np.asarray(src.position, float).reshape(1, 3), dirs, power, t0, t1, np.zeros(t0.size))
+    deposit_beams(grid.args(), beams, float(src.sigma_t), 0.5 * float(grid.h.min()), phi, flux)
+    return Field(phi, flux)
+
+
+class Patches(NamedTuple):
+    """Surface patches: centres (m, 3), outward unit normals (m, 3), areas (m,) [m²], object index (m,)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    area: np.ndarray
+    index: np.ndarray
+
+
+def _plane_patches(o: PlaneObject, lo, hi, spacing: float):
+    from polarstripe.sim.geometry import plane_axes
+
+    ra, ua = plane_axes(o)
+    p0 = np.asarray(o.point, float)
+    if o.size is None:
+        c = 0.5 * (lo + hi)
+        p0 = p0 + ra * ((c - p0) @ ra) + ua * ((c - p0) @ ua)
+        w = h = float(np.linalg.norm(hi - lo))
+    else:
+        w, h = o.size
+    nu, nv = max(2, int(math.ceil(w / spacing))), max(2, int(math.ceil(h / spacing)))
+    u = ((np.arange(nu) + 0.5) / nu - 0.5) * w
+    v = ((np.arange(nv) + 0.5) / nv - 0.5) * h
+    U, V = np.meshgrid(u, v, indexing="ij")
+    pts = p0 + U.ravel()[:, None] * ra + V.ravel()[:, None] * ua
+    n = np.broadcast_to(np.asarray(o.normal, float), pts.shape)
+    return pts, n, np.full(pts.shape[0], w * h / (nu * nv))
+
+
+def _sphere_patches(o: SphereObject, spacing: float):
+    r = o.radius
+    n = int(np.clip(math.ceil(4 * math.pi * r * r / spacing ** 2), 16, 2000))
+    d = _fibonacci(n)
+    return np.asarray(o.center) + r * d, d, np.full(n, 4 * math.pi * r * r / n)
+
+
+def _box_patches(o: BoxObject, spacing: float):
+    lo, hi = np.asarray(o.min, float), np.asarray(o.max, float)
+    pts, nrm, area = [], [], []
+    for ax in range(3):
+        a, b = [k for k in range(3) if k != ax]
+        na, nb = (max(1, int(math.ceil((hi[k] - lo[k]) / spacing))) for k in (a, b))
+        ua = lo[a] + (np.arange(na) + 0.5) / na * (hi[a] - lo[a])
+        ub = lo[b] + (np.arange(nb) + 0.5) / nb * (hi[b] - lo[b])
+        A, B = np.meshgrid(ua, ub, indexing="ij")
+        for side, val in ((-1.0, lo[ax]), (1.0, hi[ax])):
+            p = np.zeros((A.size, 3))
+            p[:, a], p[:, b], p[:, ax] = A.ravel(), B.ravel(), val
+            nn = np.zeros_like(p)
+            nn[:, ax] = side
+            pts.append(p)
+            nrm.append(nn)
+            area.append(np.full(A.size, (hi[a] - lo[a]) * (hi[b] - lo[b]) / (na * nb)))
+    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(area)
+
+
+def object_patches(objects, lo, hi, spacing: float) -> Patches:
+    """Patches about ``spacing`` [m] apart on every object, those inside the medium box only."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    parts = []
+    for k, o in enumerate(objects):
+        if isinstance(o, PlaneObject):
+            p, n, a = _plane_patches(o, lo, hi, spacing)
+        elif isinstance(o, SphereObject):
+            p, n, a = _sphere_patches(o, spacing)
+        else:
+            p, n, a = _box_patches(o, spacing)
+        tol = 1e-9 + 1e-6 * float(np.abs(hi - lo).max())
+        inside = np.all((p >= lo - tol) & (p <= hi + tol), axis=1)
+        parts.append((p[inside], np.ascontiguousarray(n[inside]), a[inside], np.full(inside.sum(), k)))
+    if not parts:
+        z = np.zeros((0, 3))
+        return Patches(z, z, np.zeros(0), np.zeros(0, np.int64))
+    return Patches(*(np.concatenate([q[i] for q in parts]) for i in range(4)))
+
+
+def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Quasi-direct irradiance [W/m²] at surface points: I0·lit·cos·e^{−σ̃_t ℓ_LO}/(d² + r_s²), shadowed."""
+    from polarstripe.sim.geometry import segment_length_in_box
+
+    v = src.position - points
+    d2 = (v * v).sum(1)
+    cos = np.clip((normals * v).sum(1) / np.sqrt(np.maximum(d2, 1e-300)), 0.0, None)
+    lit = np.ones(points.shape[0], bool)
+    if src.frame is not None:
+        col, row, depth = projector_coords(src.frame, points)
+        fr, pat = src.frame, src.pattern
+        lit = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
+        if pat.kind == "stripe":
+            s0, s1 = stripe_columns(pat, fr.w)
+            lit &= (col >= s0) & (col < s1)
+        elif pat.kind == "checker":
+            sh = pat.shift % (2 * pat.size)
+            lit &= (np.floor((col - sh) / pat.size) + np.floor(row / pat.size)) % 2 == 0
+    if len(objects) and lit.any():
+        idx = np.nonzero(lit)[0]
+        lit[idx[occluded(objects, src.position, points[idx] + 1e-7 * normals[idx])]] = False
+    ell = segment_length_in_box(src.position, points, src.box_lo, src.box_hi)
+    with np.errstate(under="ignore"):
+        return np.where(lit, src.intensity * cos * np.exp(-src.sigma_t * ell)
+                        / np.maximum(d2 + src.radius ** 2, 1e-300), 0.0)
+
+
+def surface_irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """P1 irradiance onto surfaces (outward normal n, facing the medium): max(0, φ/4 − F·n/2)."""
+    phi, flux = np.empty(points.shape[0]), np.empty((points.shape[0], 3))
+    sample_fields(grid.args(), field.phi, field.flux, np.ascontiguousarray(points, float), phi, flux)
+    return np.maximum(phi / 4.0 - 0.5 * (flux * normals).sum(1), 0.0)
+
+
+def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float, objects,
+               directions: int = 32) -> Field:
+    """First flight of the objects' reflected light: each patch a Lambertian source of exitance M [W/m²]."""
+    phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
+    keep = np.nonzero(exitance * patches.area > 0)[0]
+    if keep.size == 0:
+        return Field(phi, flux)
+    k = int(max(4, directions))
+    side = int(math.ceil(math.sqrt(k)))
+    k = side * side
+    u = (np.arange(side) + 0.5) / side
+    U, V = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
+    rng = np.random.default_rng(12345)
+    out_d, out_p, out_o = [], [], []
+    for i in keep:
+        n = patches.normal[i]
+        helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = np.cross(n, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        rot = rng.uniform(0, 2 * math.pi)                 # a rotated stratification per patch: no ray stripes
+        r, a = np.sqrt(U), 2 * math.pi * V + rot
+        d = (r * np.cos(a))[:, None] * e1 + (r * np.sin(a))[:, None] * e2 + np.sqrt(1 - U)[:, None] * n
+        out_d.append(d)
+        out_p.append(np.full(k, exitance[i] * patches.area[i] / k))
+        out_o.append(np.repeat(patches.point[i][None, :] + 1e-7 * n, k, axis=0))
+    dirs, power, orig = np.concatenate(out_d), np.concatenate(out_p), np.concatenate(out_o)
+    t0, t1 = box_interval(orig, dirs, grid.lo, grid.hi)
+    if len(objects):
+        t1 = np.minimum(t1, intersect(objects, orig, dirs).t)
+    deposit_beams(grid.args(), Beams(np.ascontiguousarray(orig), np.ascontiguousarray(dirs), power, t0, t1,
+                                     np.zeros(t0.size)), float(sigma), 0.5 * float(grid.h.min()), phi, flux)
+    return Field(phi, flux)
+
+
+def view_integral(grid: Grid, fields: list[Field], view_args: ViewArgs, cam, pixels, x_end: np.ndarray,
+                  coarse: tuple[int, int], steps: int) -> np.ndarray:
+    """∫ J_i(C + x d, −d) e^{−σ(x − x₀)} dx from the medium's entry x₀ to ``x_end`` (per ray, flat) of each
+    field i, for every pixel (a coarse grid of ``coarse`` = (w, h) rays, interpolated bilinearly between them
+    at each pixel's own depth) or for the requested ``pixels`` (their own rays). Returns (k, n)."""
+    phi = np.ascontiguousarray(np.stack([f.phi for f in fields]))
+    flux = np.ascontiguousarray(np.stack([f.flux for f in fields]))
+    if pixels is None:
+        gw, gh = max(min(coarse[0], cam.w), 2), max(min(coarse[1], cam.h), 2)
+        gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
+        GR, GC = np.meshgrid(gr, gc, indexing="ij")
+        rays = pixel_rays(cam, np.stack([GR.ravel(), GC.ravel()], 1))
+    else:
+        rays = pixel_rays(cam, pixels)
+    t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
+    t0 = np.maximum(t0, 0.0)
+    cum = np.zeros((len(fields), rays.shape[0], int(steps) + 1))
+    view_cumulative(grid.args(), phi, flux, view_args, np.ascontiguousarray(rays), t0, t1, cum)
+    out = np.zeros((len(fields), x_end.size))
+    if pixels is None:
+        view_lookup((cam.h, cam.w, gh, gw), t0, t1, cum, np.ascontiguousarray(x_end, float), out)
+    else:
+        n = rays.shape[0]
+        view_lookup((n, 1, n, 1), t0, t1, cum, np.ascontiguousarray(x_end, float), out)
+    return out

@@ -1,0 +1,233 @@
+"""All orders of scattering: D, A, B of a frame with the light scattered more than once (docs/physics.md §10).
+
+The terms, in the similarity-scaled medium of :mod:`polarstripe.sim.similarity` (σ̃_t, σ̃_s, P̃):
+
+* D — the unscattered direct light, exactly as single scattering has it (e^{−σ_t(ℓ_LO + ℓ_CO)}).
+* quasi-direct light on the object: the same formula with σ̃_t (direct plus forward-scattered light), its
+  forward-scattered part spread on the object (:mod:`polarstripe.sim.psf`): the pattern widens and softens.
+* single wide-angle scattering: the paper's A and B with the exact single-scattering integrators
+  (:mod:`polarstripe.sim.transport`, :mod:`polarstripe.sim.surface_term`), P̃ and σ̃ (Nakajima & Tanaka's
+  correction: σ̃_s P̃ = σ_s P at wide angles, so B keeps its exact backscatter phase function and Mueller DOP).
+* orders ≥ 2 on a grid (:mod:`polarstripe.sim.multiple`): B from the emission of the scattered field along
+  the view rays, A from its irradiance on the object; B's second order keeps κ₂ of the single-scatter
+  polarization, later orders none (:mod:`polarstripe.sim.orders`).
+* the objects' glow: each object's reflected light (exitance ρE) scattered at wide angles toward the camera
+  (and onward, and back onto the objects), from the same grid with the objects as Lambertian sources; in A.
+* the object's radiance blurred on its way to the camera by the forward cone (:mod:`polarstripe.sim.psf`).
+
+A is everything that touched an object except D, B everything that did not: S = D + A stays the (unpolarized)
+object signal and B the veiling light, so the analyzer model of docs/physics.md §4 is unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
+from polarstripe.sim.grid_kernels import ViewArgs, glow_emission
+from polarstripe.sim.grid_sources import (
+    glow_field,
+    object_patches,
+    quasi_irradiance,
+    source_field,
+    surface_irradiance,
+    view_integral,
+)
+from polarstripe.sim.kernel_records import PhaseArgs
+from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders, zero_field
+from polarstripe.sim.orders import OrdersPlan
+from polarstripe.sim.psf import blur_image, halo_table, spread
+from polarstripe.sim.psf_stencil import stencil_blur
+from polarstripe.sim.similarity import pair_retention_of, truncated_code
+from polarstripe.sim.surface import surface_info
+from polarstripe.sim.surface_field import View, camera_frame_stokes, pattern_lit, single_parts
+from polarstripe.sim.transport import Source, direct
+
+
+@dataclasses.dataclass(frozen=True)
+class HigherSettings:
+    """Grid cells along the box's longest side, the orders computed one by one before the geometric tail
+    (:func:`~polarstripe.sim.multiple.solve_orders`), the view rays' coarse grid divisor and depth steps,
+    the glow's patch spacing in cells and directions per patch, the beam oversampling of the source, and the
+    divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel)."""
+
+    cells: int = 16
+    orders: int = 6
+    view_div: int = 16
+    view_steps: int = 24
+    patch_cells: float = 1.0
+    glow_dirs: int = 36
+    oversample: float = 1.0
+    b_div: int = 1
+
+
+def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
+    sc = plan.scaled
+    return dataclasses.replace(src, sigma_t=sc.sigma_t, sigma_s=sc.sigma_s, phase=sc.phase)
+
+
+def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarray, np.ndarray]:
+    """D (exact, σ_t) and the quasi-direct object radiance per unit albedo (σ̃_t both ways), per ray."""
+    scene, pat, _, cam, _, hits, surf, _ = view
+    n = hits.t.size
+    d, quasi = np.zeros(n), np.zeros(n)
+    hit = np.nonzero(surf.object_id >= 0)[0]
+    if hit.size == 0:
+        return d, quasi
+    lit = hit[pattern_lit(pat, src.frame, hits.point[hit])]
+    lit = lit[~occluded(scene.objects, src.position, hits.point[lit])]
+    ones = np.ones(lit.size, bool)
+    if "D" in need or "A" in need:
+        d[lit] = direct(src, scene.objects, cam.position, hits.point[lit], hits.normal[lit], surf.albedo[lit],
+                        ones)
+    if "A" in need:
+        quasi[lit] = direct(ssrc, scene.objects, cam.position, hits.point[lit], hits.normal[lit],
+                            np.ones(lit.size), ones)
+    return d, quasi
+
+
+def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings, grid: Grid,
+                 total: Field) -> tuple[Field, Field]:
+    """The objects' glow on the grid: the field to view (its emission toward the camera) and the scattered
+    glow field (whose irradiance lights the objects again).
+
+    Each object patch is a Lambertian source of exitance M = ρ(E_quasi + E_grid). Its first wide-angle
+    scattering toward the camera is summed over the patches at every cell with the exact P̃ (the glow's first
+    flight is too directional for P1); the orders after it come from the grid."""
+    scene, sc = view.scene, plan.scaled
+    patches = object_patches(scene.objects, grid.lo, grid.hi, st.patch_cells * float(grid.h.min()))
+    if patches.area.size == 0:
+        return zero_field(grid), zero_field(grid)
+    hits = Hits(np.ones(patches.area.size), patches.index, patches.normal, patches.point)
+    albedo = surface_info(scene.objects, hits).albedo
+    e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal)
+    exitance = albedo * (e + surface_irradiance(grid, total, patches.point, patches.normal))
+    packed = np.ascontiguousarray(np.column_stack([patches.point, patches.normal, patches.area,
+                                                   exitance / np.pi]))
+    j1 = np.empty(int(np.prod(grid.n)))
+    glow_emission(grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float), packed,
+                  PhaseArgs(*truncated_code(sc.phase)), float(sc.sigma_t), float(sc.sigma_s), j1)
+    first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)
+    more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.orders)
+    c = sc.sigma_s / (4 * np.pi)
+    return Field(more.total.phi + j1.reshape(grid.n) / c, more.total.flux), more.total
+
+
+def _object_radiance(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest: np.ndarray,
+                     ells: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Object radiance after both forward-cone blurs: the pattern on the object (source side) and the
+    radiance on its way to the camera. ``quasi`` per unit albedo, ``rest`` (Ã, albedo included) per ray,
+    ``ells`` the in-medium lengths source → hit and camera → hit."""
+    scene, _, _, cam, dirs, hits, surf, pixels = view
+    sc, ph = plan.scaled, scene.medium.phase
+    table = halo_table(ph.model, float(ph.g), float(sc.phase.cos_c))
+    fss = sc.f * scene.medium.sigma_s
+    hit = surf.object_id >= 0
+    legs = (spread(table, fss, ells[0]), spread(table, fss, ells[1]))
+    if pixels is not None:
+        return stencil_blur(view, ssrc, legs, rest)
+    dist = np.linalg.norm(hits.point - cam.position, axis=1)
+    cosv = np.abs((dirs * hits.normal).sum(1))
+    px_m = np.where(hit, dist * cam.s / np.sqrt(np.maximum(cosv, 0.05)), 1.0)   # pixel footprint [m]
+    shape = (cam.h, cam.w)
+    ids = surf.object_id.reshape(shape)
+    img = quasi.reshape(shape)
+    (n_l, rms_l, mix_l), (n_c, rms_c, mix_c) = legs
+    rms_l, mix_l = (rms_l / px_m).reshape(shape), mix_l.reshape(*shape, -1)
+    w_l = (-np.expm1(-n_l)).reshape(shape)
+    e_ill = img.copy()
+    for k in np.unique(ids[ids >= 0]):
+        m = ids == k
+        e_ill = np.where(m, blur_image(img, rms_l, mix_l, w_l, mask=m), e_ill)
+    rad = surf.albedo.reshape(shape) * e_ill + rest.reshape(shape)
+    hit2 = hit.reshape(shape)
+    rms_c = np.where(hit2, (rms_c / px_m).reshape(shape), np.median((rms_c / px_m)[hit]))
+    mix_c = np.where(hit2[..., None], mix_c.reshape(*shape, -1), mix_c[hit].mean(0))
+    return blur_image(rad, rms_c, mix_c, (-np.expm1(-n_c)).reshape(shape)).ravel()
+
+
+def _b_single(view: View, ssrc: Source, need, div: int):
+    """B's single wide-angle scattering and its Stokes, every pixel or (``div`` > 1, whole frames) on a grid
+    of every div-th pixel, bilinear in between (B is continuous across the image)."""
+    keys = tuple(k for k in ("B", "p") if k in need)
+    if div <= 1 or view.pixels is not None:
+        return single_parts(view, ssrc, keys)[2:]
+    from polarstripe.sim.geometry import intersect, pixel_rays
+
+    cam = view.cam
+    gh, gw = max((cam.h - 1) // div + 2, 2), max((cam.w - 1) // div + 2, 2)
+    gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
+    px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
+    dirs = pixel_rays(cam, px)
+    hits = intersect(view.scene.objects, cam.position, dirs)
+    coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
+    parts = single_parts(coarse, ssrc, keys)[2:]
+    fr = np.arange(cam.h) * (gh - 1) / max(cam.h - 1, 1)
+    fc = np.arange(cam.w) * (gw - 1) / max(cam.w - 1, 1)
+    import cv2
+
+    mx, my = np.meshgrid(fc.astype(np.float32), fr.astype(np.float32))
+    return tuple(cv2.remap(p.reshape(gh, gw).astype(np.float64), mx, my, cv2.INTER_LINEAR).ravel()
+                 for p in parts)
+
+
+def _constant_stokes(view: View, src: Source, b: np.ndarray):
+    """``dop.model = "constant"``: every order carries the stated p·DOP_L (a measured backscatter DOP)."""
+    return camera_frame_stokes(src, view.scene, view.cam, view.dirs, b, None, None)
+
+
+def higher_components(view: View, src: Source, plan: OrdersPlan, need,
+                      settings: HigherSettings | None = None):
+    """D, A, B, Bq, Bu per ray (flat) with all orders of scattering (module docstring)."""
+    st = settings or HigherSettings()
+    sc = plan.scaled
+    ssrc = _scaled_source(src, plan)
+    n = view.dirs.shape[0]
+    D, quasi = _direct_pair(view, src, ssrc, need)
+    A, B, Bq, Bu = (np.zeros(n) for _ in range(4))
+    hit = view.surf.object_id >= 0
+    want_a = "A" in need and bool(hit.any())
+    if not (want_a or "B" in need) or sc.sigma_s <= 0:
+        return D, A, B, Bq, Bu
+    grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
+    dop = view.scene.medium.dop
+    pol = "p" in need and "B" in need and dop.model == "rayleigh"
+    ph = view.scene.medium.phase
+    kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization)) if pol else 0.0
+    orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
+                          sc.sigma_s, sc.g_tilde, orders=st.orders, kappa=kappa)
+    t1 = box_interval(view.cam.position, view.dirs, grid.lo, grid.hi)[1]
+    x_end = np.minimum(t1, view.hits.t)
+    fields = [orders.total] if "B" in need else []
+    if pol:
+        fields.append(orders.polarized)
+    if want_a:
+        seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
+        fields.append(seen)
+    cam = view.cam
+    c = np.full(len(fields), sc.sigma_s / (4 * np.pi))
+    args = ViewArgs(c, np.full(len(fields), sc.g_tilde), float(sc.sigma_t), np.asarray(cam.position, float))
+    coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
+    seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
+    if "B" in need:
+        B, Bq, Bu = _b_single(view, ssrc, need, st.b_div)
+        if pol:           # orders ≥ 2 keep κ^(k−1) of the single-scatter polarization, in its orientation
+            with np.errstate(invalid="ignore", divide="ignore"):
+                share = np.where(B > 0, seen_vals[1] / np.where(B > 0, B, 1.0), 0.0)
+            Bq, Bu = Bq * (1 + share), Bu * (1 + share)
+        B = B + seen_vals[0]
+        if "p" in need and dop.model == "constant":
+            Bq, Bu = _constant_stokes(view, src, B)
+    if want_a:
+        a1 = single_parts(view, ssrc, ("A",))[1]
+        hp, hn = view.hits.point[hit], view.hits.normal[hit]
+        ell_l, ell_c = np.zeros(n), np.zeros(n)
+        ell_l[hit] = segment_length_in_box(ssrc.position, hp, ssrc.box_lo, ssrc.box_hi)
+        ell_c[hit] = segment_length_in_box(view.cam.position, hp, ssrc.box_lo, ssrc.box_hi)
+        a2 = np.zeros(n)
+        e2 = surface_irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
+        a2[hit] = view.surf.albedo[hit] / np.pi * e2 * np.exp(-sc.sigma_t * ell_c[hit])
+        obj = _object_radiance(view, ssrc, plan, quasi, a1 + a2, (ell_l, ell_c))
+        A = np.maximum(obj - D, 0.0) + seen_vals[-1]
+    return (D if "D" in need else np.zeros(n)), A, B, Bq, Bu

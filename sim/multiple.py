@@ -1,0 +1,243 @@
+"""Orders of wide-angle scattering beyond the first, in the similarity-scaled medium, on a grid over the tank.
+
+After the forward cone is folded into the quasi-direct light (:mod:`polarstripe.sim.similarity`), the light
+that is scattered at wide angles twice or more is smooth in space and direction, so it is carried on a
+coarse cell grid over the medium box by successive orders in the P1 form of the integral equation of
+transfer. A cell emits (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹]; its fluence and flux at Y are
+
+    φ(Y) = ∫ e^{−σ̃_t r}/(4π r²) (s₀(X) + 3 s₁(X)·ω̂) dV_X,
+    F(Y) = ∫ e^{−σ̃_t r}/(4π r²) (s₀(X) + 3 s₁(X)·ω̂) ω̂ dV_X,        ω̂ = (Y − X)/r, r = |Y − X|,
+
+and scattering by P̃ (mean cosine g̃) turns a field (φ, F) into the next emission (σ̃_s φ, σ̃_s g̃ F). Paths
+between two points of the convex box stay inside it, so the kernel is exact for the tank: light that leaves
+is lost, as it is at a real tank's walls. The three kernels K₀ = e^{−σr}/(4πr²), K₁ = ω̂K₀, K₂ = ω̂ω̂ᵀK₀ are
+integrated over each cell (sub-sampled next to the receiving cell, the self-cell's r⁻² radially in closed
+form) and applied by FFT (zero-padded, so the convolution is linear, not circular).
+
+The first emission is the quasi-direct light's (s₀ = σ̃_s φ₀, s₁ = σ̃_s g̃ F₀; :func:`solve_orders`); orders
+are added one by one up to a fixed count, and the rest by the geometric tail φ_K r/(1 − r) with r the ratio
+of successive orders of a uniform emission in the same grid (≤ 0.98), so the map stays linear in the source
+and albedo 1 at τ = 100 ends, finite. Compared with Monte
+Carlo in the scaled medium (the paper's tank, TTHG 0.8, σ_t = 2.5–8 m⁻¹): within 3 % for g̃ ≈ 0, 5–10 % for
+g̃ ≈ 0.2–0.3, up to 25 % (light too low) for g̃ ≈ 0.5 (HG 0.95, where these orders are < 10 % of B).
+Isotropic scattering keeps exactly (g̃ = 0 the P1 form is exact for the emission).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from polarstripe.sim.grid_kernels import GridArgs
+from scipy import fft as sfft
+
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+_NEAR = 2            # cells within this offset (per axis) are sub-sampled
+_SUB = 5             # sub-samples per axis of a near cell
+_MAX_RATIO = 0.98    # the geometric tail's largest ratio
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A cell-centred grid over the box [lo, hi] with n (3,) cells of size h (3,) [m]."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    n: tuple[int, int, int]
+
+    @property
+    def h(self) -> np.ndarray:
+        return (np.asarray(self.hi) - np.asarray(self.lo)) / np.asarray(self.n)
+
+    def args(self) -> GridArgs:
+        return GridArgs(np.asarray(self.lo, float), self.h.astype(float), np.asarray(self.n, np.int64))
+
+    def centres(self) -> np.ndarray:
+        """Cell centres (nx, ny, nz, 3)."""
+        h = self.h
+        axes = [self.lo[a] + (np.arange(self.n[a]) + 0.5) * h[a] for a in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+
+
+def make_grid(lo, hi, cells: int) -> Grid:
+    """A grid of about ``cells`` cells along the box's longest side, cubic-ish cells, at least 2 per axis."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    ext = hi - lo
+    n = tuple(int(max(2, round(cells * e / ext.max()))) for e in ext)
+    return Grid(tuple(float(x) for x in lo), tuple(float(x) for x in hi), n)
+
+
+@dataclass(frozen=True)
+class Field:
+    """A scattered-light field on a grid: fluence φ (nx, ny, nz) [W/m²] and flux F (nx, ny, nz, 3)."""
+
+    phi: np.ndarray
+    flux: np.ndarray
+
+    def __add__(self, other: Field) -> Field:
+        return Field(self.phi + other.phi, self.flux + other.flux)
+
+    def __sub__(self, other: Field) -> Field:
+        return Field(self.phi - other.phi, self.flux - other.flux)
+
+
+def zero_field(grid: Grid) -> Field:
+    return Field(np.zeros(grid.n), np.zeros((*grid.n, 3)))
+
+
+@dataclass(frozen=True)
+class Orders:
+    """The solution: ``first`` the once-scattered field (light scattered once at a wide angle), ``total``
+    the field of all orders ≥ 1, ``count`` the orders summed before the tail, ``ratio`` the tail's ratio,
+    ``polarized`` Σ_k κ^k φ^(k) (each order k weighted by κ^k, the polarization it keeps)."""
+
+    first: Field
+    total: Field
+    count: int
+    ratio: float
+    polarized: Field | None = None
+
+
+def _fibonacci(n: int) -> np.ndarray:
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    r = np.sqrt(1 - z * z)
+    a = math.pi * (1 + 5 ** 0.5) * k
+    return np.stack([r * np.cos(a), r * np.sin(a), z], 1)
+
+
+def _kernel_values(off: np.ndarray, sigma: float, vol: float):
+    r = np.linalg.norm(off, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        k0 = np.exp(-sigma * r) / (4 * np.pi * r * r) * vol
+        w = off / r[..., None]
+    k1 = w * k0[..., None]
+    k2 = np.stack([w[..., a] * w[..., b] * k0 for a, b in _PAIRS], -1)
+    return k0, k1, k2
+
+
+def kernel_tables(n: tuple[int, int, int], h: tuple[float, float, float], sigma: float):
+    """Cell-integrated kernels over offsets (2n − 1) per axis (offset 0 at index n − 1): K₀ (…), K₁ (…, 3),
+    K₂ (…, 6) with the pairs (xx, yy, zz, xy, xz, yz) — ∫_cell(o) e^{−σr}/(4πr²)·(1, ω̂, ω̂ω̂) dV."""
+    h = np.asarray(h, float)
+    vol = float(h.prod())
+    axes = [np.arange(-(n[a] - 1), n[a]) * h[a] for a in range(3)]
+    off = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    k0, k1, k2 = _kernel_values(off, sigma, vol)
+    sub = (np.arange(_SUB) + 0.5) / _SUB - 0.5
+    pts = np.stack(np.meshgrid(*(sub * h[a] for a in range(3)), indexing="ij"), -1).reshape(-1, 3)
+    c = [n[a] - 1 for a in range(3)]
+    rng = [range(-min(_NEAR, n[a] - 1), min(_NEAR, n[a] - 1) + 1) for a in range(3)]
+    for i in rng[0]:
+        for j in rng[1]:
+            for k in rng[2]:
+                if i == j == k == 0:
+                    continue
+                a, b, e = _kernel_values(np.array([i, j, k]) * h + pts, sigma, vol)
+                k0[c[0] + i, c[1] + j, c[2] + k] = a.mean()
+                k1[c[0] + i, c[1] + j, c[2] + k] = b.mean(0)
+                k2[c[0] + i, c[1] + j, c[2] + k] = e.mean(0)
+    # the own cell: (1/4π)∫dΩ ∫_0^{R(Ω)} e^{−σr} dr (1, ω, ωω), R the centre's distance to the cell wall
+    u = _fibonacci(4096)
+    R = np.min(0.5 * h[None, :] / np.maximum(np.abs(u), 1e-12), axis=1)
+    radial = -np.expm1(-sigma * R) / sigma if sigma > 0 else R
+    k0[tuple(c)] = radial.mean()
+    k1[tuple(c)] = 0.0
+    k2[tuple(c)] = [float((radial * u[:, a] * u[:, b]).mean()) for a, b in _PAIRS]
+    return k0, k1, k2
+
+
+@lru_cache(maxsize=16)
+def _transforms(n: tuple[int, int, int], h: tuple[float, float, float], sigma: float):
+    k0, k1, k2 = kernel_tables(n, h, sigma)
+    shape = tuple(sfft.next_fast_len(2 * m - 1, real=True) for m in n)
+    f0 = sfft.rfftn(k0, shape)
+    f1 = [sfft.rfftn(k1[..., a], shape) for a in range(3)]
+    f2 = [sfft.rfftn(k2[..., p], shape) for p in range(6)]
+    index = {}
+    for p, (a, b) in enumerate(_PAIRS):
+        index[(a, b)] = index[(b, a)] = p
+    return shape, f0, f1, [[f2[index[(a, b)]] for b in range(3)] for a in range(3)]
+
+
+def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field:
+    """The field (φ, F) of the emission (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹] of every cell, with extinction σ."""
+    n = tuple(int(m) for m in grid.n)
+    shape, f0, f1, f2 = _transforms(n, tuple(float(x) for x in grid.h), float(sigma))
+    sl = tuple(slice(m - 1, 2 * m - 1) for m in n)
+    t0 = sfft.rfftn(s0, shape)
+    t1 = [sfft.rfftn(s1[..., a], shape) for a in range(3)]
+    phi = sfft.irfftn(f0 * t0 + 3 * (f1[0] * t1[0] + f1[1] * t1[1] + f1[2] * t1[2]), shape)[sl]
+    flux = np.stack([sfft.irfftn(f1[a] * t0 + 3 * (f2[a][0] * t1[0] + f2[a][1] * t1[1] + f2[a][2] * t1[2]),
+                                 shape)[sl] for a in range(3)], -1)
+    return Field(np.maximum(phi, 0.0), flux)
+
+
+def _emission(field: Field, sigma_s: float, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """(s₀, s₁) = (σ̃_s φ, σ̃_s g̃ F), s₁ shortened where |3 s₁| > s₀ so the emission is nowhere negative."""
+    s0 = sigma_s * field.phi
+    s1 = sigma_s * g * field.flux
+    norm = 3.0 * np.linalg.norm(s1, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cut = np.where(norm > s0, s0 / np.where(norm > 0, norm, 1.0), 1.0)
+    return s0, s1 * cut[..., None]
+
+
+@lru_cache(maxsize=32)
+def tail_ratio(grid: Grid, sigma_t: float, sigma_s: float, g: float, orders: int) -> float:
+    """The ratio of successive orders after ``orders`` of them, from a uniform emission (the medium's and the
+    grid's alone, so :func:`solve_orders` stays one linear operator for every source); ≤ 0.98."""
+    z = Field(np.ones(grid.n), np.zeros((*grid.n, 3)))
+    prev = float(z.phi.sum())
+    ratio = 0.0
+    for _ in range(max(int(orders), 2)):
+        s0, s1 = _emission(z, sigma_s, g)
+        z = propagate(grid, sigma_t, s0, s1)
+        cur = float(z.phi.sum())
+        ratio = cur / prev if prev > 0 else 0.0
+        prev = cur
+    return float(min(max(ratio, 0.0), _MAX_RATIO))
+
+
+def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: float, *,
+                 orders: int = 6, kappa: float = 0.0) -> Orders:
+    """All orders ≥ 1 of wide-angle scattering of the quasi-direct field ``quasi`` (φ₀, F₀).
+
+    Parameters
+    ----------
+    grid : the cell grid; quasi : the unscattered (quasi-direct) light's fluence and flux on it.
+    sigma_t, sigma_s, g : σ̃_t, σ̃_s [1/m] and g̃ of the scaled medium.
+    orders : orders computed one by one; the rest is the geometric tail φ_K r/(1 − r) with r from
+        :func:`tail_ratio`. A fixed count and ratio keep the map from ``quasi`` to the result linear (the
+        stripes of a scan add up to the flood frame).
+    kappa : the fraction of its polarization light keeps per further scattering (the ``polarized`` sum).
+
+    Returns
+    -------
+    Orders: the once-scattered field and the sum of all orders (φ, F), in W/m².
+    """
+    if int(orders) < 1:
+        raise ValueError(f"solve_orders: orders must be >= 1, got {orders!r}")
+    if sigma_s <= 0.0 or not np.any(quasi.phi > 0):
+        z = zero_field(grid)
+        return Orders(z, z, 0, 0.0, z)
+    if not 0.0 <= kappa <= 1.0:
+        raise ValueError(f"solve_orders: kappa must be in [0, 1], got {kappa!r}")
+    s0, s1 = _emission(quasi, sigma_s, g)
+    first = propagate(grid, sigma_t, s0, s1)
+    total, last, weight = first, first, kappa
+    pol = Field(kappa * first.phi, kappa * first.flux)
+    for _ in range(int(orders) - 1):
+        s0, s1 = _emission(last, sigma_s, g)
+        last = propagate(grid, sigma_t, s0, s1)
+        total = total + last
+        weight *= kappa
+        pol = Field(pol.phi + weight * last.phi, pol.flux + weight * last.flux)
+    ratio = tail_ratio(grid, float(sigma_t), float(sigma_s), float(g), int(orders))
+    tail = ratio / (1.0 - ratio)
+    total = Field(total.phi + tail * last.phi, total.flux + tail * last.flux)
+    ptail = weight * kappa * ratio / (1.0 - kappa * ratio)
+    pol = Field(pol.phi + ptail * last.phi, pol.flux + ptail * last.flux)
+    return Orders(first, total, int(orders), ratio, pol)
