@@ -356,6 +356,8 @@ class Compositor(Node):
             raise PolarstripeError("no frames")
         rc, p = self.running, self.params
         truth = self._truth_of(scan, rc.shape)
+        if truth is not None:
+            self.truth_s = truth.images["S"]  # the comparison figure shows it beside the methods
         dark = p.dark_offset_dn
         if dark is None:
             dark = float(truth.metrics.get("dark_offset_dn", 0.0)) if truth is not None else 0.0
@@ -401,7 +403,7 @@ class Compositor(Node):
             write_method(p.out, scan.method, image, self.metrics, image_format=p.image_format)
             if p.comparison:
                 write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
-                                 METHOD_NAMES)
+                                 METHOD_NAMES, truth=getattr(self, "truth_s", None))
 
 
 NODE = Compositor

@@ -62,7 +62,7 @@ from polarstripe.nodes.simulator_frames import (
     to_camera,
 )
 from polarstripe.runtime.node import Node
-from polarstripe.runtime.params import NodeParams
+from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, resolve_fidelity
@@ -97,7 +97,10 @@ class Simulator(Node):
 
         def validate(self):
             super().validate()
-            parse_resolution(self.resolution)
+            res = parse_resolution(self.resolution)
+            if res is not None:
+                check_frame_size(*res, what="resolution")
+            resolve_fidelity(self.fidelity)
             if self.noise not in ("poisson", "gaussian", "auto"):
                 raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
@@ -363,6 +366,13 @@ class Simulator(Node):
                 known = ", ".join(FAULT_COMMANDS)
                 raise ValueError(f"unknown fault command {req.command!r} (known: {known})")
             name, args = words[0], words[1:]
+            wanted = {"frame_delay": 1, "bus_off": 1, "position_limit": 2}.get(name)
+            if wanted is not None and len(args) != wanted:
+                raise ValueError(f"{name} takes {wanted} number{'s' * (wanted > 1)}: "
+                                 f"{name} {FAULT_COMMANDS[name].split(':')[0]}")
+            if name in ("frame_delay", "bus_off", "heartbeat_stop") and args \
+                    and not 0.0 <= float(args[0]) <= 3600.0:
+                raise ValueError(f"{name} {args[0]}: seconds must be in [0, 3600]")
             if name == "camera_lost":
                 self.camera_lost = (args or ["on"])[0] == "on"
             elif name == "frame_delay":

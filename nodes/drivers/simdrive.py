@@ -315,7 +315,9 @@ class SimCia402Drive:
 
     def inject_bus_off(self, duration_s: float) -> None:
         """Report bus-off (error frame 0x040), fall silent for ``duration_s``, then report "restarted"
-        (0x100)."""
+        (0x100). ``duration_s`` must be in [0, 3600] (a timer cannot wait longer than the platform allows)."""
+        if not 0.0 <= duration_s <= 3600.0:
+            raise ValueError(f"bus-off duration_s={duration_s} must be in [0, 3600] s")
         gate = self._gate
         gate.send_raw(
             can.Message(

@@ -14,6 +14,7 @@ import pytest
 from polarstripe.msgs import Plan, RenderRequest, ScanEvent, SimFault
 from polarstripe.nodes.simulator import Simulator
 from polarstripe.nodes.simulator_frames import SimulatorError
+from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
 from polarstripe.sim.scene import load_scene
 
@@ -165,6 +166,27 @@ def test_faults_and_bad_requests_are_clear():
         h.node.render(RenderRequest(pattern="stripe:9/4"))
     with pytest.raises(SimulatorError, match="param 'faults'"):
         sim(faults=["bogus"])
+
+
+@pytest.mark.parametrize("command, why", [
+    ("position_limit 5", "position_limit takes 2 numbers: position_limit MIN MAX"),
+    ("bus_off", "bus_off takes 1 number: bus_off SECONDS"),
+    ("bus_off 1e12", "bus_off 1e12: seconds must be in [0, 3600]"),
+    ("frame_delay -1", "frame_delay -1: seconds must be in [0, 3600]"),
+    ("bus_off soon", "could not convert string to float: 'soon'"),
+])
+def test_a_bad_fault_argument_is_one_clear_refusal(command, why):
+    ack = sim().call("simulator/fault", SimFault(command=command))
+    assert not ack.ok and why in ack.detail, ack.detail
+
+
+@pytest.mark.parametrize("params, why", [
+    ({"fidelity": "ultra"}, "params: fidelity 'ultra' is not preview, standard, reference"),
+    ({"resolution": "100000x100000"}, "params: resolution 100000x100000 is 1e\\+04 Mpx, beyond the limit"),
+])
+def test_bad_params_are_refused_before_anything_starts(params, why):
+    with pytest.raises(ParamError, match=why):
+        sim(**params)
 
 
 def test_off_pattern_is_a_dark_frame():
