@@ -17,28 +17,25 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import errno
 import fcntl
 import hashlib
 import json
-import re
 import os
+import re
 import signal
-import socket
 import subprocess
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from polarstripe.runtime.graph import resolve, runs_dir, write_graph
+from polarstripe.runtime.graph import runs_dir, write_graph
 from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, load_launch, sock_dir
+from polarstripe.runtime.launch_setup import _ipc_in_use, _with_recorder, build_graph
 from polarstripe.runtime.params import parse_assignments
-from polarstripe.runtime.runner import load_node_class
 
 HELP = "start a rig from a launch file"
 USER_ERROR = 2  # a node's exit status for a one-line PolarstripeError (a bad setting, a missing device)
-RECORDER = "polarstripe.tools.record:Recorder"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -56,78 +53,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", metavar="FILE.mcap", help="also record every topic to FILE.mcap")
     # KEY=VALUE may come after the flags (`launch f.toml --once n=3`): parse positionals intermixed
     parser.parse_args = parser.parse_intermixed_args  # type: ignore[method-assign]
-
-
-def _free_port(host: str) -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-_sock_dir = sock_dir
-
-
-def build_graph(spec: LaunchSpec, run_dir: Path) -> dict:
-    """Endpoints for every node, and who publishes, subscribes and serves what (full names)."""
-    sock = _sock_dir(run_dir)
-    nodes, topics, services = {}, {}, {}
-    for n in spec.nodes:
-        cls = n.node_class
-        if spec.transport == "ipc":
-            pub, srv = f"ipc://{sock}/{n.name}.pub", f"ipc://{sock}/{n.name}.srv"
-        else:
-            pub = f"tcp://{spec.host}:{_free_port(spec.host)}"
-            srv = f"tcp://{spec.host}:{_free_port(spec.host)}"
-        pub, srv = n.pub or pub, n.srv or srv
-        full = {t: resolve(t, spec.namespace, n.name) for t in (*cls.PUBLISHES, *cls.SUBSCRIBES, *cls.SERVES)}
-        publishes = {full[t]: m.TYPE for t, m in cls.PUBLISHES.items()}
-        publishes[resolve("log", spec.namespace)] = "log"
-        publishes[resolve("heartbeat", spec.namespace)] = "heartbeat"
-        nodes[n.name] = {
-            "module": n.module,
-            "pub": pub,
-            "srv": srv,
-            "publishes": publishes,
-            "subscribes": {full[t]: m.TYPE for t, m in cls.SUBSCRIBES.items()},
-            "serves": {full[s]: [q.TYPE, r.TYPE] for s, (q, r) in cls.SERVES.items()},
-            "params": n.params,
-            "env": n.env,
-            "required": n.required,
-            "respawn": n.respawn,
-            "respawn_delay": n.respawn_delay,
-            "max_respawns": n.max_respawns,
-            "log": str(run_dir / "logs" / f"{n.name}.log"),
-            "pid": None,
-        }
-        for t, typ in publishes.items():
-            topics.setdefault(t, {"type": typ, "publishers": [], "subscribers": []})["publishers"].append(
-                n.name
-            )
-        for s, (q, r) in nodes[n.name]["serves"].items():
-            if s in services:
-                raise LaunchError(
-                    f"{spec.path.name}: service {s!r} is served by both "
-                    f"{services[s]['node']!r} and {n.name!r}"
-                )
-            services[s] = {"node": n.name, "endpoint": srv, "request": q, "reply": r}
-    for n in spec.nodes:
-        for t, typ in nodes[n.name]["subscribes"].items():
-            topics.setdefault(t, {"type": typ, "publishers": [], "subscribers": []})["subscribers"].append(
-                n.name
-            )
-    return {
-        "launch": spec.name,
-        "file": str(spec.path),
-        "namespace": spec.namespace,
-        "run_dir": str(run_dir),
-        "pid": os.getpid(),
-        "started_ns": time.time_ns(),
-        "state": "starting",
-        "args": spec.args,
-        "nodes": nodes,
-        "topics": topics,
-        "services": services,
-    }
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -442,48 +367,11 @@ class Launcher:
                 code = c.proc.wait()
                 if c.stopped_by is not None or c.exit_code is None:  # stopped here, or died unseen
                     c.exit_code = code
-        sock = _sock_dir(self.run_dir)
+        sock = sock_dir(self.run_dir)
         if sock.is_dir():
             for p in sock.iterdir():
                 p.unlink(missing_ok=True)
             sock.rmdir()
-
-
-def _check_writable(path: str) -> None:
-    """``--record FILE``: refuse at once what the recorder could not write (a missing or read-only folder,
-    a folder in place of the file, a read-only file)."""
-    p = Path(path)
-    folder = p.parent
-    if p.is_dir():
-        raise LaunchError(f"--record {path}: is a folder; give a file, e.g. {p / 'run.mcap'}")
-    if not folder.is_dir():
-        raise LaunchError(f"--record {path}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise LaunchError(f"--record {path}: cannot write there ({os.strerror(errno.EACCES).lower()})")
-
-
-def _with_recorder(spec: LaunchSpec, path: str) -> None:
-
-    _check_writable(path)
-    try:
-        cls = load_node_class(RECORDER)
-    except Exception:
-        raise LaunchError(f"--record: recording is not available in this build (needs {RECORDER})") from None
-    recorder = NodeSpec(name="recorder", module=RECORDER, params={"path": str(path)}, node_class=cls,
-                        fails_launch=True)  # a launch that was asked to record and does not, fails
-    spec.nodes.insert(0, recorder)  # first up, last down: it sees the whole run
-
-
-def _ipc_in_use(endpoint: str) -> bool:
-    """Whether a process accepts connections at ``ipc://PATH`` (a stale socket file does not count)."""
-    if not endpoint.startswith("ipc://") or not os.path.exists(endpoint[6:]):
-        return False
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        try:
-            s.connect(endpoint[6:])
-        except OSError:
-            return False
-    return True
 
 
 def main(args: argparse.Namespace) -> int:

@@ -169,9 +169,9 @@ def test_built_in_args_name_things_per_run_and_explicit_names_are_claimed(tmp_pa
 
 
 def test_the_sim_launch_checks_its_args_through_the_nodes_params(tmp_path):
-    with pytest.raises(LaunchError, match=r"node 'planner'.*resolution 100000x100000 is .* beyond the limit"):
+    with pytest.raises(LaunchError, match=r"node 'simulator'.*resolution 100000x100000 is .* beyond the limit"):
         load_launch("sim", {"resolution": "100000x100000"})
-    with pytest.raises(LaunchError, match="node 'planner'.*resolution 4000x6000"):
+    with pytest.raises(LaunchError, match="node 'simulator'.*resolution 4000x6000"):
         load_launch("sim", {"resolution": "4000x6000"})
     spec = load_launch("sim", run_dir=tmp_path / "sim-1")
     sim = next(n for n in spec.nodes if n.name == "simulator")
