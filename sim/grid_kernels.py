@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from polarstripe.sim.kernels import phase_value
+from polarstripe.sim.kernels import phase_value, segment_in_box
 
 
 class GridArgs(NamedTuple):
@@ -194,41 +194,50 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
 
 
 @njit(cache=True)
-def _cum_at(t0, t1, cum, f, r, x):
-    """cum of field f on coarse ray r at depth x (linear between its evenly spaced depths, clamped)."""
-    nk = cum.shape[2] - 1
-    length = t1[r] - t0[r]
-    if not length > 0.0:
-        return 0.0
-    u = (x - t0[r]) / length * nk
-    if u <= 0.0:
-        return 0.0
-    if u >= nk:
-        return cum[f, r, nk]
-    j = int(u)
-    fr = u - j
-    return (1.0 - fr) * cum[f, r, j] + fr * cum[f, r, j + 1]
-
-
-@njit(cache=True)
 def view_lookup(shape, t0, t1, cum, x_end, out):
     """Per pixel of a (h, w) image (``shape`` = (h, w, gh, gw)): out[f, m] the coarse rays' cumulative
     in-scatter of field f at the pixel's own depth x_end[m], bilinear between the four coarse rays around it
-    (coarse ray (a, b) sits at pixel row a·(h − 1)/(gh − 1), column b·(w − 1)/(gw − 1))."""
+    (coarse ray (a, b) sits at pixel row a·(h − 1)/(gh − 1), column b·(w − 1)/(gw − 1)); on each coarse ray
+    linear between its evenly spaced depths, clamped to its ends."""
     h, w, gh, gw = shape
+    nf = cum.shape[0]
+    nk = cum.shape[2] - 1
+    rows_scale = (gh - 1) / max(h - 1, 1)
+    cols_scale = (gw - 1) / max(w - 1, 1)
+    scale = np.empty(t0.size)
+    for r in range(t0.size):
+        length = t1[r] - t0[r]
+        scale[r] = nk / length if length > 0.0 else 0.0
+    rays = np.empty(4, np.int64)
+    wts = np.empty(4)
     for m in range(x_end.size):
-        row, col = m // w, m % w
-        fr = row * (gh - 1) / max(h - 1, 1)
-        fc = col * (gw - 1) / max(w - 1, 1)
+        fr = (m // w) * rows_scale
+        fc = (m % w) * cols_scale
         r0 = min(int(fr), max(gh - 2, 0))
         c0 = min(int(fc), max(gw - 2, 0))
         tr, tc = fr - r0, fc - c0
         r1, c1 = min(r0 + 1, gh - 1), min(c0 + 1, gw - 1)
-        for f in range(cum.shape[0]):
-            out[f, m] = ((1 - tr) * ((1 - tc) * _cum_at(t0, t1, cum, f, r0 * gw + c0, x_end[m])
-                                     + tc * _cum_at(t0, t1, cum, f, r0 * gw + c1, x_end[m]))
-                         + tr * ((1 - tc) * _cum_at(t0, t1, cum, f, r1 * gw + c0, x_end[m])
-                                 + tc * _cum_at(t0, t1, cum, f, r1 * gw + c1, x_end[m])))
+        rays[0], rays[1], rays[2], rays[3] = r0 * gw + c0, r0 * gw + c1, r1 * gw + c0, r1 * gw + c1
+        wts[0], wts[1], wts[2], wts[3] = (1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc
+        for f in range(nf):
+            out[f, m] = 0.0
+        x = x_end[m]
+        for q in range(4):
+            r = rays[q]
+            wq = wts[q]
+            if wq == 0.0 or scale[r] == 0.0:
+                continue
+            u = (x - t0[r]) * scale[r]
+            if u <= 0.0:
+                continue
+            if u >= nk:
+                for f in range(nf):
+                    out[f, m] += wq * cum[f, r, nk]
+                continue
+            j = int(u)
+            a = u - j
+            for f in range(nf):
+                out[f, m] += wq * ((1.0 - a) * cum[f, r, j] + a * cum[f, r, j + 1])
 
 
 @njit(cache=True)
@@ -259,3 +268,39 @@ def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
             mu = (vx * ex + vy * ey + vz * ez) / r
             acc += phase_value(phase, 1.0 - mu, 1.0 + mu) * patches[p, 7] * omega * math.exp(-sigma * r)
         out[m] = sigma_s * acc
+
+
+@njit(cache=True)
+def segment_lengths(a, points, lo, hi, out):
+    """out[m] = length [m] of the segment a (3,) → points[m] inside the box [lo, hi]."""
+    for m in range(points.shape[0]):
+        out[m] = segment_in_box(a[0], a[1], a[2], points[m, 0], points[m, 1], points[m, 2], lo, hi)
+
+
+@njit(cache=True)
+def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
+    """Bilinear upsampling of coarse (k, gh, gw) fields sampled at every ``step``-th pixel row and column
+    (row a·step, column b·step) to the (h, w) image (flat, ``width`` = w) into out (k, h·w); bad[m] marks
+    pixels whose four coarse neighbours end their rays (t_coarse) more than max(1 cm, 1 %) from their own
+    (t_own), i.e. silhouettes, to be computed exactly."""
+    k, gh, gw = coarse.shape
+    n = t_own.size
+    rs = cs = 1.0 / step
+    for m in range(n):
+        fr = (m // width) * rs
+        fc = (m % width) * cs
+        r0 = min(int(fr), max(gh - 2, 0))
+        c0 = min(int(fc), max(gw - 2, 0))
+        tr, tc = fr - r0, fc - c0
+        r1, c1 = min(r0 + 1, gh - 1), min(c0 + 1, gw - 1)
+        own = t_own[m]
+        tol = max(0.01, 0.01 * abs(own))
+        b = False
+        for rr, cc in ((r0, c0), (r0, c1), (r1, c0), (r1, c1)):
+            d = t_coarse[rr, cc] - own
+            if not abs(d) <= tol:
+                b = True
+        bad[m] = b
+        for q in range(k):
+            out[q, m] = ((1 - tr) * ((1 - tc) * coarse[q, r0, c0] + tc * coarse[q, r0, c1])
+                         + tr * ((1 - tc) * coarse[q, r1, c0] + tc * coarse[q, r1, c1]))

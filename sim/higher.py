@@ -24,8 +24,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
-from polarstripe.sim.grid_kernels import ViewArgs, glow_emission
+from polarstripe.sim.geometry import Hits, box_interval, occluded
+from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_checked
 from polarstripe.sim.grid_sources import (
     glow_field,
     object_patches,
@@ -37,7 +37,8 @@ from polarstripe.sim.grid_sources import (
 from polarstripe.sim.kernel_records import PhaseArgs
 from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders, zero_field
 from polarstripe.sim.orders import OrdersPlan
-from polarstripe.sim.psf import blur_image, halo_table, spread
+from polarstripe.sim.psf import halo_table, mixture, spread
+from polarstripe.sim.psf_frame import object_radiance
 from polarstripe.sim.psf_stencil import stencil_blur
 from polarstripe.sim.similarity import pair_retention_of, truncated_code
 from polarstripe.sim.surface import surface_info
@@ -48,18 +49,22 @@ from polarstripe.sim.transport import Source, direct
 @dataclasses.dataclass(frozen=True)
 class HigherSettings:
     """Grid cells along the box's longest side, the orders computed one by one before the geometric tail
-    (:func:`~polarstripe.sim.multiple.solve_orders`), the view rays' coarse grid divisor and depth steps,
+    (:func:`~polarstripe.sim.multiple.solve_orders`; ``glow_orders`` for the glow), the view rays' coarse grid
+    divisor and depth steps,
     the glow's patch spacing in cells and directions per patch, the beam oversampling of the source, and the
-    divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel)."""
+    divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel), and
+    whether A's single wide-angle scattering is the exact integral (else the grid's once-scattered field)."""
 
     cells: int = 16
-    orders: int = 6
+    orders: int = 4
+    glow_orders: int = 2
     view_div: int = 16
     view_steps: int = 24
     patch_cells: float = 1.0
     glow_dirs: int = 36
     oversample: float = 1.0
     b_div: int = 1
+    a1_exact: bool = True
 
 
 def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
@@ -109,7 +114,7 @@ def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings,
     glow_emission(grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float), packed,
                   PhaseArgs(*truncated_code(sc.phase)), float(sc.sigma_t), float(sc.sigma_s), j1)
     first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)
-    more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.orders)
+    more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.glow_orders)
     c = sc.sigma_s / (4 * np.pi)
     return Field(more.total.phi + j1.reshape(grid.n) / c, more.total.flux), more.total
 
@@ -123,53 +128,58 @@ def _object_radiance(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarr
     sc, ph = plan.scaled, scene.medium.phase
     table = halo_table(ph.model, float(ph.g), float(sc.phase.cos_c))
     fss = sc.f * scene.medium.sigma_s
-    hit = surf.object_id >= 0
-    legs = (spread(table, fss, ells[0]), spread(table, fss, ells[1]))
     if pixels is not None:
+        legs = []
+        for ell in ells:
+            n, rms = spread(table, fss, ell)
+            legs.append((n, rms, np.stack([mixture(table, float(v)) for v in n])))
         return stencil_blur(view, ssrc, legs, rest)
-    dist = np.linalg.norm(hits.point - cam.position, axis=1)
-    cosv = np.abs((dirs * hits.normal).sum(1))
-    px_m = np.where(hit, dist * cam.s / np.sqrt(np.maximum(cosv, 0.05)), 1.0)   # pixel footprint [m]
-    shape = (cam.h, cam.w)
-    ids = surf.object_id.reshape(shape)
-    img = quasi.reshape(shape)
-    (n_l, rms_l, mix_l), (n_c, rms_c, mix_c) = legs
-    rms_l, mix_l = (rms_l / px_m).reshape(shape), mix_l.reshape(*shape, -1)
-    w_l = (-np.expm1(-n_l)).reshape(shape)
-    e_ill = img.copy()
-    for k in np.unique(ids[ids >= 0]):
-        m = ids == k
-        e_ill = np.where(m, blur_image(img, rms_l, mix_l, w_l, mask=m), e_ill)
-    rad = surf.albedo.reshape(shape) * e_ill + rest.reshape(shape)
-    hit2 = hit.reshape(shape)
-    rms_c = np.where(hit2, (rms_c / px_m).reshape(shape), np.median((rms_c / px_m)[hit]))
-    mix_c = np.where(hit2[..., None], mix_c.reshape(*shape, -1), mix_c[hit].mean(0))
-    return blur_image(rad, rms_c, mix_c, (-np.expm1(-n_c)).reshape(shape)).ravel()
+    return object_radiance(view, table, fss, quasi, rest, ells)
 
 
-def _b_single(view: View, ssrc: Source, need, div: int):
+def _b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     """B's single wide-angle scattering and its Stokes, every pixel or (``div`` > 1, whole frames) on a grid
-    of every div-th pixel, bilinear in between (B is continuous across the image)."""
+    of every div-th pixel, bilinear in between (B is continuous across the image except at silhouettes:
+    pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or 1 % away from
+    their own are computed exactly)."""
     keys = tuple(k for k in ("B", "p") if k in need)
     if div <= 1 or view.pixels is not None:
         return single_parts(view, ssrc, keys)[2:]
     from polarstripe.sim.geometry import intersect, pixel_rays
 
     cam = view.cam
-    gh, gw = max((cam.h - 1) // div + 2, 2), max((cam.w - 1) // div + 2, 2)
-    gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
+    gh, gw = -(-(cam.h - 1) // div) + 1, -(-(cam.w - 1) // div) + 1      # every div-th pixel, past the last
+    gr, gc = np.arange(gh) * div, np.arange(gw) * div                      # (rays of real pixels only)
     px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
     dirs = pixel_rays(cam, px)
     hits = intersect(view.scene.objects, cam.position, dirs)
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
-    parts = single_parts(coarse, ssrc, keys)[2:]
-    fr = np.arange(cam.h) * (gh - 1) / max(cam.h - 1, 1)
-    fc = np.arange(cam.w) * (gw - 1) / max(cam.w - 1, 1)
-    import cv2
+    parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(3, gh, gw)
+    t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
+    out = np.empty((3, cam.h * cam.w))
+    bad = np.empty(cam.h * cam.w, bool)
+    upsample_checked(parts, t_c, np.ascontiguousarray(x_end, float), cam.w, float(div), out, bad)
+    idx = np.nonzero(bad)[0]
+    if idx.size:
+        sub = view._replace(dirs=view.dirs[idx], hits=_take(view.hits, idx),
+                            pixels=np.zeros((idx.size, 2), int))
+        out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
+    return out[0], out[1], out[2]
 
-    mx, my = np.meshgrid(fc.astype(np.float32), fr.astype(np.float32))
-    return tuple(cv2.remap(p.reshape(gh, gw).astype(np.float64), mx, my, cv2.INTER_LINEAR).ravel()
-                 for p in parts)
+
+def _take(hits: Hits, idx: np.ndarray) -> Hits:
+    return Hits(hits.t[idx], hits.index[idx], hits.normal[idx], hits.point[idx])
+
+
+def _lengths(start, view: View, ssrc: Source) -> np.ndarray:
+    """In-medium length [m] from ``start`` to each ray's hit (0 where nothing is hit)."""
+    out = np.zeros(view.hits.t.size)
+    hit = np.nonzero(view.surf.object_id >= 0)[0]
+    seg = np.empty(hit.size)
+    segment_lengths(np.asarray(start, float), np.ascontiguousarray(view.hits.point[hit]),
+                    np.asarray(ssrc.box_lo, float), np.asarray(ssrc.box_hi, float), seg)
+    out[hit] = seg
+    return out
 
 
 def _constant_stokes(view: View, src: Source, b: np.ndarray):
@@ -197,7 +207,7 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization)) if pol else 0.0
     orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
                           sc.sigma_s, sc.g_tilde, orders=st.orders, kappa=kappa)
-    t1 = box_interval(view.cam.position, view.dirs, grid.lo, grid.hi)[1]
+    t0, t1 = box_interval(view.cam.position, view.dirs, grid.lo, grid.hi)
     x_end = np.minimum(t1, view.hits.t)
     fields = [orders.total] if "B" in need else []
     if pol:
@@ -211,7 +221,7 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
-        B, Bq, Bu = _b_single(view, ssrc, need, st.b_div)
+        B, Bq, Bu = _b_single(view, ssrc, need, st.b_div, x_end)
         if pol:           # orders ≥ 2 keep κ^(k−1) of the single-scatter polarization, in its orientation
             with np.errstate(invalid="ignore", divide="ignore"):
                 share = np.where(B > 0, seen_vals[1] / np.where(B > 0, B, 1.0), 0.0)
@@ -220,13 +230,16 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
         if "p" in need and dop.model == "constant":
             Bq, Bu = _constant_stokes(view, src, B)
     if want_a:
-        a1 = single_parts(view, ssrc, ("A",))[1]
         hp, hn = view.hits.point[hit], view.hits.normal[hit]
-        ell_l, ell_c = np.zeros(n), np.zeros(n)
-        ell_l[hit] = segment_length_in_box(ssrc.position, hp, ssrc.box_lo, ssrc.box_hi)
-        ell_c[hit] = segment_length_in_box(view.cam.position, hp, ssrc.box_lo, ssrc.box_hi)
+        ell_l = _lengths(ssrc.position, view, ssrc)
+        ell_c = np.where(hit & (t1 > t0), x_end - np.maximum(t0, 0.0), 0.0)     # the view ray in the medium
         a2 = np.zeros(n)
-        e2 = surface_irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
+        if st.a1_exact:
+            a1 = single_parts(view, ssrc, ("A",))[1]
+            e2 = surface_irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
+        else:
+            a1 = 0.0
+            e2 = surface_irradiance(grid, orders.total + glow_scattered, hp, hn)
         a2[hit] = view.surf.albedo[hit] / np.pi * e2 * np.exp(-sc.sigma_t * ell_c[hit])
         obj = _object_radiance(view, ssrc, plan, quasi, a1 + a2, (ell_l, ell_c))
         A = np.maximum(obj - D, 0.0) + seen_vals[-1]

@@ -19,9 +19,9 @@ Gaussians of widths (0.08, 0.2, 0.5, 1.2, 2.5) × its rms. It applies twice: to 
 object (source → object: the stripe widens and its edges soften) and to the object's radiance on its way to
 the camera (camera → object: by reciprocity the footprint of a pixel on the object).
 
-Whole frames are blurred in the image (:func:`blur_image`: one ladder of Gaussian blurs √2 apart, each on an
-image downsampled to about half its width, weighted per pixel); requested pixels use a radial stencil of the
-same halo (:mod:`polarstripe.sim.psf_stencil`).
+Whole frames are blurred in the image (:func:`blur_image`: the mixture's Gaussians at the object's smallest
+and largest halo width, interpolated per pixel, each on an image downsampled to about two pixels per standard
+deviation); requested pixels use a radial stencil of the same halo (:mod:`polarstripe.sim.psf_stencil`).
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ from polarstripe.sim.phase import tthg_parameters
 
 WIDTHS = np.array([0.08, 0.2, 0.5, 1.2, 2.5])      # mixture widths, in units of the halo's per-axis rms
 N_LADDER = np.array([0.03, 0.1, 0.3, 0.7, 1.5, 3.0, 6.0, 12.0])
-_LEVEL_STEP = math.sqrt(2.0)
 _MIN_PX = 0.3           # narrower halos than this (in pixels) are left sharp
 _SAMPLES = 60000
+_LOG_LADDER = np.log(N_LADDER)
 
 
 class HaloTable(NamedTuple):
@@ -49,29 +49,39 @@ class HaloTable(NamedTuple):
     weights: np.ndarray
 
 
+def _hg_cdf(mu, g):
+    """P(μ' < μ) of HG(g) (|g| ≥ 1e-9)."""
+    return (1 - g * g) / (2 * g) * (1 / np.sqrt(1 + g * g - 2 * g * mu) - 1 / (1 + g))
+
+
+def _hg_cone(g: float, cos_c: float, size: int, rng) -> np.ndarray:
+    """μ drawn from HG(g) restricted to μ > cos_c, by inverting the closed-form CDF."""
+    if abs(g) < 1e-9:
+        return 1 - rng.random(size) * (1 - cos_c)
+    lo = float(_hg_cdf(cos_c, g))
+    u = lo + rng.random(size) * (1 - lo)
+    q = u * 2 * g / (1 - g * g) + 1 / (1 + g)
+    return np.clip((1 + g * g - 1 / (q * q)) / (2 * g), cos_c, 1.0)
+
+
 def _cone_angles(model: str, g: float, cos_c: float, size: int, rng) -> np.ndarray:
-    """Polar angles [rad] drawn from the phase function restricted to the cone μ > cos_c."""
+    """Polar angles [rad] drawn from the phase function restricted to the cone μ > cos_c (each HG lobe by
+    its closed-form inverse CDF, the lobes in proportion to their mass inside the cone)."""
     if model == "isotropic" or (model != "hg" and tthg_parameters(g)[2] == 0.0):
         return np.arccos(1 - rng.random(size) * (1 - cos_c))
     if model == "hg":
-        parts = [(1.0, g)]
+        lobes = [(1.0, g)]
     else:
         gf, gb, alpha = tthg_parameters(g)
-        parts = [(alpha, gf), (1 - alpha, -gb)]
-    out = np.zeros(0)
-    for _ in range(200):
-        lobe = rng.random(4 * size) < parts[0][0]
-        gg = np.where(lobe, parts[0][1], parts[-1][1])
-        gg = np.clip(gg, -1 + 1e-6, 1 - 1e-6)
-        xi = rng.random(4 * size)
-        s = (1 - gg * gg) / (1 - gg + 2 * gg * xi)
-        mu = np.where(np.abs(gg) < 1e-9, 1 - 2 * xi, (1 + gg * gg - s * s) / (2 * np.where(gg == 0, 1, gg)))
-        out = np.concatenate([out, mu[mu > cos_c]])
-        if out.size >= size:
-            break
-    if out.size < size:                    # a cone the lobes hardly reach: spread uniformly in it
-        out = np.concatenate([out, 1 - rng.random(size - out.size) * (1 - cos_c)])
-    return np.arccos(np.clip(out[:size], -1.0, 1.0))
+        lobes = [(alpha, gf), (1 - alpha, -gb)]
+    lobes = [(w, min(max(gg, -1 + 1e-6), 1 - 1e-6)) for w, gg in lobes]
+    mass = np.array([w * (1 - float(_hg_cdf(cos_c, gg))) if abs(gg) >= 1e-9 else w * (1 - cos_c) / 2
+                     for w, gg in lobes])
+    if mass.sum() <= 0:
+        return np.arccos(1 - rng.random(size) * (1 - cos_c))
+    pick = rng.random(size) < mass[0] / mass.sum()
+    mu = np.where(pick, _hg_cone(lobes[0][1], cos_c, size, rng), _hg_cone(lobes[-1][1], cos_c, size, rng))
+    return np.arccos(np.clip(mu, -1.0, 1.0))
 
 
 @lru_cache(maxsize=64)
@@ -106,77 +116,102 @@ def halo_table(model: str, g: float, cos_c: float) -> HaloTable:
     return HaloTable(np.array(rms), np.array(weights))
 
 
-def spread(table: HaloTable, f_sigma_s: float, ell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(n, rms, weights) after in-medium paths ℓ [m]: cone scatterings n = f σ_s ℓ, the halo's per-axis rms
-    [m] and its mixture weights (…, len(WIDTHS)), interpolated in log n on the table's ladder."""
+def spread(table: HaloTable, f_sigma_s: float, ell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, rms) after in-medium paths ℓ [m]: cone scatterings n = f σ_s ℓ and the halo's per-axis rms [m]
+    (interpolated in log n on the table's ladder; :func:`mixture` gives its mixture weights)."""
     ell = np.asarray(ell, float)
     n = f_sigma_s * ell
-    pos = np.interp(np.log(np.maximum(n, 1e-12)), np.log(N_LADDER), np.arange(N_LADDER.size))
-    i0 = np.clip(np.floor(pos).astype(int), 0, N_LADDER.size - 2)
-    t = np.clip(pos - i0, 0.0, 1.0)[..., None]
-    w = (1 - t) * table.weights[i0] + t * table.weights[i0 + 1]
-    rms = ((1 - t[..., 0]) * table.rms[i0] + t[..., 0] * table.rms[i0 + 1]) * ell
-    return n, rms, w
+    pos = np.interp(np.log(np.maximum(n, 1e-12)), _LOG_LADDER, np.arange(N_LADDER.size))
+    return n, np.interp(pos, np.arange(N_LADDER.size), table.rms) * ell
 
 
-def blur_image(img: np.ndarray, rms_px: np.ndarray, mix: np.ndarray, weight: np.ndarray,
-               mask: np.ndarray | None = None, step: float = _LEVEL_STEP) -> np.ndarray:
-    """Mixture blur of an (h, w) image: each pixel keeps (1 − weight) of its value sharp and spreads the rest
-    with the halo of rms ``rms_px`` (pixels) and mixture weights ``mix`` (h, w, len(WIDTHS)).
+def mixture(table: HaloTable, n: float) -> np.ndarray:
+    """The halo's mixture weights (len(WIDTHS),) after n cone scatterings."""
+    pos = float(np.interp(math.log(max(n, 1e-12)), _LOG_LADDER, np.arange(N_LADDER.size)))
+    i0 = min(int(pos), N_LADDER.size - 2)
+    t = min(max(pos - i0, 0.0), 1.0)
+    return (1 - t) * table.weights[i0] + t * table.weights[i0 + 1]
 
-    out = img·(1 − weight) + Σ_j mix_j·G_{c_j·rms} ⊛ (weight·img), the widths and weights those of the
-    *receiving* pixel. The Gaussians come from one ladder of blurs ``step`` apart in width (each on an image
-    downsampled to keep about 2 of its pixels per standard deviation, upsampled once), each pixel taking
-    its components' widths by interpolation in log width. With ``mask`` (one object's pixels) the blur is
-    normalised over the mask — the light that lands beyond the object's edge stands for the light that
-    would arrive from beyond it — and only masked pixels receive.
+
+def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
+               mask: np.ndarray | None = None) -> np.ndarray:
+    """The halo of an (h, w) image's spread part: Σ_j mix_j·G_{c_j·rms} ⊛ spread_part (float32 (h, w)).
+
+    ``spread_part`` is what each pixel spreads (weight·image, 0 where nothing is spread), ``rms_px`` the
+    halo's per-axis rms [pixels] of each *receiving* pixel, ``mix`` the mixture weights. The halo is blurred
+    at the smallest and the largest rms of the receiving pixels (one if within 15 %) and each pixel
+    interpolates between the two in log rms; each Gaussian runs on an image downsampled to about two pixels
+    per standard deviation, the components summed coarse to fine; the frame's edges reflect (the scene goes
+    on beyond them). With ``mask`` (one object's pixels) every Gaussian is normalised over the mask — the
+    light that lands beyond the object's edge stands for the light that would arrive from beyond it — and the
+    halo is returned on the mask only.
     """
-    img = np.asarray(img, float)
-    spread_part = weight * img
-    out = img - spread_part
-    recv = np.ones(img.shape, bool) if mask is None else mask
-    h, w = img.shape
-    sig = rms_px[..., None] * WIDTHS                             # (h, w, J)
-    sharp_w = np.where(sig < _MIN_PX, mix, 0.0).sum(-1)
-    out[recv] += (sharp_w * spread_part)[recv]
-    wide = recv[..., None] & (sig >= _MIN_PX) & (mix > 0)
-    if not wide.any():
-        return out
-    s_lo, s_hi = float(sig[wide].min()), float(sig[wide].max())
-    levels = [s_lo]
-    while levels[-1] < s_hi * (1 - 1e-9):
-        levels.append(levels[-1] * step)
-    pos = np.log(np.clip(sig, s_lo, levels[-1]) / s_lo) / math.log(step)
-    src = np.where(recv, spread_part, 0.0).astype(np.float32)
+    src = np.asarray(spread_part, np.float32)
+    recv = np.ones(src.shape, bool) if mask is None else mask
+    if mask is not None:
+        src = np.where(mask, src, 0.0).astype(np.float32)          # only the object's own light
+    if not recv.any():
+        return np.zeros(src.shape, np.float32)
+    r = rms_px[recv]
+    r_lo, r_hi = float(r.min()), float(r.max())
     m32 = None if mask is None else mask.astype(np.float32)
-    rows, cols = np.nonzero(recv)
-    pos_r, mix_r = pos[rows, cols], np.where(wide[rows, cols], mix[rows, cols], 0.0)
-    acc = np.zeros(rows.size)
-    for i, s in enumerate(levels):
-        hat = np.clip(1.0 - np.abs(pos_r - i), 0.0, 1.0) if len(levels) > 1 else 1.0
-        lw = (mix_r * hat).sum(-1)
-        use = lw > 0
-        if not use.any():
-            continue
-        acc[use] += lw[use] * _level(src, m32, s)[rows[use], cols[use]]
-    out[rows, cols] += acc
-    return out
+    pyramid: dict = {}
+    if r_hi <= 1.15 * r_lo:
+        out = _halo(src, m32, math.sqrt(r_lo * r_hi), mix, pyramid)
+    else:
+        t = np.clip(np.log(np.maximum(rms_px, r_lo) / r_lo) / math.log(r_hi / r_lo), 0.0, 1.0)
+        t = t.astype(np.float32)
+        lo = _halo(src, m32, r_lo, mix, pyramid)
+        out = lo + t * (_halo(src, m32, r_hi, mix, pyramid) - lo)
+    return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
 
 
-def _level(src: np.ndarray, m32: np.ndarray | None, s: float) -> np.ndarray:
-    """Gaussian blur of width s [px] (normalised over the mask when given), on a downsampled image."""
+def _down(pyramid: dict, key: str, img: np.ndarray, down: int) -> np.ndarray:
+    """``img`` downsampled by ``down`` (area average), cached per (key, down)."""
+    if down == 1:
+        return img
+    if (key, down) not in pyramid:
+        h, w = img.shape
+        size = (max(1, w // down), max(1, h // down))
+        pyramid[key, down] = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    return pyramid[key, down]
+
+
+def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, pyramid: dict) -> np.ndarray:
+    """Σ_j mix_j G_{c_j·rms} ⊛ src, each Gaussian normalised over the mask when given, widest first."""
     h, w = src.shape
-    down = 1
-    while s / (2 * down) >= 2.0 and min(h, w) // (2 * down) >= 8:
-        down *= 2
-    size = (max(1, w // down), max(1, h // down))
-    small = cv2.resize(src, size, interpolation=cv2.INTER_AREA) if down > 1 else src
-    b = cv2.GaussianBlur(small, (0, 0), sigmaX=s / down, sigmaY=s / down, borderType=cv2.BORDER_CONSTANT)
-    if m32 is not None:
-        ms = cv2.resize(m32, size, interpolation=cv2.INTER_AREA) if down > 1 else m32
-        nrm = cv2.GaussianBlur(ms, (0, 0), sigmaX=s / down, sigmaY=s / down, borderType=cv2.BORDER_CONSTANT)
-        b = np.where(nrm > 1e-6, b / np.maximum(nrm, 1e-6), 0.0).astype(np.float32)
-    return cv2.resize(b, (w, h), interpolation=cv2.INTER_LINEAR) if down > 1 else b
+    acc, acc_size, sharp = None, None, 0.0
+    for c, m in sorted(zip(WIDTHS, mix, strict=True), reverse=True):
+        s = c * rms
+        if m <= 0:
+            continue
+        if s < _MIN_PX:
+            sharp += m
+            continue
+        down = 1
+        while s / (2 * down) >= 2.0 and min(h, w) // (2 * down) >= 8:
+            down *= 2
+        small = _down(pyramid, "src", src, down)
+        border = cv2.BORDER_CONSTANT if m32 is not None else cv2.BORDER_REFLECT
+        b = cv2.GaussianBlur(small, (0, 0), sigmaX=s / down, sigmaY=s / down, borderType=border)
+        if m32 is not None:
+            m_small = _down(pyramid, "mask", m32, down)
+            nrm = cv2.GaussianBlur(m_small, (0, 0), sigmaX=s / down, sigmaY=s / down,
+                                   borderType=cv2.BORDER_CONSTANT)
+            b = b / np.maximum(nrm, 1e-6)
+        size = (b.shape[1], b.shape[0])
+        if acc is None:
+            acc, acc_size = m * b, size
+        else:
+            if acc_size != size:
+                acc = cv2.resize(acc, size, interpolation=cv2.INTER_LINEAR)
+                acc_size = size
+            acc += m * b
+    if acc is None:
+        return (sharp * src).astype(np.float32)
+    if acc_size != (w, h):
+        acc = cv2.resize(acc, (w, h), interpolation=cv2.INTER_LINEAR)
+    return acc + sharp * src if sharp else acc
 
 
 def radial_stencil(mix: np.ndarray, rings: int = 4, spokes: int = 6) -> tuple[np.ndarray, np.ndarray]:

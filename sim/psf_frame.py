@@ -1,0 +1,98 @@
+"""The forward-cone blurs of :mod:`polarstripe.sim.psf` on whole frames.
+
+The object's quasi-direct irradiance E (per unit albedo) keeps e^{−n_L} sharp and spreads the rest with the
+source path's halo on the object (normalised over each object's pixels); its radiance R = ρ·E_blurred + Ã
+then keeps e^{−n_C} sharp and spreads the rest with the camera path's halo in the image (into pixels beside
+the object as well). Widths are converted to pixels with each pixel's footprint d·s/√|cos| on the object.
+The per-pixel arithmetic is one compiled pass per leg (:func:`leg_inputs`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, mixture
+
+_LOG_LADDER = np.log(N_LADDER)
+
+
+@njit(cache=True)
+def footprints(hit, points, dirs, normals, cam, pitch, out):
+    """A pixel's footprint on the object [m]: distance·pitch/√max(|cos|, 0.05) (1 where nothing is hit)."""
+    for i in range(hit.size):
+        if not hit[i]:
+            out[i] = 1.0
+            continue
+        dx, dy, dz = points[i, 0] - cam[0], points[i, 1] - cam[1], points[i, 2] - cam[2]
+        c = abs(dirs[i, 0] * normals[i, 0] + dirs[i, 1] * normals[i, 1] + dirs[i, 2] * normals[i, 2])
+        out[i] = math.sqrt(dx * dx + dy * dy + dz * dz) * pitch / math.sqrt(max(c, 0.05))
+
+
+@njit(cache=True)
+def leg_inputs(hit, value, ell, footprint, f_sigma_s, log_ladder, rms_table, spread_out, rms_out, keep_out):
+    """Per pixel that sees an object: n = fσ_sℓ, w = 1 − e^{−n}, the halo rms [px] (the table's rms per unit
+    path, interpolated in log n, times ℓ over the pixel's footprint); spread_out = w·value,
+    keep_out = (1 − w)·value. Other pixels: 0 (rms_out left as it is)."""
+    m = log_ladder.size
+    for i in range(hit.size):
+        if not hit[i]:
+            spread_out[i] = 0.0
+            keep_out[i] = 0.0
+            continue
+        n = f_sigma_s * ell[i]
+        w = -math.expm1(-n)
+        ln = math.log(max(n, 1e-12))
+        if ln <= log_ladder[0]:
+            r = rms_table[0]
+        elif ln >= log_ladder[m - 1]:
+            r = rms_table[m - 1]
+        else:
+            j = 0
+            while log_ladder[j + 1] < ln:
+                j += 1
+            t = (ln - log_ladder[j]) / (log_ladder[j + 1] - log_ladder[j])
+            r = (1 - t) * rms_table[j] + t * rms_table[j + 1]
+        rms_out[i] = r * ell[i] / footprint[i]
+        spread_out[i] = w * value[i]
+        keep_out[i] = (1.0 - w) * value[i]
+
+
+def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray, rest: np.ndarray,
+                    ells: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Object radiance per pixel (flat (h·w,)) after both blurs (module docstring).
+
+    Parameters
+    ----------
+    view : the render's View (whole frame); table : the phase function's halo table.
+    f_sigma_s : f σ_s [1/m], the rate of forward-cone scatterings.
+    quasi : (h·w,) quasi-direct object radiance per unit albedo; rest : (h·w,) Ã (albedo included).
+    ells : (h·w,) in-medium path lengths source → hit and camera → hit [m].
+    """
+    cam, dirs, hits, surf = view.cam, view.dirs, view.hits, view.surf
+    hit = surf.object_id >= 0
+    shape, npx = (cam.h, cam.w), cam.h * cam.w
+    footprint = np.empty(npx)
+    footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), footprint)
+    rms_table = np.ascontiguousarray(table.rms, float)
+    spread_l, rms_l, keep_l = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
+    leg_inputs(hit, quasi, ells[0], footprint, f_sigma_s, _LOG_LADDER, rms_table, spread_l, rms_l, keep_l)
+    ill = keep_l
+    ids = surf.object_id
+    for k in range(len(view.scene.objects)):
+        mask = ids == k
+        if not mask.any():
+            continue
+        n_med = f_sigma_s * float(np.median(ells[0][mask][::7]))
+        halo = blur_image(spread_l.reshape(shape), rms_l.reshape(shape), mixture(table, n_med),
+                          mask.reshape(shape))
+        ill = ill + halo.ravel()
+    rad = surf.albedo * ill + np.where(hit, rest, 0.0)
+    spread_c, rms_c, keep_c = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
+    leg_inputs(hit, rad, ells[1], footprint, f_sigma_s, _LOG_LADDER, rms_table, spread_c, rms_c, keep_c)
+    if hit.any():
+        rms_c[~hit] = float(np.median(rms_c[hit][::7]))                # pixels beside the object receive too
+    n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
+    halo = blur_image(spread_c.reshape(shape), rms_c.reshape(shape), mixture(table, n_med))
+    return keep_c + halo.ravel()
