@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from polarstripe.sim.geometry import Hits, box_interval, occluded
+from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
 from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_checked
 from polarstripe.sim.grid_sources import (
     glow_field,
@@ -129,12 +129,33 @@ def _object_radiance(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarr
     table = halo_table(ph.model, float(ph.g), float(sc.phase.cos_c))
     fss = sc.f * scene.medium.sigma_s
     if pixels is not None:
+        hit = surf.object_id >= 0
+        ells, depth = [e.copy() for e in ells], np.where(hit, view.hits.t, 0.0)
+        probe = _probe(view, ssrc) if not hit.all() else None
+        if probe is not None:                  # pixels beside the objects: the halo of a nearby object point
+            for e, v in zip(ells, probe[:2], strict=True):
+                e[~hit] = v
+            depth[~hit] = probe[2]
         legs = []
         for ell in ells:
             n, rms = spread(table, fss, ell)
             legs.append((n, rms, np.stack([mixture(table, float(v)) for v in n])))
-        return stencil_blur(view, ssrc, legs, rest)
+        return stencil_blur(view, ssrc, legs, rest, depth)
     return object_radiance(view, table, fss, quasi, rest, ells)
+
+
+def _probe(view: View, ssrc: Source):
+    """(ℓ_L, ℓ_C, distance) of the object point on the camera's axis (None if the axis meets no object)."""
+    from polarstripe.sim.geometry import intersect
+
+    cam = view.cam
+    h = intersect(view.scene.objects, cam.position, cam.f[None, :])
+    if not np.isfinite(h.t[0]):
+        return None
+    p = h.point
+    lo, hi = np.asarray(ssrc.box_lo, float), np.asarray(ssrc.box_hi, float)
+    ell = [float(segment_length_in_box(a, p, lo, hi)[0]) for a in (ssrc.position, cam.position)]
+    return ell[0], ell[1], float(h.t[0])
 
 
 def _b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
@@ -164,6 +185,28 @@ def _b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
         sub = view._replace(dirs=view.dirs[idx], hits=_take(view.hits, idx),
                             pixels=np.zeros((idx.size, 2), int))
         out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
+    return out[0], out[1], out[2]
+
+
+def _b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
+    """B of light scattered once inside the forward cone toward the camera (a view ray that looks toward
+    the source: its halo), with σ̃_t both ways; only rays whose smallest scattering angle (at their entry
+    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing."""
+    sc = plan.scaled
+    lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
+    xc = view.dirs @ lv
+    h2 = np.maximum((lv * lv).sum() - xc * xc, 0.0) + src.radius ** 2
+    u0 = x0 - xc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos0 = -u0 / np.sqrt(u0 * u0 + h2)
+    idx = np.nonzero(cos0 > sc.phase.cos_c)[0]
+    n = view.dirs.shape[0]
+    if idx.size == 0:
+        return np.zeros(n), np.zeros(n), np.zeros(n)
+    cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
+    sub = view._replace(dirs=view.dirs[idx], hits=_take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
+    out = np.zeros((3, n))
+    out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
     return out[0], out[1], out[2]
 
 
@@ -222,6 +265,8 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
         B, Bq, Bu = _b_single(view, ssrc, need, st.b_div, x_end)
+        cone = _b_cone(view, src, plan, need, np.maximum(t0, 0.0))
+        B, Bq, Bu = B + cone[0], Bq + cone[1], Bu + cone[2]
         if pol:           # orders ≥ 2 keep κ^(k−1) of the single-scatter polarization, in its orientation
             with np.errstate(invalid="ignore", divide="ignore"):
                 share = np.where(B > 0, seen_vals[1] / np.where(B > 0, B, 1.0), 0.0)

@@ -36,8 +36,8 @@ class Medium(NamedTuple):
 class PhaseArgs(NamedTuple):
     """The phase function: code 0 isotropic, 1 HG(g1), 2 TTHG α·HG(g1) + (1 − α)·HG(−g2), 3 the similarity
     scaled P̃: α·HG(g1) + (1 − α)·HG(−g2) times ``norm`` where 1 − μ ≥ ``cut``, 0 inside the forward cone
-    (:mod:`polarstripe.sim.similarity`). Scalars only, so passing it to :func:`phase_value` in the inner loop
-    costs nothing."""
+    (:mod:`polarstripe.sim.similarity`), 4 that phase function inside the cone only (1 − μ < ``cut``).
+    Scalars only, so passing it to :func:`phase_value` in the inner loop costs nothing."""
 
     code: int
     g1: float

@@ -47,6 +47,10 @@ def phase_value(phase, omm, opm):
             return 0.0
         return phase.norm * (phase.alpha * _hg(omm, opm, phase.g1)
                              + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2))
+    if phase.code == 4:                  # the forward cone alone
+        if omm >= phase.cut:
+            return 0.0
+        return phase.alpha * _hg(omm, opm, phase.g1) + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2)
     return phase.alpha * _hg(omm, opm, phase.g1) + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2)
 
 

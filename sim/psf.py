@@ -37,6 +37,7 @@ from polarstripe.sim.phase import tthg_parameters
 WIDTHS = np.array([0.08, 0.2, 0.5, 1.2, 2.5])      # mixture widths, in units of the halo's per-axis rms
 N_LADDER = np.array([0.03, 0.1, 0.3, 0.7, 1.5, 3.0, 6.0, 12.0])
 _MIN_PX = 0.3           # narrower halos than this (in pixels) are left sharp
+_LEVEL_RATIO = 1.4      # whole frames: the halo at rms levels this far apart, interpolated in log rms
 _SAMPLES = 60000
 _LOG_LADDER = np.log(N_LADDER)
 
@@ -139,12 +140,12 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
 
     ``spread_part`` is what each pixel spreads (weight·image, 0 where nothing is spread), ``rms_px`` the
     halo's per-axis rms [pixels] of each *receiving* pixel, ``mix`` the mixture weights. The halo is blurred
-    at the smallest and the largest rms of the receiving pixels (one if within 15 %) and each pixel
-    interpolates between the two in log rms; each Gaussian runs on an image downsampled to about two pixels
-    per standard deviation, the components summed coarse to fine; the frame's edges reflect (the scene goes
-    on beyond them). With ``mask`` (one object's pixels) every Gaussian is normalised over the mask — the
-    light that lands beyond the object's edge stands for the light that would arrive from beyond it — and the
-    halo is returned on the mask only.
+    at rms levels at most 1.4× apart from the smallest to the largest rms of the receiving pixels and each
+    pixel interpolates between the two around its own in log rms; each Gaussian runs on an image downsampled
+    to about two pixels per standard deviation, the components summed coarse to fine; the frame's edges
+    reflect (the scene goes on beyond them). With ``mask`` (one object's pixels) every Gaussian is normalised
+    over the mask — the light that lands beyond the object's edge stands for the light that would arrive from
+    beyond it — and the halo is returned on the mask only.
     """
     src = np.asarray(spread_part, np.float32)
     recv = np.ones(src.shape, bool) if mask is None else mask
@@ -156,13 +157,17 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
     r_lo, r_hi = float(r.min()), float(r.max())
     m32 = None if mask is None else mask.astype(np.float32)
     pyramid: dict = {}
-    if r_hi <= 1.15 * r_lo:
+    if r_hi <= _LEVEL_RATIO * r_lo:
         out = _halo(src, m32, math.sqrt(r_lo * r_hi), mix, pyramid)
     else:
-        t = np.clip(np.log(np.maximum(rms_px, r_lo) / r_lo) / math.log(r_hi / r_lo), 0.0, 1.0)
-        t = t.astype(np.float32)
-        lo = _halo(src, m32, r_lo, mix, pyramid)
-        out = lo + t * (_halo(src, m32, r_hi, mix, pyramid) - lo)
+        count = int(math.ceil(math.log(r_hi / r_lo) / math.log(_LEVEL_RATIO))) + 1
+        pos = np.clip(np.log(np.maximum(rms_px, r_lo) / r_lo) / math.log(r_hi / r_lo) * (count - 1), 0,
+                      count - 1).astype(np.float32)
+        out = np.zeros(src.shape, np.float32)
+        for i in range(count):
+            hat = np.clip(1.0 - np.abs(pos - i), 0.0, 1.0)
+            if hat.any():
+                out += hat * _halo(src, m32, r_lo * (r_hi / r_lo) ** (i / (count - 1)), mix, pyramid)
     return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
 
 
@@ -214,7 +219,7 @@ def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, 
     return acc + sharp * src if sharp else acc
 
 
-def radial_stencil(mix: np.ndarray, rings: int = 4, spokes: int = 6) -> tuple[np.ndarray, np.ndarray]:
+def radial_stencil(mix: np.ndarray, rings: int = 8, spokes: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (k, 2) in units of the halo's per-axis rms and equal weights (k,) sampling the 2-D mixture
     ``mix`` (len(WIDTHS),): radii at the mid-quantiles of ``rings`` equal-probability rings, ``spokes``
     angles each (staggered from ring to ring)."""

@@ -29,30 +29,36 @@ def _tangents(nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(nrm, e1)
 
 
-def stencil_blur(view, ssrc, legs, rest: np.ndarray) -> np.ndarray:
+def stencil_blur(view, ssrc, legs, rest: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Object radiance per requested pixel after both blurs (module docstring).
 
     Parameters
     ----------
     view : the render's View (pixels given); ssrc : the similarity-scaled Source.
     legs : ((n_L, rms_L, mix_L), (n_C, rms_C, mix_C)) per pixel (:func:`polarstripe.sim.psf.spread`) of the
-        source → object and camera → object paths.
+        source → object and camera → object paths; n_C = 0 skips a pixel. A pixel beside the objects
+        carries a nearby object point's halos (it receives only the halo).
     rest : (n,) the wide-angle object radiance Ã (albedo included) per pixel.
+    depth : (n,) camera distance [m] of the object point a pixel beside the objects takes its halo from.
     """
     scene, _, _, cam, dirs, hits, surf, pixels = view
     (n_l, rms_l, mix_l), (n_c, rms_c, mix_c) = legs
     out = np.zeros(dirs.shape[0])
-    for i in np.nonzero(surf.object_id >= 0)[0]:
+    for i in np.nonzero(n_c > 0)[0]:
         cam_nodes, cam_w = radial_stencil(mix_c[i])
         ill_nodes, ill_w = radial_stencil(mix_l[i])
-        dist = float(np.linalg.norm(hits.point[i] - cam.position))
+        own = surf.object_id[i] >= 0
+        dist = float(np.linalg.norm(hits.point[i] - cam.position)) if own else float(depth[i])
         step = rms_c[i] / max(dist * cam.s, 1e-12)                       # pixels per rms
         px = np.vstack([np.asarray(pixels[i], float), np.asarray(pixels[i], float) + step * cam_nodes])
         h2 = intersect(scene.objects, cam.position, pixel_rays(cam, px))
         s2 = surface_info(scene.objects, h2)
         ok = s2.object_id >= 0
-        nrm = np.where(ok[:, None], h2.normal, hits.normal[i])
-        pnt = np.where(ok[:, None], h2.point, hits.point[i])
+        if not ok.any():
+            continue
+        first = int(np.argmax(ok))
+        nrm = np.where(ok[:, None], h2.normal, h2.normal[first])
+        pnt = np.where(ok[:, None], h2.point, h2.point[first])
         e1, e2 = _tangents(nrm)
         offs = rms_l[i] * (ill_nodes[None, :, :1] * e1[:, None, :] + ill_nodes[None, :, 1:] * e2[:, None, :])
         pts = np.concatenate([pnt[:, None, :], pnt[:, None, :] + offs], axis=1).reshape(-1, 3)
@@ -61,5 +67,7 @@ def stencil_blur(view, ssrc, legs, rest: np.ndarray) -> np.ndarray:
         ill = np.exp(-n_l[i]) * e[:, 0] + (-np.expm1(-n_l[i])) * (e[:, 1:] * ill_w).sum(1)
         att = np.exp(-ssrc.sigma_t * segment_length_in_box(cam.position, pnt, ssrc.box_lo, ssrc.box_hi))
         rad = np.where(ok, s2.albedo * ill * att / np.pi + rest[i], 0.0)
+        if not own:                    # a pixel beside an object: only the halo reaches it
+            rad[0] = 0.0
         out[i] = np.exp(-n_c[i]) * rad[0] + (-np.expm1(-n_c[i])) * float((rad[1:] * cam_w).sum())
     return out

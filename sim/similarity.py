@@ -40,6 +40,7 @@ class TruncatedPhase:
     cos_c: float
     norm: float
     model: str = "truncated"
+    cone: bool = False           # True: the cone alone, P·[θ_s < θ_c] (unnormalised; code 4)
 
     @property
     def g(self) -> float:
@@ -147,8 +148,11 @@ def scaled_medium(medium: Medium, theta_c: float = THETA_C) -> Scaled:
 
 
 def truncated_code(phase: TruncatedPhase) -> tuple[int, float, float, float, float, float]:
-    """The transport kernel's phase arguments of P̃: (3, g1, g2, α, 1 − cos θ_c, 1/(1 − f))."""
+    """The transport kernel's phase arguments of P̃: (3, g1, g2, α, 1 − cos θ_c, 1/(1 − f)); of the cone
+    alone (``phase.cone``): (4, g1, g2, α, 1 − cos θ_c, 1)."""
     g1, g2, alpha = _hg_base(phase.base)
+    if phase.cone:
+        return 4, g1, g2, alpha, 1.0 - phase.cos_c, 1.0
     return 3, g1, g2, alpha, 1.0 - phase.cos_c, phase.norm
 
 

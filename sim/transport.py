@@ -182,14 +182,17 @@ def _rules(nodes: int):
 def _split_angles(phase, factors: tuple[float, ...]) -> np.ndarray:
     """Scattering angles [rad] at which intervals are split: ``factors`` × the forward-lobe width, < 1.2."""
     width = forward_width(phase)
-    return np.array([f * width for f in factors if f * width < 1.2])
+    angles = [f * width for f in factors if f * width < 1.2]
+    if phase.model == "truncated":            # the cone's edge, where P̃ jumps
+        angles = sorted(set(angles) | {float(np.arccos(phase.cos_c))})
+    return np.array(angles)
 
 
 def forward_width(phase) -> float:
     """Angular width [rad] of the phase function's forward lobe (1 − g of the most forward HG lobe; the
     forward cone θ_c of a truncated P̃, whose cut is then one of the split angles)."""
     if phase.model == "truncated":
-        return float(np.arccos(phase.cos_c))
+        return forward_width(phase.base) if phase.cone else float(np.arccos(phase.cos_c))
     if phase.model == "isotropic":
         return np.pi
     if phase.model == "hg":

@@ -1,13 +1,16 @@
 """``polarstripe render``: one frame of a scene with the light-transport model, written to a folder.
 
 Writes ``image.png`` (16-bit DN from the EMVA 1288 sensor), ``meta.json`` (the resolved scene, pattern,
-fidelity, seconds) and with ``--components`` ``D.npy``, ``A.npy``, ``B.npy`` (float64 radiance
-W·sr⁻¹·m⁻², shape (h, w), before the analyzer).
+fidelity, the orders of scattering modelled and the error to expect, seconds) and with ``--components``
+``D.npy``, ``A.npy``, ``B.npy`` (float64 radiance W·sr⁻¹·m⁻², shape (h, w), before the analyzer).
+``--orders single`` renders the paper's single-scattering model; the default ``all`` adds every higher order
+where the scene needs them (docs/physics.md §10).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -16,6 +19,7 @@ import cv2
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.runtime.params import check_frame_size
+from polarstripe.sim.orders import ORDERS
 from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.render import render_frame, resolve_fidelity
 from polarstripe.sim.scene import load_scene, parse_size, scene_to_dict
@@ -31,7 +35,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="analyzer angle [deg] from image right toward image up "
                              "(default: camera.polarizer.angle_deg of the scene; none there = no analyzer)")
     parser.add_argument("--fidelity", default="standard",
-                        help="preview | standard | reference | 'xi=N,theta=N,phi=N,grid=WxH|none'")
+                        help="preview | standard | reference | 'xi=N,theta=N,phi=N,grid=WxH|none,cells=N'")
+    parser.add_argument("--orders", default="all", choices=ORDERS,
+                        help="all: every order of scattering where the scene needs them (default); "
+                             "single: the paper's single-scattering model")
     parser.add_argument("--components", action="store_true", help="also write D.npy, A.npy, B.npy")
     parser.add_argument("--resolution", default=None, metavar="WxH", help="override the camera resolution")
     parser.add_argument("--seed", type=int, default=None, help="sensor noise seed (default: camera.seed)")
@@ -55,7 +62,7 @@ def main(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     angle = args.polarizer if args.polarizer is not None else scene.camera.polarizer.angle_deg
-    dn, comp = render_frame(scene, pattern, angle, fidelity, seed=args.seed)
+    dn, comp = render_frame(scene, pattern, angle, fidelity, seed=args.seed, orders=args.orders)
     seconds = time.perf_counter() - t0
     if not cv2.imwrite(str(out / "image.png"), dn):
         raise OSError(f"cannot write {out / 'image.png'}")
@@ -68,12 +75,16 @@ def main(args: argparse.Namespace) -> int:
         "pattern": str(pattern),
         "polarizer_deg": angle,
         "fidelity": {"name": fidelity.name, "xi_nodes": fidelity.xi_nodes, "hemi_theta": fidelity.hemi_theta,
-                     "hemi_phi": fidelity.hemi_phi, "a_grid": fidelity.a_grid},
+                     "hemi_phi": fidelity.hemi_phi, "a_grid": fidelity.a_grid,
+                     "higher": dataclasses.asdict(fidelity.higher)},
+        "orders": comp.orders.as_dict(),
         "seconds": seconds,
         "units": {"image.png": "DN (uint16)", "D/A/B.npy": "W sr^-1 m^-2, before the analyzer"},
         "seed": scene.camera.seed if args.seed is None else args.seed,
         "saturated_pixels": int(np.count_nonzero(dn >= (1 << scene.camera.bits) - 1)),
     }
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
-    print(f"wrote {out}/image.png ({dn.shape[1]}x{dn.shape[0]}, {pattern}, {fidelity.name}, {seconds:.2f} s)")
+    kind = "all orders" if comp.orders.modelled else "single scattering"
+    print(f"wrote {out}/image.png ({dn.shape[1]}x{dn.shape[0]}, {pattern}, {fidelity.name}, {kind}, "
+          f"expected error {100 * comp.orders.expected_error:.0f} %, {seconds:.2f} s)")
     return 0
