@@ -38,6 +38,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", default="160x120", help="camera resolution WxH (default 160x120)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--fidelity", default="preview", help="model fidelity (default preview)")
+    parser.add_argument("--orders", choices=("single", "all"), default="single",
+                        help="orders of scattering: the paper's single scattering (default; its ground truth "
+                             "S = D + A is then the unblurred object) or all orders (sim/orders.py)")
     parser.add_argument("--sigma-t", nargs=2, type=float, default=(5.0, 12.0), metavar=("MODERATE", "HEAVY"),
                         help="extinction coefficients [1/m] of the two scattering levels (default 5 12)")
     parser.add_argument("--checkers", nargs=2, type=int, default=(10, 20), metavar=("SMALL", "LARGE"),
@@ -96,14 +99,16 @@ class _Camera:
         return dn / self.dn_per_radiance
 
 
-def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rng) -> dict:
+def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rng,
+              orders: str = "single") -> dict:
     """All methods at one scattering level; returns images (radiance estimates) and their scores."""
 
     scene = scene.replace(medium=scene.medium.replace(sigma_t=sigma_t))
     t0 = time.perf_counter()
-    flood = render_components(scene, "flood", fidelity)
-    stripes = [render_components(scene, f"stripe:{k}/{n_stripes}", fidelity) for k in range(n_stripes)]
-    checker = {c: render_components(scene, f"checker:{c}:0", fidelity) for c in checkers}
+    flood = render_components(scene, "flood", fidelity, orders=orders)
+    stripes = [render_components(scene, f"stripe:{k}/{n_stripes}", fidelity, orders=orders)
+               for k in range(n_stripes)]
+    checker = {c: render_components(scene, f"checker:{c}:0", fidelity, orders=orders) for c in checkers}
     model_s = time.perf_counter() - t0
     surf = flood.surface
     truth = flood.S
@@ -208,7 +213,8 @@ def main(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     scene = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
     rng = np.random.default_rng(args.seed)
-    levels = [run_level(scene, s, args.stripes, args.checkers, args.fidelity, rng) for s in args.sigma_t]
+    levels = [run_level(scene, s, args.stripes, args.checkers, args.fidelity, rng, args.orders)
+              for s in args.sigma_t]
     if args.figure:
         _figure(levels, args.figure)
     if args.json:

@@ -243,7 +243,7 @@ def test_margin_competitors_match_a_brute_force_scan():
         sd = with_separation(scene, d)
         full = np.zeros((30, 3))
         for k in range(30):
-            r = render_components(sd, f"stripe:{k}/30", "preview", model.pixels)
+            r = render_components(sd, f"stripe:{k}/30", "preview", model.pixels, orders=model.orders)
             full[k] = np.where(r.D > 0, 0.0, r.D + r.A + r.B)  # the stripe that lights O is its own
         c = s.competitors
         neighbours = (c.direct + c.indirect + c.backscatter)[:, :2].max(axis=1)
