@@ -57,13 +57,17 @@ def single_scattering(scene: Scene) -> np.ndarray:
     return render_components(scene, "flood", "reference", need=("B",), **SINGLE).B
 
 
+REFERENCE_EXPOSURE_S = 0.008
+
+
 def reference_scene(sigma_t: float, plane: bool, resolution: int = RESOLUTION) -> Scene:
     """The reference rig: the default tank with σ_t [1/m], camera and point source 5 cm outside the entry
     face, 20 cm apart; with ``plane`` a 0.6 × 0.6 m plane of albedo 0.6 on the back wall, else no object."""
     s = load_scene(None)
     z = s.medium.extent.min[2] - OUTSIDE_M
+    # exposure pinned to the value the stored references were made with (radiance does not depend on it)
     cam = s.camera.replace(position=(0.0, 0.0, z), look_at=(0.0, 0.0, s.medium.extent.max[2]),
-                           resolution=(resolution, resolution))
+                           resolution=(resolution, resolution), exposure_s=REFERENCE_EXPOSURE_S)
     src = s.projector.replace(model="point", position=(SEPARATION_M, 0.0, z))
     lo, hi = s.medium.extent.min, s.medium.extent.max
     wall = PlaneObject(point=(0.0, 0.0, hi[2]), normal=(0.0, 0.0, -1.0), size=(hi[0] - lo[0], hi[1] - lo[1]),
