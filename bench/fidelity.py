@@ -1,86 +1,124 @@
-"""``polarstripe bench fidelity``: time, memory and error of the light-transport model per fidelity level.
+"""``polarstripe bench fidelity``: each fidelity level's error against all orders and single scattering, its
+frame time, and Mitsuba's time at equal error — in one run.
 
-One run measures, on the default tank (640×480 unless ``--resolution``):
-- seconds per frame (flood; one stripe of 30; σ = 0 flood) and peak traced memory, per level;
-- median / max relative error of D, A, B of full frames against ``reference`` evaluated at a sample of pixels
-  (relative error |x − r|/r over pixels with r > 1e-3·max r; pixels where both are 0 count as exact);
-- how time grows with resolution, stripe count and optical thickness (standard level);
-- the peer: plain ray marching of B (midpoint rule in x, the usual volume-sampling renderer): its error on
-  the same pixels per step count, its time per frame, the steps it needs for max(standard B error, 1e-3)
-  (extrapolated as steps⁻² beyond 1024) and the time ratio to our B.
-- the one-off cost of the compiled kernels (numba, ``cache=True``): the first render of this process (loads
-  the on-disk cache, or compiles), and a cold compile (a fresh process with an empty ``NUMBA_CACHE_DIR``).
-Frame times are the best of ``--repeat`` wall and CPU (process) times; the frame-rate targets are judged on
-CPU time, since the machine may be shared.
-Targets (issue 3): standard ≤ 1e-3 on D, B, ≤ 1e-2 on A, ≥ 10 frames/s for a 640×480 stripe frame on one core;
-preview ≤ 2 % at ≥ 30 frames/s; σ = 0 and a stripe frame each cheaper than a turbid flood frame.
+* **Against all orders** (the truth: Mitsuba 3 ``volpath``, every order, stored in ``tests/data/mitsuba``):
+  model ÷ truth over the left half, right half and central 8×8 block of a 32×32 image, for the paper's tank
+  under a point source (σ_t = 1, 2.5, 5, 8 1/m, with the back-wall plane and medium only) and the own
+  scenes of :mod:`polarstripe.sim.validation_scenes` (stripes, checkers, clear water, albedo 0.5–1, HG and
+  TTHG 0.5–0.95, a sphere); per level with all orders, and single scattering (``orders="single"``). The
+  model is rendered 4×4 finer and box-filtered, as Mitsuba's pixels are.
+* **Single scattering** (``orders="single"``, the paper's model) against Mitsuba's ``max_depth = 2`` (medium
+  only, σ_t = 1…8) and, at sampled pixels of the default 640×480 tank, against the converged ``reference``
+  level (median / max relative error of D, A, B).
+* **Time**: CPU seconds of a 640×480 frame of the default tank (stripe 14/30 and flood) per level, with all
+  orders and single scattering (best of ``--repeat``; one core: OMP/NUMBA threads are the caller's).
+* **Mitsuba at equal error**: the per-pixel relative noise of the stored references (from their two seeds)
+  gives the samples Mitsuba needs for the model's error per level; its time scales with samples and pixels
+  to a 640×480 frame (``seconds`` of the references on this machine class).
+
+``--render-references`` renders the own scenes with Mitsuba first (``pip install mitsuba``; libLLVM ≥ 17).
+Targets (the issue): standard within 10 % of all orders (20 % at σ_t = 8), preview within 25 %, standard
+≥ 10 frames/s and preview ≥ 30 frames/s at 640×480 on one core.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
-import tempfile
 import time
-import tracemalloc
+from pathlib import Path
 
 import numpy as np
-from polarstripe.sim import phase as phase_fn
-from polarstripe.sim.geometry import box_interval, intersect, pinhole_frame, pixel_rays, projector_coords
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import load_scene
+from polarstripe.sim.validation_scenes import cases, file_stem
 
 LEVELS = ("preview", "standard", "reference")
+DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "mitsuba"
+SIGMAS = (1.0, 2.5, 5.0, 8.0)
+SS = 4
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--resolution", default="640x480", help="frame size WxH (default 640x480)")
-    parser.add_argument("--samples", type=int, default=150, help="pixels compared against the reference")
     parser.add_argument("--repeat", type=int, default=2, help="timing repeats (best of)")
-    parser.add_argument("--quick", action="store_true", help="skip the scaling tables and the peer")
+    parser.add_argument("--samples", type=int, default=120, help="pixels compared against 'reference'")
+    parser.add_argument("--data", type=Path, default=DATA, help="folder of the stored Mitsuba references")
+    parser.add_argument("--render-references", action="store_true",
+                        help="render the own scenes with Mitsuba into --data first (needs mitsuba)")
+    parser.add_argument("--quick", action="store_true", help="skip the 'reference' level's frame time")
 
 
-def _timed(fn, repeat: int, cpu: dict | None = None):
-    """Best wall time [s] of ``repeat`` calls and the last result; the best CPU time goes to cpu["s"]."""
-    best, best_cpu, out = np.inf, np.inf, None
+def regions(img: np.ndarray) -> np.ndarray:
+    """Means over the left half, the right half and the central 8×8 block."""
+    h, w = img.shape
+    return np.array([img[:, : w // 2].mean(), img[:, w // 2:].mean(),
+                     img[h // 2 - 4: h // 2 + 4, w // 2 - 4: w // 2 + 4].mean()])
+
+
+def _model(scene, pattern: str, level: str, orders: str = "all") -> np.ndarray:
+    w, h = scene.camera.resolution
+    big = scene.replace(camera=scene.camera.replace(resolution=(w * SS, h * SS)))
+    c = render_components(big, pattern, level, orders=orders)
+    return (c.D + c.A + c.B).reshape(h, SS, w, SS).mean(axis=(1, 3))
+
+
+def _noise(images: np.ndarray) -> float:
+    """Per-pixel relative noise of one seed: std of the two seeds' difference / √2, over the mean."""
+    a, b = images.astype(float)
+    return float(np.std(a - b) / np.sqrt(2) / max(np.mean(0.5 * (a + b)), 1e-300))
+
+
+def _references(data: Path) -> list[dict]:
+    refs = []
+    for sigma in SIGMAS:
+        for case in ("all_plane", "all_medium"):
+            refs.append({"name": f"{case} σ={sigma:g}", "stem": f"{case}_sigma{sigma:g}", "sigma": sigma})
+    for name in cases():
+        refs.append({"name": name, "stem": file_stem(name), "sigma": None})
+    out = []
+    for r in refs:
+        f = data / f"{r['stem']}.npz"
+        if f.exists():
+            z = np.load(f)
+            r.update(pattern=str(z["pattern"]) if "pattern" in z.files else "flood",
+                     truth=regions(z["images"].astype(float).mean(0)), spread=z["spread"],
+                     noise=_noise(z["images"]),
+                     spp=int(z["spp"]), seconds=float(np.mean(z["seconds"])),
+                     scene=load_scene(data / f"{r['stem']}.toml"))
+            out.append(r)
+    return out
+
+
+def accuracy(data: Path) -> dict:
+    """Model ÷ truth per reference and level (all orders) and for single scattering (standard)."""
+    rows = []
+    for r in _references(data):
+        single = regions(_model(r["scene"], r["pattern"], "standard", "single")) / r["truth"]
+        row = {"name": r["name"], "sigma": r["sigma"], "spread": r["spread"].tolist(), "noise": r["noise"],
+               "single": single.tolist()}
+        for level in LEVELS:
+            row[level] = (regions(_model(r["scene"], r["pattern"], level)) / r["truth"]).tolist()
+        row["mitsuba_s_per_seed"], row["mitsuba_spp"] = r["seconds"], r["spp"]
+        rows.append(row)
+    single = []
+    for sigma in SIGMAS:
+        f = data / f"single_medium_sigma{sigma:g}.npz"
+        if f.exists():
+            z = np.load(f)
+            scene = load_scene(data / f"single_medium_sigma{sigma:g}.toml")
+            truth = regions(z["images"].astype(float).mean(0))
+            single.append({"sigma": sigma, "spread": z["spread"].tolist(), "ratio": {
+                lv: (regions(_model(scene, "flood", lv, "single")) / truth).tolist() for lv in LEVELS}})
+    return {"rows": rows, "single_vs_max_depth_2": single}
+
+
+def _timed(fn, repeat: int) -> float:
+    best = np.inf
     for _ in range(repeat):
-        t, c = time.perf_counter(), time.process_time()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-        best_cpu = min(best_cpu, time.process_time() - c)
-    if cpu is not None:
-        cpu["s"] = best_cpu
-    return best, out
-
-
-def _cold_compile_s() -> float:
-    """Seconds for a fresh process with an empty numba cache to import the model and render a 64×48 stripe
-    and flood frame (every kernel compiled), minus the same with the cache warm."""
-
-    code = ("import time; t = time.perf_counter(); from polarstripe.sim.render import render_components; "
-            "from polarstripe.sim.scene import load_scene; s = load_scene(None); "
-            "s = s.replace(camera=s.camera.replace(resolution=(64, 48))); "
-            "[render_components(s, p, 'standard') for p in ('flood', 'stripe:14/30')]; "
-            "print(time.perf_counter() - t)")
-    with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, NUMBA_CACHE_DIR=tmp)
-        cold = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                    check=True).stdout.split()[-1])
-        warm = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                    check=True).stdout.split()[-1])
-    return cold - warm
-
-
-def _peak_mb(fn) -> float:
-    tracemalloc.start()
-    try:
+        c = time.process_time()
         fn()
-        return tracemalloc.get_traced_memory()[1] / 1e6
-    finally:
-        tracemalloc.stop()
+        best = min(best, time.process_time() - c)
+    return best
 
 
 def _rel_err(x, r):
@@ -92,166 +130,143 @@ def _rel_err(x, r):
     return float(np.median(e)), float(np.max(e))
 
 
-def _march_b(scene, pixels, steps: int) -> np.ndarray:
-    """The peer: B by the midpoint rule in x along each ray (volume sampling), flood light."""
-
-    c, m, pr = scene.camera, scene.medium, scene.projector
-    cam = pinhole_frame(c.position, c.look_at, c.up, c.fov_deg, c.resolution)
-    proj = pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg, pr.resolution)
-    d = pixel_rays(cam, pixels)
-    t0, t1 = box_interval(cam.position, d, m.extent.min, m.extent.max)
-    t1 = np.minimum(t1, intersect(scene.objects, cam.position, d).t)
-    L = np.asarray(pr.position)
-    out = np.zeros(d.shape[0])
-    for k in range(steps):
-        x = t0 + (k + 0.5) / steps * (t1 - t0)
-        y = cam.position + x[:, None] * d
-        v = y - L
-        dly = np.linalg.norm(v, axis=1)
-        mu = -(v * d).sum(1) / dly
-        col, row, depth = projector_coords(proj, y)
-        lit = (depth > 0) & (col >= 0) & (col < proj.w) & (row >= 0) & (row < proj.h)
-        f = m.sigma_s * phase_fn.evaluate(m.phase, 1 - mu, 1 + mu) * pr.intensity_w_sr * np.exp(
-            -m.sigma_t * (dly + x - t0)) / (dly ** 2 + pr.source_radius_m ** 2)
-        out += np.where(lit, f, 0.0) * (t1 - t0) / steps
-    return np.where(t1 > t0, out, 0.0)
-
-
-def run(args: argparse.Namespace) -> dict:
-
-    w, h = (int(v) for v in args.resolution.lower().split("x"))
+def timing(repeat: int, quick: bool, samples: int) -> dict:
+    """CPU seconds per 640×480 frame of the default tank, all orders and single; single-scattering error
+    against the converged reference at sampled pixels."""
     scene = load_scene(None)
-    scene = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
+    t0 = time.perf_counter()
+    probe = render_components(scene, "flood", "preview", orders="single")
+    out: dict = {"first_call_s": time.perf_counter() - t0, "levels": {}}
     rng = np.random.default_rng(0)
-    t_first = time.perf_counter()
-    probe = render_components(scene, "flood", "preview")
-    first_call = time.perf_counter() - t_first
-    obj = np.argwhere(probe.object_mask)
-    free = np.argwhere(~probe.object_mask)
-    n_obj = min(len(obj), args.samples * 2 // 3)
-    px = np.concatenate([obj[rng.choice(len(obj), n_obj, replace=False)],
-                         free[rng.choice(len(free), min(len(free), args.samples - n_obj), replace=False)]])
-    stripe = "stripe:14/30"
-    ref = {p: render_components(scene, p, "reference", pixels=px) for p in ("flood", stripe)}
-    clear = scene.replace(medium=scene.medium.replace(sigma_t=0.0))
-    res: dict = {"resolution": [w, h], "samples": int(len(px)), "levels": {}, "first_call_s": first_call,
-                 "cold_compile_s": _cold_compile_s()}
+    px = np.argwhere(np.ones((scene.camera.resolution[1], scene.camera.resolution[0]), bool))
+    px = px[rng.choice(len(px), samples, replace=False)]
+    ref = {p: render_components(scene, p, "reference", pixels=px, orders="single")
+           for p in ("flood", "stripe:14/30")}
+    del probe
     for level in LEVELS:
         row: dict = {}
-        for name, p in (("flood", "flood"), ("stripe", stripe)):
-            if level == "reference":
-                t = _timed(lambda p=p: render_components(scene, p, "reference", pixels=px), 1)[0]
-                row[f"{name}_s"] = t * (w * h) / len(px)        # extrapolated: reference is per pixel
-                row[f"{name}_extrapolated"] = True
-                continue
-            cpu: dict = {}
-            t, comp = _timed(lambda p=p, lv=level: render_components(scene, p, lv), args.repeat, cpu)
-            row[f"{name}_s"], row[f"{name}_cpu_s"] = t, cpu["s"]
-            for k in "DAB":
-                got = getattr(comp, k)[px[:, 0], px[:, 1]]
-                med, mx = _rel_err(got, getattr(ref[p], k))
-                row[f"{name}_{k}_med"], row[f"{name}_{k}_max"] = med, mx
-            row[f"{name}_peak_mb"] = _peak_mb(lambda p=p, lv=level: render_components(scene, p, lv))
-        if level != "reference":
-            cpu = {}
-            row["clear_s"] = _timed(lambda lv=level: render_components(clear, "flood", lv), args.repeat,
-                                    cpu)[0]
-            row["clear_cpu_s"] = cpu["s"]
-        res["levels"][level] = row
-    st, pv = res["levels"]["standard"], res["levels"]["preview"]
-    res["targets"] = {
-        "standard_err": max(st[f"{n}_{k}_max"] for n in ("flood", "stripe") for k in "DB") <= 1e-3
-        and max(st["stripe_A_max"], st["flood_A_max"]) <= 1e-2,
-        "standard_10fps_stripe": st["stripe_cpu_s"] <= 0.1,
-        "preview_2pct": max(pv[f"{n}_{k}_max"] for n in ("flood", "stripe") for k in "DAB") <= 0.02,
-        "preview_30fps_stripe": pv["stripe_cpu_s"] <= 1 / 30,
-        "clear_cheaper_than_flood": st["clear_cpu_s"] < st["flood_cpu_s"],
-        "stripe_cheaper_than_flood": st["stripe_cpu_s"] < st["flood_cpu_s"],
-    }
-    if not args.quick:
-        res["scaling"] = _scaling(scene, args.repeat)
-        res["peer"] = _peer(scene, px, ref["flood"].B, st["flood_B_max"], w * h)
-    return res
-
-
-def _scaling(scene, repeat):
-
-    out = {"resolution": [], "stripes": [], "thickness": []}
-    for w, h in ((160, 120), (320, 240), (640, 480)):
-        sc = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
-        out["resolution"].append([f"{w}x{h}", _timed(lambda sc=sc: render_components(sc, "flood", "standard"),
-                                                     repeat)[0]])
-    for n in (10, 30, 100):
-        pat = f"stripe:{n // 2}/{n}"
-        out["stripes"].append([n, _timed(lambda p=pat: render_components(scene, p, "standard"), repeat)[0]])
-    for tau in (0.5, 1.9, 10.0, 100.0):
-        sc = scene.replace(medium=scene.medium.replace(sigma_t=tau / 0.38))
-        out["thickness"].append([tau, _timed(lambda sc=sc: render_components(sc, "flood", "standard"),
-                                             repeat)[0]])
+        for name, pat in (("stripe", "stripe:14/30"), ("flood", "flood")):
+            for orders in ("all", "single"):
+                if level == "reference" and (quick or orders == "single"):
+                    continue
+                render_components(scene, pat, level, orders=orders)                     # warm
+                row[f"{name}_{orders}_s"] = _timed(lambda p=pat, lv=level, o=orders: render_components(
+                    scene, p, lv, orders=o), 1 if level == "reference" else repeat)
+            if level != "reference":
+                c = render_components(scene, pat, level, orders="single")
+                for k in "DAB":
+                    row[f"{name}_single_{k}_max"] = _rel_err(getattr(c, k)[px[:, 0], px[:, 1]],
+                                                             getattr(ref[pat], k))[1]
+        out["levels"][level] = row
     return out
 
 
-def _peer(scene, px, b_ref, target_err, n_pixels):
-    """Ray marching at increasing step counts: error on the sampled pixels, time from a 160×120 full frame
-    scaled to ``n_pixels`` (so per-call overhead does not count against it)."""
+def summarize(acc: dict, tim: dict) -> dict:
+    """Worst errors per level, Mitsuba's time at equal error, the targets."""
+    rows = acc["rows"]
+    summ: dict = {"levels": {}}
+    for level in LEVELS:
+        errs = [max(abs(v - 1) for v in r[level]) for r in rows]
+        err8 = [max(abs(v - 1) for v in r[level]) for r in rows if r["sigma"] != 8.0]
+        # Mitsuba: spp for per-pixel noise = our worst error, scaled to 640×480 from 32×32
+        worst = max(max(errs), 1e-3)
+        ratios = [r["mitsuba_s_per_seed"] * (r["noise"] / worst) ** 2 * (640 * 480) / (32 * 32) for r in rows]
+        t = tim["levels"].get(level, {}).get("stripe_all_s")
+        summ["levels"][level] = {"max_err": max(errs), "max_err_below_8": max(err8), "median_err":
+                                 float(np.median(errs)), "mitsuba_s_equal_error": float(np.median(ratios)),
+                                 "frame_s": t, "ratio": float(np.median(ratios)) / t if t else None}
+    single = [max(abs(v - 1) for v in r["single"]) for r in rows]
+    summ["single_max_err"] = max(single)
+    md2 = acc["single_vs_max_depth_2"]
+    summ["single_vs_max_depth_2_max"] = max((max(abs(v - 1) - s for v, s in zip(x["ratio"]["standard"],
+                                                                                   x["spread"], strict=True))
+                                             for x in md2), default=None)
+    st, pv = summ["levels"]["standard"], summ["levels"]["preview"]
+    summ["targets"] = {
+        "standard_10pct": st["max_err_below_8"] <= 0.10 and st["max_err"] <= 0.20,
+        "preview_25pct": pv["max_err"] <= 0.25,
+        "standard_10fps": (st["frame_s"] or 1) <= 0.1,
+        "preview_30fps": (pv["frame_s"] or 1) <= 1 / 30,
+        "single_matches_max_depth_2": summ["single_vs_max_depth_2_max"] is not None
+        and summ["single_vs_max_depth_2_max"] <= 0.01,
+    }
+    return summ
 
-    small = scene.replace(camera=scene.camera.replace(resolution=(160, 120)))
-    rows = []
-    need = None
-    for steps in (16, 64, 256, 1024):
-        b = _march_b(scene, px, steps)
-        med, mx = _rel_err(b, b_ref)
-        t = _timed(lambda s=steps: _march_b(small, None, s), 1)[0]
-        rows.append([steps, med, mx, t * n_pixels / (160 * 120)])
-        if need is None and mx <= max(target_err, 1e-3):
-            need = rows[-1]
-    if need is None:                       # midpoint error falls as steps⁻²: extrapolate the step count
-        steps, _, mx, t = rows[-1]
-        factor = np.sqrt(mx / max(target_err, 1e-3))
-        need = [int(steps * factor), None, max(target_err, 1e-3), t * factor]
-    ours_b = _timed(lambda: render_components(scene, "flood", "standard", need=("B",)), 1)[0]
-    return {"march": rows, "match": need, "ours_B_s": ours_b, "ratio": need[3] / ours_b}
+
+def _fmt(v) -> str:
+    return " ".join(f"{x:5.2f}" for x in v)
 
 
 def _table(res: dict) -> str:
-    w, h = res["resolution"]
-    lines = [f"light-transport model, default tank, {w}x{h}, errors vs reference at {res['samples']} pixels",
-             "(seconds: wall / CPU, best of the repeats; fps from the stripe frame's CPU time)",
-             f"{'level':<10}{'flood s':>12}{'stripe s':>12}{'σ=0 s':>12}{'fps str':>8}{'MB':>7}"
-             f"{'D med/max':>18}{'A med/max':>18}{'B med/max':>18}  (stripe frame errors; flood in JSON)"]
-    for lv, r in res["levels"].items():
-        if lv == "reference":
-            lines.append(f"{lv:<10}{r['flood_s']:>12.1f}{r['stripe_s']:>12.1f}{'':>12}{'':>8}{'':>7}"
-                         "  (extrapolated from per-pixel cost; it is the reference)")
-            continue
-        errs = "".join(f"{r[f'stripe_{k}_med']:>9.1e}/{r[f'stripe_{k}_max']:<8.1e}" for k in "DAB")
-        times = "".join(f"{r[f'{k}_s']:>6.3f}/{r[f'{k}_cpu_s']:<5.3f}" for k in ("flood", "stripe", "clear"))
-        lines.append(f"{lv:<10}{times}{1 / r['stripe_cpu_s']:>8.1f}{r['stripe_peak_mb']:>7.0f} {errs}")
-        ferrs = "".join(f"{r[f'flood_{k}_med']:>9.1e}/{r[f'flood_{k}_max']:<8.1e}" for k in "DAB")
-        lines.append(f"{'  flood':<10}{'':>44}{r['flood_peak_mb']:>7.0f} {ferrs}")
-    lines.append(f"compiled kernels: first render of this process {res['first_call_s']:.2f} s (cache load), "
-                 f"cold compile {res['cold_compile_s']:.1f} s (once per machine, cached on disk)")
+    acc, tim, summ = res["accuracy"], res["timing"], res["summary"]
+    lines = ["model ÷ Mitsuba all orders (left half, right half, centre 8×8 of 32×32; model 4×4 "
+             "supersampled)", f"{'scene':<22}{'single':>18}{'preview':>18}{'standard':>18}{'reference':>18}"
+             f"{'seed spread %':>17}"]
+    for r in acc["rows"]:
+        lines.append(f"{r['name']:<22}{_fmt(r['single']):>18}{_fmt(r['preview']):>18}{_fmt(r['standard']):>18}"
+                     f"{_fmt(r['reference']):>18}{_fmt(100 * np.array(r['spread'])):>17}")
+    for x in acc["single_vs_max_depth_2"]:
+        lines.append(f"single scattering ÷ Mitsuba max_depth=2, σ_t={x['sigma']:g} (medium): "
+                     + ", ".join(f"{lv} {_fmt(x['ratio'][lv])}" for lv in LEVELS))
+    lines.append("")
+    lines.append(f"{'level':<10}{'max err':>9}{'(σ<8)':>8}{'median':>8}{'frame s':>9}{'fps':>6}"
+                 f"{'single s':>10}{'flood s':>9}{'Mitsuba s at equal err':>24}{'ratio':>8}")
+    for lv in LEVELS:
+        s, t = summ["levels"][lv], tim["levels"].get(lv, {})
+        fs = s["frame_s"]
+        frame = f"{fs:>9.3f}{1 / fs:>6.1f}" if fs else f"{'—':>9}{'':>6}"
+        single_s, flood_s = t.get("stripe_single_s", float("nan")), t.get("flood_all_s", float("nan"))
+        lines.append(f"{lv:<10}{100 * s['max_err']:>8.1f}%{100 * s['max_err_below_8']:>7.1f}%"
+                     f"{100 * s['median_err']:>7.1f}%" + frame + f"{single_s:>10.3f}{flood_s:>9.3f}"
+                     f"{s['mitsuba_s_equal_error']:>24.0f}" + (f"{s['ratio']:>8.0f}x" if s["ratio"] else ""))
+    for lv in ("preview", "standard"):
+        t = tim["levels"][lv]
+        lines.append(f"single scattering ({lv}) vs its 'reference' level, max rel. error: "
+                     + ", ".join(f"{k} {t[f'stripe_single_{k}_max']:.1e}" for k in "DAB") + " (stripe), "
+                     + ", ".join(f"{k} {t[f'flood_single_{k}_max']:.1e}" for k in "DAB") + " (flood)")
+    lines.append(f"single scattering ÷ all orders: worst {100 * summ['single_max_err']:.0f} % off; frame "
+                 "times are CPU seconds at 640×480 (stripe 14/30 unless noted), first call of this process "
+                 f"{tim['first_call_s']:.2f} s")
     lines.append("targets: " + ", ".join(f"{k} {'met' if v else 'MISSED'}"
-                                         for k, v in res["targets"].items()))
-    if "scaling" in res:
-        sc = res["scaling"]
-        lines.append("time (standard flood) vs resolution: "
-                     + ", ".join(f"{r} {t:.3f} s" for r, t in sc["resolution"]))
-        lines.append("time (one standard stripe frame) vs stripe count N: "
-                     + ", ".join(f"N={n} {t:.3f} s" for n, t in sc["stripes"]))
-        lines.append("time (standard flood) vs optical thickness: "
-                     + ", ".join(f"τ={t:g} {s:.3f} s" for t, s in sc["thickness"]))
-        pe = res["peer"]
-        lines.append("peer: ray marching of B (midpoint in x), flood; steps: max rel. err, s/frame")
-        lines.append("  " + "; ".join(f"{s}: {mx:.1e}, {t:.2f} s" for s, _, mx, t in pe["march"]))
-        err = max(pe["match"][2], 1e-3)
-        lines.append(f"  for max error {err:.0e} the peer needs ~{pe['match'][0]} steps, "
-                     f"{pe['match'][3]:.2f} s/frame = {pe['ratio']:.0f}x our B-only standard frame "
-                     f"({pe['ours_B_s']:.3f} s, error {res['levels']['standard']['flood_B_max']:.0e})")
+                                         for k, v in summ["targets"].items()))
     return "\n".join(lines)
+
+
+def render_references(data: Path) -> None:
+    """Render the own validation scenes with Mitsuba (two seeds each) into ``data``."""
+    import mitsuba as mi
+    from polarstripe.bench.mitsuba_references import scene_toml
+    from polarstripe.sim.mitsuba_scene import render_truth, select_variant
+
+    variant = select_variant(None)
+    for name, case in cases().items():
+        imgs, secs = [], []
+        for seed in (0, 1):
+            t = time.perf_counter()
+            imgs.append(render_truth(case.scene, case.pattern, max_depth=-1, spp=case.spp, seed=seed,
+                                     variant=variant, pass_spp=4096))
+            secs.append(time.perf_counter() - t)
+        imgs = np.stack(imgs)
+        reg = np.stack([regions(im) for im in imgs])
+        np.savez_compressed(data / f"{file_stem(name)}.npz", images=imgs.astype(np.float32),
+                            seeds=np.array([0, 1]), spp=np.array(case.spp), max_depth=np.array(-1),
+                            pattern=np.array(case.pattern),
+                            scene_toml=np.array(scene_toml(case.scene)), seconds=np.array(secs), regions=reg,
+                            spread=(reg.max(0) - reg.min(0)) / reg.mean(0), what=np.array(case.what),
+                            mitsuba_version=np.array(mi.__version__), variant=np.array(variant))
+        (data / f"{file_stem(name)}.toml").write_text(scene_toml(case.scene))
+        print(f"{name}: {' / '.join(f'{s:.0f}' for s in secs)} s", flush=True)
+
+
+def run(args: argparse.Namespace) -> dict:
+    if args.render_references:
+        render_references(args.data)
+    acc = accuracy(args.data)
+    tim = timing(args.repeat, args.quick, args.samples)
+    return {"accuracy": acc, "timing": tim, "summary": summarize(acc, tim)}
 
 
 def main(args: argparse.Namespace) -> int:
     res = run(args)
-    print(json.dumps(res) if getattr(args, "json", False) else _table(res))
+    print(json.dumps(res, default=float) if getattr(args, "json", False) else _table(res))
     return 0

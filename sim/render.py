@@ -51,7 +51,7 @@ FIDELITY = {
     "standard": Fidelity("standard", 6, 4, 12, (12, 6), 4, HigherSettings(b_div=3, a1_exact=False)),
     "reference": Fidelity("reference", 64, 16, 48, None, 24,
                           HigherSettings(cells=32, orders=16, glow_orders=8, view_div=4, view_steps=96,
-                                         patch_cells=0.5, glow_dirs=144, oversample=2.0)),
+                                         patch_cells=0.5, glow_dirs=144, oversample=2.0, a1_exact=False)),
 }
 
 
