@@ -201,7 +201,9 @@ def test_bad_orders_and_need_are_one_clear_error():
 def test_orders_plan_says_what_is_modelled():
     a = render_components(_small(), "flood", "preview")
     d = a.orders.as_dict()
-    assert d["modelled"] == "all orders" and 0 < d["expected_error"] < 0.25
+    assert d["modelled"] == "all orders" and d["expected_error"] == pytest.approx(0.25)   # preview's bound
+    thick = render_components(_small(sigma=30.0), "flood", "standard").orders
+    assert thick.tau_s > 8 and 0.1 < thick.expected_error <= 1.0                       # beyond validation
     assert d["similarity"]["theta_c_deg"] == pytest.approx(30.0) and 0 < d["similarity"]["f"] < 1
     s = render_components(_small(), "flood", "preview", orders="single").orders
     assert s.as_dict()["modelled"] == "single scattering" and s.single_error > 0.9
