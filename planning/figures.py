@@ -1,7 +1,9 @@
 """``polarstripe figure``: the model's curves as PNG (matplotlib, Agg backend).
 
 - ``ds``: D/S versus optical thickness σ_t·z_object (the paper's Fig. 5), from render_components on the
-  scene's lit object pixels (mean over a few pixels), flood light.
+  scene's lit object pixels (mean over a few pixels), flood light; with all orders of scattering (the model's
+  default; S = D + A then includes the forward-scattered light, so D/S falls faster, as the paper notes) and,
+  dashed, with single scattering (the paper's curve).
 - ``dop``: DOP of singly scattered light versus scattering angle (the paper's Fig. 11), Mueller model with the
   scene's depolarization δ, for source DOP_L ∈ {0, 0.5, 1} (polarization ⊥ and ∥ to the scattering plane),
   and pure Rayleigh (δ = 0, unpolarized source) for comparison.
@@ -28,11 +30,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--which", choices=["ds", "dop", "all"], default="all", help="which figure(s)")
     parser.add_argument("--fidelity", default="standard", help="model fidelity for the D/S curve")
     parser.add_argument("--max-thickness", type=float, default=10.0, help="largest optical thickness (ds)")
+    parser.add_argument("--orders", choices=["all", "single", "both"], default="both",
+                        help="D/S with all orders of scattering, single scattering, or both (default)")
     parser.add_argument("-o", "--out", default=".", help="output folder (created)")
 
 
-def ds_curve(scene, thickness: np.ndarray, fidelity="standard", n_pixels: int = 9):
-    """D/S at lit object pixels for each optical thickness σ_t·z (z: median camera-to-object depth).
+def ds_curve(scene, thickness: np.ndarray, fidelity="standard", n_pixels: int = 9, orders: str = "all"):
+    """D/S at lit object pixels for each optical thickness σ_t·z (z: median camera-to-object depth), with
+    ``orders`` of scattering (``all`` or ``single``, as :func:`polarstripe.sim.render.render_components`).
 
     Returns
     -------
@@ -55,7 +60,7 @@ def ds_curve(scene, thickness: np.ndarray, fidelity="standard", n_pixels: int = 
     out = []
     for tau in thickness:
         sc = scene.replace(medium=scene.medium.replace(sigma_t=tau / depth))
-        c = render_components(sc, "flood", fidelity, pixels=px, need=("D", "A"))
+        c = render_components(sc, "flood", fidelity, pixels=px, need=("D", "A"), orders=orders)
         ds = c.D / np.maximum(c.D + c.A, 1e-300)
         out.append((ds.mean(), ds.min(), ds.max()))
     arr = np.array(out)
@@ -72,10 +77,15 @@ def main(args: argparse.Namespace) -> int:
     written = []
     if args.which in ("ds", "all"):
         tau = np.linspace(0.0, args.max_thickness, 21)
-        t, mean, lo, hi = ds_curve(scene, tau, args.fidelity)
+        which = getattr(args, "orders", "both")
         fig, ax = plt.subplots(figsize=(5, 3.6), dpi=120)
-        ax.plot(t, mean, "o-", label="mean over lit object pixels")
-        ax.fill_between(t, lo, hi, alpha=0.25, label="min–max")
+        for orders, style in (("all", "o-"), ("single", "s--")):
+            if which not in (orders, "both"):
+                continue
+            t, mean, lo, hi = ds_curve(scene, tau, args.fidelity, orders=orders)
+            name = "all orders" if orders == "all" else "single scattering (the paper)"
+            ax.plot(t, mean, style, ms=3, label=f"{name}: mean over lit object pixels")
+            ax.fill_between(t, lo, hi, alpha=0.2)
         ax.set_xlabel("optical thickness σ_t·z")
         ax.set_ylabel("D / S")
         ax.set_ylim(0, 1.02)
