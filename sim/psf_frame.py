@@ -10,6 +10,7 @@ The per-pixel arithmetic is one compiled pass per leg (:func:`leg_inputs`).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -30,11 +31,28 @@ def footprints(hit, points, dirs, normals, cam, pitch, out):
         out[i] = math.sqrt(dx * dx + dy * dy + dz * dz) * pitch / math.sqrt(max(c, 0.05))
 
 
+class Ladder(NamedTuple):
+    """The halo table for the compiled pass: log n of the ladder (m,) and the rms per unit path (m,)."""
+
+    log_n: np.ndarray
+    rms: np.ndarray
+
+
+class LegOut(NamedTuple):
+    """Per pixel: what it spreads (float32), its halo rms [px] (float32), what it keeps sharp."""
+
+    spread: np.ndarray
+    rms: np.ndarray
+    keep: np.ndarray
+
+
 @njit(cache=True)
-def leg_inputs(hit, value, ell, footprint, f_sigma_s, log_ladder, rms_table, spread_out, rms_out, keep_out):
+def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
     """Per pixel that sees an object: n = fσ_sℓ, w = 1 − e^{−n}, the halo rms [px] (the table's rms per unit
-    path, interpolated in log n, times ℓ over the pixel's footprint); spread_out = w·value,
-    keep_out = (1 − w)·value. Other pixels: 0 (rms_out left as it is)."""
+    path, interpolated in log n, times ℓ over the pixel's footprint); out.spread = w·value,
+    out.keep = (1 − w)·value. Other pixels: 0 (out.rms left as it is)."""
+    log_ladder, rms_table = ladder
+    spread_out, rms_out, keep_out = out
     m = log_ladder.size
     for i in range(hit.size):
         if not hit[i]:
@@ -75,9 +93,9 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
     shape, npx = (cam.h, cam.w), cam.h * cam.w
     footprint = np.empty(npx)
     footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), footprint)
-    rms_table = np.ascontiguousarray(table.rms, float)
+    ladder = Ladder(_LOG_LADDER, np.ascontiguousarray(table.rms, float))
     spread_l, rms_l, keep_l = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    leg_inputs(hit, quasi, ells[0], footprint, f_sigma_s, _LOG_LADDER, rms_table, spread_l, rms_l, keep_l)
+    leg_inputs(hit, quasi, ells[0], footprint, f_sigma_s, ladder, LegOut(spread_l, rms_l, keep_l))
     ill = keep_l
     ids = surf.object_id
     for k in range(len(view.scene.objects)):
@@ -90,7 +108,7 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
         ill = ill + halo.ravel()
     rad = surf.albedo * ill + np.where(hit, rest, 0.0)
     spread_c, rms_c, keep_c = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    leg_inputs(hit, rad, ells[1], footprint, f_sigma_s, _LOG_LADDER, rms_table, spread_c, rms_c, keep_c)
+    leg_inputs(hit, rad, ells[1], footprint, f_sigma_s, ladder, LegOut(spread_c, rms_c, keep_c))
     if hit.any():
         rms_c[~hit] = float(np.median(rms_c[hit][::7]))                # pixels beside the object receive too
     n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
