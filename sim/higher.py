@@ -66,6 +66,22 @@ class HigherSettings:
     b_div: int = 1
     a1_exact: bool = True
 
+    def __post_init__(self):
+        from polarstripe.sim.scene import SceneError
+
+        ints = {"cells": (2, 128), "orders": (1, 200), "glow_orders": (1, 200), "view_div": (1, 64),
+                "view_steps": (2, 4096), "glow_dirs": (4, 4096), "b_div": (1, 64)}
+        for key, (lo, hi) in ints.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise SceneError(f"fidelity.higher.{key} must be an integer in [{lo}, {hi}], got {v!r}")
+        for key in ("patch_cells", "oversample"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.05 <= v <= 20:
+                raise SceneError(f"fidelity.higher.{key} must be a number in [0.05, 20], got {v!r}")
+        if not isinstance(self.a1_exact, bool):
+            raise SceneError(f"fidelity.higher.a1_exact must be true or false, got {self.a1_exact!r}")
+
 
 def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
     sc = plan.scaled

@@ -196,6 +196,12 @@ def test_bad_orders_and_need_are_one_clear_error():
         render_components(s, "flood", "preview", need=("D", "X"))
     with pytest.raises(SceneError, match="cells 2..128"):
         render_components(s, "flood", "cells=1")
+    from polarstripe.sim.higher import HigherSettings
+
+    for bad in ({"cells": 1}, {"orders": 0}, {"b_div": 2.5}, {"oversample": -1.0}, {"view_steps": True},
+                {"a1_exact": "yes"}):
+        with pytest.raises(SceneError, match=f"fidelity.higher.{next(iter(bad))}"):
+            HigherSettings(**bad)
 
 
 def test_orders_plan_says_what_is_modelled():
