@@ -135,29 +135,30 @@ def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings,
     return Field(more.total.phi + j1.reshape(grid.n) / c, more.total.flux), more.total
 
 
-def _object_radiance(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest: np.ndarray,
-                     ells: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Object radiance after both forward-cone blurs: the pattern on the object (source side) and the
-    radiance on its way to the camera. ``quasi`` per unit albedo, ``rest`` (Ã, albedo included) per ray,
-    ``ells`` the in-medium lengths source → hit and camera → hit."""
+def _object_light(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest_unit: np.ndarray,
+                  ells: tuple[np.ndarray, np.ndarray]):
+    """The object light after both forward-cone blurs: whole frames (P, H) with A = ρ·P + H (beyond D,
+    :func:`polarstripe.sim.psf_frame.object_radiance`); requested pixels the object radiance D + A (stencils).
+    ``quasi`` and ``rest_unit`` (Ã) per unit albedo, ``ells`` the in-medium lengths source → hit and
+    camera → hit."""
     scene, _, _, cam, dirs, hits, surf, pixels = view
     sc, ph = plan.scaled, scene.medium.phase
     table = halo_table(ph.model, float(ph.g), float(sc.phase.cos_c))
     fss = sc.f * scene.medium.sigma_s
-    if pixels is not None:
-        hit = surf.object_id >= 0
-        ells, depth = [e.copy() for e in ells], np.where(hit, view.hits.t, 0.0)
-        probe = _probe(view, ssrc) if not hit.all() else None
-        if probe is not None:                  # pixels beside the objects: the halo of a nearby object point
-            for e, v in zip(ells, probe[:2], strict=True):
-                e[~hit] = v
-            depth[~hit] = probe[2]
-        legs = []
-        for ell in ells:
-            n, rms = spread(table, fss, ell)
-            legs.append((n, rms, np.stack([mixture(table, float(v)) for v in n])))
-        return stencil_blur(view, ssrc, legs, rest, depth)
-    return object_radiance(view, table, fss, quasi, rest, ells)
+    if pixels is None:
+        return object_radiance(view, table, fss, quasi, rest_unit, ells)
+    hit = surf.object_id >= 0
+    ells, depth = [e.copy() for e in ells], np.where(hit, view.hits.t, 0.0)
+    probe = _probe(view, ssrc) if not hit.all() else None
+    if probe is not None:                  # pixels beside the objects: the halo of a nearby object point
+        for e, v in zip(ells, probe[:2], strict=True):
+            e[~hit] = v
+        depth[~hit] = probe[2]
+    legs = []
+    for ell in ells:
+        n, rms = spread(table, fss, ell)
+        legs.append((n, rms, np.stack([mixture(table, float(v)) for v in n])))
+    return stencil_blur(view, ssrc, legs, rest_unit, depth)
 
 
 def _probe(view: View, ssrc: Source):
@@ -294,14 +295,17 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
         hp, hn = view.hits.point[hit], view.hits.normal[hit]
         ell_l = _lengths(ssrc.position, view, ssrc)
         ell_c = np.where(hit & (t1 > t0), x_end - np.maximum(t0, 0.0), 0.0)     # the view ray in the medium
-        a2 = np.zeros(n)
+        rest = np.zeros(n)
         if st.a1_exact:
-            a1 = single_parts(view, ssrc, ("A",))[1]
+            unit = view._replace(surf=dataclasses.replace(view.surf, albedo=np.ones(n)))
+            rest = single_parts(unit, ssrc, ("A",))[1]                   # per unit albedo
             e2 = surface_irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
         else:
-            a1 = 0.0
             e2 = surface_irradiance(grid, orders.total + glow_scattered, hp, hn)
-        a2[hit] = view.surf.albedo[hit] / np.pi * e2 * np.exp(-sc.sigma_t * ell_c[hit])
-        obj = _object_radiance(view, ssrc, plan, quasi, a1 + a2, (ell_l, ell_c))
-        A = np.maximum(obj - D, 0.0) + seen_vals[-1]
+        rest[hit] += e2 * np.exp(-sc.sigma_t * ell_c[hit]) / np.pi
+        light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
+        if view.pixels is None:
+            A = view.surf.albedo * light[0] + light[1] + seen_vals[-1]
+        else:
+            A = np.maximum(light - D, 0.0) + seen_vals[-1]
     return (D if "D" in need else np.zeros(n)), A, B, Bq, Bu

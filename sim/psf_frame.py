@@ -77,16 +77,22 @@ def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
         keep_out[i] = (1.0 - w) * value[i]
 
 
-def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray, rest: np.ndarray,
-                    ells: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Object radiance per pixel (flat (h·w,)) after both blurs (module docstring).
+def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray, rest_unit: np.ndarray,
+                    ells: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The object light beyond D, per pixel (flat (h·w,)), after both blurs (module docstring): A = ρ·P + H.
 
     Parameters
     ----------
     view : the render's View (whole frame); table : the phase function's halo table.
     f_sigma_s : f σ_s [1/m], the rate of forward-cone scatterings.
-    quasi : (h·w,) quasi-direct object radiance per unit albedo; rest : (h·w,) Ã (albedo included).
+    quasi : (h·w,) quasi-direct object radiance per unit albedo; rest_unit : (h·w,) Ã per unit albedo.
     ells : (h·w,) in-medium path lengths source → hit and camera → hit [m].
+
+    Returns
+    -------
+    P : (h·w,) what stays on the pixel, per unit albedo: e^{−n_C}(halo_L + Ã/ρ) (its e^{−n_C}e^{−n_L}·quasi is
+        exactly D/ρ and is left out);
+    H : (h·w,) the camera path's halo of the object radiance (albedo included), also beside the objects.
     """
     cam, dirs, hits, surf = view.cam, view.dirs, view.hits, view.surf
     hit = surf.object_id >= 0
@@ -96,7 +102,7 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
     ladder = Ladder(_LOG_LADDER, np.ascontiguousarray(table.rms, float))
     spread_l, rms_l, keep_l = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
     leg_inputs(hit, quasi, ells[0], footprint, f_sigma_s, ladder, LegOut(spread_l, rms_l, keep_l))
-    ill = keep_l
+    halo_l = np.zeros(npx)
     ids = surf.object_id
     for k in range(len(view.scene.objects)):
         mask = ids == k
@@ -105,12 +111,13 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
         n_med = f_sigma_s * float(np.median(ells[0][mask][::7]))
         halo = blur_image(spread_l.reshape(shape), rms_l.reshape(shape), mixture(table, n_med),
                           mask.reshape(shape))
-        ill = ill + halo.ravel()
-    rad = surf.albedo * ill + np.where(hit, rest, 0.0)
+        halo_l += halo.ravel()
+    extra = np.where(hit, halo_l + rest_unit, 0.0)
+    rad = surf.albedo * (keep_l + extra)
     spread_c, rms_c, keep_c = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
     leg_inputs(hit, rad, ells[1], footprint, f_sigma_s, ladder, LegOut(spread_c, rms_c, keep_c))
     if hit.any():
         rms_c[~hit] = float(np.median(rms_c[hit][::7]))                # pixels beside the object receive too
     n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
     halo = blur_image(spread_c.reshape(shape), rms_c.reshape(shape), mixture(table, n_med))
-    return keep_c + halo.ravel()
+    return np.exp(-f_sigma_s * ells[1]) * extra, halo.ravel().astype(float)

@@ -6,10 +6,10 @@ averages the quasi-direct irradiance over the nodes ε_j of the source path's ha
 the point it hits:
 
     L = e^{−n_C} R(O) + (1 − e^{−n_C}) Σ_i w_i R(O + δ_i),
-    R(O) = ρ(O)·[e^{−n_L} E(O) + (1 − e^{−n_L}) Σ_j w_j E(O + ε_j)]·e^{−σ̃_t ℓ_CO}/π + Ã,
+    R(O) = ρ(O)·([e^{−n_L} E(O) + (1 − e^{−n_L}) Σ_j w_j E(O + ε_j)]·e^{−σ̃_t ℓ_CO}/π + Ã/ρ),
 
 (:func:`polarstripe.sim.psf.radial_stencil`: equal weights at the mid-quantiles of equal-probability rings),
-with the requested pixel's halos for its whole stencil and Ã (smooth) taken at that pixel. Whole frames blur
+with the requested pixel's halos for its whole stencil and Ã/ρ (smooth) taken at that pixel. Whole frames blur
 in the image instead (:func:`polarstripe.sim.psf.blur_image`).
 """
 
@@ -29,7 +29,7 @@ def _tangents(nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(nrm, e1)
 
 
-def stencil_blur(view, ssrc, legs, rest: np.ndarray, depth: np.ndarray) -> np.ndarray:
+def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Object radiance per requested pixel after both blurs (module docstring).
 
     Parameters
@@ -38,7 +38,7 @@ def stencil_blur(view, ssrc, legs, rest: np.ndarray, depth: np.ndarray) -> np.nd
     legs : ((n_L, rms_L, mix_L), (n_C, rms_C, mix_C)) per pixel (:func:`polarstripe.sim.psf.spread`) of the
         source → object and camera → object paths; n_C = 0 skips a pixel. A pixel beside the objects
         carries a nearby object point's halos (it receives only the halo).
-    rest : (n,) the wide-angle object radiance Ã (albedo included) per pixel.
+    rest_unit : (n,) the wide-angle object radiance Ã per unit albedo per pixel.
     depth : (n,) camera distance [m] of the object point a pixel beside the objects takes its halo from.
     """
     scene, _, _, cam, dirs, hits, surf, pixels = view
@@ -66,7 +66,7 @@ def stencil_blur(view, ssrc, legs, rest: np.ndarray, depth: np.ndarray) -> np.nd
         e = quasi_irradiance(ssrc, scene.objects, pts, np.repeat(nrm, k, axis=0)).reshape(-1, k)
         ill = np.exp(-n_l[i]) * e[:, 0] + (-np.expm1(-n_l[i])) * (e[:, 1:] * ill_w).sum(1)
         att = np.exp(-ssrc.sigma_t * segment_length_in_box(cam.position, pnt, ssrc.box_lo, ssrc.box_hi))
-        rad = np.where(ok, s2.albedo * ill * att / np.pi + rest[i], 0.0)
+        rad = np.where(ok, s2.albedo * (ill * att / np.pi + rest_unit[i]), 0.0)
         if not own:                    # a pixel beside an object: only the halo reaches it
             rad[0] = 0.0
         out[i] = np.exp(-n_c[i]) * rad[0] + (-np.expm1(-n_c[i])) * float((rad[1:] * cam_w).sum())
