@@ -304,3 +304,49 @@ def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
         for q in range(k):
             out[q, m] = ((1 - tr) * ((1 - tc) * coarse[q, r0, c0] + tc * coarse[q, r0, c1])
                          + tr * ((1 - tc) * coarse[q, r1, c0] + tc * coarse[q, r1, c1]))
+
+
+@njit(cache=True)
+def upsample_within(small, ids_small, ids, out):
+    """Twice-finer bilinear upsampling of ``small`` (h/2, w/2) to out (h·w flat), each pixel weighing only
+    the coarse neighbours that see its own object (ids; pixel j sits at coarse coordinate j/2 − ¼, as
+    cv2.resize has it), the nearest of them when none do, 0 where it sees none."""
+    h, w = ids.shape
+    hs, ws = small.shape
+    for i in range(h):
+        fy = min(max(i / 2.0 - 0.25, 0.0), hs - 1.0)
+        y0 = min(int(fy), max(hs - 2, 0))
+        ty = fy - y0
+        for j in range(w):
+            k = ids[i, j]
+            m = i * w + j
+            if k < 0:
+                out[m] = 0.0
+                continue
+            fx = min(max(j / 2.0 - 0.25, 0.0), ws - 1.0)
+            x0 = min(int(fx), max(ws - 2, 0))
+            tx = fx - x0
+            acc = 0.0
+            wsum = 0.0
+            for dy in range(2):
+                yy = min(y0 + dy, hs - 1)
+                wy = ty if dy else 1.0 - ty
+                for dx in range(2):
+                    xx = min(x0 + dx, ws - 1)
+                    wx = tx if dx else 1.0 - tx
+                    if ids_small[yy, xx] == k:
+                        acc += wy * wx * small[yy, xx]
+                        wsum += wy * wx
+            if wsum > 1e-9:
+                out[m] = acc / wsum
+                continue
+            best = 1e30
+            val = 0.0
+            for yy in range(max(int(fy) - 1, 0), min(int(fy) + 3, hs)):
+                for xx in range(max(int(fx) - 1, 0), min(int(fx) + 3, ws)):
+                    if ids_small[yy, xx] == k:
+                        d = (yy - fy) ** 2 + (xx - fx) ** 2
+                        if d < best:
+                            best = d
+                            val = small[yy, xx]
+            out[m] = val

@@ -23,9 +23,16 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
-from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_checked
+from polarstripe.sim.grid_kernels import (
+    ViewArgs,
+    glow_emission,
+    segment_lengths,
+    upsample_checked,
+    upsample_within,
+)
 from polarstripe.sim.grid_sources import (
     glow_field,
     object_patches,
@@ -52,8 +59,9 @@ class HigherSettings:
     (:func:`~polarstripe.sim.multiple.solve_orders`; ``glow_orders`` for the glow), the view rays' coarse grid
     divisor and depth steps,
     the glow's patch spacing in cells and directions per patch, the beam oversampling of the source, and the
-    divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel), and
-    whether A's single wide-angle scattering is the exact integral (else the grid's once-scattered field)."""
+    divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel),
+    whether A's single wide-angle scattering is the exact integral (else the grid's once-scattered field),
+    and whether whole frames compute everything but D and the albedo at half resolution (``preview``)."""
 
     cells: int = 16
     orders: int = 4
@@ -65,6 +73,7 @@ class HigherSettings:
     oversample: float = 1.0
     b_div: int = 1
     a1_exact: bool = True
+    half_res: bool = False
 
     def __post_init__(self):
         from polarstripe.sim.scene import SceneError
@@ -79,8 +88,9 @@ class HigherSettings:
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.05 <= v <= 20:
                 raise SceneError(f"fidelity.higher.{key} must be a number in [0.05, 20], got {v!r}")
-        if not isinstance(self.a1_exact, bool):
-            raise SceneError(f"fidelity.higher.a1_exact must be true or false, got {self.a1_exact!r}")
+        for key in ("a1_exact", "half_res"):
+            if not isinstance(getattr(self, key), bool):
+                raise SceneError(f"fidelity.higher.{key} must be true or false, got {getattr(self, key)!r}")
 
 
 def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
@@ -251,6 +261,37 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
                       settings: HigherSettings | None = None):
     """D, A, B, Bq, Bu per ray (flat) with all orders of scattering (module docstring)."""
     st = settings or HigherSettings()
+    cam = view.cam
+    if st.half_res and view.pixels is None and cam.w >= 64 and cam.h >= 48 and cam.w % 2 == 0 == cam.h % 2:
+        return _half_resolution(view, src, plan, need, st)
+    return _components(view, src, plan, need, st)
+
+
+def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings):
+    """Whole frames at ``preview``: everything smooth at half resolution, bilinear up (A's per-unit-albedo
+    part within each object), D and the albedo at full resolution: A = ρ·P↑ + H↑."""
+    from polarstripe.sim.geometry import Frame, intersect, pixel_rays
+
+    cam = view.cam
+    half = Frame(cam.position, cam.f, cam.r, cam.u, 2 * cam.s, cam.w // 2, cam.h // 2)
+    dirs = pixel_rays(half)
+    hits = intersect(view.scene.objects, cam.position, dirs)
+    small = View(view.scene, view.pattern, view.fid, half, dirs, hits, surface_info(view.scene.objects, hits),
+                 None)
+    _, p_half, h_half, b, bq, bu = _components(small, src, plan, need, st, parts=True)
+    d, _ = _direct_pair(view, src, _scaled_source(src, plan), tuple(k for k in need if k == "D"))
+    size = (cam.w, cam.h)
+    up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel()
+          for x in (h_half, b, bq, bu)]
+    p_full = np.zeros(cam.w * cam.h)
+    upsample_within(p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
+                    view.surf.object_id.reshape(cam.h, cam.w), p_full)
+    a = view.surf.albedo * p_full + up[0] if "A" in need else np.zeros(p_full.size)
+    return d, a, up[1], up[2], up[3]
+
+
+def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings, parts: bool = False):
+    """D, A, B, Bq, Bu (or, ``parts``, D, P, H, B, Bq, Bu with A = ρ·P + H) per ray, flat."""
     sc = plan.scaled
     ssrc = _scaled_source(src, plan)
     n = view.dirs.shape[0]
@@ -259,7 +300,7 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
     hit = view.surf.object_id >= 0
     want_a = "A" in need and bool(hit.any())
     if not (want_a or "B" in need) or sc.sigma_s <= 0:
-        return D, A, B, Bq, Bu
+        return (D, np.zeros(n), A, B, Bq, Bu) if parts else (D, A, B, Bq, Bu)
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
     pol = "p" in need and "B" in need and dop.model == "rayleigh"
@@ -304,8 +345,12 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
             e2 = surface_irradiance(grid, orders.total + glow_scattered, hp, hn)
         rest[hit] += e2 * np.exp(-sc.sigma_t * ell_c[hit]) / np.pi
         light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
+        if parts:
+            return D, light[0], light[1] + seen_vals[-1], B, Bq, Bu
         if view.pixels is None:
             A = view.surf.albedo * light[0] + light[1] + seen_vals[-1]
         else:
             A = np.maximum(light - D, 0.0) + seen_vals[-1]
+    if parts:
+        return D, np.zeros(n), A, B, Bq, Bu
     return (D if "D" in need else np.zeros(n)), A, B, Bq, Bu

@@ -46,8 +46,8 @@ class Fidelity:
 FIDELITY = {
     "preview": Fidelity("preview", 4, 2, 6, (10, 4), 4,
                         HigherSettings(cells=10, orders=3, glow_orders=1, view_div=16, view_steps=16,
-                                       patch_cells=1.5, glow_dirs=16, oversample=0.7, b_div=4,
-                                       a1_exact=False)),
+                                       patch_cells=1.5, glow_dirs=16, oversample=0.7, b_div=2,
+                                       a1_exact=False, half_res=True)),
     "standard": Fidelity("standard", 6, 4, 12, (12, 6), 4, HigherSettings(b_div=3, a1_exact=False)),
     "reference": Fidelity("reference", 64, 16, 48, None, 24,
                           HigherSettings(cells=32, orders=16, glow_orders=8, view_div=4, view_steps=96,
