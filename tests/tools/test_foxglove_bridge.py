@@ -187,7 +187,16 @@ def test_bridge_serves_foxglove_schemas_on_loopback():
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
     """``launch sim.toml --once --record run.mcap foxglove=true foxglove_port=0`` at a small size; meanwhile a
-    WebSocket client subscribes to the composite channel and decodes one image."""
+    WebSocket client subscribes to the composite channel and decodes one image. The small demo can end before
+    an external client has subscribed on a loaded machine (the channel is advertised with its first message,
+    and the launch ends with the sequencer): then it is run once more, and a second miss fails."""
+    run = _sim_run_once(tmp_path_factory)
+    if "connection closed" in run.get("error", ""):
+        run = _sim_run_once(tmp_path_factory)
+    return run
+
+
+def _sim_run_once(tmp_path_factory) -> dict:
     tmp = tmp_path_factory.mktemp("sim_fox")
     can = tempfile.mkdtemp(prefix="ps-can-", dir="/tmp")  # ipc paths are limited to ~107 bytes
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs")}
