@@ -6,7 +6,7 @@ frame time, and Mitsuba's time at equal error — in one run.
   under a point source (σ_t = 1, 2.5, 5, 8 1/m, with the back-wall plane and medium only) and the own
   scenes of :mod:`polarstripe.sim.validation_scenes` (stripes, checkers, clear water, albedo 0.5–1, HG and
   TTHG 0.5–0.95, a sphere); per level with all orders, and single scattering (``orders="single"``). The
-  model is rendered 4×4 finer and box-filtered, as Mitsuba's pixels are.
+  model is rendered at 640×640 and box-filtered to 32×32, as Mitsuba's pixels are.
 * **Single scattering** (``orders="single"``, the paper's model) against Mitsuba's ``max_depth = 2`` (medium
   only, σ_t = 1…8) and, at sampled pixels of the default 640×480 tank, against the converged ``reference``
   level (median / max relative error of D, A, B).
@@ -36,7 +36,7 @@ from polarstripe.sim.validation_scenes import cases, file_stem
 LEVELS = ("preview", "standard", "reference")
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "mitsuba"
 SIGMAS = (1.0, 2.5, 5.0, 8.0)
-SS = 4
+SS = 20                    # 32×32 references → 640×640 renders (preview's half-resolution path applies)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -199,8 +199,8 @@ def _fmt(v) -> str:
 
 def _table(res: dict) -> str:
     acc, tim, summ = res["accuracy"], res["timing"], res["summary"]
-    lines = ["model ÷ Mitsuba all orders (left half, right half, centre 8×8 of 32×32; model 4×4 "
-             "supersampled)", f"{'scene':<22}{'single':>18}{'preview':>18}{'standard':>18}{'reference':>18}"
+    lines = ["model ÷ Mitsuba all orders (left half, right half, centre 8×8 of 32×32; model rendered at "
+             "640×640)", f"{'scene':<22}{'single':>18}{'preview':>18}{'standard':>18}{'reference':>18}"
              f"{'seed spread %':>17}"]
     for r in acc["rows"]:
         lines.append(f"{r['name']:<22}{_fmt(r['single']):>18}{_fmt(r['preview']):>18}{_fmt(r['standard']):>18}"

@@ -61,7 +61,8 @@ class HigherSettings:
     the glow's patch spacing in cells and directions per patch, the beam oversampling of the source, and the
     divisor of the resolution at which B's single wide-angle scattering is computed (1: every pixel),
     whether A's single wide-angle scattering is the exact integral (else the grid's once-scattered field),
-    and whether whole frames compute everything but D and the albedo at half resolution (``preview``)."""
+    and whether whole frames of at least 640×480 compute everything but D and the albedo at half
+    resolution (``preview``)."""
 
     cells: int = 16
     orders: int = 4
@@ -91,6 +92,9 @@ class HigherSettings:
         for key in ("a1_exact", "half_res"):
             if not isinstance(getattr(self, key), bool):
                 raise SceneError(f"fidelity.higher.{key} must be true or false, got {getattr(self, key)!r}")
+
+
+HALF_MIN = (640, 480)      # half resolution only where the half frame still resolves stripes (≥ 320×240)
 
 
 def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
@@ -262,14 +266,16 @@ def higher_components(view: View, src: Source, plan: OrdersPlan, need,
     """D, A, B, Bq, Bu per ray (flat) with all orders of scattering (module docstring)."""
     st = settings or HigherSettings()
     cam = view.cam
-    if st.half_res and view.pixels is None and cam.w >= 64 and cam.h >= 48 and cam.w % 2 == 0 == cam.h % 2:
+    if st.half_res and view.pixels is None and cam.w >= HALF_MIN[0] and cam.h >= HALF_MIN[1] and \
+            cam.w % 2 == 0 == cam.h % 2:
         return _half_resolution(view, src, plan, need, st)
     return _components(view, src, plan, need, st)
 
 
 def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings):
-    """Whole frames at ``preview``: everything smooth at half resolution, bilinear up (A's per-unit-albedo
-    part within each object), D and the albedo at full resolution: A = ρ·P↑ + H↑."""
+    """Whole frames at ``preview`` of at least 640×480: everything smooth at half resolution, bilinear up (A's
+    per-unit-albedo part within each object), D and the albedo at full resolution: A = ρ·P↑ + H↑. Smaller
+    frames stay at full resolution (their half would blur a scan's stripes)."""
     from polarstripe.sim.geometry import Frame, intersect, pixel_rays
 
     cam = view.cam

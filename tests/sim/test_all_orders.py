@@ -12,6 +12,7 @@ from polarstripe.sim.scene import SceneError, load_scene
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "mitsuba"
 SS = 4                     # the model is rendered 4×4 finer and box-filtered, as Mitsuba's pixels are
+SS_PREVIEW = 20            # preview at 640×640: the half-resolution path of frames ≥ 640×480
 TANK = [(s, c) for s in (1.0, 2.5, 5.0, 8.0) for c in ("all_plane", "all_medium")]
 OWN = sorted(p.stem for p in DATA.glob("own_*.npz"))
 BOUND = {"standard": 0.10, "preview": 0.25}
@@ -26,9 +27,10 @@ def regions(img: np.ndarray) -> np.ndarray:
 
 def model(scene, pattern: str, level: str, orders: str = "all") -> np.ndarray:
     w, h = scene.camera.resolution
-    big = scene.replace(camera=scene.camera.replace(resolution=(w * SS, h * SS)))
+    ss = SS_PREVIEW if level == "preview" else SS
+    big = scene.replace(camera=scene.camera.replace(resolution=(w * ss, h * ss)))
     c = render_components(big, pattern, level, orders=orders)
-    return (c.D + c.A + c.B).reshape(h, SS, w, SS).mean(axis=(1, 3))
+    return (c.D + c.A + c.B).reshape(h, ss, w, ss).mean(axis=(1, 3))
 
 
 def reference(stem: str):
@@ -214,3 +216,21 @@ def test_orders_plan_says_what_is_modelled():
     s = render_components(_small(), "flood", "preview", orders="single").orders
     assert s.as_dict()["modelled"] == "single scattering" and s.single_error > 0.9
     assert math.isclose(a.orders.tau_s, s.tau_s)
+
+
+def test_preview_at_half_resolution_keeps_d_exact_and_the_rest_close():
+    """Preview frames of 640×480 and more compute all but D and the albedo at half resolution."""
+    import dataclasses
+
+    from polarstripe.sim.render import resolve_fidelity
+
+    s = _small(res=(640, 480))
+    pv = resolve_fidelity("preview")
+    full = dataclasses.replace(pv, name="preview-full", higher=dataclasses.replace(pv.higher, half_res=False))
+    a = render_components(s, "stripe:14/30", "preview")
+    b = render_components(s, "stripe:14/30", full)
+    np.testing.assert_array_equal(a.D, b.D)
+    ra, rb = regions(a.D + a.A + a.B), regions(b.D + b.A + b.B)
+    np.testing.assert_allclose(ra, rb, rtol=0.05)
+    np.testing.assert_allclose(a.B.mean(), b.B.mean(), rtol=0.03)
+    assert np.isfinite(a.A).all() and (a.A >= 0).all() and np.all(a.A[~a.object_mask] >= 0)
