@@ -113,7 +113,7 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
     lit = hit[pattern_lit(pat, src.frame, hits.point[hit])]
     lit = lit[~occluded(scene.objects, src.position, hits.point[lit])]
     ones = np.ones(lit.size, bool)
-    if "D" in need or "A" in need:
+    if "D" in need or ("A" in need and view.pixels is not None):      # pixels: A = stencil − D
         d[lit] = direct(src, scene.objects, cam.position, hits.point[lit], hits.normal[lit], surf.albedo[lit],
                         ones)
     if "A" in need:
@@ -301,7 +301,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     sc = plan.scaled
     ssrc = _scaled_source(src, plan)
     n = view.dirs.shape[0]
-    D, quasi = _direct_pair(view, src, ssrc, need)
+    D, quasi = _direct_pair(view, src, ssrc, need if not parts else tuple(k for k in need if k != "D"))
     A, B, Bq, Bu = (np.zeros(n) for _ in range(4))
     hit = view.surf.object_id >= 0
     want_a = "A" in need and bool(hit.any())
