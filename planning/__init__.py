@@ -1,1 +1,2 @@
-"""The planner (optimal camera-source placement), its command line, and the paper's experiments (compare, figures)."""
+"""The planner (optimal camera-source placement), its command line, sweeps, and the paper's experiments
+(compare, figures)."""

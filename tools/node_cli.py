@@ -58,7 +58,8 @@ def main(args: argparse.Namespace) -> int:
         except json.JSONDecodeError as exc:
             raise ParamError(f"--params-json: not JSON ({exc})") from None
         if not isinstance(given, dict):
-            raise ParamError(f"--params-json: must be one JSON object {{name: value}}, got {args.params_json!r}")
+            raise ParamError(f"--params-json: must be one JSON object {{name: value}}, "
+                             f"got {args.params_json!r}")
         params.update(given)
     params.update(parse_assignments(args.param))
     services = parse_assignments(args.service, what="service")

@@ -11,7 +11,8 @@ def test_the_table():
 
 
 def test_patterns_of_a_pass():
-    assert [str(p) for p in Method.POLARIZED_STRIPES.patterns(3, 16)] == ["stripe:0/3", "stripe:1/3", "stripe:2/3"]
+    stripes = [str(p) for p in Method.POLARIZED_STRIPES.patterns(3, 16)]
+    assert stripes == ["stripe:0/3", "stripe:1/3", "stripe:2/3"]
     assert [str(p) for p in Method.HF_SEPARATION.patterns(3, 16)] == ["checker:16:0", "checker:16:16"]
     assert [str(p) for p in Method.FLOOD.patterns(3, 16)] == ["flood"]
 

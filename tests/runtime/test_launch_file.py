@@ -169,7 +169,8 @@ def test_built_in_args_name_things_per_run_and_explicit_names_are_claimed(tmp_pa
 
 
 def test_the_sim_launch_checks_its_args_through_the_nodes_params(tmp_path):
-    with pytest.raises(LaunchError, match=r"node 'simulator'.*resolution 100000x100000 is .* beyond the limit"):
+    too_big = r"node 'simulator'.*resolution 100000x100000 is .* beyond the limit"
+    with pytest.raises(LaunchError, match=too_big):
         load_launch("sim", {"resolution": "100000x100000"})
     with pytest.raises(LaunchError, match="node 'simulator'.*resolution 4000x6000"):
         load_launch("sim", {"resolution": "4000x6000"})

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 from polarstripe.msgs import Composite, Frame
-from polarstripe.tools.bag import BagWriter
 from polarstripe.runtime.bus import PubSocket
+from polarstripe.tools.bag import BagWriter
 from polarstripe.tools.view import ViewError, contact_sheet, latest_from_bag, latest_live, tiles
 
 
