@@ -20,11 +20,13 @@ Services (relative to the namespace):
 
 Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the scan's), published at every
 ``emitter/scan`` start — the one way the ground truth reaches the compositor, so a recording carries it and a
-replay scores like the live run: images ``S`` (float64: flood D + A in DN above the dark offset, no analyzer,
-same exposure as the frames), ``depth_m`` (float32 z [m] of the objects, 0 where none), ``chart_band``
-(int32 band per pixel, −1 off the chart), ``chart_high`` (bool, bright bar); metrics ``separation_m``,
-``exposure_s``, ``dark_offset_dn``, ``rig_geometry`` (camera and projector at the current source pose, as a
-calibration file holds them: sim/depth_truth.py). One render per source pose, cached.
+replay scores like the live run: images ``S`` (float64: the unscattered object radiance under flood light,
+:func:`polarstripe.sim.truth.unscattered_radiance`, docs/physics.md §10.8, in DN above the dark offset, no
+analyzer, same exposure as the frames; the key keeps its name), ``depth_m`` (float32 z [m] of the objects, 0
+where none), ``chart_band`` (int32 band per pixel, −1 off the chart), ``chart_high`` (bool, bright bar);
+metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``, ``rig_geometry`` (camera and projector at the
+current source pose, as a calibration file holds them: sim/depth_truth.py). One render per source pose,
+cached.
 
 Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
 the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
@@ -65,9 +67,10 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
-from polarstripe.sim.render import render_components, resolve_fidelity
+from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
+from polarstripe.sim.truth import unscattered_object
 
 __all__ = ["Simulator", "SimulatorError"]
 
@@ -344,13 +347,13 @@ class Simulator(Node):
         """The ground truth at the current source pose and exposure (cached; ``scan_id`` 0)."""
         key = self._truth_key()
         if key not in self._truth:
-            comp = render_components(self.scene, "flood", self.fidelity, need=("D", "A"))
+            radiance, surface = unscattered_object(self.scene)  # docs/physics.md §10.8
             cam = self.scene.camera
-            signal = mean_dn(comp.D + comp.A, cam) - dark_offset_dn(cam)
+            signal = mean_dn(radiance, cam) - dark_offset_dn(cam)
             self._truth[key] = Composite(
                 images={"S": signal.astype(np.float64),
-                        "chart_band": comp.surface.chart_band.astype(np.int32),
-                        "chart_high": comp.surface.chart_high.astype(bool),
+                        "chart_band": surface.chart_band.astype(np.int32),
+                        "chart_high": surface.chart_high.astype(bool),
                         "depth_m": np.nan_to_num(depth_truth(self.scene), nan=0.0).astype(np.float32)},
                 method="truth",
                 metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,

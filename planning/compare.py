@@ -7,8 +7,11 @@ and the EMVA 1288 sensor (its own exposure: the longest that keeps its brightest
 saturation, as the paper lengthened the exposure for the dim stripes), then through the pipeline a rig
 would run (calibrate the analyzer, then :func:`polarstripe.imaging.compose.compose`, the compositor node's
 own pipeline: reduce, estimate p on object-free pixels, recover, separate). The table gives
-the Michelson contrast of the chart's bars and the error of each estimate of S = D + A against the model's
-ground truth; one figure shows the images side by side like Fig. 6.
+the Michelson contrast of the chart's bars and the error of each estimate against the ground truth, the
+unscattered object radiance T (:func:`polarstripe.sim.truth.unscattered_radiance`, docs/physics.md §10.8:
+what the chart would look like if the medium only attenuated the light), gain fitted; and, for comparison,
+against the object light S = D + A the water delivers (the truth before all orders: blurred and dimmed under
+all orders). One figure shows the images side by side like Fig. 6, each with its contrast and error.
 """
 
 from __future__ import annotations
@@ -28,8 +31,11 @@ from polarstripe.sim import sensor
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import load_scene, parse_size
+from polarstripe.sim.truth import unscattered_radiance
 
 HELP = "reproduce the paper's comparison of imaging methods (contrast and error vs ground truth, Fig. 6)"
+TRUTH = "ground truth (unscattered)"
+OBJECT_LIGHT = "object light S = D + A"
 FILL = 0.9  # brightest frame of a method at this fraction of saturation
 
 
@@ -39,10 +45,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--fidelity", default="preview", help="model fidelity (default preview)")
     parser.add_argument("--orders", choices=("single", "all"), default="single",
-                        help="orders of scattering: the paper's single scattering (default; its ground truth "
-                             "S = D + A is then the unblurred object) or all orders (sim/orders.py)")
-    parser.add_argument("--sigma-t", nargs=2, type=float, default=(5.0, 12.0), metavar=("MODERATE", "HEAVY"),
-                        help="extinction coefficients [1/m] of the two scattering levels (default 5 12)")
+                        help="orders of scattering: the paper's single scattering (default) or all orders "
+                             "(sim/orders.py); the truth is the unscattered object radiance either way")
+    parser.add_argument("--sigma-t", nargs="+", type=float, default=(5.0, 12.0), metavar="SIGMA_T",
+                        help="extinction coefficients [1/m] of the scattering levels (default 5 12)")
     parser.add_argument("--checkers", nargs=2, type=int, default=(10, 20), metavar=("SMALL", "LARGE"),
                         help="checker sizes in projector pixels (default 10 20, as the paper)")
     parser.add_argument("--seed", type=int, default=1, help="sensor noise seed")
@@ -111,7 +117,7 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
     checker = {c: render_components(scene, f"checker:{c}:0", fidelity, orders=orders) for c in checkers}
     model_s = time.perf_counter() - t0
     surf = flood.surface
-    truth = flood.S
+    truth = unscattered_radiance(scene)  # docs/physics.md §10.8; S = D + A is what the water delivers
     background = surf.object_id < 0
     if not background.any():
         background = None
@@ -157,26 +163,27 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
         est[f"high-frequency {c}px (direct)"] = cam.to_radiance(made.image)
         extra[f"high-frequency {c}px (direct)"] = {"global": cam.to_radiance(made.layers["global"])}
 
-    rows = {"ground truth S": {**_scores(truth, truth, bright, dark, chart), "error": 0.0,
-                               "error_gain_fitted": 0.0}}
-    for name, img in est.items():
-        rows[name] = _scores(img, truth, bright, dark, chart)
+    ests = {TRUTH: truth, OBJECT_LIGHT: flood.S, **est}
+    rows = {name: _scores(img, truth, flood.S, bright, dark, chart) for name, img in ests.items()}
     return {"sigma_t": sigma_t, "optical_thickness": sigma_t * (scene.medium.extent.max[2] -
                                                                  scene.medium.extent.min[2]),
             "analyzer_deg": {"crossed": ang_b, "parallel": ang_w},
             "p_estimate": {"flood": p_flood, "stripes": p_stripes}, "model_seconds": model_s,
-            "rows": rows, "images": {"ground truth S": truth, **est}, "chart": chart}
+            "rows": rows, "images": ests, "chart": chart}
 
 
-def _scores(image, truth, bright, dark, chart) -> dict:
-    """Contrast and the error against ``truth`` over ``chart``, plain and gain fitted (:func:`score`)."""
-    plain = score(image, bright=bright, dark=dark, truth=truth, region=chart, fit_gain=False)
-    fitted = score(image, truth=truth, region=chart, fit_gain=True)
-    for s in (plain, fitted):
+def _scores(image, truth, object_light, bright, dark, chart) -> dict:
+    """Contrast of the bars; the gain-fitted error over ``chart`` against the unscattered ``truth`` (the
+    score) and against the water's ``object_light`` S = D + A (:func:`score`). The gain is fitted because T
+    holds only the unscattered light while every estimate holds the light that reached the object by every
+    path (docs/physics.md §10.8)."""
+    vs_t = score(image, bright=bright, dark=dark, truth=truth, region=chart, fit_gain=True)
+    vs_s = score(image, truth=object_light, region=chart, fit_gain=True)
+    for s in (vs_t, vs_s):
         if "metrics_error" in s:
             raise ImagingError(s["metrics_error"])
-    return {"contrast": plain["contrast"], "error": plain["error_vs_truth"],
-            "error_gain_fitted": fitted["error_vs_truth"]}
+    return {"contrast": vs_t["contrast"], "error": vs_t["error_vs_truth"],
+            "error_vs_S": vs_s["error_vs_truth"]}
 
 
 def _figure(levels: list[dict], path: str) -> None:
@@ -195,11 +202,12 @@ def _figure(levels: list[dict], path: str) -> None:
             ax.imshow(np.clip(img.filled(hi), lo, hi), cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1)
             ax.set_xticks([])
             ax.set_yticks([])
-            c = lev["rows"][name]["contrast"]
-            ax.set_title(f"{name}\nC = {c:.2f}", fontsize=6)
+            r = lev["rows"][name]
+            ax.set_title(f"{name}\nC = {r['contrast']:.2f}   err = {r['error']:.2f}", fontsize=6)
         row[0].set_ylabel(f"σt = {lev['sigma_t']:g} /m", fontsize=7)
-    fig.suptitle("polarstripe compare (cf. the paper's Fig. 6): each image stretched to its chart's 1-99 %",
-                 fontsize=8)
+    fig.suptitle("polarstripe compare (cf. the paper's Fig. 6): C = Michelson contrast of the chart's bars, "
+                 "err = relative RMS error vs the unscattered object (gain fitted);\n"
+                 "each image stretched to its chart's 1-99 %", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
@@ -221,15 +229,17 @@ def main(args: argparse.Namespace) -> int:
         out = [{k: v for k, v in lev.items() if k not in ("images", "chart")} for lev in levels]
         print(json.dumps({"resolution": [w, h], "stripes": args.stripes, "levels": out}))
         return 0
-    for tag, lev in zip(("moderate", "heavy"), levels, strict=True):
-        print(f"{tag} scattering: σt = {lev['sigma_t']:g} /m (optical thickness "
+    for lev in levels:
+        print(f"σt = {lev['sigma_t']:g} /m (optical thickness "
               f"{lev['optical_thickness']:.2f} to the chart), analyzer crossed at "
               f"{lev['analyzer_deg']['crossed']:.1f}°, p̂ = "
               f"{lev['p_estimate']['flood']:.3f} (flood), {lev['p_estimate']['stripes']:.3f} (stripes); "
               f"model {lev['model_seconds']:.1f} s")
-        print(f"  {'method':<32} {'contrast':>9} {'error':>8} {'error (gain fitted)':>20}")
+        print(f"  {'method':<32} {'contrast':>9} {'error':>8} {'error vs S = D + A':>19}")
         for name, r in lev["rows"].items():
-            print(f"  {name:<32} {r['contrast']:9.3f} {r['error']:8.3f} {r['error_gain_fitted']:20.3f}")
+            print(f"  {name:<32} {r['contrast']:9.3f} {r['error']:8.3f} {r['error_vs_S']:19.3f}")
+    print("error: relative RMS over the chart against the unscattered object radiance, gain fitted "
+          "(docs/physics.md §10.8)")
     if args.figure:
         print(f"figure written to {args.figure}")
     return 0

@@ -132,6 +132,22 @@ def test_truth_marks_the_chart_and_its_bars():
     assert s[on & high].mean() > s[on & ~high].mean() > 0
 
 
+def test_truth_is_the_unscattered_chart_not_the_blurred_one_the_water_shows():
+    """docs/physics.md §10.8: S is the unscattered object radiance, so band 0's bars (albedo 0.6 and 0.06)
+    keep their Michelson contrast 0.818, while the flood frame through the water has lost most of it."""
+    h = sim()
+    t = truth(h)
+    s, band, high = t.images["S"], t.images["chart_band"], t.images["chart_high"]
+    b0 = band == 0
+    c_truth = (s[b0 & high].mean() - s[b0 & ~high].mean()) / (s[b0 & high].mean() + s[b0 & ~high].mean())
+    assert abs(c_truth - 0.818) < 0.03
+    _, frame = dn(h, analyzer=False)
+    frame = frame - t.metrics["dark_offset_dn"]
+    c_frame = (frame[b0 & high].mean() - frame[b0 & ~high].mean()) / (
+        frame[b0 & high].mean() + frame[b0 & ~high].mean())
+    assert c_frame < 0.5 * c_truth
+
+
 def test_truth_is_published_at_every_scan_start_for_the_pose_of_that_scan():
     h = sim()
     served = h.node.truth()
