@@ -235,7 +235,7 @@ def _table(res: dict) -> str:
 def render_references(data: Path) -> None:
     """Render the own validation scenes with Mitsuba (two seeds each) into ``data``."""
     import mitsuba as mi
-    from polarstripe.bench.mitsuba_references import scene_toml
+    from polarstripe.bench.mitsuba_references import scene_toml, write_readme
     from polarstripe.sim.mitsuba_scene import render_truth, select_variant
 
     variant = select_variant(None)
@@ -256,6 +256,7 @@ def render_references(data: Path) -> None:
                             mitsuba_version=np.array(mi.__version__), variant=np.array(variant))
         (data / f"{file_stem(name)}.toml").write_text(scene_toml(case.scene))
         print(f"{name}: {' / '.join(f'{s:.0f}' for s in secs)} s", flush=True)
+    write_readme(data)  # the README lists the tank's references and these
 
 
 def run(args: argparse.Namespace) -> dict:

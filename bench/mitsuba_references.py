@@ -31,6 +31,8 @@ import numpy as np
 from polarstripe.sim.mitsuba_scene import render_truth, select_variant
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, load_scene, scene_from_dict, scene_to_dict
+from polarstripe.sim.validation_scenes import cases as own_cases
+from polarstripe.sim.validation_scenes import file_stem as own_stem
 
 SIGMAS = (1.0, 2.5, 5.0, 8.0)
 CASES = {                   # name: (max_depth, with the back-wall plane, what it is)
@@ -177,8 +179,38 @@ def _model_section(out: Path) -> str:
             "| single ÷ all orders, medium only |\n|---|---|---|---|\n" + "\n".join(lines) + "\n")
 
 
+_OWN_HEADER = ("| file | what | pattern | spp | seeds | seconds per seed | mean: left / right / centre | "
+               "seed spread % (left / right / centre) |\n|---|---|---|---|---|---|---|---|")
+
+
+def _own_section(out: Path) -> str:
+    """The README section of the own validation scenes (``own_*.npz``, written by ``polarstripe bench
+    fidelity --render-references``), in the order of :func:`polarstripe.sim.validation_scenes.cases`; "" when
+    ``out`` holds none."""
+    order = {own_stem(name): k for k, name in enumerate(own_cases())}
+    files = sorted(out.glob("own_*.npz"), key=lambda f: (order.get(f.stem, len(order)), f.stem))
+    rows = []
+    for f in files:
+        z = np.load(f)
+        rows.append(f"| `{f.name}` | {z['what']} | `{z['pattern']}` | {int(z['spp'])} | "
+                    f"{', '.join(str(s) for s in z['seeds'])} | "
+                    f"{' / '.join(f'{s:.0f}' for s in z['seconds'])} | "
+                    f"{' / '.join(f'{v:.4g}' for v in z['regions'].mean(0))} | "
+                    f"{' / '.join(f'{100 * v:.2f}' for v in z['spread'])} |")
+    if not rows:
+        return ""
+    return ("\n## Own validation scenes of the all-orders model (`sim/validation_scenes.py`)\n\n"
+            "Rendered by `polarstripe bench fidelity --render-references` (all orders, `max_depth = -1`, the "
+            "same\nintegrator, sampler and filter as above) and read by `tests/sim/test_all_orders.py`. Each "
+            "scene is the tank\nwith camera and source 5 cm in front of the entry face, 20 cm apart, a 32×32 "
+            "camera and (except\n`medium_hg08_s3`) a 0.6 × 0.6 m wall of albedo 0.6; the scene is in "
+            "`<stem>.toml` and in the npz's\n`scene_toml`, the pattern in `pattern`.\n\n"
+            f"{_OWN_HEADER}\n" + "\n".join(rows) + "\n")
+
+
 def write_readme(out: Path) -> None:
-    """README.md of every npz in ``out``."""
+    """README.md of every npz in ``out``: the tank's references (:data:`CASES`), the single-scattering model
+    against them, and the own validation scenes (``own_*``) when present."""
     rows, meta = [], {}
     for case in CASES:
         for f in sorted(out.glob(f"{case}_sigma*.npz"), key=lambda p: float(p.stem.split("sigma")[1])):
@@ -215,7 +247,7 @@ so they overstate the cost: unloaded, 4096 spp of a 32×32 all-orders image take
 
 {_HEADER}
 {chr(10).join(rows)}
-{_model_section(out)}"""
+{_model_section(out)}{_own_section(out)}"""
     (out / "README.md").write_text(text)
 
 
@@ -232,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--readme-only", action="store_true", help="only rewrite README.md from the stored files")
     args = ap.parse_args(argv)
     if args.readme_only:
+        if not args.out.is_dir():
+            ap.error(f"--out {args.out}: no such folder of references")
         write_readme(args.out)
         return 0
     seeds = tuple(int(s) for s in args.seeds.split(","))

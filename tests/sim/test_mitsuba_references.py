@@ -247,3 +247,32 @@ def test_render_truth_single_scattering_with_mitsuba():
     w = 8
     for a, b in ((img[:, :w], ours[:, :w]), (img[:, w:], ours[:, w:])):
         assert a.mean() == pytest.approx(b.mean(), rel=0.03)
+
+
+def test_rewriting_the_readme_keeps_the_own_validation_scenes(tmp_path):
+    """`--readme-only` (and `bench fidelity --render-references`) rewrite README.md from the stored npz files:
+    the section of the own validation scenes (own_*) must survive, with a row per file read from the file."""
+    import shutil
+
+    from polarstripe.bench.mitsuba_references import write_readme
+
+    own = sorted(DATA.glob("own_*.npz"))
+    assert len(own) >= 8
+    for f in DATA.glob("*.npz"):
+        shutil.copy(f, tmp_path / f.name)
+    write_readme(tmp_path)
+    text = (tmp_path / "README.md").read_text()
+    assert "## Own validation scenes of the all-orders model" in text
+    for f in own:
+        z = np.load(f)
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{f.name}` |"))
+        assert str(z["what"]) in row and f"`{z['pattern']}`" in row and f"| {int(z['spp'])} |" in row
+        assert " / ".join(f"{100 * v:.2f}" for v in z["spread"]) in row
+    # the committed README is what a rewrite gives (its own section byte for byte)
+    stored = (DATA / "README.md").read_text()
+    cut = "## Own validation scenes"
+    assert text[text.index(cut):] == stored[stored.index(cut):]
+    for f in own:
+        (tmp_path / f.name).unlink()
+    write_readme(tmp_path)
+    assert cut not in (tmp_path / "README.md").read_text()
