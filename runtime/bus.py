@@ -2,7 +2,8 @@
 
 Wire of a topic message: ``[topic, header, *buffers]`` (see :mod:`polarstripe.msgs.codec`). A node binds one
 PUB socket (all its topics) and one ROUTER socket (all its services) at endpoints the launcher assigns:
-``ipc://…`` on one host, ``tcp://host:port`` between hosts, optionally encrypted with CURVE.
+``ipc://…`` on one host, ``tcp://host:port`` between hosts, optionally encrypted with CURVE and, with an
+allow-list of client keys, authenticated (ZAP, :mod:`polarstripe.runtime.auth`).
 
 * :class:`PubSocket` binds; :meth:`PubSocket.publisher` gives a :class:`Publisher` for one topic and type.
   It stamps ``seq`` (per topic, from 0) and ``stamp_ns``. Send never blocks; above ``hwm`` queued messages per
@@ -15,20 +16,22 @@ reconnects).
 * :class:`ServiceServer` (ROUTER) and :class:`ServiceClient` (DEALER) do request/reply with a timeout; after a
   timeout the client drops its socket, so a late reply or a queued request cannot leak into the next call.
 
-Nothing here starts a thread: a node polls the sockets in its own loop (``Subscriber.socket``,
-``ServiceServer.socket``).
+Nothing here starts a thread (but the ZAP authenticator of an allow-list, :mod:`.auth`): a node polls the
+sockets in its own loop (``Subscriber.socket``, ``ServiceServer.socket``).
 """
 
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import zmq
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import DEFAULT_MAX_BYTES, Message, MessageError, encode
 from polarstripe.msgs.codec import decode_views
+from polarstripe.runtime import auth
 
 Mode = str  # "latest" | "all"
 _SNDMORE = zmq.SNDMORE
@@ -53,30 +56,36 @@ class ServiceError(BusError):
 
 @dataclass(frozen=True)
 class CurveKeys:
-    """ZeroMQ CURVE keys (Z85 bytes, from ``zmq.curve_keypair()``).
+    """ZeroMQ CURVE keys (Z85 bytes, from ``zmq.curve_keypair()`` or certificate files, :mod:`.auth`).
 
     A binding socket (PUB, ROUTER) needs ``secret`` (and ``public``); a connecting socket needs
-    ``server_public`` and gets its own ``public``/``secret`` (generated if empty). This encrypts the link;
-    clients are not authenticated (no ZAP handler), so keep the server's public key to the rig's hosts.
+    ``server_public`` and gets its own ``public``/``secret`` (generated if empty). ``allow`` (server side):
+    the client public keys admitted by ZAP authentication; a client with another key fails the handshake and
+    gets nothing (the refusal is logged once per key, docs/hardware.md "Security"). ``allow=None`` only
+    encrypts: any client that knows the server's public key is served.
     """
 
     public: bytes = b""
     secret: bytes = b""
     server_public: bytes = b""
+    allow: frozenset[bytes] | None = None
 
     @staticmethod
     def load(path: str) -> CurveKeys:
-        """Read ``public=…``/``secret=…``/``server_public=…`` lines (Z85) from a file."""
-        values = {}
-        with open(path, encoding="ascii") as f:
-            for line in f:
-                if "=" in line and not line.lstrip().startswith("#"):
-                    k, v = line.split("=", 1)
-                    values[k.strip()] = v.strip().encode()
-        unknown = set(values) - {"public", "secret", "server_public"}
-        if unknown:
-            raise BusError(f"curve key file {path}: unknown key {sorted(unknown)[0]!r}")
-        return CurveKeys(**values)
+        """Read ``public=…``/``secret=…``/``server_public=…`` lines (Z85) from a file (the older format)."""
+        return CurveKeys(**auth.load_key_lines(path))
+
+    @staticmethod
+    def from_env(environ: Mapping[str, str] | None = None) -> CurveKeys | None:
+        """This host's keys as a node or tool reads them at start (None without
+        ``$POLARSTRIPE_CURVE_KEYS``): :func:`.auth.host_keys`."""
+        keys = auth.host_keys(os.environ if environ is None else environ)
+        return None if keys is None else CurveKeys(**keys)
+
+    def client(self) -> CurveKeys:
+        """The keys of this host's connecting sockets: its own pair (so that servers with an allow-list know
+        it) and the server's public key."""
+        return CurveKeys(self.public, self.secret, self.server_public or self.public)
 
 
 def _apply_curve(sock: zmq.Socket, curve: CurveKeys | None, *, server: bool) -> None:
@@ -85,6 +94,8 @@ def _apply_curve(sock: zmq.Socket, curve: CurveKeys | None, *, server: bool) -> 
     if server:
         if not curve.secret:
             raise BusError("CURVE server socket needs a secret key")
+        if curve.allow is not None:  # before the socket binds: the ZAP handler must be there first
+            sock.zap_domain = auth.zap_domain(sock.context, curve.allow).encode()
         sock.curve_secretkey = curve.secret
         sock.curve_publickey = curve.public or zmq.curve_public(curve.secret)
         sock.curve_server = True
@@ -93,8 +104,11 @@ def _apply_curve(sock: zmq.Socket, curve: CurveKeys | None, *, server: bool) -> 
             raise BusError("CURVE client socket needs the server's public key")
         public, secret = (curve.public, curve.secret) if curve.secret else zmq.curve_keypair()
         sock.curve_serverkey = curve.server_public
-        sock.curve_publickey = public
+        sock.curve_publickey = public or zmq.curve_public(secret)
         sock.curve_secretkey = secret
+
+
+apply_curve = _apply_curve  # for a tool that opens its own socket (tools/topic.py)
 
 
 def _bind(sock: zmq.Socket, endpoint: str) -> str:

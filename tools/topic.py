@@ -12,13 +12,12 @@ import argparse
 import importlib
 import json
 import math
-import os
 import sys
 import time
 
 import zmq
 from polarstripe.msgs import REGISTRY, MessageError, describe
-from polarstripe.runtime.bus import CurveKeys
+from polarstripe.runtime.bus import CurveKeys, apply_curve
 from polarstripe.runtime.graph import find_graph, load_graph, pub_endpoints, resolve
 
 HELP = "list, echo or time the topics of a running launch"
@@ -49,11 +48,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _open(graph: dict, topic: str) -> zmq.Socket:
     sock = zmq.Context.instance().socket(zmq.SUB)
     sock.linger = 0
-    key_file = os.environ.get("POLARSTRIPE_CURVE_KEYS")  # the rig's keys when its links are encrypted
-    if key_file:
-        keys = CurveKeys.load(key_file)
-        sock.curve_serverkey = keys.public
-        sock.curve_publickey, sock.curve_secretkey = zmq.curve_keypair()
+    keys = CurveKeys.from_env()  # this host's keys when the rig's links are encrypted (docs/hardware.md)
+    apply_curve(sock, keys.client() if keys else None, server=False)
     sock.rcvhwm = 100
     sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
     for ep in pub_endpoints(graph, topic):

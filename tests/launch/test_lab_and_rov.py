@@ -1,5 +1,6 @@
 """launch/lab_rig.toml and launch/rov.toml: both pass ``polarstripe launch FILE --dry-run`` on a machine
-without their hardware, and the ROV's tcp link is CURVE-encrypted when its nodes really run.
+without their hardware, and the ROV's tcp link is CURVE-encrypted and authenticated (per-host keys, an
+allow-list) when its nodes really run.
 
 The CURVE test runs rov.toml's own [launch], [launch.env] and [args] with only its polarizer node (the other
 nodes need a camera, a serial laser controller and can0): with no CAN interface the polarizer keeps
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import zmq
+import zmq.auth
 from polarstripe.msgs import PolarizerState
 from polarstripe.runtime.bus import BusTimeout, CurveKeys, Subscriber
 from polarstripe.runtime.launch_file import load_launch
@@ -55,8 +57,9 @@ def test_rov_dry_run(tmp_path):
         assert n["pub"].startswith("tcp://127.0.0.1:") and n["srv"].startswith("tcp://127.0.0.1:")
     assert nodes["emitter"]["params"]["display"] == "serial"
     assert "sequencer" in _dry_run("rov.toml", "survey=true", env=env)["nodes"]
-    spec = load_launch(LAUNCH / "rov.toml", {"curve_keys": "/k"})
-    assert spec.env["POLARSTRIPE_CURVE_KEYS"] == "/k"  # every node reads its keys from there
+    spec = load_launch(LAUNCH / "rov.toml", {"keys_dir": "/k"})
+    assert spec.env["POLARSTRIPE_CURVE_KEYS"] == "/k/vehicle.key_secret"  # every node reads its keys there
+    assert spec.env["POLARSTRIPE_CURVE_ALLOW"] == "/k/allowed"  # and answers only these clients
 
 
 @pytest.fixture
@@ -66,11 +69,16 @@ def rov_polarizer_only(tmp_path):
     polarizer = next(b for b in blocks if 'name = "polarizer"' in b)
     path = tmp_path / "rov_polarizer.toml"
     path.write_text(head + "[[node]]" + polarizer)
-    public, secret = zmq.curve_keypair()
-    keys = tmp_path / "curve.keys"
-    keys.write_text(f"public={public.decode()}\nsecret={secret.decode()}\n")
+    keys = tmp_path / "keys"  # the vehicle's pair, topside's public cert on its allow-list
+    (keys / "allowed").mkdir(parents=True)
+    vehicle_public, vehicle_secret = zmq.auth.create_certificates(keys, "vehicle")
+    os.chmod(vehicle_secret, 0o600)
+    topside_public, topside_secret = zmq.auth.create_certificates(tmp_path, "topside")
+    os.chmod(topside_secret, 0o600)
+    os.replace(topside_public, keys / "allowed" / "topside.key")
+    public = zmq.auth.load_certificate(vehicle_public)[0]
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
-    proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(path), f"curve_keys={keys}"],
+    proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(path), f"keys_dir={keys}"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -80,7 +88,7 @@ def rov_polarizer_only(tmp_path):
             graph_file = found[0] if found else None
             time.sleep(0.1)
         assert graph_file is not None, "no graph.json"
-        yield json.loads(graph_file.read_text()), public, graph_file
+        yield json.loads(graph_file.read_text()), public, graph_file, Path(topside_secret)
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -90,31 +98,38 @@ def rov_polarizer_only(tmp_path):
             proc.wait()
 
 
-def test_rov_link_is_curve_encrypted(rov_polarizer_only):
-    graph, public, _ = rov_polarizer_only
+def test_rov_link_is_curve_encrypted_and_authenticated(rov_polarizer_only):
+    graph, public, _, topside_secret = rov_polarizer_only
     endpoint = graph["nodes"]["polarizer"]["pub"]
     assert endpoint.startswith("tcp://")
+    t_public, t_secret = zmq.auth.load_certificate(topside_secret)
     with_key = Subscriber([endpoint], "/rov/polarizer/state", PolarizerState,
-                          curve=CurveKeys(server_public=public))
+                          curve=CurveKeys(t_public, t_secret, server_public=public))
+    stranger = Subscriber([endpoint], "/rov/polarizer/state", PolarizerState,
+                          curve=CurveKeys(server_public=public))  # knows the server's key, not allowed
     plain = Subscriber([endpoint], "/rov/polarizer/state", PolarizerState)
     try:
         state = with_key.recv(timeout_s=25.0)  # the node needs a few seconds to start
         assert "not connected" in state.fault  # no can0 here: a published fault, not an angle
         with pytest.raises(BusTimeout):
             plain.recv(timeout_s=1.0)  # a client without the server's key hears nothing
+        with pytest.raises(BusTimeout):
+            stranger.recv(timeout_s=1.0)  # nor one whose key is not on the vehicle's allow-list
     finally:
         with_key.socket.close(0)
+        stranger.socket.close(0)
         plain.socket.close(0)
 
 
-def test_topside_echo_with_the_public_key_only(rov_polarizer_only, tmp_path):
-    """The recipe of rov.toml's header: graph.json plus a key file holding only the public key."""
-    _, public, graph_file = rov_polarizer_only
-    topside = tmp_path / "rov-public.keys"
-    topside.write_text(f"public={public.decode()}\n")
+def test_topside_echo_with_its_own_keys(rov_polarizer_only, tmp_path):
+    """The recipe of rov.toml's header: graph.json, topside's own key pair and the vehicle's public cert."""
+    _, public, graph_file, topside_secret = rov_polarizer_only
+    vehicle = tmp_path / "vehicle.key"
+    vehicle.write_text(f'curve\n    public-key = "{public.decode()}"\n')
+    env = {**os.environ, "POLARSTRIPE_CURVE_KEYS": str(topside_secret),
+           "POLARSTRIPE_CURVE_SERVER": str(vehicle)}
     out = subprocess.run([sys.executable, "-m", "polarstripe", "topic", "--graph", str(graph_file), "echo",
                           "/rov/polarizer/state", "-n", "1", "--timeout", "25"],
-                         env={**os.environ, "POLARSTRIPE_CURVE_KEYS": str(topside)}, capture_output=True,
-                         text=True, timeout=60)
+                         env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "not connected" in out.stdout

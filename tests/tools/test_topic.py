@@ -182,6 +182,7 @@ def test_echo_with_the_rigs_curve_keys_and_without(ipc_dir, capsys, monkeypatch)
     keys = os.path.join(ipc_dir, "rig.keys")
     with open(keys, "w") as f:
         f.write(f"# the rig's keypair\npublic={public.decode()}\nsecret={secret.decode()}\n")
+    os.chmod(keys, 0o600)  # a secret key readable by others is refused
     ps = PubSocket("tcp://127.0.0.1:0", curve=CurveKeys(public=public, secret=secret))
     pub = ps.publisher("/rig/chatter", Log)
     stop = threading.Event()
