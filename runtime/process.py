@@ -1,15 +1,27 @@
 """What a node needs when it runs as a process (:func:`polarstripe.runtime.runner.run_node`): log lines on
-stderr and on the namespace's ``log`` topic, and SIGINT/SIGTERM ending its loop."""
+stderr and on the namespace's ``log`` topic, and SIGINT/SIGTERM ending it in time (docs/architecture.md
+"Shutdown").
+
+A stop signal ends the node's loop (:meth:`Node.stop`); the loop's own waits look at it every
+``STOP_CHECK_S``. What does not return to the loop by itself is cut short: while ``setup`` runs or a service
+call waits for its reply (:class:`GuardedClient`), the signal raises :class:`NodeStopping` at once. A service
+call made while the node is already stopping (a ``teardown`` putting the rig back) waits at most
+:data:`CLEANUP_CALL_S`, so cleanup never holds a shutdown beyond a short bound."""
 
 from __future__ import annotations
 
 import logging
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from polarstripe.msgs import Log
-from polarstripe.runtime.node import Node
+from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.node_bus import NodeBus
+
+CLEANUP_CALL_S = 0.5
+"""The longest a service call made by a stopping node (its cleanup) waits for a reply [s]."""
 
 
 class BusLogHandler(logging.Handler):
@@ -54,14 +66,63 @@ def install_logging(node: Node, bus: NodeBus | None = None) -> None:
         log.addHandler(BusLogHandler(node, bus))
 
 
-def install_signals(node: Node) -> None:
-    """SIGINT and SIGTERM stop the node's loop (the second SIGINT raises KeyboardInterrupt)."""
+class StopGuard:
+    """SIGINT and SIGTERM for one node: :meth:`Node.stop` with the signal's name; inside
+    :meth:`interruptible` (``setup``, a service call) also :class:`NodeStopping` raised at once. A second
+    SIGINT while stopping raises ``KeyboardInterrupt`` (the runner exits 130)."""
 
-    def on_signal(signum, frame):
+    def __init__(self, node: Node):
+        self.node = node
+        self._waiting: list[str] = []  # what the node is blocked in, innermost last
+
+    @contextmanager
+    def interruptible(self, what: str) -> Iterator[None]:
+        """A blocking section that a stop signal cuts short (``NodeStopping`` naming ``what``)."""
+        if self.node.stopping:
+            raise NodeStopping(self.node.name, what, self.node.stop_reason)
+        self._waiting.append(what)
+        try:
+            yield
+        finally:
+            self._waiting.pop()
+
+    def on_signal(self, signum, frame) -> None:
         name = signal.Signals(signum).name
-        if node.stopping and signum == signal.SIGINT:
+        if self.node.stopping and signum == signal.SIGINT:
             raise KeyboardInterrupt
-        node.stop(name)
+        self.node.stop(name)
+        if self._waiting:
+            raise NodeStopping(self.node.name, self._waiting[-1], name)
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+
+class GuardedClient:
+    """A node's service client when it runs as a process (wraps a
+    :class:`~polarstripe.runtime.service.ServiceClient`; everything but :meth:`call` passes through).
+
+    A call while the node runs waits as asked but ends with :class:`NodeStopping` as soon as SIGINT/SIGTERM
+    comes; a call while the node stops (cleanup) waits at most :data:`CLEANUP_CALL_S`."""
+
+    def __init__(self, client, guard: StopGuard):
+        self._client, self._guard = client, guard
+
+    def call(self, request, timeout_s: float | None = None):
+        if self._guard.node.stopping:
+            wait = self._client.timeout_s if timeout_s is None else timeout_s
+            return self._client.call(request, min(wait, CLEANUP_CALL_S))
+        try:
+            with self._guard.interruptible(self._client.name):
+                return self._client.call(request, timeout_s)
+        except NodeStopping:
+            self._client.close()  # the request may be queued or half answered: a fresh socket next time
+            raise
+
+    def __getattr__(self, name: str):
+        return getattr(self._client, name)
+
+
+def install_signals(node: Node) -> StopGuard:
+    """SIGINT and SIGTERM stop the node (see :class:`StopGuard`); returns the guard."""
+    guard = StopGuard(node)
+    signal.signal(signal.SIGINT, guard.on_signal)
+    signal.signal(signal.SIGTERM, guard.on_signal)
+    return guard

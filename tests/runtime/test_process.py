@@ -58,3 +58,63 @@ def test_sigterm_stops_the_loop_and_a_second_sigint_interrupts():
     finally:
         signal.signal(signal.SIGINT, handlers[0])
         signal.signal(signal.SIGTERM, handlers[1])
+
+
+def _silent_service(tmp_path):
+    """A ROUTER socket that takes requests and never answers (a peer stuck or gone)."""
+    import zmq
+
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    router.linger = 0
+    endpoint = f"ipc://{tmp_path}/silent.srv"
+    router.bind(endpoint)
+    return router, endpoint
+
+
+def test_a_stop_signal_cuts_a_service_call_short_and_cleanup_calls_are_bounded(tmp_path):
+    """While the node runs, SIGINT ends a long service call with NodeStopping (not a timeout); once it is
+    stopping, a call (teardown putting the rig back) waits CLEANUP_CALL_S, not its own 30 s."""
+    import threading
+
+    from polarstripe.msgs import Ack, Empty
+    from polarstripe.runtime.bus import ServiceTimeout
+    from polarstripe.runtime.node import NodeStopping
+    from polarstripe.runtime.process import CLEANUP_CALL_S, GuardedClient
+    from polarstripe.runtime.service import ServiceClient
+
+    router, endpoint = _silent_service(tmp_path)
+    node, _ = _talker()
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        guard = install_signals(node)
+        client = GuardedClient(ServiceClient(endpoint, "/rig/x", Empty, Ack, timeout_s=30.0), guard)
+        threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+        with pytest.raises(NodeStopping) as stopped:
+            client.call(Empty())
+        assert stopped.value.topic == "/rig/x" and stopped.value.reason == "SIGINT" and node.stopping
+        with pytest.raises(ServiceTimeout, match=rf"no reply within {CLEANUP_CALL_S} s"):
+            client.call(Empty())  # cleanup: bounded however long the client's own timeout
+        with pytest.raises(NodeStopping, match="setup"), guard.interruptible("setup"):
+            pass  # a blocking section entered while stopping ends at once
+    finally:
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
+        router.close()
+
+
+def test_a_stop_signal_ends_a_blocking_section_at_once():
+    """setup (the planner plans there for seconds) is cut short by SIGTERM: NodeStopping naming it."""
+    from polarstripe.runtime.node import NodeStopping
+
+    node, _ = _talker()
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        guard = install_signals(node)
+        with pytest.raises(NodeStopping) as stopped, guard.interruptible("setup"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            raise AssertionError("the signal should have ended the section")
+        assert (stopped.value.topic, stopped.value.reason) == ("setup", "SIGTERM")
+    finally:
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
