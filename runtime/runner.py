@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import math
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,9 @@ import zmq
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat, Message
 from polarstripe.runtime import bus as zbus
+from polarstripe.runtime.auth import log_refusals_as
 from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir
+from polarstripe.runtime.liveness import HeartbeatThread, incarnation
 from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.node_bus import Handler
 from polarstripe.runtime.params import build_params
@@ -66,6 +69,7 @@ class ZmqNodeBus:
         self.name, self.graph, self.curve = name, graph or {}, curve
         self.ctx = zmq.Context.instance()
         self.pub_socket = zbus.PubSocket(pub, hwm=pub_hwm, curve=curve)
+        self.pub_lock = threading.Lock()  # the heartbeat thread publishes on the same PUB socket
         self._srv_endpoint = srv
         self.server: ServiceServer | None = None
         self.connect = list(connect)
@@ -78,11 +82,11 @@ class ZmqNodeBus:
     now = staticmethod(time.monotonic)
 
     def publisher(self, topic: str, msg_type: type[Message]):
-        return self.pub_socket.publisher(topic, msg_type)
+        return _LockedPublisher(self.pub_socket.publisher(topic, msg_type), self.pub_lock)
 
     def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> zbus.Subscriber:
         endpoints = pub_endpoints(self.graph, topic) + self.connect
-        client_curve = zbus.CurveKeys(server_public=self.curve.public) if self.curve else None
+        client_curve = self.curve.client() if self.curve else None  # this host's own key pair
         sub = zbus.Subscriber(endpoints, topic, msg_type, mode=mode, max_bytes=max_bytes, curve=client_curve)
         self.subscribers.append(sub)
         self.poller.register(sub.socket, zmq.POLLIN)
@@ -103,7 +107,7 @@ class ZmqNodeBus:
                 f"service {service!r} is not served by any node of this launch "
                 f"(known: {', '.join(sorted(self.graph.get('services', {}))) or 'none'})"
             )
-        client_curve = zbus.CurveKeys(server_public=self.curve.public) if self.curve else None
+        client_curve = self.curve.client() if self.curve else None  # this host's own key pair
         c = ServiceClient(endpoint, service, req, resp, timeout_s=timeout_s, curve=client_curve)
         self.clients.append(c)
         return c if self.guard is None else GuardedClient(c, self.guard)
@@ -170,10 +174,9 @@ def run_node(
     d_pub, d_srv = default_endpoints(name)
     pub = pub or entry.get("pub") or d_pub
     srv = srv or entry.get("srv") or d_srv
-    curve = None
-    key_file = os.environ.get("POLARSTRIPE_CURVE_KEYS")
-    if key_file:
-        curve = zbus.CurveKeys.load(key_file)
+    curve = zbus.CurveKeys.from_env()  # this host's keys and allow-list (docs/hardware.md "Security")
+    if curve is not None and curve.allow is not None:
+        log_refusals_as(name)
     typed = build_params(cls.Params, params or {}, node=name)  # a bad param fails before anything binds
     bus = ZmqNodeBus(
         name,
@@ -188,6 +191,7 @@ def run_node(
     node: Node | None = None
     try:
         node = cls(name, namespace=namespace, params=typed, bus=bus)
+        node.incarnation = incarnation()  # the launcher's respawn count ($POLARSTRIPE_INCARNATION)
         install_logging(node, bus)
         bus.guard = install_signals(node)
         _run(node, bus)
@@ -203,11 +207,11 @@ def run_node(
 
 
 def _run(node: Node, bus: ZmqNodeBus) -> None:
-    """Heartbeat timer, ``setup``, the loop, ``teardown`` and the last heartbeat."""
+    """``setup``, the heartbeat thread (runtime/liveness.py: it beats while a handler is busy), the loop,
+    ``teardown`` and the last heartbeat (``exiting``: peers know at once that the node stopped)."""
     hb_pub = bus.publisher(node.resolve("heartbeat"), Heartbeat)
     beat = node.params.heartbeat_s > 0
-    if beat:
-        node.every(node.params.heartbeat_s, lambda: hb_pub.publish(node.heartbeat()), name="_heartbeat")
+    beats = None
     try:
         with bus.guard.interruptible("setup"):  # a stop signal ends a long setup (the planner plans)
             node.setup()
@@ -219,12 +223,32 @@ def _run(node: Node, bus: ZmqNodeBus) -> None:
             node.log.debug("teardown after an interrupted setup: %s", err)
         return
     node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
+    if beat:
+        beats = HeartbeatThread(node.params.heartbeat_s, lambda: hb_pub.publish(node.heartbeat())).start()
     try:
         node.run()
     except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to
         node.log.debug("%s", exc)
     finally:
+        if beats is not None:
+            beats.stop()
         node.teardown()
         if beat:
-            hb_pub.publish(node.heartbeat())
+            hb_pub.publish(node.heartbeat(exiting=True))
         node.log.info("stopped (%s)", node.stop_reason or "loop ended")
+
+
+class _LockedPublisher:
+    """A bus publisher whose ``publish`` holds the PUB socket's lock (ZeroMQ sockets are not thread-safe;
+    the heartbeat thread and log lines from worker threads share the socket with the loop)."""
+
+    def __init__(self, pub, lock: threading.Lock):
+        self._pub, self._lock = pub, lock
+        self.topic, self.msg_type = pub.topic, pub.msg_type
+
+    def publish(self, msg: Message, *, stamp_ns: int | None = None) -> int:
+        with self._lock:
+            return self._pub.publish(msg, stamp_ns=stamp_ns)
+
+    def __getattr__(self, name):  # seq, published, … of the wrapped publisher
+        return getattr(self._pub, name)
