@@ -133,12 +133,21 @@ class Log(Message):
 
 @message("heartbeat")
 class Heartbeat(Message):
-    """A node is alive: its name, process id, uptime [s] and counters (received, published, bad, gaps …)."""
+    """A node is alive: its name, process id, uptime [s] and counters (received, published, bad, gaps …).
+
+    The counters also carry ``incarnation`` (0 at the first start, the launcher's respawn count after),
+    ``heartbeat_ms`` (the period) and, in the last beat of an orderly exit, ``exiting`` = 1
+    (runtime/liveness.py). They ride in ``counters`` so that the schema (version 1) and every recording made
+    before stay as they were; a beat without them reads as incarnation 0."""
 
     node: str
     pid: int
     uptime_s: float
     counters: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def incarnation(self) -> int:
+        return int(self.counters.get("incarnation", 0))
 
 
 # ---- service requests and replies ------------------------------------------------------------------------

@@ -53,10 +53,12 @@ from polarstripe.msgs import Heartbeat, Message, MessageError
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.events import Event, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.runtime.graph import resolve
+from polarstripe.runtime.liveness import PeerLost, Watching
 from polarstripe.runtime.node_bus import BusPublisher, BusSource, Handler, NodeBus
 from polarstripe.runtime.params import NodeParams, build_params
 
-__all__ = ["STOP_CHECK_S", "Event", "Node", "NodeError", "NodeStopping", "Received", "Stop", "Tick"]
+__all__ = ["STOP_CHECK_S", "Event", "Node", "NodeError", "NodeStopping", "PeerLost", "Received", "Stop",
+           "Tick"]
 
 STOP_CHECK_S = 0.05
 """How often a blocking :meth:`Node.wait_for` looks whether the node was told to stop [s]."""
@@ -82,7 +84,7 @@ class _Sub:
     source: BusSource
 
 
-class Node:
+class Node(Watching):
     """Base class of every node. See the module docstring; the public API is listed in
     docs/architecture.md."""
 
@@ -119,6 +121,7 @@ class Node:
         self._stop_reason: str | None = None
         self._started = time.monotonic()
         self._bad_logged: dict[str, int] = {}
+        self.incarnation = 0  # set by the runner: how many times the launcher had respawned this node
 
     # ---- what the node may ask of its runtime ------------------------------------------------------------
     def now(self) -> float:
@@ -216,16 +219,20 @@ class Node:
         self._timers.pop(timer, None)
 
     # ---- reading subscriptions outside the loop ------------------------------------------------------------
-    def wait_for(self, topic: str, match: Callable[[Message], bool] = lambda m: True, timeout_s: float = 1.0):
+    def wait_for(self, topic: str, match: Callable[[Message], bool] = lambda m: True, timeout_s: float = 1.0,
+                 *, peers: tuple[str, ...] | list[str] = ()):
         """Block until a message on subscribed ``topic`` satisfies ``match``; non-matching messages before it
         are dropped, those after it stay queued for the next call or the loop. Nothing else is handled
         meanwhile (no service is answered): keep it for scripts and short waits.
 
         Raises :class:`~polarstripe.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic
         after ``timeout_s``, or :class:`NodeStopping` within ~``STOP_CHECK_S`` of the node being told to
-        stop (SIGINT, SIGTERM, :meth:`stop`; also at once if it already was).
+        stop (SIGINT, SIGTERM, :meth:`stop`; also at once if it already was). With ``peers`` (node names,
+        after :meth:`watch`) it raises :class:`PeerLost` naming the first of them that is lost.
         """
         sub = self._sub(topic, "wait_for")
+        if peers and self.liveness is None:
+            raise NodeError(f"node {self.name!r}: wait_for(peers=...) needs watch() first")
         deadline = self.now() + timeout_s
         while True:
             if self._stop_reason is not None:
@@ -234,8 +241,12 @@ class Node:
             for item in self._bus.take(sub.source, min(max(0.0, deadline - self.now()), STOP_CHECK_S)):
                 if isinstance(item, MessageError):
                     self._bad(topic, item)
-                elif match(item):
+                    continue
+                self._feed(topic, item)
+                if match(item):
                     return item
+            if peers:
+                self._check_peers(peers, topic)
             if self.now() >= deadline:
                 raise BusTimeout(
                     f"node {self.name!r}: no matching message on {sub.full!r} within {timeout_s} s"
@@ -254,6 +265,7 @@ class Node:
                 if isinstance(item, MessageError):
                     self._bad(topic, item)
                 else:
+                    self._feed(topic, item)
                     out.append(item)
         return out
 
@@ -320,6 +332,7 @@ class Node:
                 if isinstance(item, MessageError):
                     self._bad(sub.topic, item)
                 else:
+                    self._feed(sub.topic, item)
                     batch.append((item.header.stamp_ns, sub.topic, item))
         if len(ready) > 1:  # several topics at once: deliver in publication order, not topic by topic
             batch.sort(key=lambda b: b[0])
@@ -354,15 +367,20 @@ class Node:
             more = f" ({n} bad on this topic so far)" if n > 1 else ""
             self.log.warning("dropped bad message: %s%s", exc, more)
 
-    def heartbeat(self) -> Heartbeat:
+    def heartbeat(self, *, exiting: bool = False) -> Heartbeat:
         """The :class:`Heartbeat` as things stand: the node's counters with its subscriptions' and
-        services' statistics."""
+        services' statistics, its ``incarnation`` and ``heartbeat_ms`` (and ``exiting`` = 1 in the last beat
+        of an orderly exit): runtime/liveness.py. Called from the runner's heartbeat thread."""
         c = dict(self.counters)
+        subs = list(self._subs.values())  # a copy: the loop's thread may subscribe meanwhile
         for key in ("received", "gaps", "skipped", "restarts"):
-            c[key] = sum(getattr(s.source.stats, key, 0) for s in self._subs.values())
+            c[key] = sum(getattr(s.source.stats, key, 0) for s in subs)
         requests, errors, bad = self._bus.service_stats()
         c["bad"] = self.counters["bad"] + bad
         c["requests"], c["service_errors"] = requests, errors
+        c["incarnation"], c["heartbeat_ms"] = self.incarnation, round(self.params.heartbeat_s * 1000)
+        if exiting:
+            c["exiting"] = 1
         return Heartbeat(
             node=self.name, pid=os.getpid(), uptime_s=time.monotonic() - self._started, counters=c
         )

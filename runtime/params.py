@@ -36,7 +36,7 @@ class ParamError(PolarstripeError, ValueError):
 class NodeParams:
     """Parameters every node has. Subclasses are made frozen keyword-only dataclasses automatically."""
 
-    heartbeat_s: float = 1.0  # period of the heartbeat message [s]; 0 turns it off
+    heartbeat_s: float = 0.25  # heartbeat period [s]; a peer is lost after 4 missed (runtime/liveness.py)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     max_message_bytes: int = 128 * 2**20  # larger received messages are dropped as bad [bytes]
     pub_hwm: int = 100  # messages queued per subscriber before the publisher drops (seen as gaps)
