@@ -32,6 +32,7 @@ from pathlib import Path
 from polarstripe.runtime.graph import runs_dir, write_graph
 from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, load_launch, sock_dir
 from polarstripe.runtime.launch_setup import _ipc_in_use, _with_recorder, build_graph
+from polarstripe.runtime.liveness import INCARNATION_ENV
 from polarstripe.runtime.params import parse_assignments
 
 HELP = "start a rig from a launch file"
@@ -160,7 +161,8 @@ class Launcher:
 
     def _spawn(self, c: _Child) -> None:
         n = c.spec
-        env = {**os.environ, **self.spec.env, **n.env, "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, **self.spec.env, **n.env, "PYTHONUNBUFFERED": "1",
+               INCARNATION_ENV: str(c.respawns)}  # in its heartbeat: peers tell a respawned node apart
         cmd = [
             sys.executable,
             "-m",
