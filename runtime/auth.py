@@ -91,10 +91,10 @@ def is_certificate(path: str | os.PathLike) -> bool:
 def load_secret_cert(path: str | os.PathLike) -> tuple[bytes, bytes]:
     """``(public, secret)`` (Z85) from a secret certificate ``NAME.key_secret``, refused unless mode 0600 or
     stricter."""
-    check_private(path)
     public, secret = _load(path)
     if not secret:
         raise KeyFileError(f"key file {path} holds no secret key (give NAME.key_secret, not NAME.key)")
+    check_private(path)
     return public, secret
 
 

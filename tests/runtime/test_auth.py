@@ -206,9 +206,7 @@ def test_bad_key_files_are_one_clear_error(hosts, tmp_path, case, message):
     if case == "missing_allow":
         env[auth.ALLOW_ENV] = str(tmp_path / "nowhere")
     elif case == "public_as_secret":
-        public = tmp_path / "vehicle.key"
-        os.chmod(public, 0o600)
-        env[auth.KEYS_ENV] = str(public)
+        env[auth.KEYS_ENV] = str(tmp_path / "vehicle.key")  # mode 0644: the wrong file, said first
     elif case == "not_a_cert":
         (tmp_path / "x.keys").write_text("hello=1\n")
         env[auth.KEYS_ENV] = str(tmp_path / "x.keys")
