@@ -9,16 +9,21 @@ the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`)
 
 * along each camera row, where the sheet index steps by one between pixels j and j + 1 (sheets a and a + 1),
   the edge between them (the projector column ⌊(a + 1)·W/N⌋, known exactly) crosses the row. Its sub-pixel
-  position is the zero of the normalized difference of the two sheets' images, (I_a − I_{a+1})/(I_a +
-  I_{a+1}) (albedo cancels), linear between the pixels: at j it is n_j = (best − second)/(best + second −
-  2·dark) (the second best there is sheet a + 1), at j + 1 it is −n_{j+1}, so x = j + n_j/(n_j + n_{j+1}) —
-  the paper's gradient edge (§2), from the running values alone;
+  position is the zero of the normalized difference of the two sheets' images, y = (I_a − I_{a+1})/(I_a +
+  I_{a+1}) (albedo cancels): at a pixel of sheet a next to the edge y = (best − second)/(best + second −
+  2·dark) (the second best there is sheet a + 1), at one of sheet a + 1 it is the negative of that. The
+  zero of the least-squares line y = α + β·x through the ``edge_window`` pixels of each stripe on either
+  side (fewer where the stripe ends or a pixel is invalid), x = −α/β, is the paper's gradient edge (§2)
+  from the running values alone; with ``edge_window`` = 1 it is the two-pixel zero x = j + n_j/(n_j +
+  n_{j+1}). The window is what lets an edge be found when all orders of scattering widen the stripes into
+  a smooth ramp many pixels wide (docs/depth.md, "Why the demo's depth was 4–30 % valid");
 * a pixel between two such edges of its own stripe gets the column interpolated linearly between them;
 * a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
-  below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is next to an edge,
-  where a small margin is expected), or it is not bracketed by two good edges on its row (the first and last
-  stripe, an object's silhouette, a shadow, a jump of more than one sheet). An edge is good when the margins'
-  sum exceeds ``k_sigma`` σ and ``min_contrast`` times the mean signal of the two pixels (a stripe seen on a
+  below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is within
+  ``edge_window`` pixels of an edge, where a small margin is expected), or it is not bracketed by two good
+  edges on its row (the first and last stripe, an object's silhouette, a shadow, a jump of more than one
+  sheet). An edge is good when the line falls (β < 0) and the sum of the two sides' mean margins exceeds
+  ``k_sigma`` σ of that sum and ``min_contrast`` times the mean signal over the window (a stripe seen on a
   surface is sharp; backscatter of the sheets in the water is not).
 
 Noise model (DN): σ²(v) = read_noise_dn² + (v − dark)·dn_per_electron (shot noise, EMVA 1288).
@@ -32,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from polarstripe.imaging.validation import ImagingError, finite_param
+
+EDGE_WINDOW = 3  # pixels per side of an edge its sub-pixel position is fitted over (module docstring)
 
 
 @dataclass(frozen=True)
@@ -115,7 +122,7 @@ class NoiseModel:
 
 
 def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_sigma: float = 4.0,
-              min_contrast: float = 0.15) -> np.ndarray:
+              min_contrast: float = 0.15, edge_window: int = EDGE_WINDOW) -> np.ndarray:
     """Continuous pattern column per pixel (h, w) float64, NaN where the stripe cannot be delineated.
 
     Parameters
@@ -128,6 +135,8 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
     noise : NoiseModel
     k_sigma, min_contrast : float
         The validity thresholds (module docstring).
+    edge_window : int
+        Pixels per side of an edge its sub-pixel zero is fitted over (module docstring); 1: two pixels.
     """
     best = np.ascontiguousarray(votes.best, np.float64)
     second = np.ascontiguousarray(votes.second, np.float64)
@@ -139,13 +148,15 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
         raise ImagingError(f"edges: need N + 1 >= 2 boundaries, got {edges.shape}")
     if index.size and (index.min() < 0 or index.max() >= edges.size - 1):
         raise ImagingError(f"votes: sheet index outside 0 … {edges.size - 2}")
+    if isinstance(edge_window, bool) or not isinstance(edge_window, (int, np.integer)) or edge_window < 1:
+        raise ImagingError(f"edge_window: need an integer >= 1 (pixels per side), got {edge_window!r}")
     sat = np.inf if noise.saturation_dn is None else finite_param("saturation", noise.saturation_dn)
     out = np.empty(best.shape)
     # the noise model and the thresholds, one record for the kernel: dark [DN], read variance [DN²],
     # gain [DN/e⁻], saturation [DN], k_sigma, min_contrast
     limits = np.array([float(noise.dark_dn), float(noise.read_noise_dn) ** 2, float(noise.dn_per_electron),
                        float(sat), finite_param("k_sigma", k_sigma, low=0.0),
-                       finite_param("min_contrast", min_contrast, low=0.0)])
+                       finite_param("min_contrast", min_contrast, low=0.0), float(edge_window)])
     _delineate_rows(best, second, index, edges, limits, out)
     return out
 
@@ -153,6 +164,7 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
 @njit(cache=True)
 def _delineate_rows(best, second, index, edges, limits, out):
     dark, read_var, g, sat, k, min_contrast = limits[0], limits[1], limits[2], limits[3], limits[4], limits[5]
+    m_win = int(limits[6])
     h, w = best.shape
     ok = np.empty(w, np.bool_)
     kind = np.empty(w + 1, np.int8)  # gap p sits between pixels p − 1 and p: 0 same stripe, 1 edge, 2 break
@@ -178,15 +190,43 @@ def _delineate_rows(best, second, index, edges, limits, out):
             if ia == ic:
                 kind[p] = 0
                 continue
-            ma, mc = best[i, a] - second[i, a], best[i, c] - second[i, c]
-            tot = ma + mc
-            signal = 0.5 * (best[i, a] + best[i, c]) - dark
-            if abs(ia - ic) == 1 and tot > 0 and tot >= k * np.sqrt(var[a] + var[c]) and \
-                    tot >= min_contrast * signal:
-                kind[p] = 1  # the zero of the normalized difference (I_a − I_a+1)/(I_a + I_a+1): albedo-free
-                na = ma / max(best[i, a] + second[i, a] - 2.0 * dark, 1e-9)
-                nc = mc / max(best[i, c] + second[i, c] - 2.0 * dark, 1e-9)
-                xs[p] = a + na / (na + nc)
+            if abs(ia - ic) != 1:
+                kind[p] = 2
+                continue
+            # the window: up to m_win pixels of each stripe on each side, ok and of that stripe
+            s1 = s_x = s_y = s_xx = s_xy = 0.0
+            mar_l = mar_r = var_l = var_r = sig = 0.0
+            n_l = n_r = 0
+            for side in range(2):
+                for t in range(m_win):
+                    j = a - t if side == 0 else c + t
+                    if j < 0 or j >= w or not ok[j] or index[i, j] != (ia if side == 0 else ic):
+                        break
+                    mj = best[i, j] - second[i, j]
+                    y = mj / max(best[i, j] + second[i, j] - 2.0 * dark, 1e-9)  # (I_a − I_a+1)/(I_a + I_a+1)
+                    if side == 1:
+                        y = -y
+                        mar_r += mj
+                        var_r += var[j]
+                        n_r += 1
+                    else:
+                        mar_l += mj
+                        var_l += var[j]
+                        n_l += 1
+                    sig += best[i, j] - dark
+                    s1 += 1.0
+                    s_x += j
+                    s_y += y
+                    s_xx += j * j
+                    s_xy += j * y
+            tot = mar_l / n_l + mar_r / n_r  # the mean margins of the two sides
+            sd = np.sqrt(var_l / (n_l * n_l) + var_r / (n_r * n_r))
+            det = s1 * s_xx - s_x * s_x
+            slope = (s1 * s_xy - s_x * s_y) / det if det > 0 else 0.0
+            if tot > 0 and slope < 0 and tot >= k * sd and tot >= min_contrast * sig / s1:
+                kind[p] = 1  # the zero of the least-squares line through the window: albedo-free
+                x0 = -(s_y - slope * s_x) / s1 / slope
+                xs[p] = min(max(x0, a), c)
                 cs[p] = edges[max(ia, ic)]
             else:
                 kind[p] = 2
@@ -204,7 +244,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
             if not ok[j] or kind[pl] != 1 or kind[nxt] != 1:
                 continue
             m = best[i, j] - second[i, j]
-            if m < k * np.sqrt(var[j]) and pl != j and nxt != j + 1:
+            if m < k * np.sqrt(var[j]) and j - pl >= m_win and nxt - j - 1 >= m_win:
                 continue
             xl, xr = xs[pl], xs[nxt]
             if xr <= xl:
