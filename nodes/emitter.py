@@ -28,6 +28,9 @@ angles of the request: two angles as given, one angle ``a`` as (a, a + 90), none
 param. Unpolarized methods with angles are taken at those angles; without, with no analyzer (frames carry
 ``polarizer_deg`` None).
 
+Scan ids count from 1 and never repeat within a launch: the next id is kept in the run directory
+(``state/emitter.json``, runtime/liveness.py), so a respawned emitter goes on from where the last one stopped.
+
 ``emitter/show`` (:class:`~polarstripe.msgs.Pattern` → :class:`~polarstripe.msgs.Ack`) lights one pattern
 between scans (``polarizer/calibrate`` shows flood through it, then ``off``); refused while a scan runs or
 waits.
@@ -57,6 +60,7 @@ from polarstripe.msgs import (
 from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.runtime.bus import BusError
+from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -172,7 +176,12 @@ class Emitter(Node):
             kwargs["display_index"] = p.display_index
         self.display = open_backend("display", p.display, **kwargs)
         self.queue: deque[tuple[ScanPlan, float]] = deque()  # (plan, when requested)
-        self.next_id = 1
+        # scan ids never repeat within a launch: the next one is kept in the run directory, so a respawned
+        # emitter goes on from there (runtime/liveness.py)
+        self.run_state = RunState.of(self.graph, self.name)
+        self.next_id = int(self.run_state.get("next_scan_id", 1))
+        if self.next_id > 1:
+            self.log.info("incarnation %d: scan ids go on from %d", self.incarnation, self.next_id)
         self.results: dict[int, ScanEvent] = {}
         self.current: _Run | None = None  # the scan being run
         self._state: tuple[PolarizerState, float] | None = None  # newest polarizer/state not yet looked at
@@ -203,6 +212,7 @@ class Emitter(Node):
         except ValueError as exc:
             return ScanEvent(scan_id=0, event="fault", method=req.method, detail=f"emitter/start_scan: {exc}")
         self.next_id += 1
+        self.run_state.save(next_scan_id=self.next_id)  # before the reply: an id handed out is never reused
         self.queue.append((plan, self.now()))
         return self._event(plan, "start")
 

@@ -6,9 +6,12 @@
   subscribers have joined);
 * subscribes ``medium/estimate``: when the measured p differs from the p the plan assumed by more than
   ``p_tolerance`` (absolute), or σ_t by more than ``sigma_tolerance`` (relative), the scene's medium takes the
-  measured values (a constant DOP p, σ_t when given) and the plan is made again and published.
+  measured values (a constant DOP p, σ_t when given) and the plan is made again and published; that medium
+  is kept in the run directory (``state/planner.json``, runtime/liveness.py), so a respawned planner makes
+  the same plan.
 
-The plan comes from :func:`polarstripe.planning.planner.plan` on :class:`~polarstripe.planning.planner.SceneModel`
+The plan comes from :func:`polarstripe.planning.planner.plan` on
+:class:`~polarstripe.planning.planner.SceneModel`
 (``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``): modality
 ``stripes`` (GQM·W) or ``flood`` (CQM·W), with or without the polarizer. :class:`Plan` carries the best
 separation of the mean curve, the scan type (``rotate``, ``translate`` or ``both``) and per-location optima
@@ -23,6 +26,7 @@ from typing import Literal
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.planner import SceneModel, default_separations, plan
+from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.render import render_components, render_frame, resolve_fidelity
@@ -79,6 +83,12 @@ class Planner(Node):
             exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
             scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
         self.scene = scene
+        self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
+        if "medium_p" in self.run_state:
+            state = self.run_state
+            self.scene = self.with_medium(state.get("medium_p"), state.get("medium_sigma_t"))
+            self.log.info("medium restored from the run state: p %.3f, sigma_t %.3g /m",
+                          self.run_state.get("medium_p"), self.scene.medium.sigma_t)
         self.counters["replans"] = 0
         self.plan_pub = self.publisher("planner/plan")
         self.subscribe("medium/estimate", self.on_estimate, mode="latest")
@@ -150,6 +160,13 @@ class Planner(Node):
         self.plan_pub.publish(self.plan)
         return self.plan
 
+    def with_medium(self, p: float, sigma_t: float | None):
+        """The scene with a constant DOP ``p`` (clamped to [0, 1]) and, when given, ``sigma_t`` [1/m]."""
+        medium = self.scene.medium.replace(dop=DopModel(model="constant", p=min(max(float(p), 0.0), 1.0)))
+        if sigma_t is not None:
+            medium = medium.replace(sigma_t=float(sigma_t))
+        return self.scene.replace(medium=medium)
+
     def on_estimate(self, est: MediumEstimate) -> None:
 
         p = self.params
@@ -158,13 +175,11 @@ class Planner(Node):
         ds = abs(sigma - self.sigma_assumed) / max(self.sigma_assumed, 1e-12) if sigma is not None else 0.0
         if not p.replan or (dp <= p.p_tolerance and ds <= p.sigma_tolerance):
             return
-        medium = self.scene.medium.replace(dop=DopModel(model="constant", p=min(max(est.p, 0.0), 1.0)))
-        if sigma is not None:
-            medium = medium.replace(sigma_t=sigma)
         self.log.info("medium estimate of scan %d (p %.3f, sigma_t %s) differs from the plan's (p %.3f, "
                       "sigma_t %.3g): re-planning", est.scan_id, est.p, sigma, self.p_assumed,
                       self.sigma_assumed)
-        self.scene = self.scene.replace(medium=medium)
+        self.scene = self.with_medium(est.p, sigma)
+        self.run_state.save(medium_p=est.p, medium_sigma_t=sigma)  # restored by a respawned planner
         self.plan = self.make_plan()
         self.counters["replans"] += 1
         self.plan_pub.publish(self.plan)

@@ -22,7 +22,9 @@ Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can:
   angle of least backscatter, E_b. Calibration frames carry scan ids from :data:`CALIBRATION_SCAN_ID`
   (2**30) up, apart from the emitter's scans (the compositor ignores them). The calibration is stepped by
   the loop (:mod:`polarstripe.nodes.polarizer_calibration`): the state keeps being published and
-  ``polarizer/reset`` answered while it runs, and its reply comes at the end.
+  ``polarizer/reset`` answered while it runs, and its reply comes at the end. The last E_b
+  (``least_backscatter_deg``) is kept in the run directory (``state/polarizer.json``, runtime/liveness.py):
+  a respawned polarizer restores it; its calibration scan ids start 2**16 further per incarnation.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from polarstripe.msgs import (
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.nodes.polarizer_calibration import Calibrating
+from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -99,11 +102,22 @@ class Polarizer(Calibrating, Node):
     SUBSCRIBES = {"polarizer/cmd": PolarizerCommand, "camera/frame": Frame}
     SERVES = {"polarizer/calibrate": (CalibrateRequest, Calibration), "polarizer/reset": (Empty, Ack)}
 
+    @property
+    def least_backscatter_deg(self) -> float | None:
+        """E_b of the last calibration [deg], kept in the run directory (runtime/liveness.py)."""
+        return self.run_state.get("least_backscatter_deg")
+
+    @least_backscatter_deg.setter
+    def least_backscatter_deg(self, value: float | None) -> None:
+        self.run_state.save(least_backscatter_deg=value)
+
     # ---- wiring ----------------------------------------------------------------------------------------
     def setup(self):
         self.stage = None
         self.target_deg: float | None = None  # the last commanded target
-        self.least_backscatter_deg: float | None = None
+        self.run_state = RunState.of(self.graph, self.name)  # the calibration outlives a respawn
+        if self.least_backscatter_deg is not None:
+            self.log.info("calibration restored: E_b at %.2f deg (run state)", self.least_backscatter_deg)
         self._connect_error = "not connected yet"
         self._next_connect = -math.inf
         self._node_fault = ""  # faults the node finds itself (settle timeout, rejected command)
@@ -113,7 +127,8 @@ class Polarizer(Calibrating, Node):
         self._next_reset: float | None = None
         self._last_key = None
         self._last_pub = -math.inf
-        self._calibrations = 0
+        # calibration scan ids go on across incarnations too: offset by 2**16 per incarnation
+        self._calibrations = self.incarnation << 16
         self._trigger = None
         self._show = None  # emitter/show client; False once known not to be served
         for key in ("moves", "faults", "auto_resets", "resets_failed", "connects_failed"):

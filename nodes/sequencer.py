@@ -9,7 +9,12 @@
    For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
    ``fault`` on ``emitter/scan`` and, if ``wait_composite``, for the compositor's ``compositor/composite`` of
    that scan.
-3. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
+3. Every wait of a scan depends on the nodes it needs (``scan_peers``, and ``polarized_peers`` for a polarized
+   method, those of the launch graph): one that stops beating on ``heartbeat`` (runtime/liveness.py: 4 missed
+   periods, 1 s by default), exits or is respawned ends the wait at once with a line naming it. If the launch
+   respawns it, the sequencer waits (``respawn_wait_s``) until it beats again with a new incarnation and the
+   interrupted scan has ended, then retries the scan once and says so; otherwise the sequence ends there.
+4. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
 Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
@@ -34,6 +39,7 @@ from polarstripe.msgs import (
     ScanRequest,
 )
 from polarstripe.runtime.bus import BusError, BusTimeout
+from polarstripe.runtime.liveness import PeerLost
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -53,6 +59,9 @@ class Sequencer(Node):
         ready_margin_s: float = 0.3  # after every node was heard, for subscriptions to settle
         scan_timeout_s: float = 600.0
         composite_timeout_s: float = 60.0
+        scan_peers: list[str] = ["emitter", "grabber", "simulator", "compositor"]  # a scan's waits need them
+        polarized_peers: list[str] = ["polarizer"]  # … and a polarized scan's these
+        respawn_wait_s: float = 60.0  # a lost node the launch respawns: its return and the old scan's end
 
         def validate(self):
             super().validate()
@@ -73,6 +82,7 @@ class Sequencer(Node):
         self.subscribe("compositor/composite", mode="all")
         self.subscribe("polarizer/state", mode="latest")
         self.subscribe("heartbeat", mode="all")
+        self.watch("heartbeat")  # runtime/liveness.py: waits on a lost peer end at once
         self.results: dict[str, dict] = {}
 
     def run(self) -> None:
@@ -169,8 +179,55 @@ class Sequencer(Node):
             raise SequenceError(f"polarizer/state: the analyzer stage was not ready within "
                                 f"{self.params.startup_timeout_s:g} s ({why})") from None
 
+    def scan_peers(self, method: str) -> list[str]:
+        """The nodes of the launch graph that the waits of a ``method`` scan depend on."""
+        p, nodes = self.params, self.graph.get("nodes", {})
+        names = [*p.scan_peers, *(p.polarized_peers if method.startswith("polarized") else [])]
+        return [n for n in names if n in nodes and n != self.name
+                and (p.wait_composite or n != "compositor")]
+
     def scan(self, method: str) -> bool:
+        """One scan of ``method``; a node lost meanwhile and respawned by the launch: the scan once more."""
+        self.sid, self.scan_ended = 0, False
+        try:
+            return self.scan_once(method)
+        except PeerLost as exc:
+            lost = exc
+        self.log.error("%s: scan %d: %s", method, self.sid, lost)
+        self.results[method] = {"event": "peer_lost", "detail": str(lost)}
+        try:
+            self.recover(lost, self.sid)
+            self.log.warning("%s: retrying the scan once: node %r is back (incarnation %d)", method,
+                             lost.node, self.liveness.peers[lost.node].incarnation)
+            return self.scan_once(method)
+        except PeerLost as again:
+            self.results[method] = {"event": "peer_lost", "detail": str(again)}
+            raise SequenceError(f"{method}: scan {self.sid} (retried for {lost.node!r}): {again}") from None
+
+    def recover(self, lost: PeerLost, sid: int) -> None:
+        """Wait until ``lost.node`` beats again as a new incarnation and the emitter has ended scan ``sid``
+        (a fault when a peer died under it), both within ``respawn_wait_s``; SequenceError otherwise."""
+        node = self.graph.get("nodes", {}).get(lost.node, {})
+        if not node.get("respawn"):
+            raise SequenceError(f"node {lost.node!r} lost and the launch does not respawn it: stopping")
+        deadline = self.now() + self.params.respawn_wait_s
+        while not self.liveness.back(lost.node, lost.incarnation):
+            if self.now() >= deadline or self.stopping:
+                raise SequenceError(f"node {lost.node!r} lost and not back within "
+                                    f"{self.params.respawn_wait_s:g} s")
+            self.take("heartbeat", 0.05)
+        self.liveness.forgive(lost.node)
+        if lost.node != "emitter" and sid and not self.scan_ended:  # it must end before the retry starts
+            try:
+                self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),
+                              max(0.0, deadline - self.now()), peers=["emitter"])
+            except BusTimeout:
+                self.log.warning("scan %d: the emitter has not ended it within %g s", sid,
+                                 self.params.respawn_wait_s)
+
+    def scan_once(self, method: str) -> bool:
         p = self.params
+        peers = self.scan_peers(method)
         polarized = method.startswith("polarized")
         req = ScanRequest(method=method, stripes=p.stripes if "stripes" in method else 0,
                           analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
@@ -180,10 +237,11 @@ class Sequencer(Node):
             self.log.error("%s: emitter refused: %s", method, reply.detail)
             self.results[method] = {"event": "fault", "detail": reply.detail}
             return False
-        sid = reply.scan_id
+        sid = self.sid = reply.scan_id
+        self.scan_ended = False
         try:
             end = self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),
-                                p.scan_timeout_s)
+                                p.scan_timeout_s, peers=peers)
         except BusTimeout:
             self.log.error("%s: scan %d: no done/fault on emitter/scan within %g s", method, sid,
                            p.scan_timeout_s)
@@ -191,14 +249,17 @@ class Sequencer(Node):
             return False
         scan_s = time.monotonic() - t0
         self.results[method] = {"event": end.event, "detail": end.detail, "scan_s": scan_s}
+        self.scan_ended = True
         if end.event == "fault":
             self.log.error("%s: scan %d fault: %s", method, sid, end.detail)
+            self.check_peers(peers)  # a fault because a peer died under the scan: PeerLost, the retry path
             return False
         self.log.info("%s: scan %d done in %.2f s", method, sid, scan_s)
         if not p.wait_composite:
             return True
         try:
-            comp = self.wait_for("compositor/composite", lambda c: c.scan_id == sid, p.composite_timeout_s)
+            comp = self.wait_for("compositor/composite", lambda c: c.scan_id == sid, p.composite_timeout_s,
+                                 peers=peers)
         except BusTimeout:
             self.log.error("%s: scan %d: no compositor/composite within %g s", method, sid,
                            p.composite_timeout_s)

@@ -63,6 +63,7 @@ from polarstripe.nodes.simulator_frames import (
     timed_render,
     to_camera,
 )
+from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
@@ -155,6 +156,10 @@ class Simulator(Node):
             self.ell14 = self._host_ell14(p.ell14_link)
         for command in p.faults:
             self.inject(SimFault(command=command), strict=True)
+        self.run_state = RunState.of(self.graph, self.name)  # the source pose outlives a respawn
+        if "separation_m" in self.run_state:
+            self.scene = with_separation(self.base, float(self.run_state.get("separation_m")))
+            self.log.info("source restored to d_LC = %.3f m (run state)", self.scene.separation_m())
         self._expose_for_flood()
         self.scanning: set[int] = set()  # scans started and not yet ended (emitter/scan)
         self.pending_plan: Plan | None = None
@@ -252,6 +257,7 @@ class Simulator(Node):
             raise SimulatorError(f"plan: separation_m={separation_m} must be a positive number of metres")
         self.scene = with_separation(self.base, separation_m)
         self._expose_for_flood()
+        self.run_state.save(separation_m=separation_m)  # restored by a respawned simulator
         return self.scene
 
     def _expose_for_flood(self) -> None:

@@ -211,9 +211,10 @@ class Watching:
         if topic == self._watch_topic:
             self.liveness.heard(item)
 
-    def _check_peers(self, peers: Iterable[str], topic: str) -> None:
-        """Hand the beats that have arrived to the watch (they are not handed out again), then raise
-        :class:`PeerLost` for the first of ``peers`` that is lost."""
+    def check_peers(self, peers: Iterable[str], topic: str | None = None) -> None:
+        """Hand the beats that have arrived to the watch (they are not handed out again; not while waiting
+        on the watched ``topic`` itself), then raise :class:`PeerLost` for the first of ``peers`` that is
+        lost (e.g. after a fault: did a peer die under it?)."""
         if topic != self._watch_topic:
             for item in self._bus.take(self._subs[self._watch_topic].source, 0.0):
                 if isinstance(item, Heartbeat):

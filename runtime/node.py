@@ -246,7 +246,7 @@ class Node(Watching):
                 if match(item):
                     return item
             if peers:
-                self._check_peers(peers, topic)
+                self.check_peers(peers, topic)
             if self.now() >= deadline:
                 raise BusTimeout(
                     f"node {self.name!r}: no matching message on {sub.full!r} within {timeout_s} s"
