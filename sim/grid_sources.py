@@ -28,7 +28,7 @@ from polarstripe.sim.grid_kernels import (
     view_lookup,
 )
 from polarstripe.sim.multiple import Field, Grid
-from polarstripe.sim.patterns import stripe_columns
+from polarstripe.sim.patterns import gray_lit, stripe_columns
 from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 from polarstripe.sim.transport import Source
 
@@ -45,15 +45,19 @@ def _fibonacci(n: int) -> np.ndarray:
 
 def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
     """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels (exact for flood and stripes,
-    4 × 4 sub-samples for checkers)."""
+    4 × 4 sub-samples for checkers and Gray code)."""
     pat = src.pattern
     if pat.kind == "flood":
         return np.ones(c0.shape)
     if pat.kind == "stripe":
         s0, s1 = stripe_columns(pat, src.frame.w)
         return np.clip(np.minimum(c1, s1) - np.maximum(c0, s0), 0.0, None) / (c1 - c0)
-    size, shift = pat.size, pat.shift % (2 * pat.size)
     u = (np.arange(4) + 0.5) / 4
+    if pat.kind == "gray":
+        col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]
+        row = r0[:, None, None] + (r1 - r0)[:, None, None] * u[None, None, :]
+        return gray_lit(pat, col, row).mean(axis=(1, 2))
+    size, shift = pat.size, pat.shift % (2 * pat.size)
     col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]
     row = r0[:, None, None] + (r1 - r0)[:, None, None] * u[None, None, :]
     lit = (np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0
@@ -199,6 +203,8 @@ def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarr
         elif pat.kind == "checker":
             sh = pat.shift % (2 * pat.size)
             lit &= (np.floor((col - sh) / pat.size) + np.floor(row / pat.size)) % 2 == 0
+        elif pat.kind == "gray":
+            lit &= gray_lit(pat, col, row)
     if len(objects) and lit.any():
         idx = np.nonzero(lit)[0]
         lit[idx[occluded(objects, src.position, points[idx] + 1e-7 * normals[idx])]] = False

@@ -40,7 +40,7 @@ import warnings
 
 import numpy as np
 from polarstripe.sim.geometry import Hits, pinhole_frame, plane_axes
-from polarstripe.sim.patterns import Pattern, parse_pattern, stripe_columns
+from polarstripe.sim.patterns import Pattern, gray_lit, parse_pattern, stripe_columns
 from polarstripe.sim.phase import tthg_parameters
 from polarstripe.sim.scene import BoxObject, PlaneObject, Scene, SceneError, SphereObject
 from polarstripe.sim.surface import surface_info
@@ -125,6 +125,8 @@ def projector_texture(scene: Scene, pattern: str | Pattern) -> np.ndarray:
     elif pat.kind == "stripe":
         c0, c1 = stripe_columns(pat, w)
         lit = (cols >= c0) & (cols < c1)
+    elif pat.kind == "gray":
+        lit = gray_lit(pat, cols + 0.5, rows + 0.5)
     else:
         shift = pat.shift % (2 * pat.size)
         lit = (np.floor((cols - shift) / pat.size) + np.floor(rows / pat.size)) % 2 == 0

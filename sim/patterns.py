@@ -1,7 +1,9 @@
 """Projector patterns in the model: the analytic clipping of rays to the lit part of the projector's frustum.
 
-The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``) and the pattern value are
-:mod:`polarstripe.msgs.patterns`; ``Pattern`` and ``stripe_columns`` here are those, imported for the model.
+The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
+value are :mod:`polarstripe.msgs.patterns`; ``Pattern``, ``stripe_columns`` and ``gray_lit`` here are those,
+imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit state
+can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1)).
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
 Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (docs/physics.md §2.3).
 """
@@ -9,19 +11,20 @@ Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear 
 from __future__ import annotations
 
 import numpy as np
-from polarstripe.msgs.patterns import PatternError, parse, stripe_columns
+from polarstripe.msgs.patterns import PatternError, gray_lit, parse, stripe_columns
 from polarstripe.msgs.patterns import PatternSpec as Pattern
 from polarstripe.sim.geometry import Frame
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["Pattern", "clip_halfspaces", "lit_intervals", "parse_pattern", "stripe_columns"]
+__all__ = ["Pattern", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "stripe_columns"]
 
 _PAR_EPS = 1e-13
 
 
 def parse_pattern(spec: str | Pattern) -> Pattern:
-    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N) or ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) with
+    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N), ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) or
+    ``gray:BIT:col|row:0|1`` with
     the grammar of :mod:`polarstripe.msgs.patterns`; a bad spec (or ``off``, which lights nothing to model)
     is a :class:`SceneError`."""
     try:
@@ -29,7 +32,8 @@ def parse_pattern(spec: str | Pattern) -> Pattern:
     except PatternError as exc:
         raise SceneError(str(exc)) from None
     if pattern.kind == "off":
-        raise SceneError(f"pattern {spec!r} is not flood, stripe:K/N or checker:SIZE:SHIFT")
+        raise SceneError(f"pattern {spec!r} is not flood, stripe:K/N, checker:SIZE:SHIFT or "
+                         "gray:BIT:AXIS:INV")
     return pattern
 
 
@@ -76,11 +80,15 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
         lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, c0, c1))
         keep = hi > lo
         return np.nonzero(keep)[0], lo[keep], hi[keep]
-    # checker: clip to the frustum, then split at every column/row boundary the ray crosses
+    # checker, gray: clip to the frustum, then split at every column/row boundary the ray crosses
     lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, 0, frame.w))
     keep = np.nonzero(hi > lo)[0]
     rays, los, his = [], [], []
-    size, shift = pattern.size, pattern.shift % (2 * pattern.size)
+    if pattern.kind == "gray":   # (axis, first boundary, period) of the pattern-pixel lines where it changes
+        bounds = [(0 if pattern.axis == "col" else 1, 2 ** pattern.index, 2 ** (pattern.index + 1))]
+    else:
+        size, shift = pattern.size, pattern.shift % (2 * pattern.size)
+        bounds = [(0, shift % size, size), (1, 0, size)]
     rel_all = np.broadcast_to(origin - frame.position, dirs.shape)
     for start in range(0, keep.size, 8192):
         idx = keep[start:start + 8192]
@@ -96,7 +104,7 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
                 ends.append((np.clip(frame.w / 2 + ((vr0 + x * dr) / vf) / frame.s, 0.0, frame.w),
                              np.clip(frame.h / 2 - ((vu0 + x * du) / vf) / frame.s, 0.0, frame.h)))
         cuts = [a[:, None], b[:, None]]
-        for axis, off in ((0, shift % size), (1, 0)):
+        for axis, off, size in bounds:
             lo_c = np.minimum(ends[0][axis], ends[1][axis])
             hi_c = np.maximum(ends[0][axis], ends[1][axis])
             k0 = np.ceil((lo_c - off) / size)
@@ -125,7 +133,10 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
             col = frame.w / 2.0 + ((vr0[:, None] + mid * dr[:, None]) / pf) / frame.s
             row = frame.h / 2.0 - ((vu0[:, None] + mid * du[:, None]) / pf) / frame.s
         with np.errstate(invalid="ignore"):     # a mid-point at the apex (0/0) is not lit
-            lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
+            if pattern.kind == "gray":
+                lit = gray_lit(pattern, col, row) & np.isfinite(col + row) & (s1 > s0)
+            else:
+                lit = ((np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0) & (s1 > s0)
         r_i, c_i = np.nonzero(lit)
         rays.append(idx[r_i])
         los.append(s0[r_i, c_i])

@@ -13,7 +13,7 @@ import numpy as np
 from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
 from polarstripe.sim.kernel_records import Stokes
 from polarstripe.sim.kernels import camera_stokes
-from polarstripe.sim.patterns import Pattern, lit_intervals, stripe_columns
+from polarstripe.sim.patterns import Pattern, gray_lit, lit_intervals, stripe_columns
 from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.surface import SurfaceInfo
 from polarstripe.sim.surface_grid import plane_stripe_field
@@ -74,6 +74,8 @@ def pattern_lit(pattern: Pattern, frame, points: np.ndarray) -> np.ndarray:
     elif pattern.kind == "checker":
         shift = pattern.shift % (2 * pattern.size)
         ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0
+    elif pattern.kind == "gray":
+        ok &= gray_lit(pattern, col, row)
     return ok
 
 

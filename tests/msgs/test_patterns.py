@@ -12,6 +12,8 @@ from polarstripe.msgs.patterns import checker_pair, following, parse, stripe_col
     ("off", PatternSpec("off")),
     (" Stripe:3/30 ", PatternSpec("stripe", index=3, count=30)),
     ("checker:16:8", PatternSpec("checker", size=16, shift=8)),
+    ("gray:3:col:0", PatternSpec("gray", index=3, axis="col")),
+    ("gray:0:row:1", PatternSpec("gray", index=0, axis="row", inverse=True)),
 ])
 def test_parse_known_forms(text, spec):
     assert parse(text) == spec
@@ -22,7 +24,9 @@ def test_parse_known_forms(text, spec):
     ("stripe:3/3", "index=3 count=3"),
     ("stripe:0/0", "count=0"),
     ("checker:0:0", "size=0"),
-    ("gray:3", "not flood, off, stripe:K/N or checker:SIZE:SHIFT"),
+    ("gray:3", "not flood, off, stripe:K/N, checker:SIZE:SHIFT or gray"),
+    ("gray:3:diag:0", "not flood"),
+    ("gray:31:col:0", "bit=31"),
     ("stripe:-1/3", "not flood"),
 ])
 def test_bad_specs_name_what_is_wrong(text, match):

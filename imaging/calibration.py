@@ -1,0 +1,303 @@
+"""Projector–camera calibration from Gray code images of a checkerboard (docs/depth.md "Calibration").
+
+Per pose of a planar checkerboard of ``cols``×``rows`` inner corners (squares ``square_m`` wide):
+
+1. the camera's corners: ``cv2.findChessboardCornersSB`` on the white (flood) image;
+2. the projector pixel of every camera pixel in a window around each corner: OpenCV's
+   ``structured_light.GrayCodePattern.getProjPixel`` on the Gray code images (the patterns of
+   :func:`polarstripe.msgs.patterns.gray_code`, in ``generate()`` order), kept where white − black exceeds
+   ``black_threshold`` (shadow mask) and the decoding reports no error;
+3. the projector's corners by local homographies: in each window a homography H (RANSAC, then least
+   squares on its inliers) maps camera pixels to decoded projector pixels, and the corner x_p = H·x_c
+   (homogeneous). A plane seen by two pinholes is a homography, so H is exact up to lens distortion and the
+   window's decoding noise averages down;
+4. ``cv2.calibrateCamera`` for the camera (distortion per ``distortion``) and for the projector (no
+   distortion: the light sheets of imaging/triangulation.py assume none), then ``cv2.stereoCalibrate`` with
+   both intrinsics fixed for the pose X_p = R·X_c + T. Reprojection RMS [px] per device and of the stereo fit.
+
+Pixel coordinates are OpenCV's (pixel centres at integers); decoded projector pixel j is the pattern column
+[j, j+1) of msgs/patterns.py, i.e. OpenCV projector coordinate j. Images are any real dtype; they are scaled
+to 8 bits between ``dark`` and the brightest white pixel (the Gray decoder's input).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.msgs.patterns import gray_code
+
+MIN_POSES = 3
+DISTORTION = {"none": (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST),
+              "radial": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
+              "full": 0}
+
+
+class CalibrationError(PolarstripeError, ValueError):
+    """Calibration input that gives no calibration: too few poses, a target not seen, patterns the camera
+    cannot decode, images or a file of another rig size. The text says which pose and why."""
+
+
+@dataclass(frozen=True)
+class Board:
+    """A checkerboard target: ``cols``×``rows`` inner corners, squares ``square_m`` [m]."""
+
+    cols: int = 8
+    rows: int = 6
+    square_m: float = 0.02
+
+    def object_points(self) -> np.ndarray:
+        """Corner coordinates on the board (n, 3) float32 [m], z = 0, row-major as OpenCV finds them."""
+        g = np.mgrid[0:self.cols, 0:self.rows].T.reshape(-1, 2)
+        return np.hstack([g * self.square_m, np.zeros((len(g), 1))]).astype(np.float32)
+
+
+@dataclass
+class PoseResult:
+    """One pose: camera corners (n, 2), projector corners (n, 2) (NaN where the window did not decode)."""
+
+    cam: np.ndarray
+    proj: np.ndarray
+    decoded: int = 0
+
+
+@dataclass
+class Calibration:
+    """The result: intrinsics, distortion, pose (X_p = R·X_c + T), sizes [w, h], RMS [px]."""
+
+    K_cam: np.ndarray
+    dist_cam: np.ndarray
+    K_proj: np.ndarray
+    dist_proj: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    cam_size: tuple[int, int]
+    proj_size: tuple[int, int]
+    rms_cam: float
+    rms_proj: float
+    rms_stereo: float
+    poses: list[PoseResult] = field(default_factory=list)
+
+    def geometry(self) -> dict:
+        """The keys of imaging/triangulation.py ``RigGeometry.from_dict``."""
+        return {"K_cam": self.K_cam, "dist_cam": self.dist_cam, "K_proj": self.K_proj, "R": self.R,
+                "T": self.T.ravel(), "cam_size": list(self.cam_size), "proj_size": list(self.proj_size)}
+
+
+def to8bit(image: np.ndarray, dark: float, bright: float) -> np.ndarray:
+    """uint8 = clip(255·(image − dark)/(bright − dark))."""
+    scale = 255.0 / max(float(bright) - float(dark), 1e-12)
+    return np.clip((np.asarray(image, float) - dark) * scale, 0, 255).astype(np.uint8)
+
+
+def find_corners(white8: np.ndarray, board: Board) -> np.ndarray | None:
+    """Checkerboard corners (n, 2) float64 in the camera (``cv2.findChessboardCornersSB``), or None."""
+    ok, corners = cv2.findChessboardCornersSB(white8, (board.cols, board.rows),
+                                              flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    return corners.reshape(-1, 2).astype(float) if ok else None
+
+
+def projector_corners(corners: np.ndarray, gray8: list[np.ndarray], white8: np.ndarray, black8: np.ndarray,
+                      proj_size: tuple[int, int], *, half: int, black_threshold: int = 10,
+                      white_threshold: int = 5, min_points: int = 12) -> tuple[np.ndarray, int]:
+    """Projector corners (n, 2) by local homographies (module docstring, step 3), NaN where a window has
+    fewer than ``min_points`` decoded pixels; and the number of pixels decoded."""
+    gcp = cv2.structured_light.GrayCodePattern.create(int(proj_size[0]), int(proj_size[1]))
+    gcp.setWhiteThreshold(int(white_threshold))
+    gcp.setBlackThreshold(int(black_threshold))
+    h, w = white8.shape
+    lit = white8.astype(int) - black8.astype(int) > black_threshold
+    out, total = np.full((len(corners), 2), np.nan), 0
+    for k, (x, y) in enumerate(corners):
+        x0, x1 = max(int(round(x)) - half, 0), min(int(round(x)) + half + 1, w)
+        y0, y1 = max(int(round(y)) - half, 0), min(int(round(y)) + half + 1, h)
+        cam, proj = [], []
+        for v in range(y0, y1):
+            for u in range(x0, x1):
+                if not lit[v, u]:
+                    continue
+                err, p = gcp.getProjPixel(gray8, u, v)
+                if not err:
+                    cam.append((u, v))
+                    proj.append(p)
+        total += len(cam)
+        if len(cam) < min_points:
+            continue
+        cam_a, proj_a = np.asarray(cam, np.float64), np.asarray(proj, np.float64)
+        H, inl = cv2.findHomography(cam_a, proj_a, cv2.RANSAC, 2.0)
+        if H is None:
+            continue
+        inl = inl.ravel().astype(bool)
+        if inl.sum() >= min_points:
+            H, _ = cv2.findHomography(cam_a[inl], proj_a[inl], 0)
+            if H is None:
+                continue
+        q = H @ np.array([x, y, 1.0])
+        out[k] = q[:2] / q[2]
+    return out, total
+
+
+def decode_pose(white: np.ndarray, black: np.ndarray, gray: list[np.ndarray], board: Board,
+                proj_size: tuple[int, int], *, pose: int = 0, black_threshold: int = 10,
+                white_threshold: int = 5) -> PoseResult:
+    """Steps 1–3 for one pose. ``gray``: the frames of :func:`polarstripe.msgs.patterns.gray_code`
+    (proj_size) in order; ``white``/``black``: the flood and off frames.
+
+    :raises CalibrationError: the board is not found, or too few of its corners decode in the projector."""
+    n = len(gray_code(*proj_size))
+    if len(gray) != n:
+        raise CalibrationError(f"pose {pose}: {len(gray)} Gray code frames, a {proj_size[0]}x{proj_size[1]} "
+                               f"projector needs {n}")
+    shapes = {np.shape(a) for a in (white, black, *gray)}
+    if len(shapes) != 1:
+        raise CalibrationError(f"pose {pose}: frames of different sizes {sorted(shapes)}")
+    dark = float(np.median(black))
+    bright = float(np.percentile(white, 99.5))
+    if bright - dark <= 0:
+        raise CalibrationError(f"pose {pose}: the white frame is no brighter than the black one")
+    w8, b8 = to8bit(white, dark, bright), to8bit(black, dark, bright)
+    corners = find_corners(w8, board)
+    if corners is None:
+        raise CalibrationError(f"pose {pose}: the {board.cols}x{board.rows} checkerboard is not seen "
+                               "in the white frame")
+    spacing = float(np.median(np.linalg.norm(np.diff(corners.reshape(board.rows, board.cols, 2), axis=1),
+                                             axis=2)))
+    half = max(3, int(round(0.5 * spacing)))
+    g8 = [to8bit(g, dark, bright) for g in gray]
+    proj, total = projector_corners(corners, g8, w8, b8, proj_size, half=half,
+                                    black_threshold=black_threshold, white_threshold=white_threshold)
+    good = np.isfinite(proj).all(axis=1)
+    if good.mean() < 0.9:
+        raise CalibrationError(f"pose {pose}: only {int(good.sum())} of {len(corners)} corners decode in the "
+                               "projector (the camera cannot decode the Gray code there: too dark, "
+                               "saturated or out of focus?)")
+    return PoseResult(corners, proj, total)
+
+
+def calibrate(poses: list[PoseResult], board: Board, cam_size: tuple[int, int], proj_size: tuple[int, int],
+              *, distortion: str = "radial") -> Calibration:
+    """Step 4: both intrinsics and the projector's pose from the decoded poses (module docstring).
+
+    :raises CalibrationError: fewer than :data:`MIN_POSES` poses, or a calibration that does not converge."""
+    if len(poses) < MIN_POSES:
+        raise CalibrationError(f"{len(poses)} usable poses: a calibration needs at least {MIN_POSES}")
+    if distortion not in DISTORTION:
+        raise CalibrationError(f"distortion {distortion!r} is not one of {', '.join(DISTORTION)}")
+    obj, cam, proj = [], [], []
+    full = board.object_points()
+    for p in poses:
+        good = np.isfinite(p.proj).all(axis=1)
+        obj.append(full[good])
+        cam.append(p.cam[good].astype(np.float32).reshape(-1, 1, 2))
+        proj.append(p.proj[good].astype(np.float32).reshape(-1, 1, 2))
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    try:
+        rms_c, Kc, dc, _, _ = cv2.calibrateCamera(obj, cam, tuple(cam_size), None, None,
+                                                  flags=DISTORTION[distortion], criteria=crit)
+        rms_p, Kp, dp, _, _ = cv2.calibrateCamera(obj, proj, tuple(proj_size), None, None,
+                                                  flags=DISTORTION["none"], criteria=crit)
+        rms_s, *_, R, T, _, _ = cv2.stereoCalibrate(obj, cam, proj, Kc, dc, Kp, dp, tuple(cam_size),
+                                                    flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    except cv2.error as exc:
+        raise CalibrationError(f"calibration did not converge: {exc.err}") from None
+    if not all(np.isfinite(v).all() for v in (Kc, Kp, R, T)):
+        raise CalibrationError("calibration did not converge (non-finite result)")
+    return Calibration(Kc, dc.ravel(), Kp, dp.ravel(), R, T.ravel(), tuple(cam_size), tuple(proj_size),
+                       float(rms_c), float(rms_p), float(rms_s), list(poses))
+
+
+def coverage_image(poses: list[PoseResult], proj_size: tuple[int, int], *, width: int = 640) -> np.ndarray:
+    """The projector plane (BGR uint8, ``width`` wide) with every pose's projector corners and board outline:
+    where the calibration has data."""
+    pw, ph = proj_size
+    s = width / pw
+    img = np.full((max(1, int(round(ph * s))), width, 3), 32, np.uint8)
+    for k, p in enumerate(poses):
+        hue = int(180 * k / max(1, len(poses)))
+        color = cv2.cvtColor(np.uint8([[[hue, 200, 255]]]), cv2.COLOR_HSV2BGR)[0, 0].tolist()
+        good = np.isfinite(p.proj).all(axis=1)
+        pts = p.proj[good] * s
+        if len(pts) >= 3:
+            hull = cv2.convexHull(pts.astype(np.float32)).astype(np.int32)
+            cv2.polylines(img, [hull], True, color, 1, cv2.LINE_AA)
+        for x, y in pts:
+            cv2.circle(img, (int(round(x)), int(round(y))), 2, color, -1, cv2.LINE_AA)
+    return img
+
+
+# ---------------------------------------------------------------------------------------------- the file
+
+FILE_KEYS = ("K_cam", "dist_cam", "K_proj", "dist_proj", "R", "T", "cam_size", "proj_size")
+_COLUMNS = ("T", "dist_cam", "dist_proj", "cam_size", "proj_size")
+
+
+def save(path: str, geom: dict, extra: dict | None = None) -> None:
+    """Write a calibration as OpenCV ``FileStorage`` YAML (XML/JSON by the name's extension) atomically: a
+    temporary file beside ``path``, then a rename, so a failed run leaves the previous file whole.
+    ``geom``: the :data:`FILE_KEYS` (``dist_*`` optional); ``extra``: numbers or strings (RMS, poses…)."""
+    base, ext = os.path.splitext(path)
+    tmp = f"{base}.tmp{os.getpid()}{ext or '.yaml'}"
+    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+    try:
+        for key in FILE_KEYS:
+            if key not in geom:
+                continue
+            a = np.asarray(geom[key], np.float64)
+            fs.write(key, a.reshape((-1, 1) if key in _COLUMNS else (3, 3)))
+        for key, value in (extra or {}).items():
+            fs.write(key, value)
+    finally:
+        fs.release()
+    os.replace(tmp, path)
+
+
+def load(path: str, *, cam_size=None, proj_size=None) -> dict:
+    """The matrices of a calibration file (``dist_*`` zeros when absent). With ``cam_size``/``proj_size``
+    ([w, h]) a file of another rig size is an error (a camera binned by an integer factor is the same rig).
+
+    :raises CalibrationError: no such file, not a FileStorage file, a key missing, another rig size."""
+    if not os.path.isfile(path):
+        raise CalibrationError(f"calibration {path!r}: no such file")
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise CalibrationError(f"calibration {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
+    try:
+        if not fs.isOpened():
+            raise CalibrationError(f"calibration {path!r}: not an OpenCV FileStorage file")
+        out = {}
+        for key in FILE_KEYS:
+            node = fs.getNode(key)
+            if node.empty():
+                if key.startswith("dist_"):
+                    out[key] = np.zeros(5)
+                    continue
+                raise CalibrationError(f"calibration {path!r}: {key} is missing")
+            value = node.mat()
+            out[key] = node.real() if value is None else value
+    except cv2.error as exc:
+        raise CalibrationError(f"calibration {path!r}: {exc.err}") from None
+    finally:
+        fs.release()
+    check_rig_size(out, path, cam_size=cam_size, proj_size=proj_size)
+    return out
+
+
+def check_rig_size(geom: dict, name: str, *, cam_size=None, proj_size=None) -> None:
+    """Raise :class:`CalibrationError` unless the calibration's sizes are the rig's: the projector exactly,
+    the camera up to an integer binning factor (same aspect)."""
+    fc = [int(v) for v in np.ravel(geom["cam_size"])]
+    fp = [int(v) for v in np.ravel(geom["proj_size"])]
+    if proj_size is not None and fp != [int(v) for v in proj_size]:
+        raise CalibrationError(f"calibration {name!r} is for a {fp[0]}x{fp[1]} projector, the rig's is "
+                               f"{int(proj_size[0])}x{int(proj_size[1])}: calibrate this rig")
+    if cam_size is not None:
+        w, h = (int(v) for v in cam_size)
+        ok = (fc[0] % w == 0 and fc[1] % h == 0 and fc[0] // w == fc[1] // h) or \
+             (w % fc[0] == 0 and h % fc[1] == 0 and w // fc[0] == h // fc[1])
+        if not ok:
+            raise CalibrationError(f"calibration {name!r} is for a {fc[0]}x{fc[1]} camera, the rig's is "
+                                   f"{w}x{h}: calibrate this rig")

@@ -1,0 +1,42 @@
+"""The simulator's projector shows OpenCV's Gray code images: surface light (D) and the lit ray intervals of
+the backscatter (lit_intervals) both, checked against cv2.structured_light.GrayCodePattern.generate()."""
+
+import cv2
+import numpy as np
+from polarstripe.msgs.patterns import gray_code
+from polarstripe.sim.depth_truth import projector_frame
+from polarstripe.sim.geometry import pixel_rays
+from polarstripe.sim.patterns import lit_intervals
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import scene_from_dict
+
+W, H = 40, 24
+
+
+def _scene():
+    # the camera sits in the projector with its size and field of view: camera pixel = pattern pixel
+    pose = {"position": [0.0, 0.0, 0.0], "look_at": [0.0, 0.0, 0.3], "resolution": [W, H], "fov_deg": 40.0}
+    return scene_from_dict({"medium": {"sigma_t": 0.0}, "camera": dict(pose), "projector": dict(pose),
+                            "object": [{"type": "plane", "point": [0, 0, 0.3], "normal": [0, 0, -1]}]})
+
+
+def test_surface_light_is_opencvs_gray_code():
+    scene = _scene()
+    ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
+    for spec, image in zip(gray_code(W, H), images):
+        d = render_components(scene, spec, "preview", need=("D",)).D
+        np.testing.assert_array_equal(d > 0, image > 0, err_msg=str(spec))
+
+
+def test_lit_intervals_are_opencvs_gray_code():
+    scene = _scene()
+    frame = projector_frame(scene)
+    dirs = pixel_rays(frame)
+    x0, x1 = np.full(len(dirs), 0.05), np.full(len(dirs), 0.25)
+    ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
+    for spec, image in zip(gray_code(W, H), images):
+        ray, lo, hi = lit_intervals(spec, frame, frame.position, dirs, x0, x1)
+        lit = np.zeros(len(dirs), bool)
+        lit[ray] = True
+        np.testing.assert_array_equal(lit.reshape(H, W), image > 0, err_msg=str(spec))
+        np.testing.assert_allclose(hi - lo, 0.2)        # a ray from the apex is lit whole or not at all

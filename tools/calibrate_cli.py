@@ -1,0 +1,252 @@
+"""``polarstripe calibrate``: projector–camera calibration with Gray code on a checkerboard (docs/depth.md).
+
+``polarstripe calibrate -o rig.yaml --sim [--poses N] [--sigma-t S] [scene.toml]`` runs it on the simulated
+rig: the scene's camera and projector, its medium (σ_t from ``--sigma-t``), and instead of its objects a
+checkerboard plane (a PNG texture on a plane, docs/scene-format.md) at N random, seeded poses, each rendered
+under the white (``flood``) pattern, in the dark, and under every Gray code pattern of the projector
+(``gray_code`` of msgs/patterns.py); then :mod:`polarstripe.imaging.calibration` decodes and calibrates.
+
+Writes ``rig.yaml`` (OpenCV FileStorage, atomically: a failed run leaves the previous file untouched) and
+``rig_coverage.png`` beside it (the projector plane with every pose's corners). With ``--sim`` it prints the
+simulator's truth beside the estimate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+import cv2
+import numpy as np
+from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.calibration import (
+    MIN_POSES,
+    Board,
+    CalibrationError,
+    calibrate,
+    coverage_image,
+    decode_pose,
+    save,
+)
+from polarstripe.msgs.patterns import gray_code
+from polarstripe.sim.depth_truth import rig_geometry
+from polarstripe.sim.render import render_components, render_frame
+from polarstripe.sim.scene import PlaneObject, Scene, load_scene, parse_size
+from polarstripe.sim.sensor import expose
+from tqdm import tqdm
+
+SUPERSAMPLE = 3
+HELP = "projector-camera calibration with Gray code on a checkerboard (--sim: on the simulated rig)"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene", nargs="?", default=None,
+                        help="scene TOML of the simulated rig (--sim; omitted: the default tank)")
+    parser.add_argument("-o", "--out", required=True, metavar="FILE",
+                        help="calibration file to write (.yaml; .xml or .json also work)")
+    parser.add_argument("--sim", action="store_true", help="calibrate the simulated rig")
+    parser.add_argument("--poses", type=int, default=8, help=f"board poses (>= {MIN_POSES}; default 8)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the poses and the sensor noise")
+    parser.add_argument("--sigma-t", type=float, default=None, metavar="PER_M",
+                        help="medium extinction [1/m] (default: the scene's)")
+    parser.add_argument("--resolution", default=None, metavar="WxH",
+                        help="camera resolution (default: scene)")
+    parser.add_argument("--projector", default=None, metavar="WxH",
+                        help="projector resolution (default: scene)")
+    parser.add_argument("--board", default="8x6", metavar="COLSxROWS", help="inner corners (default 8x6)")
+    parser.add_argument("--square", type=float, default=0.015, metavar="M", help="square size [m]")
+    parser.add_argument("--distortion", default="radial", choices=("none", "radial", "full"),
+                        help="camera lens distortion to fit: none, radial (k1, k2; default), full (5)")
+    parser.add_argument("--fidelity", default="preview",
+                        help="model fidelity of the renders (default preview)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def board_texture(board: Board, path: str, dark: int = 64) -> tuple[float, float]:
+    """Write the checkerboard PNG (one texel per square, a one-square white margin); its size [m]."""
+    nx, ny = board.cols + 3, board.rows + 3
+    img = np.full((ny, nx), 255, np.uint8)
+    for i in range(board.rows + 1):
+        for j in range(board.cols + 1):
+            if (i + j) % 2 == 0:
+                img[1 + i, 1 + j] = dark
+    if not cv2.imwrite(path, img):
+        raise PolarstripeError(f"cannot write the board texture {path!r}")
+    return nx * board.square_m, ny * board.square_m
+
+
+def random_poses(n: int, seed: int, scene: Scene) -> list[dict]:
+    """Board poses (plane point, normal, up) where camera and projector both see it: around the point the
+    camera axis and the projector's axis pass nearest each other, tilted 15–40° either way about two axes and
+    turned up to ±15° in its plane."""
+    rng = np.random.default_rng(seed)
+    c, p = np.asarray(scene.camera.position, float), np.asarray(scene.projector.position, float)
+    fc = np.subtract(scene.camera.look_at, c)
+    fc /= np.linalg.norm(fc)
+    fp = np.subtract(scene.projector.look_at, p)
+    fp /= np.linalg.norm(fp)
+    # closest points of the two axes: the middle of the common view
+    w0, b = c - p, fc @ fp
+    den = max(1.0 - b * b, 1e-9)
+    s = (b * (fp @ w0) - (fc @ w0)) / den
+    t = ((fp @ w0) - b * (fc @ w0)) / den
+    centre = 0.5 * ((c + s * fc) + (p + t * fp))
+    dist = float(np.linalg.norm(centre - c))
+    up0 = np.asarray(scene.camera.up, float)
+    right = np.cross(fc, up0)
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fc)
+    poses = []
+    for _ in range(n):
+        a, bb = np.radians(rng.uniform(15, 40, 2) * rng.choice([-1, 1], 2))
+        roll = np.radians(rng.uniform(-15, 15))
+        normal = -fc * np.cos(a) * np.cos(bb) + right * np.sin(bb) + up * np.sin(a) * np.cos(bb)
+        normal /= np.linalg.norm(normal)
+        u = up * np.cos(roll) + right * np.sin(roll)
+        u -= normal * (u @ normal)
+        shift = rng.uniform(-0.1, 0.1, 2) * dist
+        depth = rng.uniform(-0.3, -0.08) * dist
+        point = centre + right * shift[0] + up * shift[1] + fc * depth
+        poses.append({"point": tuple(point), "normal": tuple(normal), "up": tuple(u / np.linalg.norm(u))})
+    return poses
+
+
+def rig_scene(args: argparse.Namespace) -> Scene:
+    """The simulated rig: the scene with the options applied, no objects yet."""
+    scene = load_scene(args.scene)
+    if args.sigma_t is not None:
+        if not np.isfinite(args.sigma_t) or args.sigma_t < 0:
+            raise PolarstripeError(f"--sigma-t must be >= 0, got {args.sigma_t}")
+        scene = scene.replace(medium=scene.medium.replace(sigma_t=float(args.sigma_t)))
+    if args.resolution:
+        scene = scene.replace(camera=scene.camera.replace(resolution=parse_size(args.resolution,
+                                                                                   "--resolution")))
+    if args.projector:
+        scene = scene.replace(projector=scene.projector.replace(resolution=parse_size(args.projector,
+                                                                                      "--projector")))
+    if scene.projector.model != "pinhole":
+        raise PolarstripeError("the projector is a point source: it shows no patterns (projector.model)")
+    return scene
+
+
+def exposed(scene: Scene, pose: dict, texture: str, size, fidelity: str, level: float = 0.6) -> Scene:
+    """The scene with the projector's intensity set so that the white board's brightest pixels (99.5th
+    percentile) reach ``level`` of the camera's full scale (the radiance is linear in the intensity)."""
+    probe = 1e-3
+    sc = scene.replace(projector=scene.projector.replace(intensity_w_sr=probe))
+    white, _ = render_frame(_with_board(sc, pose, texture, size), "flood", None, fidelity, seed=0)
+    signal = float(np.percentile(white, 99.5)) - sc.camera.offset_dn
+    full = 2 ** sc.camera.bits - 1 - sc.camera.offset_dn
+    if signal <= 0:
+        raise CalibrationError("the board is dark even at full exposure: the projector does not light it")
+    return scene.replace(projector=scene.projector.replace(intensity_w_sr=probe * level * full / signal))
+
+
+def _with_board(scene: Scene, pose: dict, texture: str, size) -> Scene:
+    board = PlaneObject(point=pose["point"], normal=pose["normal"], up=pose["up"], size=size, albedo=0.8,
+                        texture=texture)
+    return scene.replace(objects=(board,))
+
+
+def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str):
+    """White, black and Gray code frames (uint16 DN) of the board at one pose. The white frame, where the
+    corners are found, integrates each pixel's area (SUPERSAMPLE² rays, as a sensor pixel does; one ray
+    per pixel aliases the board's edges by ~0.2 px); the Gray frames, decoded per pixel, take one ray."""
+    sc = _with_board(scene, pose, texture, size)
+    w, h = sc.camera.resolution
+    fine = render_components(sc.replace(camera=sc.camera.replace(resolution=(w * SUPERSAMPLE,
+                                                                             h * SUPERSAMPLE))),
+                             "flood", fidelity, need=("D", "A", "B"))
+    radiance = (fine.D + fine.A + fine.B).reshape(h, SUPERSAMPLE, w, SUPERSAMPLE).mean(axis=(1, 3))
+    white = expose(radiance, sc.camera, rng)
+    black = expose(np.zeros(white.shape), sc.camera, rng)
+    gray = [render_frame(sc, p, None, fidelity, seed=rng)[0] for p in gray_code(*sc.projector.resolution)]
+    return white, black, gray
+
+
+def _board(text: str) -> Board:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise PolarstripeError(f"--board {text!r} is not COLSxROWS (inner corners)") from None
+    if min(cols, rows) < 3:
+        raise PolarstripeError(f"--board {text!r}: need at least 3x3 inner corners")
+    return cols, rows
+
+
+def calibrate_sim(args: argparse.Namespace, progress: bool):
+    """Render and calibrate (module docstring); returns (Calibration, truth geometry, scene)."""
+    scene = rig_scene(args)
+    cols, rows = _board(args.board)
+    board = Board(cols, rows, float(args.square))
+    proj = tuple(scene.projector.resolution)
+    poses = random_poses(args.poses, args.seed, scene)
+    rng = np.random.default_rng(args.seed)
+    n_frames = len(gray_code(*proj)) + 2
+    results, failures = [], []
+    with tempfile.TemporaryDirectory(prefix="polarstripe-calib-") as tmp:
+        tex = os.path.join(tmp, "board.png")
+        size = board_texture(board, tex)
+        scene = exposed(scene, poses[0], tex, size, args.fidelity)
+        bar = tqdm(total=args.poses * n_frames, desc="calibrate", unit="frame", disable=not progress,
+                   file=sys.stderr)
+        for k, pose in enumerate(poses):
+            white, black, gray = render_pose(scene, pose, tex, size, rng, args.fidelity)
+            bar.update(n_frames)
+            try:
+                results.append(decode_pose(white, black, gray, board, proj, pose=k))
+            except CalibrationError as exc:
+                failures.append(str(exc))
+                bar.write(f"skipped {exc}")
+        bar.close()
+    if len(results) < MIN_POSES:
+        raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
+                               f"{MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
+    cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
+    return cal, rig_geometry(scene), scene
+
+
+def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
+    """(quantity, truth, estimate, unit) rows of a calibration against the simulator's geometry."""
+    Kc, Kp, Tc, Tp = cal.K_cam, cal.K_proj, truth["K_cam"], truth["K_proj"]
+    dR = cal.R @ np.asarray(truth["R"]).T
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+    base_t, base_e = float(np.linalg.norm(truth["T"])), float(np.linalg.norm(cal.T))
+    return [("camera f_x", Tc[0, 0], Kc[0, 0], "px"), ("camera f_y", Tc[1, 1], Kc[1, 1], "px"),
+            ("camera c_x", Tc[0, 2], Kc[0, 2], "px"), ("camera c_y", Tc[1, 2], Kc[1, 2], "px"),
+            ("projector f_x", Tp[0, 0], Kp[0, 0], "px"),
+            ("projector f_y", Tp[1, 1], Kp[1, 1], "px"),
+            ("projector c_x", Tp[0, 2], Kp[0, 2], "px"), ("projector c_y", Tp[1, 2], Kp[1, 2], "px"),
+            ("baseline", 1e3 * base_t, 1e3 * base_e, "mm"), ("rotation error", 0.0, angle, "deg"),
+            ("RMS camera", 0.0, cal.rms_cam, "px"), ("RMS projector", 0.0, cal.rms_proj, "px"),
+            ("RMS stereo", 0.0, cal.rms_stereo, "px")]
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.poses < MIN_POSES:
+        raise CalibrationError(f"--poses {args.poses}: a calibration needs at least {MIN_POSES} poses")
+    if not args.sim:
+        raise PolarstripeError("calibrate on a rig runs over its nodes (docs/depth.md \"Calibration\"); "
+                               "this command needs --sim for now")
+    out_dir = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(out_dir):
+        raise PolarstripeError(f"-o {args.out!r}: folder {out_dir!r} does not exist")
+    t0 = time.perf_counter()
+    cal, truth, scene = calibrate_sim(args, not args.no_progress and sys.stderr.isatty())
+    extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
+             "poses": len(cal.poses), "board": f"{args.board} inner corners, {args.square} m squares",
+             "source": "polarstripe calibrate --sim" if args.sim else "polarstripe calibrate"}
+    save(args.out, {**cal.geometry(), "dist_proj": cal.dist_proj}, extra)
+    coverage = os.path.splitext(args.out)[0] + "_coverage.png"
+    cv2.imwrite(coverage, coverage_image(cal.poses, cal.proj_size))
+    print(f"{args.out}: {len(cal.poses)} poses, RMS camera {cal.rms_cam:.3f} px, projector "
+          f"{cal.rms_proj:.3f} px, stereo {cal.rms_stereo:.3f} px ({time.perf_counter() - t0:.1f} s)")
+    print(f"coverage: {coverage}")
+    if args.sim:
+        print(f"{'':16}{'truth':>12}{'estimate':>12}")
+        for name, t, e, unit in comparison_rows(cal, truth):
+            print(f"{name:16}{t:12.4f}{e:12.4f} {unit}")
+    return 0
