@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("polarstripe.tools.replay", "publish a recording on its original topics"),
     "view": ("polarstripe.tools.view", "contact sheet of the latest frames and composites"),
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
+    "calibrate": ("polarstripe.tools.calibrate_cli", "projector-camera calibration (Gray code, checkerboard)"),
     "keys": ("polarstripe.tools.keys_cli", "make a host's CURVE certificates, print a key's fingerprint"),
 }
 
