@@ -138,8 +138,8 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
     edge_window : int
         Pixels per side of an edge its sub-pixel zero is fitted over (module docstring); 1: two pixels.
     """
-    best = np.ascontiguousarray(votes.best, np.float64)
-    second = np.ascontiguousarray(votes.second, np.float64)
+    best = np.ascontiguousarray(votes.best)
+    second = np.ascontiguousarray(votes.second, best.dtype)
     index = np.ascontiguousarray(votes.index, np.int32)
     edges = np.ascontiguousarray(edges, np.float64)
     if best.ndim != 2 or best.shape != index.shape or best.shape != second.shape:
@@ -172,9 +172,12 @@ def _delineate_rows(best, second, index, edges, limits, out):
     cs = np.empty(w + 1)
     var = np.empty(w)
     left = np.empty(w, np.int64)
+    bf = np.empty(w)  # the row's best and second as float64 (frames may be unsigned integers)
+    sf = np.empty(w)
     for i in range(h):
         for j in range(w):
-            b, s = best[i, j], second[i, j]
+            bf[j], sf[j] = best[i, j], second[i, j]
+            b, s = bf[j], sf[j]
             sb = b - dark if b > dark else 0.0
             ss = s - dark if s > dark else 0.0
             var[j] = 2.0 * read_var + g * (sb + ss)
@@ -202,8 +205,8 @@ def _delineate_rows(best, second, index, edges, limits, out):
                     j = a - t if side == 0 else c + t
                     if j < 0 or j >= w or not ok[j] or index[i, j] != (ia if side == 0 else ic):
                         break
-                    mj = best[i, j] - second[i, j]
-                    y = mj / max(best[i, j] + second[i, j] - 2.0 * dark, 1e-9)  # (I_a − I_a+1)/(I_a + I_a+1)
+                    mj = bf[j] - sf[j]
+                    y = mj / max(bf[j] + sf[j] - 2.0 * dark, 1e-9)  # (I_a − I_a+1)/(I_a + I_a+1)
                     if side == 1:
                         y = -y
                         mar_r += mj
@@ -213,7 +216,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
                         mar_l += mj
                         var_l += var[j]
                         n_l += 1
-                    sig += best[i, j] - dark
+                    sig += bf[j] - dark
                     s1 += 1.0
                     s_x += j
                     s_y += y
@@ -243,7 +246,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
             out[i, j] = np.nan
             if not ok[j] or kind[pl] != 1 or kind[nxt] != 1:
                 continue
-            m = best[i, j] - second[i, j]
+            m = bf[j] - sf[j]
             if m < k * np.sqrt(var[j]) and j - pl >= m_win and nxt - j - 1 >= m_win:
                 continue
             xl, xr = xs[pl], xs[nxt]
