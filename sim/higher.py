@@ -25,7 +25,9 @@ import dataclasses
 
 import cv2
 import numpy as np
+from polarstripe.sim import geometry_cache
 from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
+from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.grid_kernels import (
     ViewArgs,
     glow_emission,
@@ -103,23 +105,51 @@ def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
 
 
 def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarray, np.ndarray]:
-    """D (exact, σ_t) and the quasi-direct object radiance per unit albedo (σ̃_t both ways), per ray."""
+    """D (exact, σ_t) and the quasi-direct object radiance per unit albedo (σ̃_t both ways), per ray.
+
+    Whole frames take both at every hit the source sees from the scene's geometry cache (the same for every
+    pattern) and keep the lit ones; the kernels compute each point on its own, so this is bit-identical to
+    computing only the lit points."""
     scene, pat, _, cam, _, hits, surf, _ = view
     n = hits.t.size
     d, quasi = np.zeros(n), np.zeros(n)
     hit = np.nonzero(surf.object_id >= 0)[0]
     if hit.size == 0:
         return d, quasi
+    want_d = "D" in need or ("A" in need and view.pixels is not None)       # pixels: A = stencil − D
+    if view.pixels is None and geometry_cache.enabled():
+        seen = _geo(view, "seen", lambda: hit[~occluded(scene.objects, src.position, hits.point[hit])])
+        lit = seen[pattern_lit(pat, src.frame, hits.point[seen])]
+
+        def every(source, albedo):
+            out = np.zeros(n)
+            out[seen] = direct(source, scene.objects, cam.position, hits.point[seen], hits.normal[seen],
+                               albedo, np.ones(seen.size, bool))
+            return out
+
+        if want_d:
+            d[lit] = _geo(view, "D", lambda: every(src, surf.albedo[seen]))[lit]
+        if "A" in need:
+            quasi[lit] = _geo(view, ("quasi", ssrc.sigma_t), lambda: every(ssrc, np.ones(seen.size)))[lit]
+        return d, quasi
     lit = hit[pattern_lit(pat, src.frame, hits.point[hit])]
     lit = lit[~occluded(scene.objects, src.position, hits.point[lit])]
     ones = np.ones(lit.size, bool)
-    if "D" in need or ("A" in need and view.pixels is not None):      # pixels: A = stencil − D
+    if want_d:
         d[lit] = direct(src, scene.objects, cam.position, hits.point[lit], hits.normal[lit], surf.albedo[lit],
                         ones)
     if "A" in need:
         quasi[lit] = direct(ssrc, scene.objects, cam.position, hits.point[lit], hits.normal[lit],
                             np.ones(lit.size), ones)
     return d, quasi
+
+
+def _geo(view: View, name, make):
+    """``make()`` once per scene and frame size for whole frames (:mod:`polarstripe.sim.geometry_cache`),
+    every time for requested pixels."""
+    if view.pixels is not None:
+        return make()
+    return cached(view.scene, (name, view.cam.w, view.cam.h), make)
 
 
 def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings, grid: Grid,
@@ -197,14 +227,11 @@ def _b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     keys = tuple(k for k in ("B", "p") if k in need)
     if div <= 1 or view.pixels is not None:
         return single_parts(view, ssrc, keys)[2:]
-    from polarstripe.sim.geometry import intersect, pixel_rays
-
     cam = view.cam
     gh, gw = -(-(cam.h - 1) // div) + 1, -(-(cam.w - 1) // div) + 1      # every div-th pixel, past the last
     gr, gc = np.arange(gh) * div, np.arange(gw) * div                      # (rays of real pixels only)
     px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
-    dirs = pixel_rays(cam, px)
-    hits = intersect(view.scene.objects, cam.position, dirs)
+    dirs, hits = _geo(view, ("coarse", div), lambda: _rays(view.scene, cam, px))
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
     parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(3, gh, gw)
     t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
@@ -239,6 +266,14 @@ def _b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
     out = np.zeros((3, n))
     out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
     return out[0], out[1], out[2]
+
+
+def _rays(scene, cam, pixels=None):
+    """Ray directions of ``cam`` (all pixels or ``pixels``) and their hits."""
+    from polarstripe.sim.geometry import intersect, pixel_rays
+
+    dirs = pixel_rays(cam, pixels)
+    return dirs, intersect(scene.objects, cam.position, dirs)
 
 
 def _take(hits: Hits, idx: np.ndarray) -> Hits:
@@ -276,14 +311,16 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     """Whole frames at ``preview`` of at least 640×480: everything smooth at half resolution, bilinear up (A's
     per-unit-albedo part within each object), D and the albedo at full resolution: A = ρ·P↑ + H↑. Smaller
     frames stay at full resolution (their half would blur a scan's stripes)."""
-    from polarstripe.sim.geometry import Frame, intersect, pixel_rays
+    from polarstripe.sim.geometry import Frame
 
     cam = view.cam
     half = Frame(cam.position, cam.f, cam.r, cam.u, 2 * cam.s, cam.w // 2, cam.h // 2)
-    dirs = pixel_rays(half)
-    hits = intersect(view.scene.objects, cam.position, dirs)
-    small = View(view.scene, view.pattern, view.fid, half, dirs, hits, surface_info(view.scene.objects, hits),
-                 None)
+
+    def geometry():
+        dirs, hits = _rays(view.scene, half)
+        return dirs, hits, surface_info(view.scene.objects, hits)
+
+    small = View(view.scene, view.pattern, view.fid, half, *_geo(view, "half", geometry), None)
     _, p_half, h_half, b, bq, bu = _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, _scaled_source(src, plan), tuple(k for k in need if k == "D"))
     size = (cam.w, cam.h)
@@ -314,7 +351,8 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization)) if pol else 0.0
     orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
                           sc.sigma_s, sc.g_tilde, orders=st.orders, kappa=kappa)
-    t0, t1 = box_interval(view.cam.position, view.dirs, grid.lo, grid.hi)
+    t0, t1 = _geo(view, ("interval", tuple(grid.lo), tuple(grid.hi)),
+                  lambda: box_interval(view.cam.position, view.dirs, grid.lo, grid.hi))
     x_end = np.minimum(t1, view.hits.t)
     fields = [orders.total] if "B" in need else []
     if pol:
@@ -340,7 +378,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
             Bq, Bu = _constant_stokes(view, src, B)
     if want_a:
         hp, hn = view.hits.point[hit], view.hits.normal[hit]
-        ell_l = _lengths(ssrc.position, view, ssrc)
+        ell_l = _geo(view, "ell_l", lambda: _lengths(ssrc.position, view, ssrc))
         ell_c = np.where(hit & (t1 > t0), x_end - np.maximum(t0, 0.0), 0.0)     # the view ray in the medium
         rest = np.zeros(n)
         if st.a1_exact:

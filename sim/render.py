@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.higher import HigherSettings, higher_components
 from polarstripe.sim.orders import OrdersPlan, plan_orders
 from polarstripe.sim.patterns import Pattern, parse_pattern
@@ -189,10 +190,11 @@ def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fide
         out.scene, out.seconds = scene, time.perf_counter() - t_start
         return out
     src = make_source(scene, pat)
-    dirs = pixel_rays(cam, pixels)
+    if pixels is None:        # the pattern-independent geometry, once per scene (sim/geometry_cache.py)
+        dirs, hits, surf = cached(scene, "camera", lambda: _camera_geometry(scene, cam, None))
+    else:
+        dirs, hits, surf = _camera_geometry(scene, cam, pixels)
     n = dirs.shape[0]
-    hits = intersect(scene.objects, cam.position, dirs)
-    surf = surface_info(scene.objects, hits)
     view = View(scene, pat, fid, cam, dirs, hits, surf, pixels)
     if plan.modelled:
         D, A, B, Bq, Bu = higher_components(view, src, plan, need, fid.higher)
@@ -203,6 +205,13 @@ def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fide
                                                      surf.chart_high)))
     D, A, B, Bq, Bu = (a.reshape(shape) for a in (D, A, B, Bq, Bu))
     return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan)
+
+
+def _camera_geometry(scene: Scene, cam, pixels):
+    """The camera's ray directions, their hits and the surface under each (flat)."""
+    dirs = pixel_rays(cam, pixels)
+    hits = intersect(scene.objects, cam.position, dirs)
+    return dirs, hits, surface_info(scene.objects, hits)
 
 
 def render_frame(scene: Scene, pattern: str | Pattern, polarizer_deg: float | None = None,
