@@ -62,6 +62,7 @@ class Sequencer(Node):
         scan_peers: list[str] = ["emitter", "grabber", "simulator", "compositor"]  # a scan's waits need them
         polarized_peers: list[str] = ["polarizer"]  # … and a polarized scan's these
         respawn_wait_s: float = 60.0  # a lost node the launch respawns: its return and the old scan's end
+        repeat: int = 1  # passes over methods; 0: scan until stopped (polarstripe bench soak)
 
         def validate(self):
             super().validate()
@@ -69,6 +70,8 @@ class Sequencer(Node):
                 raise ValueError("methods must name at least one scan method")
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
+            if self.repeat < 0:
+                raise ValueError(f"repeat must be >= 0 (0: until stopped), got {self.repeat}")
 
     SUBSCRIBES = {
         "heartbeat": Heartbeat,
@@ -157,11 +160,13 @@ class Sequencer(Node):
                 raise SequenceError(f"polarizer/calibrate: {cal.detail}")
             self.eb_deg = cal.angle_deg
             self.log.info("calibrated: E_b = %.2f deg", self.eb_deg)
-        ok = True
-        for method in p.methods:
-            if self.stopping:
-                return False
-            ok &= self.scan(method)
+        ok, passes = True, 0
+        while p.repeat == 0 or passes < p.repeat:
+            for method in p.methods:
+                if self.stopping:
+                    return False
+                ok &= self.scan(method)
+            passes += 1
         return ok
 
     def wait_stage_ready(self) -> None:
