@@ -215,10 +215,12 @@ class Watching:
         """Hand the beats that have arrived to the watch (they are not handed out again; not while waiting
         on the watched ``topic`` itself), then raise :class:`PeerLost` for the first of ``peers`` that is
         lost (e.g. after a fault: did a peer die under it?)."""
-        if topic != self._watch_topic:
-            for item in self._bus.take(self._subs[self._watch_topic].source, 0.0):
-                if isinstance(item, Heartbeat):
-                    self.liveness.heard(item)
+        if topic != self._watch_topic:  # every beat that has arrived (the bus hands them one at a time)
+            source = self._subs[self._watch_topic].source
+            while items := self._bus.take(source, 0.0):
+                for item in items:
+                    if isinstance(item, Heartbeat):
+                        self.liveness.heard(item)
         lost = self.liveness.check(peers)
         if lost is not None:
             raise lost

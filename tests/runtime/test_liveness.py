@@ -116,6 +116,18 @@ def test_wait_for_ends_when_a_peer_it_depends_on_stops_beating():
         h.node.wait_for("chatter", timeout_s=2.0, peers=["grabber"])
 
 
+def test_a_wait_hands_every_arrived_beat_to_the_watch_at_once():
+    """Many nodes beat faster than a wait's slices: each slice takes every beat that has arrived, so the
+    watch never falls behind (a backlog would make a dead peer's last beat look recent)."""
+    h = NodeHarness(Waiter, name="w", namespace="/rig")
+    for i in range(50):
+        h.queue("heartbeat", beat(f"n{i}"))
+    h.queue("chatter", Log(level="INFO", node="x", text="hi"))
+    h.node.wait_for("chatter", timeout_s=1.0, peers=["n0"])
+    h.node.check_peers(["n0"])
+    assert len(h.node.liveness.peers) == 50 and h.node.take("heartbeat") == []
+
+
 def test_the_watched_heartbeats_feed_the_watch_in_every_read():
     h = NodeHarness(Waiter, name="w", namespace="/rig")
     h.queue("heartbeat", beat("planner", inc=2, pid=9))
