@@ -12,15 +12,16 @@ the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`)
   position is the zero of the normalized difference of the two sheets' images, y = (I_a − I_{a+1})/(I_a +
   I_{a+1}) (albedo cancels): at a pixel of sheet a next to the edge y = (best − second)/(best + second −
   2·dark) (the second best there is sheet a + 1), at one of sheet a + 1 it is the negative of that. The
-  zero of the least-squares line y = α + β·x through the ``edge_window`` pixels of each stripe on either
-  side (fewer where the stripe ends or a pixel is invalid), x = −α/β, is the paper's gradient edge (§2)
-  from the running values alone; with ``edge_window`` = 1 it is the two-pixel zero x = j + n_j/(n_j +
-  n_{j+1}). The window is what lets an edge be found when all orders of scattering widen the stripes into
-  a smooth ramp many pixels wide (docs/depth.md, "Why the demo's depth was 4–30 % valid");
+  edge is the zero x = −α/β of the least-squares line y = α + β·x through m pixels of each stripe on either
+  side (fewer where the stripe ends or a pixel is invalid) — the paper's gradient edge (§2) from the
+  running values alone. m = 1 first (the two-pixel zero x = j + n_j/(n_j + n_{j+1})); only an edge that
+  fails the test below on m pixels is fitted again on m + 1, up to ``edge_window``. That is what finds
+  the edges when all orders of scattering widen the stripes into ramps many pixels wide (docs/depth.md,
+  "Why the demo's depth was 4–30 % valid"), while a sharp edge keeps its two-pixel zero;
 * a pixel between two such edges of its own stripe gets the column interpolated linearly between them;
 * a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
   below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is within
-  ``edge_window`` pixels of an edge, where a small margin is expected), or it is not bracketed by two good
+  the window its edge was fitted over, where a small margin is expected), or it is not bracketed by two good
   edges on its row (the first and last stripe, an object's silhouette, a shadow, a jump of more than one
   sheet). An edge is good when the line falls (β < 0) and the sum of the two sides' mean margins exceeds
   ``k_sigma`` σ of that sum and ``min_contrast`` times the mean signal over the window (a stripe seen on a
@@ -38,7 +39,7 @@ import numpy as np
 from numba import njit
 from polarstripe.imaging.validation import ImagingError, finite_param
 
-EDGE_WINDOW = 3  # pixels per side of an edge its sub-pixel position is fitted over (module docstring)
+EDGE_WINDOW = 3  # most pixels per side an edge's sub-pixel zero is fitted over (module docstring)
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
     k_sigma, min_contrast : float
         The validity thresholds (module docstring).
     edge_window : int
-        Pixels per side of an edge its sub-pixel zero is fitted over (module docstring); 1: two pixels.
+        Most pixels per side an edge's sub-pixel zero is fitted over (module docstring); 1: two pixels.
     """
     best = np.ascontiguousarray(votes.best)
     second = np.ascontiguousarray(votes.second, best.dtype)
@@ -170,6 +171,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
     kind = np.empty(w + 1, np.int8)  # gap p sits between pixels p − 1 and p: 0 same stripe, 1 edge, 2 break
     xs = np.empty(w + 1)
     cs = np.empty(w + 1)
+    ws = np.ones(w + 1, np.int64)  # the window an edge was fitted over
     var = np.empty(w)
     left = np.empty(w, np.int64)
     bf = np.empty(w)  # the row's best and second as float64 (frames may be unsigned integers)
@@ -196,15 +198,24 @@ def _delineate_rows(best, second, index, edges, limits, out):
             if abs(ia - ic) != 1:
                 kind[p] = 2
                 continue
-            # the window: up to m_win pixels of each stripe on each side, ok and of that stripe
+            # the window grows a pixel per side at a time (up to m_win, while the pixels are ok and of their
+            # stripe) until the edge passes: a sharp edge keeps its two-pixel zero, a ramp gets a wider fit
             s1 = s_x = s_y = s_xx = s_xy = 0.0
             mar_l = mar_r = var_l = var_r = sig = 0.0
             n_l = n_r = 0
-            for side in range(2):
-                for t in range(m_win):
+            open_l = open_r = True
+            kind[p] = 2
+            for t in range(m_win):
+                for side in range(2):
                     j = a - t if side == 0 else c + t
-                    if j < 0 or j >= w or not ok[j] or index[i, j] != (ia if side == 0 else ic):
-                        break
+                    if (open_l if side == 0 else open_r) and (
+                            j < 0 or j >= w or not ok[j] or index[i, j] != (ia if side == 0 else ic)):
+                        if side == 0:
+                            open_l = False
+                        else:
+                            open_r = False
+                    if not (open_l if side == 0 else open_r):
+                        continue
                     mj = bf[j] - sf[j]
                     y = mj / max(bf[j] + sf[j] - 2.0 * dark, 1e-9)  # (I_a − I_a+1)/(I_a + I_a+1)
                     if side == 1:
@@ -222,17 +233,19 @@ def _delineate_rows(best, second, index, edges, limits, out):
                     s_y += y
                     s_xx += j * j
                     s_xy += j * y
-            tot = mar_l / n_l + mar_r / n_r  # the mean margins of the two sides
-            sd = np.sqrt(var_l / (n_l * n_l) + var_r / (n_r * n_r))
-            det = s1 * s_xx - s_x * s_x
-            slope = (s1 * s_xy - s_x * s_y) / det if det > 0 else 0.0
-            if tot > 0 and slope < 0 and tot >= k * sd and tot >= min_contrast * sig / s1:
-                kind[p] = 1  # the zero of the least-squares line through the window: albedo-free
-                x0 = -(s_y - slope * s_x) / s1 / slope
-                xs[p] = min(max(x0, a), c)
-                cs[p] = edges[max(ia, ic)]
-            else:
-                kind[p] = 2
+                if not (open_l or open_r) and t > 0:
+                    break
+                tot = mar_l / n_l + mar_r / n_r  # the mean margins of the two sides
+                sd = np.sqrt(var_l / (n_l * n_l) + var_r / (n_r * n_r))
+                det = s1 * s_xx - s_x * s_x
+                slope = (s1 * s_xy - s_x * s_y) / det if det > 0 else 0.0
+                if tot > 0 and slope < 0 and tot >= k * sd and tot >= min_contrast * sig / s1:
+                    kind[p] = 1  # the zero of the least-squares line through the window: albedo-free
+                    x0 = -(s_y - slope * s_x) / s1 / slope
+                    xs[p] = min(max(x0, a), c)
+                    cs[p] = edges[max(ia, ic)]
+                    ws[p] = t + 1
+                    break
         last = 0
         for j in range(w):
             if kind[j] != 0:
@@ -247,7 +260,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
             if not ok[j] or kind[pl] != 1 or kind[nxt] != 1:
                 continue
             m = bf[j] - sf[j]
-            if m < k * np.sqrt(var[j]) and j - pl >= m_win and nxt - j - 1 >= m_win:
+            if m < k * np.sqrt(var[j]) and j - pl >= ws[pl] and nxt - j - 1 >= ws[nxt]:
                 continue
             xl, xr = xs[pl], xs[nxt]
             if xr <= xl:
