@@ -221,6 +221,26 @@ def stop_authenticator(ctx: zmq.Context) -> None:
         entry[1].stop()
 
 
+_HANDSHAKE_FAILED = zmq.EVENT_HANDSHAKE_FAILED_AUTH
+
+
+def watch_refusal(sock: zmq.Socket) -> zmq.Socket:
+    """A monitor of ``sock`` (a CURVE client; call before it connects) that hears the server refuse our key
+    (ZAP status 400), for :func:`refusal_note`. Close it with the socket (``sock.disable_monitor()``)."""
+    return sock.get_monitor_socket(_HANDSHAKE_FAILED)
+
+
+def refusal_note(monitor: zmq.Socket | None, public: bytes) -> str:
+    """A note for the client's timeout if the monitor heard the server refuse our handshake (``public``: our
+    key, b"" for a throwaway pair), else ``""``."""
+    if monitor is None or not monitor.poll(0):
+        return ""
+    while monitor.poll(0):  # drain: one note however many tries
+        monitor.recv_multipart()
+    which = f"this host's CURVE key, fingerprint {fingerprint(public)}" if public else "a throwaway CURVE key"
+    return f" (the server refused {which}: it is not on the server's allow-list)"
+
+
 def log_refusals_as(name: str) -> None:
     """Refusals on stderr in a node's format (``time WARNING name: refused …``), not on the bus: they come
     from the authenticator's thread, and a bus socket belongs to the node's loop."""

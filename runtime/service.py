@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import zmq
 from polarstripe.msgs import DEFAULT_MAX_BYTES, Message, MessageError, decode, encode
+from polarstripe.runtime import auth
 from polarstripe.runtime.bus import (
     BusError,
     CurveKeys,
@@ -187,6 +188,7 @@ class ServiceClient:
         self._ctx, self._curve = ctx or zmq.Context.instance(), curve
         self._name_b = name.encode()
         self.socket: zmq.Socket | None = None
+        self._monitor: zmq.Socket | None = None  # hears a CURVE server refuse our key (runtime/auth.py)
         self.calls = self.timeouts = 0
 
     def _open(self) -> zmq.Socket:
@@ -195,6 +197,7 @@ class ServiceClient:
             s.linger = 0
             s.reconnect_ivl = 100
             _apply_curve(s, self._curve, server=False)
+            self._monitor = auth.watch_refusal(s) if self._curve else None
             _connect(s, self.endpoint)
             self.socket = s
         return self.socket
@@ -227,9 +230,10 @@ class ServiceClient:
             left = deadline - time.monotonic()
             if left <= 0 or not sock.poll(max(1, int(left * 1000))):
                 self.timeouts += 1
+                note = auth.refusal_note(self._monitor, self._curve.public if self._curve else b"")
                 self._drop()  # a late reply or our queued request must not leak into the next call
                 raise ServiceTimeout(
-                    f"service {self.name!r} at {self.endpoint}: no reply within {timeout_s} s"
+                    f"service {self.name!r} at {self.endpoint}: no reply within {timeout_s} s{note}"
                 )
             frames = sock.recv_multipart(copy=False)
             if len(frames) < 3 or frames[1].bytes != rid:
@@ -241,6 +245,10 @@ class ServiceClient:
             raise ServiceError(f"service {self.name!r} at {self.endpoint}: {text}")
 
     def _drop(self) -> None:
+        if self._monitor is not None:
+            self.socket.disable_monitor()
+            self._monitor.close(0)
+            self._monitor = None
         if self.socket is not None:
             self.socket.close(0)
             self.socket = None

@@ -95,8 +95,10 @@ def test_only_allowed_keys_get_data_and_replies(hosts, vehicle_node):
                 subs[who].recv(timeout_s=1.0)
         for _ in range(3):  # a new DEALER, so a new handshake, each time
             with ServiceClient(srv, "/rov/talker/reset", Empty, Ack, curve=stranger) as c:
-                with pytest.raises(ServiceTimeout, match="/rov/talker/reset.*no reply within 0.5 s"):
+                with pytest.raises(ServiceTimeout, match="/rov/talker/reset.*no reply within 0.5 s") as exc:
                     c.call(Empty(), timeout_s=0.5)
+                fp = _z85_fingerprint(hosts["stranger"][0])  # the client is told why, with its key's name
+                assert f"refused this host's CURVE key, fingerprint {fp}: it is not on" in str(exc.value)
         with ServiceClient(srv, "/rov/talker/reset", Empty, Ack) as c:  # no CURVE at all
             with pytest.raises(ServiceTimeout):
                 c.call(Empty(), timeout_s=0.5)

@@ -377,6 +377,7 @@ def test_tcp_transport_with_curve(tmp_path):
     public, secret = zmq.curve_keypair()
     keys = tmp_path / "rig.keys"
     keys.write_text(f"public={public.decode()}\nsecret={secret.decode()}\n")
+    os.chmod(keys, 0o600)  # a secret key readable by others is refused at start
     toml = """
         [launch]
         namespace = "/net"
