@@ -268,6 +268,10 @@ DEFAULT_CHART = PlaneObject(point=(0.0, 0.0, 0.38), normal=(0.0, 0.0, -1.0), siz
                             texture="chart")
 
 
+MIN_SEPARATION_M = 1e-6
+"""A point source (radius 0) closer than this to the camera is refused (:class:`Scene`)."""
+
+
 @dataclass(frozen=True)
 class Scene(_Part):
     """A whole rig: medium, camera, projector and objects (the default is the paper's tank)."""
@@ -279,6 +283,14 @@ class Scene(_Part):
 
     def __post_init__(self):
         object.__setattr__(self, "objects", tuple(self.objects))
+        if self.separation_m() < MIN_SEPARATION_M and self.projector.source_radius_m == 0.0:
+            # the path from a point source through the medium starts at the camera: ∫ dt/t² along the ray
+            # has no bound (docs/physics.md: B and D use 1/(d² + r_s²)); the model cannot represent it
+            raise SceneError(
+                f"projector.position {self.projector.position} is at the camera (d_LC = "
+                f"{self.separation_m():.3g} m) with projector.source_radius_m = 0: a point source on the "
+                f"camera has no finite backscatter in this model; move the source or give it a radius "
+                f"(e.g. source_radius_m = 0.001)")
 
     def separation_m(self) -> float:
         """Camera–source distance d_LC [m]."""

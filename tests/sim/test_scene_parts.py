@@ -27,3 +27,20 @@ def test_derived_and_normalised_values():
 def test_invalid_parts_name_the_key(make, key):
     with pytest.raises(SceneError, match=key.replace("[", r"\[").replace("]", r"\]")):
         make()
+
+
+def test_a_point_source_on_the_camera_is_refused_with_one_clear_error(tmp_path):
+    """Camera and projector at one point with source_radius_m = 0: ∫ dt/t² from the camera has no bound (the
+    issue's B = 5.6e198); refused by name, never rendered. A radius (the default 1 mm) or any separation is
+    representable."""
+    from polarstripe.sim.scene import load_scene
+
+    with pytest.raises(SceneError, match=r"at the camera \(d_LC = 0 m\) with projector.source_radius_m = 0"):
+        Scene(projector=Projector(position=(0.0, 0.0, 0.0), source_radius_m=0.0))
+    f = tmp_path / "on_camera.toml"
+    f.write_text("[projector]\nposition = [0.0, 0.0, 0.0]\nsource_radius_m = 0.0\n")
+    with pytest.raises(SceneError) as err:
+        load_scene(f)
+    assert "\n" not in str(err.value) and "move the source or give it a radius" in str(err.value)
+    assert Scene(projector=Projector(position=(0.0, 0.0, 0.0))).separation_m() == 0.0  # radius 1 mm
+    assert Scene(projector=Projector(position=(0.01, 0.0, 0.0), source_radius_m=0.0)).separation_m() == 0.01
