@@ -12,7 +12,9 @@ published, so a caller that then waits for the frame cannot miss it.
 Faults are published, never painted over: a grab that times out, a camera that disappears or a frame of the
 wrong scan is an ``Ack(ok=False, detail=…)`` reply naming the camera and what happened, an ERROR line on the
 ``log`` topic, and a count in the heartbeat (``grab_faults``); no frame is published for it. After a lost
-camera the next trigger reopens it.
+camera the next trigger reopens it. A frame larger than ``$POLARSTRIPE_MAX_PIXELS``
+(:func:`~polarstripe.runtime.params.check_frame_size`; a real camera set to a mode the rig cannot carry) is
+dropped the same way, logged once and counted (``frames_oversize``); the node keeps running.
 
 Services: ``camera/trigger`` (FrameRequest → Ack), ``camera/analyzer`` (:class:`AnalyzerMount` → Ack: put
 the analyzer in or out of the optical path; in a lab rig a flip mount, in the simulator a flag per frame).
@@ -28,7 +30,7 @@ from polarstripe.nodes.drivers.errors import DriverError
 from polarstripe.nodes.drivers.registry import open_backend
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.node import Node
-from polarstripe.runtime.params import NodeParams
+from polarstripe.runtime.params import NodeParams, check_frame_size
 
 
 class Grabber(Node):
@@ -64,6 +66,7 @@ class Grabber(Node):
         self.state: PolarizerState | None = None
         self.analyzer_in = True
         self.counters["grab_faults"] = 0
+        self.counters["frames_oversize"] = 0  # frames beyond $POLARSTRIPE_MAX_PIXELS, dropped
         self.camera = None
         self._render_client = None
         try:
@@ -148,6 +151,15 @@ class Grabber(Node):
                 cam.close()
                 self.camera = None
             return self._fault(req, f"{type(exc).__name__}: {exc}")
+        h, w = shot.image.shape[:2]
+        try:  # a camera that delivers more than the rig may carry (runtime/params.py): dropped, said once
+            check_frame_size(w, h, what=f"camera {cam.name} frame")
+        except ValueError as exc:
+            self.counters["frames_oversize"] += 1
+            if self.counters["frames_oversize"] == 1:
+                self.log.error("%s; dropped (this and every such frame, counted as frames_oversize)", exc)
+            self.counters["grab_faults"] += 1
+            return Ack(ok=False, detail=str(exc))
         meta = shot.metadata
         if "scan_id" in meta and (meta["scan_id"], meta["step"]) != (req.scan_id, req.step):
             return self._fault(req, f"camera delivered scan {meta['scan_id']} step {meta['step']}")
@@ -155,7 +167,6 @@ class Grabber(Node):
                                   bit_depth=shot.bit_depth, pattern=req.pattern,
                                   polarizer_deg=self.analyzer_deg(), scan_id=req.scan_id, step=req.step),
                             stamp_ns=shot.stamp_ns)
-        h, w = shot.image.shape[:2]
         return Ack(ok=True, detail=f"{w}x{h} in {time.monotonic() - t0:.3f} s")
 
 

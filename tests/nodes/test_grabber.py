@@ -118,3 +118,25 @@ def test_missing_device_is_reported_on_every_trigger(tmp_path):
     ack = h.call("camera/trigger", FrameRequest(scan_id=1, step=0, pattern="flood"))
     assert not ack.ok and "unavailable" in ack.detail and "none" in ack.detail
     h.stop()
+
+
+def test_an_oversize_frame_is_dropped_logged_once_and_the_node_keeps_running(tmp_path, monkeypatch):
+    """A real camera delivering more pixels than $POLARSTRIPE_MAX_PIXELS: each such frame is refused (a fault
+    reply naming the size and the limit, no frame published), one ERROR line in all, counted; a frame within
+    the limit still goes out."""
+    big = np.zeros((40, 50), np.uint16)  # 2000 px
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"frame_{i:03d}.png"), big)
+    cv2.imwrite(str(tmp_path / "frame_003.png"), np.zeros((10, 10), np.uint16))  # 100 px
+    monkeypatch.setenv("POLARSTRIPE_MAX_PIXELS", "1000")
+    h = NodeHarness(Grabber, name="grabber", params={"camera": "file", "device": str(tmp_path)})
+    for step in range(3):
+        ack = h.call("camera/trigger", FrameRequest(scan_id=1, step=step, pattern="flood"))
+        assert not ack.ok and "50x40" in ack.detail and "beyond the limit of 0.001 Mpx" in ack.detail
+    assert h.published("camera/frame") == []
+    errors = [text for level, text in h.logs if level == "ERROR"]
+    assert len(errors) == 1 and "50x40" in errors[0] and "dropped" in errors[0]
+    assert h.node.counters["frames_oversize"] == 3
+    assert h.call("camera/trigger", FrameRequest(scan_id=1, step=3, pattern="flood")).ok  # still running
+    assert h.published("camera/frame")[0].image.shape == (10, 10)
+    h.stop()
