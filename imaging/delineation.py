@@ -18,7 +18,8 @@ the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`)
   fails the test below on m pixels is fitted again on m + 1, up to ``edge_window``. That is what finds
   the edges when all orders of scattering widen the stripes into ramps many pixels wide (docs/depth.md,
   "Why the demo's depth was 4–30 % valid"), while a sharp edge keeps its two-pixel zero;
-* a pixel between two such edges of its own stripe gets the column interpolated linearly between them;
+* a pixel between the two edges of its own stripe (the columns ⌊k·W/N⌋ and ⌊(k + 1)·W/N⌋ of its sheet k,
+  in either order) gets the column interpolated linearly between them;
 * a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
   below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is within
   the window its edge was fitted over, where a small margin is expected), or it is not bracketed by two good
@@ -263,6 +264,7 @@ def _delineate_rows(best, second, index, edges, limits, out):
             if m < k * np.sqrt(var[j]) and j - pl >= ws[pl] and nxt - j - 1 >= ws[nxt]:
                 continue
             xl, xr = xs[pl], xs[nxt]
-            if xr <= xl:
+            lo, hi = edges[index[i, j]], edges[index[i, j] + 1]  # its own stripe's two edges, either way
+            if xr <= xl or not ((cs[pl] == lo and cs[nxt] == hi) or (cs[pl] == hi and cs[nxt] == lo)):
                 continue
             out[i, j] = cs[pl] + (j - xl) * (cs[nxt] - cs[pl]) / (xr - xl)

@@ -68,3 +68,14 @@ def test_window_of_one_is_the_two_pixel_zero():
 def test_bad_edge_window_is_one_error(bad):
     with pytest.raises(ImagingError, match="edge_window"):
         delineate(_votes(1.0, rows=2), _edges(), edge_window=bad)
+
+
+def test_pixel_between_edges_not_of_its_stripe_is_nan():
+    """An island of sheet 3 inside sheet 2 (2 → 3 → 2 along the row): both its edges are the one column
+    ⌊3·W/N⌋, so its pixels' columns cannot be interpolated: NaN, not that column."""
+    index = np.array([[1, 1, 1, 1, 2, 2, 2, 3, 3, 3, 2, 2, 2, 3, 3, 3, 3]], np.int32)
+    w = index.shape[1]
+    best, second = np.full((1, w), 1000.0), np.full((1, w), 400.0)
+    cols = delineate(SheetVotes(best, second, index, 5), np.arange(6) * 10.0, NoiseModel(0.0, 1.0, 0.0))
+    assert np.all(np.isnan(cols[0, 7:10]))  # the island
+    assert np.all(np.isfinite(cols[0, 4:7])) and np.all((cols[0, 4:7] >= 20) & (cols[0, 4:7] <= 30))
