@@ -63,6 +63,13 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
         pass
 
 
+def _node_preexec() -> None:  # runs in a node's process between fork and exec
+    _die_with_parent()
+    # SIGINT/SIGTERM wait (pending) until the node's own handlers are in (runtime/process.py): a Ctrl-C that
+    # comes while Python starts or imports would otherwise be a traceback, or lost
+    signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+
+
 @dataclass
 class _Child:
     spec: NodeSpec
@@ -92,6 +99,7 @@ class Launcher:
         self._stop: str | None = None
         self._ended = ""  # why the launch ended
         self._claims: list[int] = []  # lock files held for the exclusive args
+        self._left: list[str] = []  # files the nodes left in ${run_sock} (a node killed, or not cleaning up)
 
     def say(self, text: str) -> None:
         print(f"[launch {self.spec.name}] {text}", file=self.out, flush=True)
@@ -185,7 +193,7 @@ class Launcher:
                 stderr=subprocess.STDOUT,
                 env=env,
                 start_new_session=True,
-                preexec_fn=_die_with_parent,
+                preexec_fn=_node_preexec,
             )
         finally:
             log.close()
@@ -246,7 +254,8 @@ class Launcher:
         """What ``exits.json`` holds: the launch's exit status and, per node (in start order), ``started``,
         ``exit_code`` (None if a signal killed it), ``signal`` (the signal's name, or None), ``stopped_by``
         (the launcher's last signal to it at shutdown; None if it had ended by itself), ``respawns``,
-        ``pid`` (of its last process)."""
+        ``pid`` (of its last process); and ``left_sockets``: the files the nodes had left in the run's
+        socket folder when they were all gone (the launcher removes them; an orderly stop leaves none)."""
         nodes = {}
         for c in self.children:
             code = c.exit_code
@@ -258,7 +267,8 @@ class Launcher:
                 "respawns": c.respawns,
                 "pid": c.proc.pid if c.proc is not None else None,
             }
-        return {"launch": self.spec.name, "status": status, "ended": self._ended, "nodes": nodes}
+        return {"launch": self.spec.name, "status": status, "ended": self._ended, "nodes": nodes,
+                "left_sockets": self._left}
 
     def _report_exits(self, status: int) -> None:
         """One line per node (exit status or signal, who stopped it, respawns), and ``exits.json`` in the run
@@ -371,7 +381,8 @@ class Launcher:
                     c.exit_code = code
         sock = sock_dir(self.run_dir)
         if sock.is_dir():
-            for p in sock.iterdir():
+            for p in sorted(sock.iterdir()):
+                self._left.append(p.name)
                 p.unlink(missing_ok=True)
             sock.rmdir()
 

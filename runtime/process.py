@@ -125,4 +125,6 @@ def install_signals(node: Node) -> StopGuard:
     guard = StopGuard(node)
     signal.signal(signal.SIGINT, guard.on_signal)
     signal.signal(signal.SIGTERM, guard.on_signal)
+    # the launcher starts nodes with both blocked (runtime/launch.py): one that came meanwhile arrives now
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM))
     return guard

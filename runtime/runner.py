@@ -201,8 +201,9 @@ def run_node(
         node.exit_code = node.exit_code or 130
     finally:
         bus.close()
-        if pub.startswith("ipc://"):
-            Path(pub[6:]).unlink(missing_ok=True)
+        for endpoint in (pub, srv):  # libzmq removes them on close, but not if the process ends first
+            if endpoint.startswith("ipc://"):
+                Path(endpoint[6:]).unlink(missing_ok=True)
     return node.exit_code
 
 

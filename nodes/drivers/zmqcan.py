@@ -167,6 +167,14 @@ class ZmqCanHub:
         self._thread.join(5.0)
         ctl.close()
         self._thread = None
+        front = self.endpoints[0]
+        if front.startswith("ipc://"):  # leave no socket or lock file behind (libzmq's unlink may come late)
+            base = front[len("ipc://") : -len(".in")]
+            for path in (base + ".in", base + ".out", base + ".lock"):  # the lock while still holding it
+                try:
+                    os.unlink(path)
+                except OSError:
+                    pass
         self._release()
 
     def __enter__(self) -> ZmqCanHub:
