@@ -230,6 +230,17 @@ class Sequencer(Node):
                 self.log.warning("scan %d: the emitter has not ended it within %g s", sid,
                                  self.params.respawn_wait_s)
 
+    def peer_behind_fault(self, peers: list[str]) -> None:
+        """After a scan's fault: raise PeerLost if one of ``peers`` died under it. A fault can come before
+        the dead peer's deadline (the polarizer sees the simulator's drive go silent after 0.5 s), so wait
+        until each peer has beaten since the fault or is lost (at most the deadline, 1 s by default)."""
+        since, live = self.now(), self.liveness
+        while not self.stopping:
+            self.check_peers(peers)
+            if all(live.peers[n].last_s > since for n in peers if n in live.peers):
+                return
+            self.take("heartbeat", 0.05)
+
     def scan_once(self, method: str) -> bool:
         p = self.params
         peers = self.scan_peers(method)
@@ -257,7 +268,7 @@ class Sequencer(Node):
         self.scan_ended = True
         if end.event == "fault":
             self.log.error("%s: scan %d fault: %s", method, sid, end.detail)
-            self.check_peers(peers)  # a fault because a peer died under the scan: PeerLost, the retry path
+            self.peer_behind_fault(peers)  # a peer that died under the scan: PeerLost, the retry path
             return False
         self.log.info("%s: scan %d done in %.2f s", method, sid, scan_s)
         if not p.wait_composite:

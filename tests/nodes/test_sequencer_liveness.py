@@ -99,3 +99,18 @@ def test_a_polarized_scan_also_depends_on_the_polarizer_and_only_nodes_of_the_gr
     h = rig({"polarizer": {}, "emitter": {}}, lambda h, sid: None)
     assert h.node.scan_peers("flood") == ["emitter"]
     assert h.node.scan_peers("polarized_flood") == ["emitter", "polarizer"]
+
+
+def test_a_fault_that_comes_before_the_dead_peers_deadline_is_still_laid_at_its_door():
+    """The simulator dies; the polarizer notices its drive's silence first and the scan faults 0.5 s later:
+    the sequencer waits for every peer to beat once more (or be lost) before it calls it a plain fault."""
+    def on_start(h, sid):
+        h.queue("emitter/scan", ScanEvent(scan_id=sid, event="fault", method="flood",
+                                          detail="polarizer/state"))
+
+    h = rig({"simulator": {"respawn": False}}, on_start)
+    h.node.run()
+    assert h.node.exit_code == 1 and h.starts == [1]
+    errors = [t for lvl, t in h.logs if lvl == "ERROR"]
+    assert "flood: scan 1 fault: polarizer/state" in errors[0]
+    assert any("flood: scan 1: node 'simulator' lost: no heartbeat" in t for t in errors), errors
