@@ -22,6 +22,7 @@ BENCHES: dict[str, str] = {
     "pipeline": "a full simulated scan: simulation, transport, compositing",
     "record": "recorder sustained frame rate vs a plain file write",
     "depth": "triangulation time per stripe scan (and --accuracy: depth error vs truth)",
+    "soak": "the sim rig scanning for N minutes, a node killed every M s: losses, memory, recovery",
 }
 
 

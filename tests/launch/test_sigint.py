@@ -1,0 +1,161 @@
+"""Ctrl-C that stops (issue 12, item 2): SIGINT to the launcher of a small sim launch at seeded random
+moments — the ``[launch] prepare`` step, nodes starting (the planner plans in its setup), the sequencer
+waiting for the plan, the calibration, the scans — and each time: the launcher exits by itself (130), every
+node exited by itself after that first SIGINT (``exits.json``: nobody needed the launcher's SIGTERM or
+SIGKILL, no traceback), no process of the launch is left (its process groups, and any process carrying the
+launch's marker in its environment) and no socket file was left in the run's ``${run_sock}``.
+
+One launch per moment, so each moment costs the time to reach it. To fit ~90 s, moments after the prepare
+step run the shipped file without its ``prepare`` line (the kernels are compiled by then: the same nodes,
+params and graph, ~2 s less per launch), and the fast variant's 20 moments lean toward the cheap early phases
+(where the issue's hangs were) with every phase at least once; ``slow`` runs 40 spread evenly."""
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+from polarstripe.runtime.launch_file import find_launch_file
+
+ARGS = ["--once", "resolution=64x48", "stripes=4"]
+SHUTDOWN_TIMEOUT_S = 5.0  # launch/sim.toml's shutdown_timeout
+NODES = ["simulator", "polarizer", "grabber", "compositor", "planner", "emitter", "sequencer"]
+
+# phase -> (where its clock starts: the launcher's console or a node's log, the text that marks it, the
+# longest random delay after the mark [s])
+PHASES = {
+    "prepare": ("console", "preparing:", 1.0),
+    "start-up": ("console", "simulator started", 2.5),
+    "planning": ("sequencer", "INFO sequencer: started", 1.0),
+    "calibration": ("sequencer", "sequencer: plan:", 1.0),
+    "scans": ("sequencer", "sequencer: calibrated:", 2.5),
+}
+
+
+def _marked(marker: str) -> list[int]:
+    """Pids of the processes whose environment carries ``marker`` (everything the launch started)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if marker.encode() in (d / "environ").read_bytes():
+                    pids.append(int(d.name))
+            except OSError:
+                pass
+    return pids
+
+
+def _text(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except OSError:
+        return ""
+
+
+def sigint_at(tmp: Path, phase: str, delay_s: float) -> dict:
+    """One launch, SIGINT ``delay_s`` after ``phase``'s mark; returns what was checked (or asserts)."""
+    where, mark, _ = PHASES[phase]
+    marker = f"PS_SIGINT_TEST={uuid.uuid4().hex}"
+    runs = tmp / "runs"
+    env = {**os.environ, "POLARSTRIPE_RUNS": str(runs), marker.split("=")[0]: marker.split("=")[1]}
+    console = tmp / "console.txt"
+    file = find_launch_file("sim")
+    if phase != "prepare":  # the same launch without compiling (loading) the kernels first
+        text = file.read_text()
+        file = tmp / "sim.toml"
+        file.write_text("\n".join(ln for ln in text.splitlines() if not ln.startswith("prepare =")))
+    with open(console, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(file), *ARGS,
+                                 f"out={tmp}/out"], cwd=tmp, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        run_dir = None
+        while time.monotonic() < deadline and proc.poll() is None:
+            if run_dir is None and runs.is_dir():
+                run_dir = next(iter(runs.iterdir()), None)
+            log = run_dir / "logs" / f"{where}.log" if run_dir else None
+            source = console if where == "console" else log
+            if source is not None and mark in _text(source):
+                break
+            time.sleep(0.02)
+        else:
+            raise AssertionError(f"{phase}: {mark!r} never came (exit {proc.poll()}):\n{_text(console)}")
+        time.sleep(delay_s)
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        try:
+            status = proc.wait(timeout=SHUTDOWN_TIMEOUT_S + 5)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{phase}+{delay_s:.2f}s: the launcher did not exit:\n{_text(console)}"
+                                 ) from None
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text = _text(console)
+    what = f"{phase}+{delay_s:.2f}s"
+    if status == 0 and "every required node has exited" in text:
+        return {"phase": phase, "delay_s": delay_s, "stop_s": took, "late": True}  # ended before the SIGINT
+    assert status == 130, (what, status, text)
+    exits = json.loads((run_dir / "exits.json").read_text())
+    assert "still running after" not in text, (what, text)
+    for name, e in exits["nodes"].items():
+        if not e["started"]:
+            continue
+        log = _text(run_dir / "logs" / f"{name}.log")
+        assert e["stopped_by"] in (None, "SIGINT"), (what, name, e, log[-2000:])  # no SIGTERM, no SIGKILL
+        assert e["signal"] is None and e["exit_code"] in (0, 130), (what, name, e, log[-2000:])
+        assert "Traceback" not in log, (what, name, log[-3000:])
+        with pytest.raises(ProcessLookupError):
+            os.killpg(e["pid"], 0)  # nothing left in the node's process group
+    assert exits["left_sockets"] == [], (what, exits["left_sockets"])  # every node removed its own
+    graph = json.loads((run_dir / "graph.json").read_text())
+    sock = {Path(n["pub"][len("ipc://"):]).parent for n in graph["nodes"].values()}  # ${run_sock}
+    assert len(sock) == 1 and not sock.pop().exists(), what
+    assert _marked(marker) == [], (what, "orphans")
+    started = [n for n, e in exits["nodes"].items() if e["started"]]
+    return {"phase": phase, "delay_s": delay_s, "stop_s": took, "late": False, "started": started}
+
+
+def _moments(counts: dict[str, int], seed: int) -> list[tuple[str, float]]:
+    rng = random.Random(seed)
+    return [(phase, rng.uniform(0.0, PHASES[phase][2])) for phase, n in counts.items() for _ in range(n)]
+
+
+def _run_moments(tmp_path, counts, seed):
+    results = []
+    for i, (phase, delay) in enumerate(_moments(counts, seed)):
+        tmp = tmp_path / f"m{i:02d}"
+        tmp.mkdir()
+        t0 = time.monotonic()
+        results.append(sigint_at(tmp, phase, delay))
+        results[-1]["total_s"] = time.monotonic() - t0
+    print("\n".join(f"{r['phase']:<12} +{r['delay_s']:.2f} s: stopped in {r['stop_s']:.2f} s"
+                    f" (moment {r['total_s']:.1f} s)"
+                    + (" (the launch had ended)" if r["late"] else f", {len(r['started'])} nodes up")
+                    for r in results))
+    late = [r for r in results if r["late"]]
+    assert len(late) <= len(results) // 10, late  # the moments fall inside the launch, not after it
+    assert max(r["stop_s"] for r in results) < SHUTDOWN_TIMEOUT_S + 3
+    return results
+
+
+def test_sigint_at_20_random_moments_stops_every_node_by_itself(tmp_path):
+    counts = {"prepare": 5, "start-up": 10, "planning": 3, "calibration": 1, "scans": 1}
+    results = _run_moments(tmp_path, counts, seed=12)
+    assert len(results) >= 20
+
+
+@pytest.mark.slow
+def test_sigint_at_40_moments_spread_evenly(tmp_path):
+    counts = dict.fromkeys(PHASES, 8)
+    results = _run_moments(tmp_path, counts, seed=1212)
+    assert len(results) == 40
