@@ -100,14 +100,21 @@ class Composite(Message):
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-@message("medium_estimate")
+@message("medium_estimate", version=2)
 class MediumEstimate(Message):
     """The medium as measured in situ: backscatter degree of polarization ``p`` and, when known, the
-    extinction coefficient ``sigma_t_per_m`` [1/m]."""
+    extinction coefficient ``sigma_t_per_m`` [1/m] and the phase function's mean cosine, each with its 1σ
+    uncertainty (None: not estimated). ``reason`` non-empty: the fit could not estimate σ_t and the mean
+    cosine, and says why (their fields are None then). Version 2 added the fields after ``scan_id``."""
 
     p: float
     sigma_t_per_m: float | None = None
     scan_id: int = 0
+    mean_cosine: float | None = None
+    p_std: float | None = None
+    sigma_t_std: float | None = None
+    mean_cosine_std: float | None = None
+    reason: str = ""
 
 
 @message("plan")
