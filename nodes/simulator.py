@@ -138,6 +138,8 @@ class Simulator(Node):
         self.scale = p.render_scale or (
             max(1, w // PREVIEW_WIDTH) if self.fidelity.name == "preview" else 1)
         self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
+        if self.fidelity.name == "reference" and p.heartbeat_s > 0:  # its kernels hold the GIL up to ~1.1 s
+            self.beat_period_s = max(p.heartbeat_s, 1.0)  # deadline 4 s (runtime/liveness.py)
         self._cache: OrderedDict = OrderedDict()
         self._ahead: dict = {}  # (pattern, pose) -> Future of a render ahead
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="render ahead") if p.render_ahead else None

@@ -197,6 +197,19 @@ class Watching:
 
     liveness: Liveness | None = None
     _watch_topic: str | None = None
+    _beat_period_s: float | None = None
+
+    @property
+    def beat_period_s(self) -> float:
+        """This node's heartbeat period [s]: ``heartbeat_s``, or longer if ``setup`` says so (a node whose
+        compiled kernels hold the GIL for up to a second, e.g. the simulator at ``reference`` fidelity,
+        would otherwise miss its deadline while alive). Its beats carry it (``heartbeat_ms``), so watchers
+        give it 4 of these periods."""
+        return self._beat_period_s if self._beat_period_s is not None else self.params.heartbeat_s
+
+    @beat_period_s.setter
+    def beat_period_s(self, value: float) -> None:
+        self._beat_period_s = float(value)
 
     def watch(self, topic: str = "heartbeat", *, misses: int = DEFAULT_MISSES) -> Liveness:
         """Watch the heartbeats on ``topic`` (subscribed here, ``all`` mode, unless it is): each beat the node

@@ -378,7 +378,7 @@ class Node(Watching):
         requests, errors, bad = self._bus.service_stats()
         c["bad"] = self.counters["bad"] + bad
         c["requests"], c["service_errors"] = requests, errors
-        c["incarnation"], c["heartbeat_ms"] = self.incarnation, round(self.params.heartbeat_s * 1000)
+        c["incarnation"], c["heartbeat_ms"] = self.incarnation, round(self.beat_period_s * 1000)
         if exiting:
             c["exiting"] = 1
         return Heartbeat(

@@ -225,7 +225,7 @@ def _run(node: Node, bus: ZmqNodeBus) -> None:
         return
     node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
     if beat:
-        beats = HeartbeatThread(node.params.heartbeat_s, lambda: hb_pub.publish(node.heartbeat())).start()
+        beats = HeartbeatThread(node.beat_period_s, lambda: hb_pub.publish(node.heartbeat())).start()
     try:
         node.run()
     except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to

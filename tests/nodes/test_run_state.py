@@ -70,3 +70,12 @@ def test_a_respawned_planner_plans_with_the_medium_it_had_measured(tmp_path):
     assert default_p != pytest.approx(0.2, abs=0.05)
     assert again.node.scene.medium.dop.p == pytest.approx(0.2) and again.node.p_assumed == pytest.approx(0.2)
     assert again.call("planner/plan", Empty()).separation_m == first.node.plan.separation_m
+
+
+def test_the_simulator_at_reference_fidelity_beats_once_a_second():
+    """Its compiled kernels hold the GIL for up to ~1.1 s at reference (320x240): a 0.25 s beat would miss
+    its 1 s deadline while the node is alive."""
+    h = NodeHarness(Simulator, name="simulator", params={"resolution": "16x12", "fidelity": "reference"})
+    assert h.node.heartbeat().counters["heartbeat_ms"] == 1000
+    h = NodeHarness(Simulator, name="simulator", params={"resolution": "16x12"})
+    assert h.node.heartbeat().counters["heartbeat_ms"] == 250

@@ -217,3 +217,20 @@ def test_a_busy_node_keeps_beating_and_its_last_beat_says_it_exits(tmp_path):
     assert all(b.incarnation == 2 and b.counters["heartbeat_ms"] == 50 for b in beats)
     assert beats[-1].counters.get("exiting") == 1
     assert not any(b.counters.get("exiting") for b in beats[:-1])
+
+
+def test_a_node_may_beat_slower_than_heartbeat_s_and_its_beats_say_so():
+    class Slow(Node):
+        def setup(self):
+            self.beat_period_s = 1.0
+
+    h = NodeHarness(Slow, name="s", params={"heartbeat_s": 0.25})
+    assert h.node.heartbeat().counters["heartbeat_ms"] == 1000
+    assert NodeHarness(Waiter, name="w").node.heartbeat().counters["heartbeat_ms"] == 250
+    clock = Clock()
+    live = Liveness(clock)
+    live.heard(h.node.heartbeat())
+    clock.t = 3.9
+    assert live.check(["s"]) is None  # 4 of its own periods
+    clock.t = 4.1
+    assert live.check(["s"]).node == "s"
