@@ -29,6 +29,7 @@ from polarstripe.planning.planner import SceneModel, default_separations, plan
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
+from polarstripe.runtime.process import interruptible
 from polarstripe.sim.render import render_components, render_frame, resolve_fidelity
 from polarstripe.sim.scene import DopModel, load_scene, parse_size, with_separation
 from polarstripe.sim.sensor import full_scale_dn, mean_dn
@@ -180,7 +181,8 @@ class Planner(Node):
                       self.sigma_assumed)
         self.scene = self.with_medium(est.p, sigma)
         self.run_state.save(medium_p=est.p, medium_sigma_t=sigma)  # restored by a respawned planner
-        self.plan = self.make_plan()
+        with interruptible("re-planning"):  # seconds of pure computation: a Ctrl-C need not wait for it
+            self.plan = self.make_plan()
         self.counters["replans"] += 1
         self.plan_pub.publish(self.plan)
 

@@ -120,9 +120,25 @@ class GuardedClient:
         return getattr(self._client, name)
 
 
+_GUARD: StopGuard | None = None  # this process's node, once install_signals has run
+
+
+@contextmanager
+def interruptible(what: str) -> Iterator[None]:
+    """Around a node's long computation that may be abandoned midway (no socket or file half written: the
+    planner's re-plan): a stop signal ends it at once with :class:`NodeStopping`, which ends the node
+    normally. A no-op where no signals are installed (the harness, a script)."""
+    if _GUARD is None:
+        yield
+        return
+    with _GUARD.interruptible(what):
+        yield
+
+
 def install_signals(node: Node) -> StopGuard:
     """SIGINT and SIGTERM stop the node (see :class:`StopGuard`); returns the guard."""
-    guard = StopGuard(node)
+    global _GUARD
+    guard = _GUARD = StopGuard(node)
     signal.signal(signal.SIGINT, guard.on_signal)
     signal.signal(signal.SIGTERM, guard.on_signal)
     # the launcher starts nodes with both blocked (runtime/launch.py): one that came meanwhile arrives now
