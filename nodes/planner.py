@@ -5,8 +5,10 @@
 * publishes ``planner/plan`` once on start-up (``publish_on_start``, after ``publish_delay_s`` so that
   subscribers have joined);
 * subscribes ``medium/estimate``: when the measured p differs from the p the plan assumed by more than
-  ``p_tolerance`` (absolute), or σ_t by more than ``sigma_tolerance`` (relative), the scene's medium takes the
-  measured values (a constant DOP p, σ_t when given) and the plan is made again and published; that medium
+  ``p_tolerance`` (absolute), σ_t by more than ``sigma_tolerance`` (relative) or the mean cosine by more than
+  ``g_tolerance`` (absolute), the scene's medium takes the measured values (a constant DOP p; σ_t and the TTHG
+  mean cosine when given, as the in-situ fit of docs/planning.md §6 publishes them; an estimate with a
+  ``reason`` carries p only) and the plan is made again and published; that medium
   is kept in the run directory (``state/planner.json``, runtime/liveness.py), so a respawned planner makes
   the same plan.
 
@@ -31,7 +33,7 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.runtime.process import interruptible
 from polarstripe.sim.render import render_components, render_frame, resolve_fidelity
-from polarstripe.sim.scene import DopModel, load_scene, parse_size, with_separation
+from polarstripe.sim.scene import DopModel, Phase, load_scene, parse_size, with_separation
 from polarstripe.sim.sensor import full_scale_dn, mean_dn
 
 
@@ -55,6 +57,7 @@ class Planner(Node):
         replan: bool = True
         p_tolerance: float = 0.05  # absolute
         sigma_tolerance: float = 0.1  # relative
+        g_tolerance: float = 0.02  # absolute, the phase function's mean cosine
 
         def validate(self):
             super().validate()
@@ -120,6 +123,7 @@ class Planner(Node):
         samples = model.stripes(best) if p.modality == "stripes" else model.flood(best)
         self.p_assumed = float(np.mean(samples.dop))
         self.sigma_assumed = float(self.scene.medium.sigma_t)
+        self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
                   "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight,
                   "flood_saturated_fraction": saturated}
@@ -161,25 +165,29 @@ class Planner(Node):
         self.plan_pub.publish(self.plan)
         return self.plan
 
-    def with_medium(self, p: float, sigma_t: float | None):
-        """The scene with a constant DOP ``p`` (clamped to [0, 1]) and, when given, ``sigma_t`` [1/m]."""
+    def with_medium(self, p: float, sigma_t: float | None, mean_cosine: float | None = None):
+        """The scene with a constant DOP ``p`` (clamped to [0, 1]) and, when given, ``sigma_t`` [1/m] and the
+        TTHG ``mean_cosine``."""
         medium = self.scene.medium.replace(dop=DopModel(model="constant", p=min(max(float(p), 0.0), 1.0)))
         if sigma_t is not None:
             medium = medium.replace(sigma_t=float(sigma_t))
+        if mean_cosine is not None:
+            medium = medium.replace(phase=Phase("tthg", min(max(float(mean_cosine), 0.0), 0.999)))
         return self.scene.replace(medium=medium)
 
     def on_estimate(self, est: MediumEstimate) -> None:
 
         p = self.params
         dp = abs(est.p - self.p_assumed)
-        sigma = est.sigma_t_per_m
+        sigma, g = (None, None) if est.reason else (est.sigma_t_per_m, est.mean_cosine)
         ds = abs(sigma - self.sigma_assumed) / max(self.sigma_assumed, 1e-12) if sigma is not None else 0.0
-        if not p.replan or (dp <= p.p_tolerance and ds <= p.sigma_tolerance):
+        dg = abs(g - self.g_assumed) if g is not None else 0.0
+        if not p.replan or (dp <= p.p_tolerance and ds <= p.sigma_tolerance and dg <= p.g_tolerance):
             return
         self.log.info("medium estimate of scan %d (p %.3f, sigma_t %s) differs from the plan's (p %.3f, "
                       "sigma_t %.3g): re-planning", est.scan_id, est.p, sigma, self.p_assumed,
                       self.sigma_assumed)
-        self.scene = self.with_medium(est.p, sigma)
+        self.scene = self.with_medium(est.p, sigma, g)
         self.run_state.save(medium_p=est.p, medium_sigma_t=sigma)  # restored by a respawned planner
         with interruptible("re-planning"):  # seconds of pure computation: a Ctrl-C need not wait for it
             self.plan = self.make_plan()

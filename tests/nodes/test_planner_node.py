@@ -112,6 +112,17 @@ def test_changed_sigma_replans():
     assert len(h.published("planner/plan")) == 1  # the re-plan only: nothing on start-up
 
 
+def test_fitted_medium_replans_with_sigma_and_mean_cosine():
+    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    cannot = MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=None, reason="no visible sheet")
+    h.deliver("medium/estimate", cannot)
+    assert h.node.counters["replans"] == 0
+    h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=5.0, mean_cosine=0.9,
+                                                sigma_t_std=0.2, mean_cosine_std=0.01))
+    assert h.node.counters["replans"] == 1
+    assert h.node.scene.medium.phase.g == pytest.approx(0.9) and h.node.g_assumed == pytest.approx(0.9)
+
+
 def test_bad_params_are_rejected_before_start():
     with pytest.raises(ParamError, match="resolution"):
         NodeHarness(Planner, params={"resolution": "640by480"})
