@@ -2,8 +2,11 @@
 it with exit status 1 and a line naming the service or topic."""
 
 import numpy as np
+import pytest
 from polarstripe.msgs import Ack, Composite, Heartbeat, Plan, PolarizerState, ScanEvent
 from polarstripe.nodes.sequencer import Sequencer
+from polarstripe.runtime.node import NodeStopping
+from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
 
 
@@ -119,3 +122,23 @@ def test_a_node_never_heard_fails_the_sequence_before_any_scan():
     h.node.run()
     assert h.node.exit_code == 1 and h.calls == []
     assert any("heartbeat: simulator not heard within 2 s" in t for _, t in h.logs)
+
+
+def test_repeat_runs_the_methods_that_many_times_and_zero_until_stopped():
+    h = rig({"repeat": 3, "plan": False})
+    h.node.run()
+    scans = [c.split()[1] for c in h.calls if c.startswith("scan")]
+    assert h.node.exit_code == 0 and scans == ["flood", "polarized_stripes"] * 3
+
+    h = rig({"repeat": 0, "plan": False})
+    start = h.bus.responders[h.full("emitter/start_scan")]
+    h.on_call("emitter/start_scan",
+              lambda req: (h.node.stop("enough") if len(h.calls) >= 7 else None) or start(req))
+    with pytest.raises(NodeStopping):  # (the runner ends the node on it)
+        h.node.run()  # scans until stopped: the stop comes with the 8th start
+    assert len([c for c in h.calls if c.startswith("scan")]) == 8
+
+
+def test_a_negative_repeat_is_refused():
+    with pytest.raises(ParamError, match="repeat must be >= 0"):
+        NodeHarness(Sequencer, name="sequencer", params={"repeat": -1})
