@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import os
 
-import cv2
 import numpy as np
 from polarstripe.errors import PolarstripeError
+from polarstripe.imaging import calibration
 from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
 from polarstripe.imaging.triangulation import RigGeometry, Triangulator, stripe_edges
 from polarstripe.imaging.validation import ImagingError, roi_slices
@@ -31,7 +31,7 @@ from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.scene import SceneError, load_scene
 
 STRIPE_METHODS = ("stripes", "polarized_stripes")
-CALIBRATION_KEYS = ("K_cam", "dist_cam", "K_proj", "R", "T", "cam_size", "proj_size")
+CALIBRATION_KEYS = calibration.FILE_KEYS
 
 
 class GeometryError(PolarstripeError, ValueError):
@@ -53,49 +53,20 @@ def load_geometry(spec: str) -> RigGeometry | None:
         raise GeometryError(f"geometry {spec!r}: {exc}") from None
 
 
-def read_calibration(path: str) -> dict:
-    """The matrices of a calibration file written by ``polarstripe calibrate`` (cv2.FileStorage)."""
-    if not os.path.isfile(path):
-        raise GeometryError(f"geometry {path!r}: no such file")
+def read_calibration(path: str, *, cam_size=None, proj_size=None) -> dict:
+    """The matrices of a calibration file written by ``polarstripe calibrate`` (cv2.FileStorage, read by
+    :func:`polarstripe.imaging.calibration.load`; with ``cam_size``/``proj_size`` a file of another rig
+    size is an error)."""
     try:
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise GeometryError(f"geometry {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
-    try:
-        if not fs.isOpened():
-            raise GeometryError(f"geometry {path!r}: not an OpenCV FileStorage file")
-        out = {}
-        for key in CALIBRATION_KEYS:
-            node = fs.getNode(key)
-            if node.empty():
-                if key == "dist_cam":
-                    continue
-                raise GeometryError(f"geometry {path!r}: {key} is missing")
-            value = node.mat()
-            out[key] = node.real() if value is None else value
-        return out
-    except cv2.error as exc:
-        raise GeometryError(f"geometry {path!r}: {exc.err}") from None
-    finally:
-        fs.release()
+        return calibration.load(path, cam_size=cam_size, proj_size=proj_size)
+    except calibration.CalibrationError as exc:
+        raise GeometryError(f"geometry: {exc}") from None
 
 
 def write_calibration(path: str, geom: dict, extra: dict | None = None) -> None:
-    """Write a calibration atomically (temporary file + rename: a failed run leaves the old file whole)."""
-    base, ext = os.path.splitext(path)
-    tmp = f"{base}.tmp{os.getpid()}{ext or '.yaml'}"
-    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
-    try:
-        for key in CALIBRATION_KEYS:
-            fs.write(key, np.asarray(geom[key], np.float64).reshape((-1, 1) if key in ("T", "dist_cam",
-                                                                                         "cam_size",
-                                                                                         "proj_size")
-                                                                     else (3, 3)))
-        for key, value in (extra or {}).items():
-            fs.write(key, value)
-    finally:
-        fs.release()
-    os.replace(tmp, path)
+    """Write a calibration atomically (temporary file + rename: a failed run leaves the old file whole;
+    :func:`polarstripe.imaging.calibration.save`)."""
+    calibration.save(path, geom, extra)
 
 
 def write_ply(path: str, points: np.ndarray | None) -> None:
