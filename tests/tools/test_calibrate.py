@@ -1,0 +1,131 @@
+"""Projector–camera calibration against the simulator's truth (issue 15, docs/depth.md "Calibration").
+
+The truth is the scene's own pinholes (sim/depth_truth.py ``rig_geometry``: f = w/(2·tan(fov/2)), c = w/2 − ½,
+R and T from the poses in the scene), not anything the calibration computes. The renders (8 board poses at
+320×240, projector 256×192: 34 frames a pose) are made once per medium for this module: about 5 s in clear
+water, 35 s at σ_t = 2, plus ~7 s of decoding each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+import pytest
+from polarstripe.imaging.calibration import Board, CalibrationError, calibrate, decode_pose, load, save
+from polarstripe.imaging.triangulation import RigGeometry
+from polarstripe.nodes.compositor_depth import GeometryError, load_geometry, read_calibration
+from polarstripe.sim.depth_truth import rig_geometry
+from polarstripe.tools import calibrate_cli
+from polarstripe.tools.cli import main as cli
+
+POSES = 8
+BOARD = Board(8, 6, 0.015)
+
+
+def _args(*extra: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    calibrate_cli.configure(parser)
+    return parser.parse_args(["-o", "unused.yaml", "--sim", "--resolution", "320x240", "--projector", "256x192",
+                              *extra])
+
+
+@pytest.fixture(scope="module", params=[0.0, 2.0], ids=["clear", "sigma_t=2"])
+def rig(request, tmp_path_factory):
+    """(scene, frames of every pose, decoded poses) of the simulated rig in one medium."""
+    args = _args("--sigma-t", str(request.param))
+    scene = calibrate_cli.rig_scene(args)
+    tex = str(tmp_path_factory.mktemp("board") / "board.png")
+    size = calibrate_cli.board_texture(BOARD, tex)
+    poses = calibrate_cli.random_poses(POSES, 0, scene)
+    scene = calibrate_cli.exposed(scene, poses[0], tex, size, "preview")
+    rng = np.random.default_rng(0)
+    frames = [calibrate_cli.render_pose(scene, p, tex, size, rng, "preview") for p in poses]
+    proj = tuple(scene.projector.resolution)
+    decoded = [decode_pose(*f, BOARD, proj, pose=k) for k, f in enumerate(frames)]
+    return scene, frames, decoded
+
+
+def test_calibration_matches_the_simulators_truth(rig):
+    scene, _, decoded = rig
+    truth = rig_geometry(scene)
+    cal = calibrate(decoded, BOARD, tuple(scene.camera.resolution), tuple(scene.projector.resolution))
+    for name, K, Kt in (("camera", cal.K_cam, truth["K_cam"]), ("projector", cal.K_proj, truth["K_proj"])):
+        for i in (0, 1):
+            assert abs(K[i, i] / Kt[i, i] - 1) < 0.005, f"{name} focal length {K[i, i]} vs {Kt[i, i]}"
+            assert abs(K[i, 2] - Kt[i, 2]) < 2.0, f"{name} principal point {K[i, 2]} vs {Kt[i, 2]}"
+    assert abs(np.linalg.norm(cal.T) - np.linalg.norm(truth["T"])) < 1e-3          # baseline within 1 mm
+    assert np.linalg.norm(cal.T - truth["T"]) < 2e-3                               # and its direction
+    dR = cal.R @ np.asarray(truth["R"]).T
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.1
+    assert cal.rms_cam < 0.3 and cal.rms_proj < 0.3 and cal.rms_stereo < 0.3
+
+
+def test_the_file_is_what_the_compositor_reads(rig, tmp_path):
+    scene, _, decoded = rig
+    cal = calibrate(decoded, BOARD, tuple(scene.camera.resolution), tuple(scene.projector.resolution))
+    path = str(tmp_path / "rig.yaml")
+    save(path, {**cal.geometry(), "dist_proj": cal.dist_proj}, {"rms_cam": cal.rms_cam})
+    g = load_geometry(path)
+    assert isinstance(g, RigGeometry) and g.cam_size == (320, 240) and g.proj_size == (256, 192)
+    np.testing.assert_allclose(g.K_proj, cal.K_proj)
+    np.testing.assert_allclose(g.T, cal.T)
+    # a camera binned 2×2 is the same rig; another projector or camera aspect is not
+    assert load(path, cam_size=(160, 120), proj_size=(256, 192))["K_cam"].shape == (3, 3)
+    with pytest.raises(GeometryError, match="256x192 projector, the rig's is 1024x768"):
+        read_calibration(path, proj_size=(1024, 768))
+    with pytest.raises(CalibrationError, match="320x240 camera, the rig's is 640x400"):
+        load(path, cam_size=(640, 400))
+
+
+def test_too_few_poses_is_one_error(rig):
+    scene, _, decoded = rig
+    with pytest.raises(CalibrationError, match="2 usable poses: a calibration needs at least 3"):
+        calibrate(decoded[:2], BOARD, tuple(scene.camera.resolution), tuple(scene.projector.resolution))
+
+
+def test_a_board_not_seen_is_one_error(rig):
+    scene, frames, _ = rig
+    white, black, gray = frames[0]
+    blank = np.full_like(white, int(np.percentile(white, 99)))     # lit, but no board in view
+    with pytest.raises(CalibrationError, match="pose 3: the 8x6 checkerboard is not seen"):
+        decode_pose(blank, black, gray, BOARD, tuple(scene.projector.resolution), pose=3)
+    with pytest.raises(CalibrationError, match="the 9x6 checkerboard is not seen"):
+        decode_pose(white, black, gray, Board(9, 6, 0.015), tuple(scene.projector.resolution))
+
+
+def test_patterns_the_camera_cannot_decode_are_one_error(rig):
+    scene, frames, _ = rig
+    white, black, gray = frames[0]
+    proj = tuple(scene.projector.resolution)
+    with pytest.raises(CalibrationError, match="corners decode in the projector"):
+        decode_pose(white, black, [white] * len(gray), BOARD, proj)      # every pattern = its inverse
+    with pytest.raises(CalibrationError, match="Gray code frames, a 256x192 projector needs 32"):
+        decode_pose(white, black, gray[:-2], BOARD, proj)
+
+
+def test_cli_writes_the_file_and_the_coverage_view(tmp_path, capsys):
+    out = tmp_path / "rig.yaml"
+    assert cli(["calibrate", "-o", str(out), "--sim", "--poses", "4", "--sigma-t", "0", "--resolution",
+                "320x240", "--projector", "64x48", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "baseline" in printed and "rotation error" in printed
+    g = load(str(out), proj_size=(64, 48))
+    assert abs(np.linalg.norm(g["T"]) - 0.2) < 0.01                              # the default tank's 20 cm
+    assert (tmp_path / "rig_coverage.png").stat().st_size > 0
+
+
+def test_a_failed_run_leaves_the_previous_file_untouched(tmp_path, capsys):
+    out = tmp_path / "rig.yaml"
+    out.write_text("%YAML:1.0\nprevious: 1\n")
+    before = out.read_bytes()
+    assert cli(["calibrate", "-o", str(out), "--sim", "--poses", "2"]) == 2
+    assert "needs at least 3 poses" in capsys.readouterr().err
+    # the board is 12x9 here: no pose shows it whole in a 160x120 camera
+    assert cli(["calibrate", "-o", str(out), "--sim", "--poses", "3", "--sigma-t", "0", "--resolution",
+                "160x120", "--projector", "64x48", "--board", "12x9", "--square", "0.03", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") >= 1 and "0 usable poses of 3" in err.splitlines()[-1]
+    assert out.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["rig.yaml"]                          # no temporary left behind
