@@ -135,12 +135,38 @@ def interruptible(what: str) -> Iterator[None]:
         yield
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_EARLY: list[str] = []  # stop signals that came while the node's module was imported
+
+
+@contextmanager
+def early_signals() -> Iterator[None]:
+    """Around importing a node's module (seconds of numba, scipy, OpenCV on a loaded machine): a stop signal
+    ends the import at once with ``KeyboardInterrupt`` (the command exits 130) and is remembered, so that
+    one swallowed by an import callback still stops the node in :func:`install_signals`. Afterwards the
+    signals are held again (if they were: the launcher's node) until the node's own handlers are in."""
+    def on_signal(signum, frame):
+        _EARLY.append(signal.Signals(signum).name)
+        raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, on_signal) for s in _STOP_SIGNALS}
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)  # one pending since the start comes now
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # held again if the launcher had them held
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def install_signals(node: Node) -> StopGuard:
     """SIGINT and SIGTERM stop the node (see :class:`StopGuard`); returns the guard."""
     global _GUARD
     guard = _GUARD = StopGuard(node)
     signal.signal(signal.SIGINT, guard.on_signal)
     signal.signal(signal.SIGTERM, guard.on_signal)
+    if _EARLY:  # one came during the import and its KeyboardInterrupt was lost: stop as it asked
+        node.stop(_EARLY[0])
     # the launcher starts nodes with both blocked (runtime/launch.py): one that came meanwhile arrives now
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM))
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     return guard

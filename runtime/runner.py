@@ -26,7 +26,13 @@ from polarstripe.runtime.liveness import HeartbeatThread, incarnation
 from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.node_bus import Handler
 from polarstripe.runtime.params import build_params
-from polarstripe.runtime.process import GuardedClient, StopGuard, install_logging, install_signals
+from polarstripe.runtime.process import (
+    GuardedClient,
+    StopGuard,
+    early_signals,
+    install_logging,
+    install_signals,
+)
 from polarstripe.runtime.service import ServiceClient, ServiceServer
 
 
@@ -164,7 +170,8 @@ def run_node(
     from ``pub``/``srv`` (default :func:`default_endpoints`), ``connect`` (PUB endpoints to subscribe to)
     and ``services`` (service name → ROUTER endpoint).
     """
-    cls = load_node_class(spec)
+    with early_signals():  # a Ctrl-C during the node module's import ends it at once (exit 130)
+        cls = load_node_class(spec)
     graph = load_graph(graph_file) if graph_file else {}
     name = name or cls.__name__.lower()
     entry = graph.get("nodes", {}).get(name, {})

@@ -118,3 +118,27 @@ def test_a_stop_signal_ends_a_blocking_section_at_once():
     finally:
         signal.signal(signal.SIGINT, handlers[0])
         signal.signal(signal.SIGTERM, handlers[1])
+
+
+def test_a_signal_while_the_node_module_is_imported_ends_it_and_is_remembered():
+    """early_signals: a SIGTERM during the import raises KeyboardInterrupt (exit 130, no traceback from the
+    command line); if that was swallowed, install_signals stops the node at once with the signal's name.
+    The mask is as before afterwards (held for a node the launcher started)."""
+    from polarstripe.runtime import process
+    from polarstripe.runtime.process import early_signals
+
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    try:
+        with pytest.raises(KeyboardInterrupt), early_signals():
+            os.kill(os.getpid(), signal.SIGTERM)
+        assert process._EARLY == ["SIGTERM"]
+        assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
+        assert signal.getsignal(signal.SIGTERM) is handlers[1]  # the import's handler is gone
+        node, _ = _talker()
+        install_signals(node)  # the KeyboardInterrupt was "swallowed": the node stops all the same
+        assert node.stopping and node.stop_reason == "SIGTERM"
+    finally:
+        process._EARLY.clear()
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
