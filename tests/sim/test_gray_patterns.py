@@ -40,3 +40,33 @@ def test_lit_intervals_are_opencvs_gray_code():
         lit[ray] = True
         np.testing.assert_array_equal(lit.reshape(H, W), image > 0, err_msg=str(spec))
         np.testing.assert_allclose(hi - lo, 0.2)        # a ray from the apex is lit whole or not at all
+
+
+def test_lit_intervals_of_rays_across_the_sheets():
+    """Camera rays beside the projector cross many Gray code stripes: the lit intervals are where dense
+    points along each ray project to a lit pattern pixel (OpenCV's image looked up at the point)."""
+    from polarstripe.sim.geometry import pinhole_frame, projector_coords
+
+    scene = _scene()
+    frame = projector_frame(scene)
+    cam = pinhole_frame((0.08, 0.03, 0.0), (0.0, 0.0, 0.3), (0.0, 1.0, 0.0), 40.0, (16, 12))
+    dirs = pixel_rays(cam)
+    x0, x1 = np.full(len(dirs), 0.1), np.full(len(dirs), 0.4)
+    ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
+    t = np.linspace(0.1, 0.4, 4001)[1:-1]
+    for spec, image in list(zip(gray_code(W, H), images))[::3]:
+        ray, lo, hi = lit_intervals(spec, frame, cam.position, dirs, x0, x1)
+        for i in range(0, len(dirs), 7):
+            col, row, depth = projector_coords(frame, cam.position + t[:, None] * dirs[i])
+            inside = (depth > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+            c, r = np.clip(col.astype(int), 0, W - 1), np.clip(row.astype(int), 0, H - 1)
+            want = inside & (image[r, c] > 0)
+            mine = ray == i
+            got = np.zeros(t.size, bool)
+            for a, b in zip(lo[mine], hi[mine]):
+                got |= (t > a) & (t < b)
+            # equal except within one sample of an interval end (the sampling's own resolution)
+            near = np.zeros(t.size, bool)
+            for e in np.concatenate([lo[mine], hi[mine]]):
+                near |= np.abs(t - e) < 2 * (t[1] - t[0])
+            assert np.array_equal(got[~near], want[~near]), (str(spec), i)
