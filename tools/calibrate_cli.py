@@ -7,8 +7,8 @@ under the white (``flood``) pattern, in the dark, and under every Gray code patt
 (``gray_code`` of msgs/patterns.py); then :mod:`polarstripe.imaging.calibration` decodes and calibrates.
 
 Writes ``rig.yaml`` (OpenCV FileStorage, atomically: a failed run leaves the previous file untouched) and
-``rig_coverage.png`` beside it (the projector plane with every pose's corners). With ``--sim`` it prints the
-simulator's truth beside the estimate.
+``rig_coverage.png`` beside it (the projector plane with every pose's corners, rewritten after every pose:
+a live view to watch). With ``--sim`` it prints the simulator's truth beside the estimate.
 """
 
 from __future__ import annotations
@@ -151,7 +151,7 @@ def _with_board(scene: Scene, pose: dict, texture: str, size) -> Scene:
     return scene.replace(objects=(board,))
 
 
-def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str):
+def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str, tick=None):
     """White, black and Gray code frames (uint16 DN) of the board at one pose. The white frame, where the
     corners are found, integrates each pixel's area (SUPERSAMPLE² rays, as a sensor pixel does; one ray
     per pixel aliases the board's edges by ~0.2 px); the Gray frames, decoded per pixel, take one ray."""
@@ -163,7 +163,11 @@ def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str
     radiance = (fine.D + fine.A + fine.B).reshape(h, SUPERSAMPLE, w, SUPERSAMPLE).mean(axis=(1, 3))
     white = expose(radiance, sc.camera, rng)
     black = expose(np.zeros(white.shape), sc.camera, rng)
-    gray = [render_frame(sc, p, None, fidelity, seed=rng)[0] for p in gray_code(*sc.projector.resolution)]
+    gray = []
+    for p in gray_code(*sc.projector.resolution):
+        gray.append(render_frame(sc, p, None, fidelity, seed=rng)[0])
+        if tick is not None:
+            tick(1)
     return white, black, gray
 
 
@@ -194,19 +198,35 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
         bar = tqdm(total=args.poses * n_frames, desc="calibrate", unit="frame", disable=not progress,
                    file=sys.stderr)
         for k, pose in enumerate(poses):
-            white, black, gray = render_pose(scene, pose, tex, size, rng, args.fidelity)
-            bar.update(n_frames)
+            white, black, gray = render_pose(scene, pose, tex, size, rng, args.fidelity, bar.update)
+            bar.update(2)
             try:
                 results.append(decode_pose(white, black, gray, board, proj, pose=k))
             except CalibrationError as exc:
                 failures.append(str(exc))
                 bar.write(f"skipped {exc}")
+                continue
+            write_coverage(coverage_path(args.out), results, proj)   # the live view: poses so far
         bar.close()
     if len(results) < MIN_POSES:
         raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
                                f"{MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
     return cal, rig_geometry(scene), scene
+
+
+def coverage_path(out: str) -> str:
+    """``rig_coverage.png`` beside ``rig.yaml``."""
+    return os.path.splitext(out)[0] + "_coverage.png"
+
+
+def write_coverage(path: str, poses, proj_size) -> None:
+    """The coverage view (imaging.calibration.coverage_image), replaced atomically: watch it fill in."""
+    base, ext = os.path.splitext(path)
+    tmp = f"{base}.tmp{os.getpid()}{ext}"
+    if not cv2.imwrite(tmp, coverage_image(poses, proj_size)):
+        raise PolarstripeError(f"cannot write {path!r}")
+    os.replace(tmp, path)
 
 
 def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
@@ -240,8 +260,8 @@ def main(args: argparse.Namespace) -> int:
              "poses": len(cal.poses), "board": f"{args.board} inner corners, {args.square} m squares",
              "source": "polarstripe calibrate --sim" if args.sim else "polarstripe calibrate"}
     save(args.out, {**cal.geometry(), "dist_proj": cal.dist_proj}, extra)
-    coverage = os.path.splitext(args.out)[0] + "_coverage.png"
-    cv2.imwrite(coverage, coverage_image(cal.poses, cal.proj_size))
+    coverage = coverage_path(args.out)
+    write_coverage(coverage, cal.poses, cal.proj_size)
     print(f"{args.out}: {len(cal.poses)} poses, RMS camera {cal.rms_cam:.3f} px, projector "
           f"{cal.rms_proj:.3f} px, stereo {cal.rms_stereo:.3f} px ({time.perf_counter() - t0:.1f} s)")
     print(f"coverage: {coverage}")
