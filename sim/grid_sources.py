@@ -43,25 +43,65 @@ def _fibonacci(n: int) -> np.ndarray:
     return np.stack([r * np.cos(a), r * np.sin(a), z], 1)
 
 
+def _square_mean(a: np.ndarray, b: np.ndarray, size: float) -> np.ndarray:
+    """Mean over [a, b] of the square wave q(x) = +1 where floor(x/size) is even, −1 where odd: its integral
+    is the triangle wave T(x) = y for y = x mod 2·size < size, else 2·size − y, so the mean is
+    (T(b) − T(a))/(b − a) (q(a) itself for an empty interval)."""
+    def tri(x):
+        y = np.mod(x, 2.0 * size)
+        return np.where(y < size, y, 2.0 * size - y)
+
+    w = b - a
+    point = np.where(np.floor(a / size) % 2 == 0, 1.0, -1.0)
+    wide = w > 1e-9 * size
+    return np.where(wide, (tri(b) - tri(a)) / np.where(wide, w, 1.0), point)
+
+
 def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
-    """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels (exact for flood and stripes,
-    4 × 4 sub-samples for checkers and Gray code)."""
+    """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels: exact for flood, stripes and
+    checkers (lit = (1 + q(col − shift)·q(row))/2 with q the square wave of :func:`_square_mean`, separable
+    over a rectangle), 4 × 4 sub-samples for Gray code."""
     pat = src.pattern
     if pat.kind == "flood":
         return np.ones(c0.shape)
     if pat.kind == "stripe":
         s0, s1 = stripe_columns(pat, src.frame.w)
         return np.clip(np.minimum(c1, s1) - np.maximum(c0, s0), 0.0, None) / (c1 - c0)
-    u = (np.arange(4) + 0.5) / 4
     if pat.kind == "gray":
+        u = (np.arange(4) + 0.5) / 4
         col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]
         row = r0[:, None, None] + (r1 - r0)[:, None, None] * u[None, None, :]
         return gray_lit(pat, col, row).mean(axis=(1, 2))
-    size, shift = pat.size, pat.shift % (2 * pat.size)
-    col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]
-    row = r0[:, None, None] + (r1 - r0)[:, None, None] * u[None, None, :]
-    lit = (np.floor((col - shift) / size) + np.floor(row / size)) % 2 == 0
-    return lit.mean(axis=(1, 2))
+    size, shift = float(pat.size), float(pat.shift % (2 * pat.size))
+    return 0.5 + 0.5 * _square_mean(c0 - shift, c1 - shift, size) * _square_mean(r0, r1, size)
+
+
+def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """The pattern's lit fraction averaged over each patch p ± du/2 ± dv/2 (docs/physics.md §10.3): the
+    rectangle in pattern pixels that bounds the projected corners, cut to the frame, through
+    :func:`_lit_fraction` (a patch wider than a checker square sees half of it lit, as the light it reflects
+    does; a point sample would alias). 0 where the patch's centre is outside the frustum; the point's own
+    value where a corner is behind the projector. Complementary patterns add up to the flood exactly."""
+    fr = src.frame
+    col, row, depth = projector_coords(fr, points)
+    inside = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
+    out = np.zeros(points.shape[0])
+    if src.pattern.kind == "flood" or not inside.any():
+        return inside.astype(float)
+    idx = np.nonzero(inside)[0]
+    corners = [points[idx] + a * du[idx] + b * dv[idx] for a in (-0.5, 0.5) for b in (-0.5, 0.5)]
+    cc, rr, dd = projector_coords(fr, np.concatenate(corners))
+    m = idx.size
+    cc, rr, dd = cc.reshape(4, m), rr.reshape(4, m), dd.reshape(4, m)
+    ahead = (dd > 0).all(axis=0)
+    c0 = np.where(ahead, np.clip(cc.min(axis=0), 0.0, fr.w), col[idx])
+    c1 = np.where(ahead, np.clip(cc.max(axis=0), 0.0, fr.w), col[idx])
+    r0 = np.where(ahead, np.clip(rr.min(axis=0), 0.0, fr.h), row[idx])
+    r1 = np.where(ahead, np.clip(rr.max(axis=0), 0.0, fr.h), row[idx])
+    eps = 1e-6                                      # a patch seen edge-on: its centre's value
+    c1, r1 = np.maximum(c1, c0 + eps), np.maximum(r1, r0 + eps)
+    out[idx] = _lit_fraction(src, c0, c1, r0, r1)
+    return out
 
 
 def _source_beams(src: Source, grid: Grid, oversample: float):
@@ -110,12 +150,16 @@ def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0) -> F
 
 
 class Patches(NamedTuple):
-    """Surface patches: centres (m, 3), outward unit normals (m, 3), areas (m,) [m²], object index (m,)."""
+    """Surface patches: centres (m, 3), outward unit normals (m, 3), areas (m,) [m²], object index (m,), and
+    the edges du, dv (m, 3) [m] of the parallelogram p ± du/2 ± dv/2 each stands for (a sphere's: a square of
+    its area in the tangent plane)."""
 
     point: np.ndarray
     normal: np.ndarray
     area: np.ndarray
     index: np.ndarray
+    du: np.ndarray
+    dv: np.ndarray
 
 
 def _plane_patches(o: PlaneObject, lo, hi, spacing: float):
@@ -135,19 +179,25 @@ def _plane_patches(o: PlaneObject, lo, hi, spacing: float):
     U, V = np.meshgrid(u, v, indexing="ij")
     pts = p0 + U.ravel()[:, None] * ra + V.ravel()[:, None] * ua
     n = np.broadcast_to(np.asarray(o.normal, float), pts.shape)
-    return pts, n, np.full(pts.shape[0], w * h / (nu * nv))
+    du, dv = np.broadcast_to(ra * (w / nu), pts.shape), np.broadcast_to(ua * (h / nv), pts.shape)
+    return pts, n, np.full(pts.shape[0], w * h / (nu * nv)), du, dv
 
 
 def _sphere_patches(o: SphereObject, spacing: float):
     r = o.radius
     n = int(np.clip(math.ceil(4 * math.pi * r * r / spacing ** 2), 16, 2000))
     d = _fibonacci(n)
-    return np.asarray(o.center) + r * d, d, np.full(n, 4 * math.pi * r * r / n)
+    area = 4 * math.pi * r * r / n
+    helper = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(d, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    side = math.sqrt(area)
+    return np.asarray(o.center) + r * d, d, np.full(n, area), e1 * side, np.cross(d, e1) * side
 
 
 def _box_patches(o: BoxObject, spacing: float):
     lo, hi = np.asarray(o.min, float), np.asarray(o.max, float)
-    pts, nrm, area = [], [], []
+    pts, nrm, area, eu, ev = [], [], [], [], []
     for ax in range(3):
         a, b = [k for k in range(3) if k != ax]
         na, nb = (max(1, int(math.ceil((hi[k] - lo[k]) / spacing))) for k in (a, b))
@@ -162,7 +212,12 @@ def _box_patches(o: BoxObject, spacing: float):
             pts.append(p)
             nrm.append(nn)
             area.append(np.full(A.size, (hi[a] - lo[a]) * (hi[b] - lo[b]) / (na * nb)))
-    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(area)
+            e = np.zeros((2, A.size, 3))
+            e[0, :, a], e[1, :, b] = (hi[a] - lo[a]) / na, (hi[b] - lo[b]) / nb
+            eu.append(e[0])
+            ev.append(e[1])
+    return (np.concatenate(pts), np.concatenate(nrm), np.concatenate(area), np.concatenate(eu),
+            np.concatenate(ev))
 
 
 def object_patches(objects, lo, hi, spacing: float) -> Patches:
@@ -171,22 +226,26 @@ def object_patches(objects, lo, hi, spacing: float) -> Patches:
     parts = []
     for k, o in enumerate(objects):
         if isinstance(o, PlaneObject):
-            p, n, a = _plane_patches(o, lo, hi, spacing)
+            p, n, a, du, dv = _plane_patches(o, lo, hi, spacing)
         elif isinstance(o, SphereObject):
-            p, n, a = _sphere_patches(o, spacing)
+            p, n, a, du, dv = _sphere_patches(o, spacing)
         else:
-            p, n, a = _box_patches(o, spacing)
+            p, n, a, du, dv = _box_patches(o, spacing)
         tol = 1e-9 + 1e-6 * float(np.abs(hi - lo).max())
         inside = np.all((p >= lo - tol) & (p <= hi + tol), axis=1)
-        parts.append((p[inside], np.ascontiguousarray(n[inside]), a[inside], np.full(inside.sum(), k)))
+        parts.append((p[inside], np.ascontiguousarray(n[inside]), a[inside], np.full(inside.sum(), k),
+                      np.ascontiguousarray(du[inside]), np.ascontiguousarray(dv[inside])))
     if not parts:
         z = np.zeros((0, 3))
-        return Patches(z, z, np.zeros(0), np.zeros(0, np.int64))
-    return Patches(*(np.concatenate([q[i] for q in parts]) for i in range(4)))
+        return Patches(z, z, np.zeros(0), np.zeros(0, np.int64), z, z)
+    return Patches(*(np.concatenate([q[i] for q in parts]) for i in range(6)))
 
 
-def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Quasi-direct irradiance [W/m²] at surface points: I0·lit·cos·e^{−σ̃_t ℓ_LO}/(d² + r_s²), shadowed."""
+def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarray,
+                     lit_fraction: np.ndarray | None = None) -> np.ndarray:
+    """Quasi-direct irradiance [W/m²] at surface points: I0·lit·cos·e^{−σ̃_t ℓ_LO}/(d² + r_s²), shadowed;
+    lit is the pattern at each point, or ``lit_fraction`` where given (a patch's area average,
+    :func:`footprint_lit`)."""
     from polarstripe.sim.geometry import segment_length_in_box
 
     v = src.position - points
@@ -197,7 +256,9 @@ def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarr
         col, row, depth = projector_coords(src.frame, points)
         fr, pat = src.frame, src.pattern
         lit = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
-        if pat.kind == "stripe":
+        if lit_fraction is not None:
+            lit &= lit_fraction > 0
+        elif pat.kind == "stripe":
             s0, s1 = stripe_columns(pat, fr.w)
             lit &= (col >= s0) & (col < s1)
         elif pat.kind == "checker":
@@ -209,8 +270,9 @@ def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarr
         idx = np.nonzero(lit)[0]
         lit[idx[occluded(objects, src.position, points[idx] + 1e-7 * normals[idx])]] = False
     ell = segment_length_in_box(src.position, points, src.box_lo, src.box_hi)
+    weight = lit if lit_fraction is None or src.frame is None else np.where(lit, lit_fraction, 0.0)
     with np.errstate(under="ignore"):
-        return np.where(lit, src.intensity * cos * np.exp(-src.sigma_t * ell)
+        return np.where(lit, weight * src.intensity * cos * np.exp(-src.sigma_t * ell)
                         / np.maximum(d2 + src.radius ** 2, 1e-300), 0.0)
 
 

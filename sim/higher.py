@@ -36,6 +36,7 @@ from polarstripe.sim.grid_kernels import (
     upsample_within,
 )
 from polarstripe.sim.grid_sources import (
+    footprint_lit,
     glow_field,
     object_patches,
     quasi_irradiance,
@@ -166,7 +167,8 @@ def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings,
         return zero_field(grid), zero_field(grid)
     hits = Hits(np.ones(patches.area.size), patches.index, patches.normal, patches.point)
     albedo = surface_info(scene.objects, hits).albedo
-    e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal)
+    lit = footprint_lit(ssrc, patches.point, patches.du, patches.dv) if ssrc.frame is not None else None
+    e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal, lit)   # area-averaged pattern
     exitance = albedo * (e + surface_irradiance(grid, total, patches.point, patches.normal))
     packed = np.ascontiguousarray(np.column_stack([patches.point, patches.normal, patches.area,
                                                    exitance / np.pi]))
