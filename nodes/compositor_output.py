@@ -1,7 +1,8 @@
 """The compositor's files: ``<method>.png`` (8-bit, for a person: stretched from the 1st to the 99.5th
 percentile, saturated pixels white), ``<method>.tiff`` (float32 DN, NaN where masked, for analysis; or
-``.npy``), ``metrics.json`` (rewritten atomically) and ``comparison.png`` (the ground truth and the methods side
-by side, like the paper's Fig. 6, the best method marked, a one-line legend of the two numbers)."""
+``.npy``), ``metrics.json`` (rewritten atomically) and ``comparison.png`` (the ground truth T, the
+unscattered object radiance of docs/physics.md §10.8, and the methods side by side, like the paper's Fig. 6,
+the best method marked, a one-line legend of the two numbers)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ import numpy as np
 
 LEGEND = ("contrast: Michelson (bright − dark)/(bright + dark) of the chart's bars, 0…1, higher is better "
           "(> 1: the dark bars fell below 0, backscatter over-subtracted — not a contrast)   ·   "
-          "error: relative RMS against the ground truth S (gain fitted), 0 = perfect, lower is better")
+          "error: relative RMS against the ground truth T, the unscattered object radiance (gain fitted), "
+          "0 = perfect, lower is better")
+TRUTH_LABEL = "ground truth T (unscattered)"     # sim/truth.py: flood light attenuated, never scattered
 
 
 def display_range(image: np.ma.MaskedArray) -> tuple[float, float]:
@@ -69,14 +72,14 @@ def best_method(metrics: dict, methods) -> str | None:
 
 
 def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.ndarray | None = None) -> None:
-    """The ground truth ``truth`` (S [DN], when given) and the composites of ``results`` (method -> masked
+    """The ground truth ``truth`` (T [DN], when given) and the composites of ``results`` (method -> masked
     image) side by side in ``order``, each stretched from its 1st to 99.5th percentile, titled with contrast
     and error; the best method (:func:`best_method`) framed and marked; :data:`LEGEND` below."""
 
     matplotlib.use("Agg")
 
     methods = [m for m in order if m in results]
-    panels = ([("ground truth S", np.ma.masked_invalid(np.asarray(truth, np.float64)))] if truth is not None
+    panels = ([(TRUTH_LABEL, np.ma.masked_invalid(np.asarray(truth, np.float64)))] if truth is not None
               else []) + [(m, results[m]) for m in methods]
     best = best_method(metrics, methods)
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.3), squeeze=False)

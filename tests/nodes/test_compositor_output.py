@@ -74,9 +74,25 @@ def test_comparison_puts_the_ground_truth_first_and_marks_the_best(tmp_path):
     assert cols.size and cols.min() >= 2 * 320 - 10  # the frame around the best: the third panel
 
 
+def test_the_truth_panel_and_legend_name_the_unscattered_radiance_t(tmp_path, monkeypatch):
+    """The truth is T, the unscattered object radiance (sim/truth.py), not the object light S = D + A."""
+    import polarstripe.nodes.compositor_output as out
+
+    figures = []
+    monkeypatch.setattr(out.plt, "close", figures.append)
+    write_comparison(str(tmp_path / "c.png"), {"flood": _image()}, {"flood": {"contrast": 0.2}}, ["flood"],
+                     truth=np.ones((2, 3)))
+    titles = [ax.get_title() for ax in figures[0].axes]
+    legend = " ".join(t.get_text() for t in figures[0].texts)
+    assert titles[0].splitlines()[0] == "ground truth T (unscattered)" and titles[1].startswith("flood")
+    assert "ground truth T, the unscattered object radiance" in legend and "truth S" not in legend
+    out.plt.close(figures[0])
+
+
 def test_the_best_method_is_the_lowest_error_else_the_highest_real_contrast():
     assert best_method({"a": {"error_vs_truth": 0.5}, "b": {"error_vs_truth": 0.2}}, ["a", "b"]) == "b"
-    no_truth = {"a": {"contrast": 0.4, "error_vs_truth": None}, "b": {"contrast": 3.58, "error_vs_truth": None}}
+    no_truth = {"a": {"contrast": 0.4, "error_vs_truth": None},
+                "b": {"contrast": 3.58, "error_vs_truth": None}}
     assert best_method(no_truth, ["a", "b"]) == "a"  # 3.58 is not a contrast
     assert best_method({"a": {}}, ["a"]) is None
     assert "contrast" in LEGEND and "error" in LEGEND and "\n" not in LEGEND  # one line
