@@ -16,8 +16,8 @@ makes the method's composite, scores it and writes it out.
   ``polarstripe compare`` too), in DN above the dark offset, saturated pixels masked; Michelson contrast over
   the chart's bars, ``error_vs_truth`` (relative RMS, gain fitted) against the truth's S;
 * publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, ``saturated`` uint8,
-  ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``medium/estimate`` (p; σ_t is not
-  estimated); writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``;
+  ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``compositor/medium_p`` (p only);
+  writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``;
 * after a stripe scan, its depth (light-stripe triangulation with the ``geometry`` param's rig,
   :mod:`polarstripe.nodes.compositor_depth`): ``compositor/depth`` (``DepthMap``), ``depth_<method>.npy``
   and ``.ply``, ``metrics[method]["depth"]``.
@@ -128,7 +128,7 @@ class Compositor(Node):
             if not (self.truth_wait_s > 0 and self.done_grace_s > 0 and self.early_frames >= 0):
                 raise ValueError("truth_wait_s and done_grace_s must be > 0 s, early_frames >= 0")
 
-    PUBLISHES = {"compositor/composite": Composite, "medium/estimate": MediumEstimate,
+    PUBLISHES = {"compositor/composite": Composite, "compositor/medium_p": MediumEstimate,
                  "compositor/depth": DepthMap}
     SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
 
@@ -144,7 +144,7 @@ class Compositor(Node):
         for key in (*_DROPS, "frames_calibration", "scans_done", "scans_failed"):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
-        self.estimate_pub = self.publisher("medium/estimate")
+        self.estimate_pub = self.publisher("compositor/medium_p")
         self.depth = DepthStage.of(self.params, self.publisher("compositor/depth"), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")

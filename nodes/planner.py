@@ -4,11 +4,14 @@
   also publishes it on the topic ``planner/plan`` (the simulator moves its source when a plan arrives);
 * publishes ``planner/plan`` once on start-up (``publish_on_start``, after ``publish_delay_s`` so that
   subscribers have joined);
-* subscribes ``medium/estimate``: when the measured p differs from the p the plan assumed by more than
+* subscribes ``medium/estimate`` (the estimator node's in-situ fit) and ``compositor/medium_p`` (the
+  compositor's p after a polarized method; ignored once a fit has given p): when the measured p differs from
+  the p the plan assumed by more than
   ``p_tolerance`` (absolute), σ_t by more than ``sigma_tolerance`` (relative) or the mean cosine by more than
   ``g_tolerance`` (absolute), the scene's medium takes the measured values (a constant DOP p; σ_t and the TTHG
   mean cosine when given, as the in-situ fit of docs/planning.md §6 publishes them; an estimate with a
-  ``reason`` carries p only) and the plan is made again and published; that medium
+  ``reason`` carries p only; a NaN p is no p) and the plan is made again and published; after every
+  ``medium/estimate`` the plan is published, re-made or not (the sequencer's rescan waits for it); that medium
   is kept in the run directory (``state/planner.json``, runtime/liveness.py), so a respawned planner makes
   the same plan.
 
@@ -23,6 +26,7 @@ for stripes, and the curves (``separation_m``, ``objective``, ``objective_noise_
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -76,7 +80,7 @@ class Planner(Node):
                 check_frame_size(*parse_size(self.resolution), what="resolution")
 
     PUBLISHES = {"planner/plan": Plan}
-    SUBSCRIBES = {"medium/estimate": MediumEstimate}
+    SUBSCRIBES = {"medium/estimate": MediumEstimate, "compositor/medium_p": MediumEstimate}
     SERVES = {"planner/plan": (Empty, Plan)}
 
     def setup(self):
@@ -90,12 +94,15 @@ class Planner(Node):
         self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
         if "medium_p" in self.run_state:
             state = self.run_state
-            self.scene = self.with_medium(state.get("medium_p"), state.get("medium_sigma_t"))
+            self.scene = self.with_medium(state.get("medium_p"), state.get("medium_sigma_t"),
+                                          state.get("medium_g"))
             self.log.info("medium restored from the run state: p %.3f, sigma_t %.3g /m",
                           self.run_state.get("medium_p"), self.scene.medium.sigma_t)
         self.counters["replans"] = 0
         self.plan_pub = self.publisher("planner/plan")
+        self.fitted_p = False  # an in-situ fit's p outranks the compositor's
         self.subscribe("medium/estimate", self.on_estimate, mode="latest")
+        self.subscribe("compositor/medium_p", self.on_compositor_p, mode="latest")
         self.serve("planner/plan", self.on_request)
         self.plan = self.make_plan()
         if self.params.publish_on_start:
@@ -168,7 +175,9 @@ class Planner(Node):
     def with_medium(self, p: float, sigma_t: float | None, mean_cosine: float | None = None):
         """The scene with a constant DOP ``p`` (clamped to [0, 1]) and, when given, ``sigma_t`` [1/m] and the
         TTHG ``mean_cosine``."""
-        medium = self.scene.medium.replace(dop=DopModel(model="constant", p=min(max(float(p), 0.0), 1.0)))
+        medium = self.scene.medium
+        if p is not None and math.isfinite(p):
+            medium = medium.replace(dop=DopModel(model="constant", p=min(max(float(p), 0.0), 1.0)))
         if sigma_t is not None:
             medium = medium.replace(sigma_t=float(sigma_t))
         if mean_cosine is not None:
@@ -176,23 +185,35 @@ class Planner(Node):
         return self.scene.replace(medium=medium)
 
     def on_estimate(self, est: MediumEstimate) -> None:
+        """The estimator's fit: re-plan if it moved, and publish the plan either way (its answer)."""
+        self.fitted_p |= math.isfinite(est.p)
+        if not self.replan_on(est):
+            self.plan_pub.publish(self.plan)
 
+    def on_compositor_p(self, est: MediumEstimate) -> None:
+        if not self.fitted_p:
+            self.replan_on(est)
+
+    def replan_on(self, est: MediumEstimate) -> bool:
+        """Re-plan (and publish) when ``est`` differs from the plan's medium beyond the tolerances."""
         p = self.params
-        dp = abs(est.p - self.p_assumed)
+        dp = abs(est.p - self.p_assumed) if math.isfinite(est.p) else 0.0
         sigma, g = (None, None) if est.reason else (est.sigma_t_per_m, est.mean_cosine)
         ds = abs(sigma - self.sigma_assumed) / max(self.sigma_assumed, 1e-12) if sigma is not None else 0.0
         dg = abs(g - self.g_assumed) if g is not None else 0.0
         if not p.replan or (dp <= p.p_tolerance and ds <= p.sigma_tolerance and dg <= p.g_tolerance):
-            return
+            return False
         self.log.info("medium estimate of scan %d (p %.3f, sigma_t %s) differs from the plan's (p %.3f, "
                       "sigma_t %.3g): re-planning", est.scan_id, est.p, sigma, self.p_assumed,
                       self.sigma_assumed)
         self.scene = self.with_medium(est.p, sigma, g)
-        self.run_state.save(medium_p=est.p, medium_sigma_t=sigma)  # restored by a respawned planner
+        medium_p = est.p if math.isfinite(est.p) else self.p_assumed
+        self.run_state.save(medium_p=medium_p, medium_sigma_t=sigma, medium_g=g)  # for a respawned planner
         with interruptible("re-planning"):  # seconds of pure computation: a Ctrl-C need not wait for it
             self.plan = self.make_plan()
         self.counters["replans"] += 1
         self.plan_pub.publish(self.plan)
+        return True
 
 
 def warm_kernels() -> None:

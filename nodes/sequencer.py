@@ -14,7 +14,11 @@
    periods, 1 s by default), exits or is respawned ends the wait at once with a line naming it. If the launch
    respawns it, the sequencer waits (``respawn_wait_s``) until it beats again with a new incarnation and the
    interrupted scan has ended, then retries the scan once and says so; otherwise the sequence ends there.
-4. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
+4. With an ``estimator`` node in the launch graph (``rescan``): after a pass over the methods, wait for its
+   ``medium/estimate`` of one of the pass's scans and the plan the planner publishes in answer; when that
+   plan's separation is more than one step of its grid away from the one scanned, move the source there and
+   scan the methods again (at most ``max_rescans`` times), saying so.
+5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
 Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
@@ -33,6 +37,7 @@ from polarstripe.msgs import (
     Composite,
     Empty,
     Heartbeat,
+    MediumEstimate,
     Plan,
     PolarizerState,
     ScanEvent,
@@ -63,6 +68,10 @@ class Sequencer(Node):
         polarized_peers: list[str] = ["polarizer"]  # … and a polarized scan's these
         respawn_wait_s: float = 60.0  # a lost node the launch respawns: its return and the old scan's end
         repeat: int = 1  # passes over methods; 0: scan until stopped (polarstripe bench soak)
+        rescan: bool = True  # rescan when an estimate moves the plan by more than one grid step (step 4)
+        max_rescans: int = 1
+        estimator: str = "estimator"  # the node whose medium/estimate a pass waits for, if in the graph
+        estimate_timeout_s: float = 300.0  # for the estimate and the plan answering it (fit + re-plan)
 
         def validate(self):
             super().validate()
@@ -70,6 +79,8 @@ class Sequencer(Node):
                 raise ValueError("methods must name at least one scan method")
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
+            if self.max_rescans < 0:
+                raise ValueError(f"max_rescans must be >= 0, got {self.max_rescans}")
             if self.repeat < 0:
                 raise ValueError(f"repeat must be >= 0 (0: until stopped), got {self.repeat}")
 
@@ -78,6 +89,8 @@ class Sequencer(Node):
         "emitter/scan": ScanEvent,
         "compositor/composite": Composite,
         "polarizer/state": PolarizerState,
+        "medium/estimate": MediumEstimate,
+        "planner/plan": Plan,
     }
 
     def setup(self):
@@ -85,6 +98,10 @@ class Sequencer(Node):
         self.subscribe("compositor/composite", mode="all")
         self.subscribe("polarizer/state", mode="latest")
         self.subscribe("heartbeat", mode="all")
+        self.subscribe("medium/estimate", mode="all")
+        self.subscribe("planner/plan", mode="all")
+        self.plan: Plan | None = None
+        self.pass_scans: list[int] = []
         self.watch("heartbeat")  # runtime/liveness.py: waits on a lost peer end at once
         self.results: dict[str, dict] = {}
 
@@ -142,7 +159,7 @@ class Sequencer(Node):
         p = self.params
         self.wait_graph_ready()
         if p.plan:
-            plan = self.call("planner/plan", Empty, Plan, Empty(), timeout_s=30.0)
+            plan = self.plan = self.call("planner/plan", Empty, Plan, Empty(), timeout_s=30.0)
             self.log.info("plan: %s, d_LC = %.3f m, scan %s", plan.modality, plan.separation_m,
                           plan.scan_type or "-")
             if p.move_source:
@@ -160,14 +177,49 @@ class Sequencer(Node):
                 raise SequenceError(f"polarizer/calibrate: {cal.detail}")
             self.eb_deg = cal.angle_deg
             self.log.info("calibrated: E_b = %.2f deg", self.eb_deg)
-        ok, passes = True, 0
-        while p.repeat == 0 or passes < p.repeat:
+        ok, passes, rescans = True, 0, 0
+        while p.repeat == 0 or passes < p.repeat + rescans:
+            self.pass_scans = []
             for method in p.methods:
                 if self.stopping:
                     return False
                 ok &= self.scan(method)
             passes += 1
+            if rescans < p.max_rescans and self.plan_moved():
+                rescans += 1
         return ok
+
+    def plan_moved(self) -> bool:
+        """Step 4: True when the plan answering this pass's estimate moved the source by more than one grid
+        step (the source is moved then)."""
+        p, est_node = self.params, self.params.estimator
+        if not (p.rescan and self.plan is not None and est_node in self.graph.get("nodes", {})
+                and any("stripes" in m for m in p.methods)):
+            return False
+        try:
+            est = self.wait_for("medium/estimate", lambda e: e.scan_id in self.pass_scans,
+                                p.estimate_timeout_s, peers=[est_node])
+            new = self.wait_for("planner/plan", lambda q: q.header.stamp_ns >= est.header.stamp_ns,
+                                p.estimate_timeout_s, peers=["planner"])
+        except (BusTimeout, PeerLost) as exc:
+            self.log.warning("no rescan: no estimate and plan after scans %s: %s", self.pass_scans, exc)
+            return False
+        grid = list(self.plan.curves.get("separation_m", [])) or [self.plan.separation_m]
+        step = abs(min(range(len(grid)), key=lambda i: abs(grid[i] - new.separation_m))
+                   - min(range(len(grid)), key=lambda i: abs(grid[i] - self.plan.separation_m)))
+        what = est.reason or f"sigma_t {est.sigma_t_per_m:.3g} /m, g {est.mean_cosine:.3f}, p {est.p:.3f}"
+        self.log.info("estimate of scan %d: %s; plan d_LC = %.3f m (scanned at %.3f m, %d grid steps)",
+                      est.scan_id, what, new.separation_m, self.plan.separation_m, step)
+        if step <= 1:
+            return False
+        if p.move_source:
+            ack = self.call("simulator/move_source", Plan, Ack, new, timeout_s=30.0)
+            if not ack.ok:
+                raise SequenceError(f"simulator/move_source: {ack.detail}")
+        self.log.info("rescanning at d_LC = %.3f m (the optimum moved by %d grid steps)", new.separation_m,
+                      step)
+        self.plan = new
+        return True
 
     def wait_stage_ready(self) -> None:
         """Wait until the polarizer reports a state without a fault (it may still be connecting)."""
@@ -254,6 +306,7 @@ class Sequencer(Node):
             self.results[method] = {"event": "fault", "detail": reply.detail}
             return False
         sid = self.sid = reply.scan_id
+        self.pass_scans.append(sid)
         self.scan_ended = False
         try:
             end = self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),

@@ -7,7 +7,7 @@ compositor scores against at every scan start; it hosts a simulated
 CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a python-can bus carried over
 ZeroMQ, which the polarizer node drives with its real CANopen code (or, with ``ell14_link``, a simulated
 Thorlabs ELL14 on a pty for the ``ell14`` backend); and it moves the virtual source when a plan arrives (the
-in-situ loop of the paper's §4).
+in-situ loop of the paper's §4). ``medium_sigma_t``, ``medium_g``: a medium the other nodes do not know.
 
 Services (relative to the namespace):
 
@@ -57,9 +57,11 @@ from polarstripe.nodes.drivers.simell14 import SimEll14
 from polarstripe.nodes.simulator_frames import (
     PREVIEW_WIDTH,
     SimulatorError,
+    check_medium,
     exposure_factor,
     model_scene,
     parse_resolution,
+    rig_scene,
     timed_render,
     to_camera,
 )
@@ -69,7 +71,7 @@ from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
-from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
+from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
 from polarstripe.sim.truth import unscattered_object
 
@@ -86,6 +88,8 @@ class Simulator(Node):
         render_scale: int = 0  # model resolution divisor; 0 = auto (preview: ~160 px wide, else 1)
         noise: str = "auto"  # poisson | gaussian | auto (gaussian at preview)
         exposure_s: float | None = None  # None: the scene's, scaled by (w/w_scene)^2 to keep the DN level
+        medium_sigma_t: float | None = None  # override the scene medium's σ_t [1/m] (the estimator's truth)
+        medium_g: float | None = None  # … and its phase function: TTHG of this mean cosine
         auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
@@ -109,6 +113,7 @@ class Simulator(Node):
                 raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
                 raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
+            check_medium(self.medium_sigma_t, self.medium_g)
 
     PUBLISHES = {"simulator/truth": Composite}
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
@@ -121,18 +126,11 @@ class Simulator(Node):
     def setup(self):
         p = self.params
         try:
-            base = load_scene(p.scene or None)
-            res = parse_resolution(p.resolution)
-            cam = base.camera
-            if res is not None and res != cam.resolution:
-                exposure = cam.exposure_s * (res[0] / cam.resolution[0]) ** 2
-                cam = cam.replace(resolution=res, exposure_s=exposure)
-            if p.exposure_s is not None:
-                cam = cam.replace(exposure_s=p.exposure_s)
+            self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
             self.fidelity = resolve_fidelity(p.fidelity)
         except SceneError as exc:
             raise SimulatorError(f"node {self.name!r}: {exc}") from None
-        self.base = base.replace(camera=cam)
+        cam = self.base.camera
         self.scene = self.base
         w = cam.resolution[0]
         self.scale = p.render_scale or (

@@ -1,16 +1,18 @@
-"""What the simulator node computes, as plain functions: the model's resolution per pattern, a timed component
+"""What the simulator node computes, as plain functions: its scene (with a medium override), the model's
+resolution per pattern, a timed component
 render, the radiance resized to the camera, the auto-exposure factor; its error type and the ``resolution``
 param's parser. (The sensor is :func:`polarstripe.sim.sensor.expose`, given the node's precomputed electrons
 map.)"""
 
 from __future__ import annotations
 
+import math
 import time
 
 import cv2
 import numpy as np
 from polarstripe.sim.render import render_components
-from polarstripe.sim.scene import Scene, SceneError, parse_size
+from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
@@ -28,6 +30,33 @@ def parse_resolution(text: str) -> tuple[int, int] | None:
     if w < 2 or h < 2:
         raise ValueError(f"resolution {text!r}: need at least 2x2")
     return w, h
+
+
+def check_medium(sigma_t: float | None, g: float | None) -> None:
+    """The medium override params: σ_t ≥ 0 [1/m], the mean cosine in [0, 1); ValueError otherwise."""
+    if sigma_t is not None and not (math.isfinite(sigma_t) and sigma_t >= 0):
+        raise ValueError(f"medium_sigma_t must be >= 0 /m, got {sigma_t}")
+    if g is not None and not 0.0 <= g < 1.0:
+        raise ValueError(f"medium_g must be in [0, 1), got {g}")
+
+
+def rig_scene(path: str, resolution: str, exposure_s: float | None, sigma_t: float | None = None,
+              g: float | None = None) -> Scene:
+    """The simulator's scene: ``path`` ("" the paper's tank) with its camera at ``resolution`` (the exposure
+    scaled by (w/w_scene)² to keep the DN level) or at ``exposure_s``; the medium's σ_t and its phase
+    function (TTHG of mean cosine ``g``) overridden when given."""
+    base = load_scene(path or None)
+    res, cam = parse_resolution(resolution), base.camera
+    if res is not None and res != cam.resolution:
+        cam = cam.replace(resolution=res, exposure_s=cam.exposure_s * (res[0] / cam.resolution[0]) ** 2)
+    if exposure_s is not None:
+        cam = cam.replace(exposure_s=exposure_s)
+    medium = base.medium
+    if sigma_t is not None:
+        medium = medium.replace(sigma_t=float(sigma_t))
+    if g is not None:
+        medium = medium.replace(phase=Phase("tthg", float(g)))
+    return base.replace(camera=cam, medium=medium)
 
 
 def model_scene(scene: Scene, pattern: str, scale: int) -> Scene:

@@ -299,17 +299,26 @@ def fit_medium(scene: Scene, stripe_frames: dict[str, list[np.ndarray]],
     return MediumFit(True, **found, **common)
 
 
-def downsample(scene: Scene, frames: dict[str, list[np.ndarray]], width: int = 64):
+def downsample(scene: Scene, frames: dict[str, list[np.ndarray]], width: int = 64,
+               full_scale: float | None = None):
     """(scene, frames) at about ``width`` pixels across: each frame block-averaged by the integer factor
     f = W // width (the rows and columns that do not fill a block dropped), the scene's camera at that
     resolution with the same exposure (a pixel f² times larger in area changes the model's DN by f², which
     the fit's free scale takes). The noise of a block mean is 1/f of a pixel's: pass the returned f² as
-    ``frames_averaged``. Check saturation before (a block mean hides a saturated pixel)."""
+    ``frames_averaged``. A block mean hides a saturated pixel: with ``full_scale`` (DN) a block holding a
+    pixel at or above ``full_scale − 0.5`` is set to ``full_scale``, so the fit sees it saturated."""
     w, h = scene.camera.resolution
     f = max(1, w // width)
     if f == 1:
         return scene, frames, 1
     hh, ww = h // f, w // f
-    out = {tag: [np.asarray(im, np.float64)[:hh * f, :ww * f].reshape(hh, f, ww, f).mean(axis=(1, 3))
-                 for im in ims] for tag, ims in frames.items()}
+
+    def block(im):
+        a = np.asarray(im, np.float64)[:hh * f, :ww * f].reshape(hh, f, ww, f)
+        out = a.mean(axis=(1, 3))
+        if full_scale is not None:
+            out[(a >= full_scale - 0.5).any(axis=(1, 3))] = full_scale
+        return out
+
+    out = {tag: [block(im) for im in ims] for tag, ims in frames.items()}
     return scene.replace(camera=scene.camera.replace(resolution=(ww, hh))), out, f * f

@@ -68,7 +68,7 @@ def test_stripes_composite_is_the_per_pixel_maximum():
     # Michelson contrast of the bars: (1350 - 550) / (1350 + 550)
     assert comp.metrics["contrast"] == pytest.approx(800.0 / 1900.0)
     assert comp.metrics["frames"] == 8 and comp.metrics["error_vs_truth"] is None
-    assert h.published("medium/estimate") == []
+    assert h.published("compositor/medium_p") == []
 
 
 def test_polarized_stripes_recover_s_and_p_with_either_angle_order():
@@ -82,7 +82,7 @@ def test_polarized_stripes_recover_s_and_p_with_either_angle_order():
     # eq. 6: E_b (1 + 1/p) + E_w (1 - 1/p) = S wherever the stripe lit the pixel
     np.testing.assert_allclose(comp.images["composite"], s, atol=2.0)
     np.testing.assert_allclose(comp.images["e_b"], s / 2 + b * (1 - p) / 2, atol=0.5)
-    est = h.published("medium/estimate")[-1]
+    est = h.published("compositor/medium_p")[-1]
     assert est.p == pytest.approx(p, abs=1e-3) and est.scan_id == 3
 
 

@@ -84,7 +84,9 @@ def test_small_change_of_p_does_not_replan(harness):
     h = harness
     n = len(h.published("planner/plan"))
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed + 0.03, scan_id=1))
-    assert len(h.published("planner/plan")) == n and h.node.counters["replans"] == 0
+    # the unchanged plan is published as the answer to the estimate (the sequencer's rescan waits for it)
+    assert len(h.published("planner/plan")) == n + 1 and h.node.counters["replans"] == 0
+    assert h.published("planner/plan")[-1].separation_m == h.node.plan.separation_m
 
 
 def test_changed_p_replans_with_the_measured_medium(harness):
@@ -109,7 +111,7 @@ def test_changed_sigma_replans():
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=9.0))
     assert h.node.counters["replans"] == 1 and h.node.scene.medium.sigma_t == pytest.approx(9.0)
     h.advance(5.0)
-    assert len(h.published("planner/plan")) == 1  # the re-plan only: nothing on start-up
+    assert len(h.published("planner/plan")) == 2  # the answer to each estimate: nothing on start-up
 
 
 def test_fitted_medium_replans_with_sigma_and_mean_cosine():
@@ -128,3 +130,20 @@ def test_bad_params_are_rejected_before_start():
         NodeHarness(Planner, params={"resolution": "640by480"})
     with pytest.raises(ParamError, match="d_min_m"):
         NodeHarness(Planner, params={"d_min_m": 0.5, "d_max_m": 0.1})
+
+
+def test_compositor_p_until_a_fit_gives_p_and_nan_p_is_no_p():
+    """The compositor's p (compositor/medium_p) re-plans until the estimator's fit has given p; a fit without
+    an analyzer pair (p NaN) changes σ_t and g only."""
+    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    h.deliver("compositor/medium_p", MediumEstimate(p=0.3, scan_id=2))
+    assert h.node.counters["replans"] == 1 and h.node.scene.medium.dop.p == pytest.approx(0.3)
+    assert not h.node.fitted_p
+    nan_p = MediumEstimate(p=float("nan"), sigma_t_per_m=8.0, mean_cosine=0.9, scan_id=3)
+    h.deliver("medium/estimate", nan_p)
+    assert h.node.counters["replans"] == 2 and h.node.scene.medium.sigma_t == pytest.approx(8.0)
+    assert h.node.scene.medium.dop.p == pytest.approx(0.3) and not h.node.fitted_p
+    h.deliver("medium/estimate", MediumEstimate(p=0.6, sigma_t_per_m=8.0, mean_cosine=0.9, scan_id=4))
+    assert h.node.counters["replans"] == 3 and h.node.fitted_p
+    h.deliver("compositor/medium_p", MediumEstimate(p=0.1, scan_id=5))  # the fit's p outranks it
+    assert h.node.counters["replans"] == 3 and h.node.scene.medium.dop.p == pytest.approx(0.6)
