@@ -6,7 +6,9 @@
   ending at the first object. A beam's weight is its solid angle times the lit fraction of its patch of
   pattern pixels, so the lit power is exact for stripes and checkers finer than the grid.
 * :func:`object_patches` and :func:`glow_field` — objects as Lambertian sources: each patch of area A with
-  exitance M sends beams of power M·A/N_d per unit length along N_d cosine-distributed directions.
+  exitance M sends beams of power M·A/N_d per unit length along N_d cosine-distributed directions; the
+  pattern lights a patch by its lit fraction averaged over the patch (:func:`footprint_lit`), not at its
+  centre, which would alias a checker finer than the patches.
 * :func:`view_integral` — the in-scattered radiance J(Y, −d) = c(φ + 3g̃F·(−d)) integrated along the view
   rays with the view's attenuation, on a coarse set of rays with per-pixel depths.
 * :func:`surface_irradiance` — the P1 irradiance E = φ/4 − F·n/2 onto a surface of outward normal n.
