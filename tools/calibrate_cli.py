@@ -29,8 +29,10 @@ from polarstripe.imaging.calibration import (
     calibrate,
     coverage_image,
     decode_pose,
+    load,
     save,
 )
+from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.msgs.patterns import gray_code
 from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.render import render_components, render_frame
@@ -45,8 +47,11 @@ HELP = "projector-camera calibration with Gray code on a checkerboard (--sim: on
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", nargs="?", default=None,
                         help="scene TOML of the simulated rig (--sim; omitted: the default tank)")
-    parser.add_argument("-o", "--out", required=True, metavar="FILE",
+    parser.add_argument("-o", "--out", metavar="FILE",
                         help="calibration file to write (.yaml; .xml or .json also work)")
+    parser.add_argument("--check", metavar="FILE",
+                        help="instead: compare calibration FILE with the scene's rig (an error if it is "
+                             "another rig size)")
     parser.add_argument("--sim", action="store_true", help="calibrate the simulated rig")
     parser.add_argument("--poses", type=int, default=8, help=f"board poses (>= {MIN_POSES}; default 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the poses and the sensor noise")
@@ -230,7 +235,8 @@ def write_coverage(path: str, poses, proj_size) -> None:
 
 
 def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
-    """(quantity, truth, estimate, unit) rows of a calibration against the simulator's geometry."""
+    """(quantity, truth, estimate, unit) rows of a calibration (a Calibration, or a RigGeometry: no RMS
+    rows) against the simulator's geometry."""
     Kc, Kp, Tc, Tp = cal.K_cam, cal.K_proj, truth["K_cam"], truth["K_proj"]
     dR = cal.R @ np.asarray(truth["R"]).T
     angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
@@ -240,12 +246,30 @@ def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
             ("projector f_x", Tp[0, 0], Kp[0, 0], "px"),
             ("projector f_y", Tp[1, 1], Kp[1, 1], "px"),
             ("projector c_x", Tp[0, 2], Kp[0, 2], "px"), ("projector c_y", Tp[1, 2], Kp[1, 2], "px"),
-            ("baseline", 1e3 * base_t, 1e3 * base_e, "mm"), ("rotation error", 0.0, angle, "deg"),
-            ("RMS camera", 0.0, cal.rms_cam, "px"), ("RMS projector", 0.0, cal.rms_proj, "px"),
-            ("RMS stereo", 0.0, cal.rms_stereo, "px")]
+            ("baseline", 1e3 * base_t, 1e3 * base_e, "mm"), ("rotation error", 0.0, angle, "deg")] + (
+        [("RMS camera", 0.0, cal.rms_cam, "px"), ("RMS projector", 0.0, cal.rms_proj, "px"),
+         ("RMS stereo", 0.0, cal.rms_stereo, "px")] if hasattr(cal, "rms_cam") else [])
+
+
+def check(args: argparse.Namespace) -> int:
+    """``--check FILE``: the file's rig beside the scene's pinholes (the camera rescaled if binned)."""
+    scene = rig_scene(args)
+    w, h = scene.camera.resolution
+    g = load(args.check, cam_size=(w, h), proj_size=scene.projector.resolution)
+    rig = RigGeometry.from_dict(g).for_camera(w, h)
+    print(f"{args.check}: {g['cam_size'].ravel().astype(int).tolist()} camera, "
+          f"{g['proj_size'].ravel().astype(int).tolist()} projector: the scene's rig size")
+    print(f"{'':16}{'scene':>12}{'file':>12}")
+    for name, t, e, unit in comparison_rows(rig, rig_geometry(scene)):
+        print(f"{name:16}{t:12.4f}{e:12.4f} {unit}")
+    return 0
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.check:
+        return check(args)
+    if not args.out:
+        raise PolarstripeError("-o FILE is required (or --check FILE)")
     if args.poses < MIN_POSES:
         raise CalibrationError(f"--poses {args.poses}: a calibration needs at least {MIN_POSES} poses")
     if not args.sim:

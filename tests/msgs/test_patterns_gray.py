@@ -12,7 +12,7 @@ def test_gray_code_is_opencvs_generate(width, height):
     specs = gray_code(width, height)
     assert ok and len(specs) == len(images) == 2 * (gray_bits(width) + gray_bits(height))
     rows, cols = np.mgrid[0:height, 0:width] + 0.5          # pattern pixel centres
-    for spec, image in zip(specs, images):
+    for spec, image in zip(specs, images, strict=True):
         assert parse(str(spec)) == spec
         np.testing.assert_array_equal(gray_lit(spec, cols, rows), image > 0, err_msg=str(spec))
 

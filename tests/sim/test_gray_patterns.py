@@ -23,7 +23,7 @@ def _scene():
 def test_surface_light_is_opencvs_gray_code():
     scene = _scene()
     ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
-    for spec, image in zip(gray_code(W, H), images):
+    for spec, image in zip(gray_code(W, H), images, strict=True):
         d = render_components(scene, spec, "preview", need=("D",)).D
         np.testing.assert_array_equal(d > 0, image > 0, err_msg=str(spec))
 
@@ -34,7 +34,7 @@ def test_lit_intervals_are_opencvs_gray_code():
     dirs = pixel_rays(frame)
     x0, x1 = np.full(len(dirs), 0.05), np.full(len(dirs), 0.25)
     ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
-    for spec, image in zip(gray_code(W, H), images):
+    for spec, image in zip(gray_code(W, H), images, strict=True):
         ray, lo, hi = lit_intervals(spec, frame, frame.position, dirs, x0, x1)
         lit = np.zeros(len(dirs), bool)
         lit[ray] = True
@@ -54,7 +54,7 @@ def test_lit_intervals_of_rays_across_the_sheets():
     x0, x1 = np.full(len(dirs), 0.1), np.full(len(dirs), 0.4)
     ok, images = cv2.structured_light.GrayCodePattern.create(W, H).generate()
     t = np.linspace(0.1, 0.4, 4001)[1:-1]
-    for spec, image in list(zip(gray_code(W, H), images))[::3]:
+    for spec, image in list(zip(gray_code(W, H), images, strict=True))[::3]:
         ray, lo, hi = lit_intervals(spec, frame, cam.position, dirs, x0, x1)
         for i in range(0, len(dirs), 7):
             col, row, depth = projector_coords(frame, cam.position + t[:, None] * dirs[i])
@@ -63,7 +63,7 @@ def test_lit_intervals_of_rays_across_the_sheets():
             want = inside & (image[r, c] > 0)
             mine = ray == i
             got = np.zeros(t.size, bool)
-            for a, b in zip(lo[mine], hi[mine]):
+            for a, b in zip(lo[mine], hi[mine], strict=True):
                 got |= (t > a) & (t < b)
             # equal except within one sample of an interval end (the sampling's own resolution)
             near = np.zeros(t.size, bool)

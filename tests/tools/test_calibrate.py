@@ -27,8 +27,8 @@ BOARD = Board(8, 6, 0.015)
 def _args(*extra: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     calibrate_cli.configure(parser)
-    return parser.parse_args(["-o", "unused.yaml", "--sim", "--resolution", "320x240", "--projector", "256x192",
-                              *extra])
+    return parser.parse_args(["-o", "unused.yaml", "--sim", "--resolution", "320x240",
+                              "--projector", "256x192", *extra])
 
 
 @pytest.fixture(scope="module", params=[0.0, 2.0], ids=["clear", "sigma_t=2"])
@@ -114,6 +114,11 @@ def test_cli_writes_the_file_and_the_coverage_view(tmp_path, capsys):
     g = load(str(out), proj_size=(64, 48))
     assert abs(np.linalg.norm(g["T"]) - 0.2) < 0.01                              # the default tank's 20 cm
     assert (tmp_path / "rig_coverage.png").stat().st_size > 0
+    # --check: the file beside the scene's rig; the default tank's 1024x768 projector is another rig size
+    assert cli(["calibrate", "--check", str(out), "--resolution", "160x120", "--projector", "64x48"]) == 0
+    assert "baseline" in capsys.readouterr().out
+    assert cli(["calibrate", "--check", str(out)]) == 2
+    assert "is for a 64x48 projector, the rig's is 1024x768: calibrate this rig" in capsys.readouterr().err
 
 
 def test_a_failed_run_leaves_the_previous_file_untouched(tmp_path, capsys):
@@ -124,7 +129,8 @@ def test_a_failed_run_leaves_the_previous_file_untouched(tmp_path, capsys):
     assert "needs at least 3 poses" in capsys.readouterr().err
     # the board is 12x9 here: no pose shows it whole in a 160x120 camera
     assert cli(["calibrate", "-o", str(out), "--sim", "--poses", "3", "--sigma-t", "0", "--resolution",
-                "160x120", "--projector", "64x48", "--board", "12x9", "--square", "0.03", "--no-progress"]) == 2
+                "160x120", "--projector", "64x48", "--board", "12x9", "--square", "0.03",
+                "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") >= 1 and "0 usable poses of 3" in err.splitlines()[-1]
     assert out.read_bytes() == before
