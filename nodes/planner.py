@@ -11,7 +11,8 @@
   ``g_tolerance`` (absolute), the scene's medium takes the measured values (a constant DOP p; σ_t and the TTHG
   mean cosine when given, as the in-situ fit of docs/planning.md §6 publishes them; an estimate with a
   ``reason`` carries p only; a NaN p is no p) and the plan is made again and published; after every
-  ``medium/estimate`` the plan is published, re-made or not (the sequencer's rescan waits for it); that medium
+  ``medium/estimate`` the plan is published, re-made or not, with ``curves["estimate_scan_id"]`` the scan id
+  of the estimate it answers (the sequencer's rescan waits for it); that medium
   is kept in the run directory (``state/planner.json``, runtime/liveness.py), so a respawned planner makes
   the same plan.
 
@@ -26,6 +27,7 @@ for stripes, and the curves (``separation_m``, ``objective``, ``objective_noise_
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Literal
 
@@ -185,17 +187,20 @@ class Planner(Node):
         return self.scene.replace(medium=medium)
 
     def on_estimate(self, est: MediumEstimate) -> None:
-        """The estimator's fit: re-plan if it moved, and publish the plan either way (its answer)."""
+        """The estimator's fit: re-plan if it moved, and publish the plan either way, as the answer to that
+        estimate (``curves["estimate_scan_id"]``: its scan id; the sequencer's rescan waits for it)."""
         self.fitted_p |= math.isfinite(est.p)
-        if not self.replan_on(est):
-            self.plan_pub.publish(self.plan)
+        self.replan_on(est)
+        curves = {**self.plan.curves, "estimate_scan_id": np.array([float(est.scan_id)])}
+        self.plan = dataclasses.replace(self.plan, curves=curves)
+        self.plan_pub.publish(self.plan)
 
     def on_compositor_p(self, est: MediumEstimate) -> None:
-        if not self.fitted_p:
-            self.replan_on(est)
+        if not self.fitted_p and self.replan_on(est):
+            self.plan_pub.publish(self.plan)
 
     def replan_on(self, est: MediumEstimate) -> bool:
-        """Re-plan (and publish) when ``est`` differs from the plan's medium beyond the tolerances."""
+        """Re-plan when ``est`` differs from the plan's medium beyond the tolerances."""
         p = self.params
         dp = abs(est.p - self.p_assumed) if math.isfinite(est.p) else 0.0
         sigma, g = (None, None) if est.reason else (est.sigma_t_per_m, est.mean_cosine)
@@ -212,7 +217,6 @@ class Planner(Node):
         with interruptible("re-planning"):  # seconds of pure computation: a Ctrl-C need not wait for it
             self.plan = self.make_plan()
         self.counters["replans"] += 1
-        self.plan_pub.publish(self.plan)
         return True
 
 

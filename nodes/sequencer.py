@@ -15,7 +15,8 @@
    respawns it, the sequencer waits (``respawn_wait_s``) until it beats again with a new incarnation and the
    interrupted scan has ended, then retries the scan once and says so; otherwise the sequence ends there.
 4. With an ``estimator`` node in the launch graph (``rescan``): after a pass over the methods, wait for its
-   ``medium/estimate`` of one of the pass's scans and the plan the planner publishes in answer; when that
+   ``medium/estimate`` of one of the pass's scans and the plan the planner publishes in answer to it
+   (``curves["estimate_scan_id"]``); when that
    plan's separation is more than one step of its grid away from the one scanned, move the source there and
    scan the methods again (at most ``max_rescans`` times), saying so.
 5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
@@ -199,8 +200,8 @@ class Sequencer(Node):
         try:
             est = self.wait_for("medium/estimate", lambda e: e.scan_id in self.pass_scans,
                                 p.estimate_timeout_s, peers=[est_node])
-            new = self.wait_for("planner/plan", lambda q: q.header.stamp_ns >= est.header.stamp_ns,
-                                p.estimate_timeout_s, peers=["planner"])
+            new = self.wait_for("planner/plan", lambda q: _answers(q, est.scan_id), p.estimate_timeout_s,
+                                peers=["planner"])
         except (BusTimeout, PeerLost) as exc:
             self.log.warning("no rescan: no estimate and plan after scans %s: %s", self.pass_scans, exc)
             return False
@@ -349,6 +350,12 @@ class Sequencer(Node):
             m = r.get("metrics", {})
             rows.append(f"{method:<18} {_num(m.get('contrast')):>9} {_num(m.get('error_vs_truth')):>15}")
         return "\n".join(rows)
+
+
+def _answers(plan: Plan, scan_id: int) -> bool:
+    """Whether ``plan`` is the planner's answer to the estimate of scan ``scan_id`` (nodes/planner.py)."""
+    sid = plan.curves.get("estimate_scan_id")
+    return sid is not None and len(sid) == 1 and int(sid[0]) == scan_id
 
 
 def _num(value) -> str:

@@ -86,7 +86,8 @@ def test_small_change_of_p_does_not_replan(harness):
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed + 0.03, scan_id=1))
     # the unchanged plan is published as the answer to the estimate (the sequencer's rescan waits for it)
     assert len(h.published("planner/plan")) == n + 1 and h.node.counters["replans"] == 0
-    assert h.published("planner/plan")[-1].separation_m == h.node.plan.separation_m
+    answer = h.published("planner/plan")[-1]
+    assert answer.separation_m == h.node.plan.separation_m and list(answer.curves["estimate_scan_id"]) == [1]
 
 
 def test_changed_p_replans_with_the_measured_medium(harness):

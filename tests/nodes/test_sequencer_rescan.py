@@ -1,23 +1,25 @@
 """The sequencer's rescan (nodes/sequencer.py step 4) through the harness: with an estimator in the launch
-graph, a pass waits for the estimate of one of its scans and the plan published after it; a plan more than
+graph, a pass waits for the estimate of one of its scans and the plan answering it; a plan more than
 one grid step away moves the source and scans the methods again, once; one step or less does not."""
 
 import numpy as np
-from polarstripe.msgs import Ack, Composite, Header, Heartbeat, MediumEstimate, Plan, ScanEvent
+from polarstripe.msgs import Ack, Composite, Heartbeat, MediumEstimate, Plan, ScanEvent
 from polarstripe.nodes.sequencer import Sequencer
 from polarstripe.runtime.testing import NodeHarness
 
 GRID = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
 
 
-def _plan(sep, stamp_ns=0):
-    return Plan(modality="stripes", separation_m=sep, curves={"separation_m": GRID},
-                header=Header(stamp_ns=stamp_ns))
+def _plan(sep, answers=None):
+    curves = {"separation_m": GRID}
+    if answers is not None:
+        curves["estimate_scan_id"] = np.array([float(answers)])
+    return Plan(modality="stripes", separation_m=sep, curves=curves)
 
 
 def rig(replan_to: float | None, graph=("estimator", "planner"), **params):
     """Scans end at once; after each stripes scan the estimator's estimate and then (if ``replan_to``) the
-    planner's plan at ``replan_to`` arrive; an older plan published before the estimate arrives too."""
+    planner's plan at ``replan_to`` in answer to it arrive, after plans that answer something else."""
     h = NodeHarness(Sequencer, name="sequencer", namespace="/rig",
                     params={"methods": ["flood", "stripes"], "stripes": 5, "calibrate": False, **params})
     h.bus.graph = {"nodes": {"sequencer": {}, **{n: {} for n in graph}}}
@@ -34,12 +36,12 @@ def rig(replan_to: float | None, graph=("estimator", "planner"), **params):
         h.queue("compositor/composite", Composite(images={"c": np.zeros((2, 2))}, method=req.method,
                                                   scan_id=sid, metrics={"contrast": 0.5}))
         if req.method == "stripes":
-            t = 10_000 * sid
-            h.queue("planner/plan", _plan(0.1, stamp_ns=t - 1))  # before the estimate: not its answer
-            h.queue("medium/estimate", MediumEstimate(p=0.5, sigma_t_per_m=3.0, mean_cosine=0.9, scan_id=sid,
-                                                      header=Header(stamp_ns=t)))
+            h.queue("medium/estimate", MediumEstimate(p=0.5, sigma_t_per_m=3.0, mean_cosine=0.9, scan_id=sid))
+            # a plan published after the estimate but not in answer to it (a re-plan on the compositor's p)
+            h.queue("planner/plan", _plan(0.1))
+            h.queue("planner/plan", _plan(0.1, answers=sid - 1))
             if replan_to is not None:
-                h.queue("planner/plan", _plan(replan_to, stamp_ns=t + 1))
+                h.queue("planner/plan", _plan(replan_to, answers=sid))
         return ScanEvent(scan_id=sid, event="start", method=req.method)
 
     h.on_call("emitter/start_scan", start)
