@@ -36,15 +36,18 @@ class Frame(Message):
 @message("pattern")
 class Pattern(Message):
     """What the emitter lights now: flood, stripe ``index`` of ``count`` (``size`` px wide), a checker of
-    ``size`` px shifted by ``shift`` px, or nothing."""
+    ``size`` px shifted by ``shift`` px, Gray code bit ``index`` of the ``axis`` (``col``/``row``, its
+    ``inverse``; msgs/patterns.py), or nothing."""
 
-    kind: Literal["flood", "stripe", "checker", "off"]
+    kind: Literal["flood", "stripe", "checker", "off", "gray"]
     index: int = 0
     count: int = 0
     size: int = 0
     shift: int = 0
     scan_id: int = 0
     step: int = 0
+    axis: str = ""
+    inverse: bool = False
 
     @classmethod
     def of(cls, pattern, scan_id: int = 0, step: int = 0) -> Pattern:
@@ -52,7 +55,7 @@ class Pattern(Message):
         :class:`~polarstripe.msgs.patterns.PatternSpec`; ``PatternError`` if it describes no pattern."""
         p = parse_pattern(pattern)
         return cls(kind=p.kind, index=p.index, count=p.count, size=p.size, shift=p.shift, scan_id=scan_id,
-                   step=step)
+                   step=step, axis=p.axis, inverse=p.inverse)
 
     def spec(self) -> PatternSpec:
         """The checked pattern; ``PatternError`` if the fields describe none."""

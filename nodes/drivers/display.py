@@ -5,7 +5,9 @@ pixels wide and ``H`` high, row 0 at the top:
 
 * ``flood`` lights every pixel, ``off`` none; * ``stripe:K/N`` lights columns ``floor(K·W/N)`` …
 ``floor((K+1)·W/N) − 1`` (0 ≤ K < N); * ``checker:SIZE:SHIFT`` lights the pixels where ``floor((col −
-SHIFT)/SIZE) + floor(row/SIZE)`` is even.
+SHIFT)/SIZE) + floor(row/SIZE)`` is even; * ``gray:BIT:col|row:INV`` lights the pixels whose column (row)
+index j has bit BIT of its Gray code j XOR (j >> 1) at 1 (INV = 0) or 0 (INV = 1), the images of OpenCV's
+``GrayCodePattern`` (the projector calibration, docs/depth.md "Calibration").
 
 :class:`Display` owns the shared behaviour (pattern parsing and validation, the current pattern, the context
 manager, an idempotent :meth:`~Display.close`); a backend implements ``_show``. :class:`NullDisplay` (CI, the
@@ -19,7 +21,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 
 import numpy as np
-from polarstripe.msgs.patterns import PatternError, PatternSpec, parse, stripe_columns
+from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, stripe_columns
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 
 
@@ -64,6 +66,9 @@ def render_pattern(
         row = np.arange(height)
         even = ((np.floor_divide(col - p.shift, p.size)[None, :] + (row // p.size)[:, None]) % 2) == 0
         image[even] = lit
+    elif p.kind == "gray":
+        lit_where = gray_lit(p, np.arange(width)[None, :] + 0.5, np.arange(height)[:, None] + 0.5)
+        image[np.broadcast_to(lit_where, image.shape)] = lit
     return image
 
 

@@ -34,7 +34,12 @@ ERROR_CODES = {1: "unknown command", 2: "bad argument", 3: "not supported", 4: "
 
 
 def pattern_command(pattern: PatternSpec) -> str:
-    """The request line (without ``\\n``) that sets ``pattern``."""
+    """The request line (without ``\\n``) that sets ``pattern``; DriverValueError for a pattern protocol 1
+    has no command for (``gray``: a trigger box or laser line has no pixels to show a Gray code on)."""
+    if pattern.kind == "gray":
+        raise DriverValueError(f"pattern {pattern}: a serial trigger box (protocol {PROTOCOL_VERSION}) shows "
+                               "flood, off, stripe and checker only; Gray code needs a projector "
+                               "(display = window)")
     if pattern.kind == "stripe":
         return f"PAT STRIPE {pattern.index} {pattern.count}"
     if pattern.kind == "checker":
