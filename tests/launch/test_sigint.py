@@ -155,6 +155,7 @@ def _run_moments(tmp_path, counts, seed):
     return results
 
 
+@pytest.mark.timeout(400)  # ~90 s; more on a loaded machine
 def test_sigint_at_20_random_moments_stops_every_node_by_itself(tmp_path):
     counts = {"prepare": 5, "start-up": 10, "planning": 3, "calibration": 1, "scans": 1}
     results = _run_moments(tmp_path, counts, seed=12)
@@ -162,6 +163,7 @@ def test_sigint_at_20_random_moments_stops_every_node_by_itself(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # ~5 minutes
 def test_sigint_at_40_moments_spread_evenly(tmp_path):
     counts = dict.fromkeys(PHASES, 8)
     results = _run_moments(tmp_path, counts, seed=1212)
