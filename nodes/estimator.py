@@ -29,8 +29,9 @@ fit at a bound, the model not describing the frames); p is NaN when the scans ha
 from __future__ import annotations
 
 import math
+import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 import numpy as np
 from polarstripe.msgs import Composite, Frame, MediumEstimate, Plan, ScanEvent
@@ -83,7 +84,6 @@ class Estimator(Node):
         self.fitted: set[float] = set()
         self.pending: dict | None = None  # the newest fit waiting for the worker
         self.job: tuple[Future, dict] | None = None
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="medium fit")
         for key in ("estimates", "refusals", "frames_dropped"):
             self.counters[key] = 0
         self.pub = self.publisher("medium/estimate")
@@ -92,9 +92,6 @@ class Estimator(Node):
         self.subscribe("simulator/truth", self.on_truth, mode="all")
         self.subscribe("planner/plan", self.on_plan, mode="latest")
         self.every(self.params.poll_s, self.collect, name="collect")
-
-    def teardown(self):
-        self.pool.shutdown(wait=False, cancel_futures=True)
 
     # ---- messages ------------------------------------------------------------------------------------------
     def on_plan(self, plan: Plan) -> None:
@@ -171,7 +168,21 @@ class Estimator(Node):
                 self.publish(job, None, math.nan, math.nan, 0.0, f"the fit failed: {exc}")
         if self.job is None and self.pending is not None:
             job, self.pending = self.pending, None
-            self.job = (self.pool.submit(self.fit, job), job)
+            self.job = (self.start_fit(job), job)
+
+    def start_fit(self, job: dict) -> Future:
+        """Run :meth:`fit` in a daemon thread: a stop never waits for a fit (a pool's worker would hold the
+        process until the fit ends, beyond the launch's shutdown_timeout)."""
+        future: Future = Future()
+
+        def work():
+            try:
+                future.set_result(self.fit(job))
+            except BaseException as exc:  # noqa: BLE001 — handed to the loop, which publishes a refusal
+                future.set_exception(exc)
+
+        threading.Thread(target=work, name="medium fit", daemon=True).start()
+        return future
 
     def fit_width(self, width: int) -> int:
         return self.params.fit_width or min(width, self.params.model_width)

@@ -7,6 +7,7 @@ Each test waits in real time for the worker thread's fit (~2-5 s on this machine
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -65,6 +66,8 @@ def test_estimate_of_an_unknown_medium_within_bounds_while_the_loop_runs():
     _scan(h, 3, "stripes", stripes)
     # the fit runs in the worker: nothing published yet, and the loop still handles what arrives
     assert h.published("medium/estimate") == [] and h.node.job is not None
+    # in a daemon thread: a SIGINT mid-fit ends the process without waiting for it (seen in a launch)
+    assert any(t.name == "medium fit" and t.daemon for t in threading.enumerate())
     h.deliver("camera/frame", _frame(truth, "flood", 99, 0))  # a frame of no scan: handled and counted
     assert h.node.counters["frames_dropped"] == 1
     est = _wait_estimate(h)
