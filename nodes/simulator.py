@@ -17,6 +17,8 @@ Services (relative to the namespace):
 * ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
+* ``simulator/target`` (``Empty`` → ``Ack``) — the ``target`` board (:class:`~.simulator_frames.Target`) to
+  pose k mod N at the k-th call from 0 (it starts at pose 0); launch/calibrate.toml.
 
 Topic ``simulator/truth`` (``Composite``, ``method`` "truth", ``scan_id`` the scan's), published at every
 ``emitter/scan`` start — the one way the ground truth reaches the compositor, so a recording carries it and a
@@ -49,17 +51,19 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from polarstripe.msgs import Ack, Composite, Frame, Plan, ScanEvent
+from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
 from polarstripe.msgs.patterns import following
-from polarstripe.msgs.rig import FAULT_COMMANDS, RenderRequest, SimFault
+from polarstripe.msgs.rig import RenderRequest, SimFault
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
-from polarstripe.nodes.drivers.simell14 import SimEll14
 from polarstripe.nodes.simulator_frames import (
     PREVIEW_WIDTH,
     SimulatorError,
+    Target,
     check_medium,
     exposure_factor,
+    host_ell14,
     model_scene,
+    parse_fault,
     parse_resolution,
     rig_scene,
     timed_render,
@@ -102,6 +106,10 @@ class Simulator(Node):
         drive_settle_s: float = 0.02
         faults: list[str] = []  # fault commands applied at start, e.g. ["never_settle on"]
         ell14_link: str = ""  # host a simulated ELL14 on a pty and symlink it here ("" = none)
+        target: str = ""  # "COLSxROWS": a checkerboard (inner corners) replaces the objects; "" = none
+        target_square_m: float = 0.015  # its squares [m]
+        target_poses: int = 8  # its seeded poses (simulator/target steps through them)
+        target_seed: int = 0
 
         def validate(self):
             super().validate()
@@ -121,6 +129,7 @@ class Simulator(Node):
         "simulator/render": (RenderRequest, Frame),
         "simulator/move_source": (Plan, Ack),
         "simulator/fault": (SimFault, Ack),
+        "simulator/target": (Empty, Ack),
     }
 
     def setup(self):
@@ -128,6 +137,8 @@ class Simulator(Node):
         try:
             self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
             self.fidelity = resolve_fidelity(p.fidelity)
+            self.target = Target.of(p, self.base, self.fidelity)
+            self.base = self.base if self.target is None else self.target.place(self.base, 0)
         except SceneError as exc:
             raise SimulatorError(f"node {self.name!r}: {exc}") from None
         cam = self.base.camera
@@ -153,7 +164,7 @@ class Simulator(Node):
                                         settle_s=p.drive_settle_s).start()
         self.ell14 = None
         if p.ell14_link:
-            self.ell14 = self._host_ell14(p.ell14_link)
+            self.ell14 = host_ell14(p.ell14_link, self.name, self.log)
         for command in p.faults:
             self.inject(SimFault(command=command), strict=True)
         self.run_state = RunState.of(self.graph, self.name)  # the source pose outlives a respawn
@@ -169,26 +180,14 @@ class Simulator(Node):
         self.serve("simulator/render", self.render)
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
+        self.serve("simulator/target", self.move_target)
         self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %s noise, drive %s", w, cam.resolution[1],
                       self.fidelity.name, self.scale, "gaussian" if self.gaussian else "poisson",
                       p.can_channel or "none (fixed analyzer)")
 
-    def _host_ell14(self, link: str):
-        """Start a simulated ELL14 on a pty and symlink it at ``link``."""
-        dev = SimEll14()
-        dev.start()
-        try:
-            if os.path.islink(link):
-                os.unlink(link)
-            os.symlink(dev.port, link)
-        except OSError as exc:
-            dev.stop()
-            raise SimulatorError(f"node {self.name!r}: param 'ell14_link': cannot link {link!r}: {exc}"
-                                 ) from None
-        self.log.info("simulated ELL14 on %s (link %s)", dev.port, link)
-        return dev
-
     def teardown(self):
+        if self.target is not None:
+            self.target.close()
         if self.ell14 is not None:
             self.ell14.stop()
             if os.path.islink(self.params.ell14_link):
@@ -212,7 +211,8 @@ class Simulator(Node):
         return self.params.analyzer_deg
 
     def _pose(self) -> tuple:
-        return (self.scene.projector.position, self.scene.projector.look_at)
+        return (self.scene.projector.position, self.scene.projector.look_at,
+                None if self.target is None else self.target.index)
 
     def _truth_key(self) -> tuple:
         return (*self._pose(), self.scene.camera.exposure_s)
@@ -301,6 +301,16 @@ class Simulator(Node):
         except SimulatorError as exc:
             self.log.error("%s", exc)
 
+    def move_target(self, _req: Empty) -> Ack:
+        """``simulator/target``: the board to its next pose (the k-th call: pose k mod N), re-exposed."""
+        if self.target is None:
+            return Ack(ok=False, detail="simulator/target: no target (param 'target')")
+        self.base = self.target.place(self.base, self.target.advance())
+        self.scene = self.scene.replace(objects=self.base.objects)
+        self._expose_for_flood()
+        self.log.info("%s", self.target.describe())
+        return Ack(ok=True, detail=self.target.describe())
+
     def move_source(self, plan: Plan) -> Ack:
         try:
             self.move_to(plan.separation_m)
@@ -369,19 +379,8 @@ class Simulator(Node):
         return self._truth[key]
 
     def inject(self, req: SimFault, strict: bool = False) -> Ack:
-        words = req.command.split()
         try:
-            if not words or words[0] not in FAULT_COMMANDS:
-                known = ", ".join(FAULT_COMMANDS)
-                raise ValueError(f"unknown fault command {req.command!r} (known: {known})")
-            name, args = words[0], words[1:]
-            wanted = {"frame_delay": 1, "bus_off": 1, "position_limit": 2}.get(name)
-            if wanted is not None and len(args) != wanted:
-                raise ValueError(f"{name} takes {wanted} number{'s' * (wanted > 1)}: "
-                                 f"{name} {FAULT_COMMANDS[name].split(':')[0]}")
-            if name in ("frame_delay", "bus_off", "heartbeat_stop") and args \
-                    and not 0.0 <= float(args[0]) <= 3600.0:
-                raise ValueError(f"{name} {args[0]}: seconds must be in [0, 3600]")
+            name, args = parse_fault(req.command)
             if name == "camera_lost":
                 self.camera_lost = (args or ["on"])[0] == "on"
             elif name == "frame_delay":

@@ -1,18 +1,30 @@
 """What the simulator node computes, as plain functions: its scene (with a medium override), the model's
-resolution per pattern, a timed component
-render, the radiance resized to the camera, the auto-exposure factor; its error type and the ``resolution``
-param's parser. (The sensor is :func:`polarstripe.sim.sensor.expose`, given the node's precomputed electrons
-map.)"""
+resolution per pattern, a timed component render, the radiance resized to the camera, the auto-exposure
+factor; its error type and the ``resolution`` param's parser; the calibration board of its ``target`` params
+(:class:`Target`); the hosted ELL14. (The sensor is :func:`polarstripe.sim.sensor.expose`, given the node's
+precomputed electrons map.)"""
 
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import tempfile
 import time
 
 import cv2
 import numpy as np
+from polarstripe.msgs.rig import FAULT_COMMANDS
+from polarstripe.nodes.drivers.simell14 import SimEll14
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, parse_size
+from polarstripe.sim.scene_target import (
+    board_texture,
+    lit_for_target,
+    parse_board,
+    target_poses,
+    with_target,
+)
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
@@ -99,3 +111,81 @@ def exposure_factor(radiance: np.ndarray, e_map: np.ndarray, camera, *, fill: fl
     span = min(full_scale_dn(camera) - dark_offset_dn(camera), camera.full_well_e / camera.gain_e_per_dn)
     limit = fill * span
     return limit / peak if peak > limit else 1.0
+
+
+class Target:
+    """The calibration board of the simulator's ``target`` params: a ``board`` ("COLSxROWS" inner corners)
+    checkerboard of ``square_m`` squares (its PNG in a temporary folder) at ``poses`` seeded poses
+    (sim/scene_target.py), replacing the scene's objects. The projector's intensity is set once, at pose 0,
+    so that the lit board reaches 60 % of full scale. ``index`` is the pose shown."""
+
+    def __init__(self, board: str, square_m: float, poses: int, seed: int, scene: Scene, fidelity):
+        cols, rows = parse_board(board, "param 'target'")
+        if not (math.isfinite(square_m) and square_m > 0) or poses < 1:
+            raise SceneError(f"target_square_m={square_m} must be > 0 m and target_poses={poses} >= 1")
+        self.folder = tempfile.mkdtemp(prefix="polarstripe-target-")
+        self.texture = os.path.join(self.folder, "board.png")
+        self.size = board_texture(cols, rows, square_m, self.texture)
+        self.poses = target_poses(poses, seed, scene)
+        self.lit = lit_for_target(scene, self.poses[0], self.texture, self.size, fidelity)
+        self.index = 0
+        self.calls = 0
+
+    @classmethod
+    def of(cls, params, scene: Scene, fidelity) -> Target | None:
+        """The target of the simulator's params (None without ``target``)."""
+        if not params.target:
+            return None
+        return cls(params.target, params.target_square_m, params.target_poses, params.target_seed, scene,
+                   fidelity)
+
+    def advance(self) -> int:
+        """The pose of the next ``simulator/target`` call: k mod N at the k-th call (from 0)."""
+        self.calls += 1
+        return (self.calls - 1) % len(self.poses)
+
+    def place(self, scene: Scene, index: int) -> Scene:
+        """``scene`` with the board at pose ``index`` as its only object and the projector's intensity."""
+        self.index = index
+        return with_target(scene, self.poses[index], self.texture, self.size).replace(
+            projector=scene.projector.replace(intensity_w_sr=self.lit.projector.intensity_w_sr))
+
+    def describe(self) -> str:
+        pose = self.poses[self.index]
+        point = ", ".join(f"{v:.4f}" for v in pose["point"])
+        normal = ", ".join(f"{v:.3f}" for v in pose["normal"])
+        return f"target pose {self.index} of {len(self.poses)}: point=({point}) normal=({normal})"
+
+    def close(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def host_ell14(link: str, node: str, log) -> SimEll14:
+    """Start a simulated ELL14 on a pty and symlink it at ``link`` (the ``ell14_link`` param)."""
+    dev = SimEll14()
+    dev.start()
+    try:
+        if os.path.islink(link):
+            os.unlink(link)
+        os.symlink(dev.port, link)
+    except OSError as exc:
+        dev.stop()
+        raise SimulatorError(f"node {node!r}: param 'ell14_link': cannot link {link!r}: {exc}") from None
+    log.info("simulated ELL14 on %s (link %s)", dev.port, link)
+    return dev
+
+
+def parse_fault(command: str) -> tuple[str, list[str]]:
+    """A ``simulator/fault`` command (msgs/rig.py ``FAULT_COMMANDS``) as (name, args); ValueError names what
+    is wrong (an unknown command, a wrong count of numbers, seconds outside [0, 3600])."""
+    words = command.split()
+    if not words or words[0] not in FAULT_COMMANDS:
+        raise ValueError(f"unknown fault command {command!r} (known: {', '.join(FAULT_COMMANDS)})")
+    name, args = words[0], words[1:]
+    wanted = {"frame_delay": 1, "bus_off": 1, "position_limit": 2}.get(name)
+    if wanted is not None and len(args) != wanted:
+        raise ValueError(f"{name} takes {wanted} number{'s' * (wanted > 1)}: "
+                         f"{name} {FAULT_COMMANDS[name].split(':')[0]}")
+    if name in ("frame_delay", "bus_off", "heartbeat_stop") and args and not 0.0 <= float(args[0]) <= 3600.0:
+        raise ValueError(f"{name} {args[0]}: seconds must be in [0, 3600]")
+    return name, args
