@@ -1,6 +1,13 @@
 """``python -m polarstripe``: the command line (tools/cli.py). A Ctrl-C that comes while a command is still
 being imported or parsed (a node just started by the launcher) ends it with status 130 and no traceback;
-from then on the command handles it (docs/architecture.md "Shutdown")."""
+from then on the command handles it (docs/architecture.md "Shutdown").
+
+A node process (``polarstripe node``) leaves without the interpreter's teardown: by then its loop has
+ended, ``teardown`` has run, its sockets are closed and its files removed, and unloading numba, scipy and
+matplotlib can take seconds on a loaded machine, while the launcher's next signal is on its way."""
+
+import os
+import sys
 
 try:
     from polarstripe.tools.cli import main
@@ -8,4 +15,11 @@ try:
     status = main()
 except KeyboardInterrupt:
     status = 130
+if sys.argv[1:2] == ["node"]:
+    import logging
+
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status if isinstance(status, int) else 1)
 raise SystemExit(status)

@@ -25,7 +25,9 @@ Measured from the bus (the launch's own topics, as ``polarstripe topic`` reads t
   lived longest; a node whose RSS grew by more than ``GROWTH_BOUND_MB`` (or ``GROWTH_BOUND_FRACTION``,
   whichever is larger) fails the soak;
 * **recovery** — per kill, the time until the launcher's new process of that node is in the graph
-  (respawned) and until a scan that started after the kill was composited (recovered).
+  (respawned), until the first scan started after the kill was composited (first scan), and until every
+  method that had worked before the kill has worked again in scans started after it (recovered: a killed
+  simulator takes the CAN drive with it, and polarized scans fail until the polarizer has reconnected).
 
 Exit status 0 when nothing was lost outside a kill, every kill was recovered from, no node grew beyond the
 bound, at least one scan completed and the final SIGINT stopped every node by itself; 1 otherwise.
@@ -122,6 +124,7 @@ class Soak:
         self.faults: list[str] = []
         self.open: dict[int, float] = {}  # scan id -> start time, until it ended
         self.started: dict[int, float] = {}  # scan id -> start time
+        self.methods_ok: set[str] = set()  # the methods composited without an error so far
         self.ended: set[int] = set()
         self.kills: list[dict] = []
         self.lost = {"outside": 0, "within": 0}
@@ -231,9 +234,15 @@ class Soak:
             if not self.warm and self.scans["completed"] >= WARM_SCANS:
                 self.warm = True
                 self.rss.clear()  # memory counts from the warm-up on
+            self.methods_ok.add(msg.method)
             began = self.started.get(msg.scan_id, -1.0)
-            for k in self.kills:  # recovered: a scan started after the kill has been composited
-                if k["recovered_s"] is None and began > k["t_s"]:
+            for k in self.kills:  # scans started after the kill: the first composited, then every method
+                if began <= k["t_s"] or k["recovered_s"] is not None:
+                    continue
+                if k["first_scan_s"] is None:
+                    k["first_scan_s"] = now - k["t_s"]
+                k["methods"].add(msg.method)
+                if k["methods"] >= k["expect"]:
                     k["recovered_s"] = now - k["t_s"]
 
     def _lost(self, topic: str, new: int) -> None:
@@ -262,7 +271,8 @@ class Soak:
         except ProcessLookupError:
             return
         self.kills.append({"t_s": time.monotonic() - self.t0, "node": name, "pid": pid, "respawned_s": None,
-                           "recovered_s": None, "completed_before": self.scans["completed"]})
+                           "first_scan_s": None, "recovered_s": None, "methods": set(),
+                           "expect": set(self.methods_ok)})
 
     def _respawns(self) -> None:
         pending = [k for k in self.kills if k["respawned_s"] is None]
@@ -326,7 +336,8 @@ class Soak:
             "minutes": self.args.minutes, "chaos_s": self.args.chaos, "resolution": self.args.resolution,
             "stripes": self.args.stripes, "seed": self.args.seed, "scans": self.scans,
             "faults": self.faults, "frames_lost": {**self.lost, "by_topic": self.lost_by_topic},
-            "kills": self.kills,
+            "kills": [{k: sorted(v) if isinstance(v, set) else v for k, v in kill.items()}
+                      for kill in self.kills],
             "recovery_s": {"median": round(sorted(rec)[len(rec) // 2], 2) if rec else None,
                            "max": round(max(rec), 2) if rec else None},
             "memory": mem, "growth_bound": {"mb": GROWTH_BOUND_MB, "fraction": GROWTH_BOUND_FRACTION},
@@ -353,10 +364,11 @@ def table(r: dict) -> str:
              + (f" ({', '.join(f'{t} {n}' for t, n in r['frames_lost']['by_topic'].items())})"
                 if r["frames_lost"]["by_topic"] else "")]
     if r["kills"]:
-        lines += ["", f"{'kill at [s]':>11}  {'node':<11} {'respawned [s]':>13} {'recovered [s]':>13}"]
+        lines += ["", f"{'kill at [s]':>11}  {'node':<11} {'respawned [s]':>13} {'first scan [s]':>14} "
+                      f"{'recovered [s]':>13}"]
         for k in r["kills"]:
             lines.append(f"{k['t_s']:>11.1f}  {k['node']:<11} {_f(k['respawned_s']):>13} "
-                         f"{_f(k['recovered_s']):>13}")
+                         f"{_f(k['first_scan_s']):>14} {_f(k['recovered_s']):>13}")
         rec = r["recovery_s"]
         lines.append(f"recovery: median {_f(rec['median'])} s, max {_f(rec['max'])} s")
     lines += ["", f"{'node':<11} {'RSS start':>9} {'end [MB]':>9} {'growth':>7} {'bound':>6} processes"]
