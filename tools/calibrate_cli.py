@@ -34,9 +34,10 @@ from polarstripe.imaging.calibration import (
 )
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.msgs.patterns import gray_code
+from polarstripe.sim import scene_target as target
 from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.render import render_components, render_frame
-from polarstripe.sim.scene import PlaneObject, Scene, load_scene, parse_size
+from polarstripe.sim.scene import Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.sensor import expose
 from tqdm import tqdm
 
@@ -71,52 +72,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def board_texture(board: Board, path: str, dark: int = 64) -> tuple[float, float]:
-    """Write the checkerboard PNG (one texel per square, a one-square white margin); its size [m]."""
-    nx, ny = board.cols + 3, board.rows + 3
-    img = np.full((ny, nx), 255, np.uint8)
-    for i in range(board.rows + 1):
-        for j in range(board.cols + 1):
-            if (i + j) % 2 == 0:
-                img[1 + i, 1 + j] = dark
-    if not cv2.imwrite(path, img):
-        raise PolarstripeError(f"cannot write the board texture {path!r}")
-    return nx * board.square_m, ny * board.square_m
+    """Write the checkerboard PNG (sim/scene_target.py); its size [m]."""
+    return target.board_texture(board.cols, board.rows, board.square_m, path, dark)
 
 
-def random_poses(n: int, seed: int, scene: Scene) -> list[dict]:
-    """Board poses (plane point, normal, up) where camera and projector both see it: around the point the
-    camera axis and the projector's axis pass nearest each other, tilted 15–40° either way about two axes and
-    turned up to ±15° in its plane."""
-    rng = np.random.default_rng(seed)
-    c, p = np.asarray(scene.camera.position, float), np.asarray(scene.projector.position, float)
-    fc = np.subtract(scene.camera.look_at, c)
-    fc /= np.linalg.norm(fc)
-    fp = np.subtract(scene.projector.look_at, p)
-    fp /= np.linalg.norm(fp)
-    # closest points of the two axes: the middle of the common view
-    w0, b = c - p, fc @ fp
-    den = max(1.0 - b * b, 1e-9)
-    s = (b * (fp @ w0) - (fc @ w0)) / den
-    t = ((fp @ w0) - b * (fc @ w0)) / den
-    centre = 0.5 * ((c + s * fc) + (p + t * fp))
-    dist = float(np.linalg.norm(centre - c))
-    up0 = np.asarray(scene.camera.up, float)
-    right = np.cross(fc, up0)
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fc)
-    poses = []
-    for _ in range(n):
-        a, bb = np.radians(rng.uniform(15, 40, 2) * rng.choice([-1, 1], 2))
-        roll = np.radians(rng.uniform(-15, 15))
-        normal = -fc * np.cos(a) * np.cos(bb) + right * np.sin(bb) + up * np.sin(a) * np.cos(bb)
-        normal /= np.linalg.norm(normal)
-        u = up * np.cos(roll) + right * np.sin(roll)
-        u -= normal * (u @ normal)
-        shift = rng.uniform(-0.1, 0.1, 2) * dist
-        depth = rng.uniform(-0.3, -0.08) * dist
-        point = centre + right * shift[0] + up * shift[1] + fc * depth
-        poses.append({"point": tuple(point), "normal": tuple(normal), "up": tuple(u / np.linalg.norm(u))})
-    return poses
+random_poses = target.target_poses
 
 
 def rig_scene(args: argparse.Namespace) -> Scene:
@@ -138,22 +98,15 @@ def rig_scene(args: argparse.Namespace) -> Scene:
 
 
 def exposed(scene: Scene, pose: dict, texture: str, size, fidelity: str, level: float = 0.6) -> Scene:
-    """The scene with the projector's intensity set so that the white board's brightest pixels (99.5th
-    percentile) reach ``level`` of the camera's full scale (the radiance is linear in the intensity)."""
-    probe = 1e-3
-    sc = scene.replace(projector=scene.projector.replace(intensity_w_sr=probe))
-    white, _ = render_frame(_with_board(sc, pose, texture, size), "flood", None, fidelity, seed=0)
-    signal = float(np.percentile(white, 99.5)) - sc.camera.offset_dn
-    full = 2 ** sc.camera.bits - 1 - sc.camera.offset_dn
-    if signal <= 0:
-        raise CalibrationError("the board is dark even at full exposure: the projector does not light it")
-    return scene.replace(projector=scene.projector.replace(intensity_w_sr=probe * level * full / signal))
+    """The scene with the projector lighting the white board at ``level`` of full scale
+    (sim/scene_target.py ``lit_for_target``)."""
+    try:
+        return target.lit_for_target(scene, pose, texture, size, fidelity, level)
+    except SceneError as exc:
+        raise CalibrationError(str(exc)) from None
 
 
-def _with_board(scene: Scene, pose: dict, texture: str, size) -> Scene:
-    board = PlaneObject(point=pose["point"], normal=pose["normal"], up=pose["up"], size=size, albedo=0.8,
-                        texture=texture)
-    return scene.replace(objects=(board,))
+_with_board = target.with_target
 
 
 def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str, tick=None):
@@ -176,14 +129,8 @@ def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str
     return white, black, gray
 
 
-def _board(text: str) -> Board:
-    try:
-        cols, rows = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise PolarstripeError(f"--board {text!r} is not COLSxROWS (inner corners)") from None
-    if min(cols, rows) < 3:
-        raise PolarstripeError(f"--board {text!r}: need at least 3x3 inner corners")
-    return cols, rows
+def _board(text: str) -> tuple[int, int]:
+    return target.parse_board(text)
 
 
 def calibrate_sim(args: argparse.Namespace, progress: bool):
@@ -273,8 +220,9 @@ def main(args: argparse.Namespace) -> int:
     if args.poses < MIN_POSES:
         raise CalibrationError(f"--poses {args.poses}: a calibration needs at least {MIN_POSES} poses")
     if not args.sim:
-        raise PolarstripeError("calibrate on a rig runs over its nodes (docs/depth.md \"Calibration\"); "
-                               "this command needs --sim for now")
+        raise PolarstripeError("calibrate on a rig runs over its nodes: polarstripe launch "
+                               "launch/calibrate.toml --once out=FILE (docs/depth.md \"Calibration\"); "
+                               "this command needs --sim")
     out_dir = os.path.dirname(os.path.abspath(args.out))
     if not os.path.isdir(out_dir):
         raise PolarstripeError(f"-o {args.out!r}: folder {out_dir!r} does not exist")

@@ -1,0 +1,164 @@
+"""Projector–camera calibration over the rig's nodes (launch/calibrate.toml; the method is docs/depth.md
+"Calibration", the pure steps :mod:`polarstripe.imaging.calibration`).
+
+The calibrator node, per board pose k of ``poses``:
+
+1. puts the board at pose k: calls ``target_service`` (the simulator's ``simulator/target``, Empty → Ack)
+   or, on a real rig (``target_service = ""``), logs "pose k: place the board" and waits ``pose_wait_s``;
+2. for each of ``flood``, ``off`` and the Gray code of the ``projector`` size (msgs/patterns.py
+   ``gray_code``): ``emitter/show`` (the pattern), ``camera/trigger`` (a FrameRequest tagged with that
+   pattern, scan id ``CALIBRATION_SCAN_ID + 1000 + k``, step i) and the matching frame on ``camera/frame``,
+   exactly as a scan's frames travel (docs/architecture.md "How a frame travels");
+3. decodes the pose (``decode_pose``; a pose the board or its decoding fails is skipped with its reason)
+   and rewrites the live coverage view ``<out>_coverage.png``.
+
+Then ``calibrate`` fits both devices and the stereo pose and ``save`` writes ``out`` atomically (a failed run
+leaves the previous file whole). The analyzer is taken out of the path first (``camera/analyzer``). Exit
+status 0 with a file written, 1 otherwise (the ERROR line says why). Like the sequencer, it is a script: it
+blocks in its own ``run`` and serves nothing.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from polarstripe.imaging.calibration import MIN_POSES, Board, CalibrationError, calibrate, decode_pose, save
+from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
+from polarstripe.msgs.patterns import gray_code
+from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
+from polarstripe.runtime.bus import BusError, BusTimeout
+from polarstripe.runtime.node import Node, NodeStopping
+from polarstripe.runtime.params import NodeParams
+from polarstripe.sim.scene import SceneError, parse_size
+from polarstripe.sim.scene_target import parse_board
+from polarstripe.tools.calibrate_cli import coverage_path, write_coverage
+
+SCAN_ID_BASE = CALIBRATION_SCAN_ID + 1000  # frames of pose k carry scan id SCAN_ID_BASE + k
+
+
+class RigCalibrationError(CalibrationError):
+    """A step of the calibration over the nodes failed; the text names the service, topic or pose."""
+
+
+class RigCalibrator(Node):
+    """Calibrates the rig over its nodes (see the module docstring)."""
+
+    class Params(NodeParams):
+        out: str = "rig.yaml"  # the calibration file (OpenCV FileStorage; .yaml, .xml or .json)
+        projector: str = "1024x768"  # the emitter's display size WxH (its display_width/height)
+        board: str = "8x6"  # inner corners COLSxROWS
+        square_m: float = 0.015
+        poses: int = 8
+        distortion: str = "radial"  # none | radial | full (the camera's lens model)
+        target_service: str = "simulator/target"  # moves the board; "" = a person does (pose_wait_s)
+        pose_wait_s: float = 10.0
+        startup_timeout_s: float = 30.0
+        frame_timeout_s: float = 30.0
+
+        def validate(self):
+            super().validate()
+            parse_size(self.projector, "projector")
+            parse_board(self.board, "board")
+            if self.poses < MIN_POSES:
+                raise ValueError(f"poses={self.poses}: a calibration needs at least {MIN_POSES}")
+            if self.distortion not in ("none", "radial", "full"):
+                raise ValueError(f"distortion must be none, radial or full, got {self.distortion!r}")
+            if not self.square_m > 0:
+                raise ValueError(f"square_m must be > 0, got {self.square_m}")
+
+    SUBSCRIBES = {"camera/frame": Frame, "heartbeat": Heartbeat}
+
+    def setup(self):
+        self.subscribe("camera/frame", mode="all")
+        self.subscribe("heartbeat", mode="all")
+
+    def run(self) -> None:
+        ok = False
+        try:
+            ok = self.calibrate()
+        except (RigCalibrationError, CalibrationError, SceneError) as exc:
+            self.log.error("%s", exc)
+        except NodeStopping:
+            pass
+        if not self.stopping:
+            self.stop("calibration written" if ok else "calibration failed", exit_code=0 if ok else 1)
+        for _ in self.events():  # ends with Stop
+            pass
+
+    # ---- steps ---------------------------------------------------------------------------------------------
+    def call(self, service: str, req_type, request, *, timeout_s: float = 5.0) -> Ack:
+        """Call ``service`` (reply Ack), retrying while it is not up yet (``startup_timeout_s``); a refusal
+        is an error naming the service."""
+        client = self.client(service, req_type, Ack, timeout_s=timeout_s)
+        deadline = self.now() + self.params.startup_timeout_s
+        while True:
+            try:
+                reply = client.call(request)
+                break
+            except BusTimeout as exc:
+                if self.now() >= deadline or self.stopping:
+                    raise RigCalibrationError(f"{service}: {exc}") from None
+            except BusError as exc:
+                raise RigCalibrationError(f"{service}: {exc}") from None
+        if not reply.ok:
+            raise RigCalibrationError(f"{service}: {reply.detail}")
+        return reply
+
+    def grab(self, tag: str, scan_id: int, step: int) -> np.ndarray:
+        """Show ``tag``, trigger the camera, return the matching frame's image."""
+        self.call("emitter/show", Pattern, Pattern.of(tag, scan_id=scan_id, step=step))
+        self.call("camera/trigger", FrameRequest, FrameRequest(scan_id=scan_id, step=step, pattern=tag),
+                  timeout_s=self.params.frame_timeout_s)
+        try:
+            frame = self.wait_for("camera/frame", lambda f: f.scan_id == scan_id and f.step == step,
+                                  self.params.frame_timeout_s)
+        except BusTimeout as exc:
+            pose = scan_id - SCAN_ID_BASE
+            raise RigCalibrationError(f"camera/frame of {tag} (pose {pose}): {exc}") from None
+        return np.asarray(frame.image)
+
+    def calibrate(self) -> bool:
+        p = self.params
+        out_dir = os.path.dirname(os.path.abspath(p.out))
+        if not os.path.isdir(out_dir):
+            raise RigCalibrationError(f"param 'out' {p.out!r}: folder {out_dir!r} does not exist")
+        cols, rows = parse_board(p.board, "board")
+        board = Board(cols, rows, float(p.square_m))
+        proj = parse_size(p.projector, "projector")
+        tags = ["flood", "off", *(str(g) for g in gray_code(*proj))]
+        self.call("camera/analyzer", AnalyzerMount, AnalyzerMount(inserted=False))
+        results, failures, cam_size = [], [], None
+        for k in range(p.poses):
+            if p.target_service:
+                self.log.info("pose %d: %s", k, self.call(p.target_service, Empty, Empty()).detail)
+            else:
+                self.log.warning("pose %d of %d: place the board; frames in %g s", k, p.poses, p.pose_wait_s)
+                self.take("heartbeat", p.pose_wait_s)
+            images = [self.grab(tag, SCAN_ID_BASE + k, i) for i, tag in enumerate(tags)]
+            cam_size = (images[0].shape[1], images[0].shape[0])
+            try:
+                results.append(decode_pose(images[0], images[1], images[2:], board, proj, pose=k))
+            except CalibrationError as exc:
+                failures.append(str(exc))
+                self.log.warning("skipped %s", exc)
+                continue
+            write_coverage(coverage_path(p.out), results, proj)  # the live view: the poses so far
+            self.log.info("pose %d: %d pixels decoded around the corners (%d poses usable)", k,
+                          results[-1].decoded, len(results))
+        self.call("emitter/show", Pattern, Pattern.of("off"))
+        if len(results) < MIN_POSES:
+            raise RigCalibrationError(f"{len(results)} usable poses of {p.poses}: a calibration needs at "
+                                      f"least {MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
+        cal = calibrate(results, board, cam_size, proj, distortion=p.distortion)
+        save(p.out, {**cal.geometry(), "dist_proj": cal.dist_proj},
+             {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
+              "poses": len(cal.poses), "board": f"{p.board} inner corners, {p.square_m} m squares",
+              "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"})
+        write_coverage(coverage_path(p.out), cal.poses, cal.proj_size)
+        self.log.info("%s: %d poses, RMS camera %.3f px, projector %.3f px, stereo %.3f px; coverage %s",
+                      p.out, len(cal.poses), cal.rms_cam, cal.rms_proj, cal.rms_stereo, coverage_path(p.out))
+        return True
+
+
+NODE = "RigCalibrator"
