@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from polarstripe.sim.scene_calibration import with_calibration
 from polarstripe.sim.scene_checks import SceneError, Vec3, parse_size, positive, resolution, vec3
 from polarstripe.sim.scene_parts import (
     DEFAULT_CHART,
@@ -151,7 +152,7 @@ def scene_from_dict(data: dict, base: Path | None = None) -> Scene:
     hangs on the default tank's back wall, which a file may have moved (a file that set the medium to ±1 m
     and listed no object used to get that 0.3 × 0.2 m chart at z = 0.38 m, cutting the view rays that hit it).
     """
-    _check_keys("scene", data, {"medium", "camera", "projector", "object"})
+    _check_keys("scene", data, {"medium", "camera", "projector", "object", "calibration"})
     kw: dict[str, Any] = {}
     if "medium" in data:
         kw["medium"] = _medium(data["medium"])
@@ -163,7 +164,26 @@ def scene_from_dict(data: dict, base: Path | None = None) -> Scene:
     if not isinstance(objs, list):
         raise SceneError("object must be an array of tables ([[object]])")
     kw["objects"] = tuple(_object(i, o, base) for i, o in enumerate(objs))
+    if "calibration" in data:
+        return _calibrated(Scene(**kw), data, base)
     return Scene(**kw)
+
+
+def _calibrated(scene: Scene, data: dict, base: Path | None) -> Scene:
+    """The ``calibration`` key: the camera's and projector's pinholes from a rig calibration file
+    (sim/scene_calibration.py); the keys it sets may not be set too, the resolutions the file states must
+    be the calibration's (the camera's up to an integer binning)."""
+    path = data["calibration"]
+    if not isinstance(path, str) or not path:
+        raise SceneError(f"calibration must be the path of a calibration file, got {path!r}")
+    for section, keys in (("camera", ("fov_deg",)), ("projector", ("fov_deg", "position", "look_at", "up"))):
+        for key in keys:
+            if key in data.get(section, {}):
+                raise SceneError(f"{section}.{key} is set by the calibration file: give one or the other")
+    full = Path(path) if Path(path).is_absolute() or base is None else base / path
+    stated = {part: getattr(scene, part).resolution if "resolution" in data.get(part, {}) else None
+              for part in ("camera", "projector")}
+    return with_calibration(scene, str(full), cam_size=stated["camera"], proj_size=stated["projector"])
 
 
 def load_scene(path: str | Path | None = None) -> Scene:

@@ -1,0 +1,114 @@
+"""A scene's camera and projector from a rig calibration file (``polarstripe calibrate``, docs/depth.md
+"Calibration"): the scene key ``calibration = "rig.yaml"`` (docs/scene-format.md) and the planner's
+``calibration`` param.
+
+The file is OpenCV FileStorage (``K_cam``, ``K_proj``, ``R``, ``T`` with X_p = R·X_c + T [m], ``cam_size``,
+``proj_size`` [w, h]). The model's pinholes (docs/scene-format.md "Geometry") have square pixels, the
+principal point at the image centre and no distortion, so a file sets of each device:
+
+* ``resolution`` = its size, ``fov_deg`` = 2·atan(w / (2·f)) with f = (f_x + f_y)/2 (the horizontal fov);
+* the projector's pose relative to the camera (which keeps the scene's pose): its centre
+  C_p = −Rᵀ·T and its axes (forward Rᵀ·z, image up −Rᵀ·y) in the OpenCV camera frame (x right, y down,
+  z forward = the scene's r, −u, f; sim/depth_truth.py), its ``look_at`` as far ahead as the camera's.
+
+The principal point and f_x ≠ f_y cannot be represented: a file whose principal point is more than
+``MAX_CENTRE_OFFSET`` of the width (height) from the centre, or whose f_x and f_y differ by more than
+``MAX_ASPECT`` (relative), is refused (the model would render another rig). The lens distortion is not taken.
+A file of another rig size than the scene states is one error.
+"""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+from polarstripe.sim.scene_checks import SceneError
+from polarstripe.sim.scene_parts import Scene
+
+MAX_CENTRE_OFFSET = 0.05  # of the image width (height): the principal point's distance from the centre
+MAX_ASPECT = 0.01  # relative difference of f_x and f_y
+KEYS = ("K_cam", "K_proj", "R", "T", "cam_size", "proj_size")
+
+
+def read_rig(path: str) -> dict:
+    """The rig of a calibration file: ``K_cam``, ``K_proj`` (3, 3), ``R`` (3, 3), ``T`` (3,),
+    ``cam_size``, ``proj_size`` ((w, h) ints). SceneError naming the file and the missing key."""
+    if not os.path.isfile(path):
+        raise SceneError(f"calibration {path!r}: no such file")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise SceneError(f"calibration {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
+    try:
+        if not fs.isOpened():
+            raise SceneError(f"calibration {path!r}: not an OpenCV FileStorage file")
+        out = {}
+        for key in KEYS:
+            node = fs.getNode(key)
+            value = None if node.empty() else node.mat()
+            if value is None:
+                raise SceneError(f"calibration {path!r}: key {key} is missing (written by polarstripe "
+                                 "calibrate?)")
+            out[key] = np.asarray(value, float)
+    finally:
+        fs.release()
+    shapes = {"K_cam": (3, 3), "K_proj": (3, 3), "R": (3, 3), "T": (3,), "cam_size": (2,), "proj_size": (2,)}
+    for key, shape in shapes.items():
+        if out[key].size != int(np.prod(shape)) or not np.all(np.isfinite(out[key])):
+            raise SceneError(f"calibration {path!r}: {key} must be {shape} finite numbers")
+        out[key] = out[key].reshape(shape)
+    for key in ("cam_size", "proj_size"):
+        out[key] = tuple(int(round(v)) for v in out[key])
+    return out
+
+
+def _fov(K: np.ndarray, size: tuple[int, int], what: str, path: str) -> float:
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    w, h = size
+    if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > MAX_ASPECT:
+        raise SceneError(f"calibration {path!r}: {what} f_x={fx:.2f}, f_y={fy:.2f} px: the model's pixels "
+                         f"are square (within {MAX_ASPECT:.0%})")
+    if abs(cx - (w / 2 - 0.5)) > MAX_CENTRE_OFFSET * w or abs(cy - (h / 2 - 0.5)) > MAX_CENTRE_OFFSET * h:
+        raise SceneError(f"calibration {path!r}: {what} principal point ({cx:.1f}, {cy:.1f}) px is more than "
+                         f"{MAX_CENTRE_OFFSET:.0%} of the {w}x{h} image from its centre: the model's pinhole "
+                         "cannot render it")
+    return float(np.degrees(2 * np.arctan(w / (fx + fy))))
+
+
+def with_calibration(scene: Scene, path: str, *, cam_size: tuple[int, int] | None = None,
+                     proj_size: tuple[int, int] | None = None) -> Scene:
+    """``scene`` with its camera's resolution and fov and its projector's resolution, fov and pose from the
+    calibration file ``path`` (module docstring). ``cam_size`` / ``proj_size``: the sizes the scene or the
+    launch states (the camera may be binned by an integer factor); another size is one SceneError."""
+    rig = read_rig(path)
+    cw, ch = rig["cam_size"]
+    if cam_size is not None:
+        w, h = cam_size
+        if not (cw % w == 0 and ch % h == 0 and cw // w == ch // h):
+            raise SceneError(f"calibration {path!r} is of a {cw}x{ch} camera; the rig's is {w}x{h} (not an "
+                             "integer binning of it): calibrate this rig")
+    if proj_size is not None and tuple(proj_size) != rig["proj_size"]:
+        pw, ph = rig["proj_size"]
+        raise SceneError(f"calibration {path!r} is of a {pw}x{ph} projector; the rig's is "
+                         f"{proj_size[0]}x{proj_size[1]}: calibrate this rig")
+    fov_c = _fov(rig["K_cam"], rig["cam_size"], "camera", path)
+    fov_p = _fov(rig["K_proj"], rig["proj_size"], "projector", path)
+    cam = scene.camera
+    c = np.asarray(cam.position, float)
+    f = np.subtract(cam.look_at, c)
+    reach = float(np.linalg.norm(f))
+    f /= reach
+    r = np.cross(f, cam.up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    to_world = np.column_stack([r, -u, f])  # OpenCV camera frame (x right, y down, z forward) -> world
+    R, T = rig["R"], rig["T"]
+    centre = c + to_world @ (-R.T @ T)
+    forward = to_world @ (R.T @ np.array([0.0, 0.0, 1.0]))
+    up = to_world @ (R.T @ np.array([0.0, -1.0, 0.0]))
+    new_cam = cam.replace(resolution=tuple(cam_size or rig["cam_size"]), fov_deg=fov_c)
+    proj = scene.projector.replace(resolution=rig["proj_size"], fov_deg=fov_p,
+                                   position=tuple(centre.tolist()),
+                                   look_at=tuple((centre + reach * forward).tolist()), up=tuple(up.tolist()))
+    return scene.replace(camera=new_cam, projector=proj)
