@@ -39,7 +39,8 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.runtime.process import interruptible
 from polarstripe.sim.render import render_components, render_frame, resolve_fidelity
-from polarstripe.sim.scene import DopModel, Phase, load_scene, parse_size, with_separation
+from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size, with_separation
+from polarstripe.sim.scene_calibration import with_calibration
 from polarstripe.sim.sensor import full_scale_dn, mean_dn
 
 
@@ -48,6 +49,7 @@ class Planner(Node):
 
     class Params(NodeParams):
         scene: str = ""  # scene TOML; "" = the paper's tank
+        calibration: str = ""  # rig calibration file: the camera's and projector's pinholes (docs/depth.md)
         resolution: str = ""  # camera "WxH"; "" = the scene's
         fidelity: str = "preview"
         modality: Literal["stripes", "flood"] = "stripes"
@@ -88,6 +90,12 @@ class Planner(Node):
     def setup(self):
 
         scene = load_scene(self.params.scene or None)
+        if self.params.calibration:  # the real rig's pinholes (sim/scene_calibration.py)
+            size = parse_size(self.params.resolution) if self.params.resolution else None
+            try:
+                scene = with_calibration(scene, self.params.calibration, cam_size=size)
+            except SceneError as exc:
+                raise SceneError(f"node {self.name!r}: param 'calibration': {exc}") from None
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
             (w, h), cam = parse_size(self.params.resolution), scene.camera
             exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
