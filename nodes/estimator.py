@@ -19,7 +19,9 @@ Frames are block-averaged to about ``fit_width`` pixels across before the fit
 fit's model must run at the resolution the frames were rendered at (docs/planning.md §6: at σ_t 3, g 0.9
 frames of a 320×240 camera fitted at 160×120 gave σ_t 6 % high, at 80×60 23 %): the simulator's preview model
 renders at about 160 px across and resizes to the camera, so ``fit_width = 0`` (auto) fits at ``model_width``
-(160) or the camera's width if smaller. A fit at 160×120 takes 5–20 s on a loaded 2-core machine.
+(160) or the camera's width if smaller; at another ``fidelity`` (the simulator's, which launch/sim.toml
+passes) at the camera's width, which is slow (not measured). A fit at 160×120 took 18–26 s on the loaded
+2-core machine.
 
 Publishes ``medium/estimate`` (:class:`MediumEstimate`, the only publisher of that topic): σ_t, g and p with
 their 1σ uncertainties, or a non-empty ``reason`` with σ_t and g None (no visible sheet, saturation, noise, a
@@ -52,8 +54,9 @@ class Estimator(Node):
     class Params(NodeParams):
         scene: str = ""  # scene TOML; "" = the paper's tank (its σ_t and g are not used)
         resolution: str = ""  # the camera's "WxH" (as the simulator's); "" = the scene's
-        fidelity: str = "preview"  # the model the fit renders
-        model_width: int = 160  # the width the frames' model was rendered at (the simulator's preview: 160)
+        fidelity: str = "preview"  # the model the fit renders: the simulator's
+        model_width: int = 160  # the width the simulator's preview model runs at (other fidelities: the
+        # camera's, its render_scale is 1 there)
         fit_width: int = 0  # frames block-averaged to about this width; 0 = auto (module docstring)
         stripes_used: int = 4  # stripe frames of a scan the fit reads (evenly spread)
         poll_s: float = 0.1  # how often the loop looks for a finished fit
@@ -84,7 +87,7 @@ class Estimator(Node):
         self.fitted: set[float] = set()
         self.pending: dict | None = None  # the newest fit waiting for the worker
         self.job: tuple[Future, dict] | None = None
-        for key in ("estimates", "refusals", "frames_dropped"):
+        for key in ("estimates", "refusals", "frames_ignored"):
             self.counters[key] = 0
         self.pub = self.publisher("medium/estimate")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
@@ -105,7 +108,7 @@ class Estimator(Node):
     def on_frame(self, frame: Frame) -> None:
         scan = self.scans.get(frame.scan_id)
         if scan is None:
-            self.counters["frames_dropped"] += 1
+            self.counters["frames_ignored"] += 1  # a scan it does not use (hf_separation, calibration)
             return
         scan["frames"].append(frame)
 
@@ -185,7 +188,9 @@ class Estimator(Node):
         return future
 
     def fit_width(self, width: int) -> int:
-        return self.params.fit_width or min(width, self.params.model_width)
+        if self.params.fit_width:
+            return self.params.fit_width
+        return min(width, self.params.model_width) if self.params.fidelity == "preview" else width
 
     def fit(self, job: dict):
         """In the worker: (MediumFit, p, p_std, seconds, reason)."""
