@@ -230,8 +230,8 @@ class Simulator(Node):
             if ahead is not None:
                 comp, seconds = ahead.result()
             else:
-                comp, seconds = timed_render(model_scene(self.scene, pattern, self.scale), pattern,
-                                             self.fidelity)
+                scene = model_scene(self.scene, pattern, self.scale, self.target is not None)
+                comp, seconds = timed_render(scene, pattern, self.fidelity)
             self.stats["model_s"] += seconds
             self.stats["renders"] += 1
             self._cache[key] = comp
@@ -248,7 +248,7 @@ class Simulator(Node):
             return
         for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
             self._ahead.pop(old).cancel()
-        scene = model_scene(self.scene, pattern, self.scale)
+        scene = model_scene(self.scene, pattern, self.scale, self.target is not None)
         self._ahead[key] = self._pool.submit(timed_render, scene, pattern, self.fidelity)
 
     def move_to(self, separation_m: float) -> Scene:

@@ -28,6 +28,7 @@ from polarstripe.sim.scene_target import (
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
+WHITE_SUPERSAMPLE = 3  # rays a pixel along each axis in a calibration target's white frame
 
 
 class SimulatorError(SceneError):
@@ -71,10 +72,16 @@ def rig_scene(path: str, resolution: str, exposure_s: float | None, sigma_t: flo
     return base.replace(camera=cam, medium=medium)
 
 
-def model_scene(scene: Scene, pattern: str, scale: int) -> Scene:
+def model_scene(scene: Scene, pattern: str, scale: int, target: bool = False) -> Scene:
     """``scene`` with its camera at the resolution the model runs at for ``pattern``: 1/``scale`` of the
     camera's (at least 2x2), checkers at twice that (their edges are what the high-frequency separation
-    measures)."""
+    measures); with a calibration ``target`` the white (``flood``) frame, where its corners are found, at
+    ``WHITE_SUPERSAMPLE`` times the camera's (:func:`to_camera` then averages each pixel's rays, as a sensor
+    pixel integrates its area: one ray a pixel aliases the board's edges, docs/depth.md "Calibration")."""
+    if target and pattern == "flood":
+        w, h = scene.camera.resolution
+        k = WHITE_SUPERSAMPLE
+        return scene.replace(camera=scene.camera.replace(resolution=(w * k, h * k)))
     scale = max(1, scale // 2) if pattern.startswith("checker") else scale
     if scale <= 1:
         return scene
@@ -91,11 +98,13 @@ def timed_render(scene: Scene, pattern: str, fidelity):
 
 
 def to_camera(radiance: np.ndarray, resolution: tuple[int, int]) -> np.ndarray:
-    """``radiance`` at the camera's ``resolution`` (w, h): as is if it has it, else resized bilinearly."""
+    """``radiance`` at the camera's ``resolution`` (w, h): as is if it has it, else resized bilinearly (a
+    larger one, a supersampled frame, is averaged over each pixel's area)."""
     w, h = resolution
     if radiance.shape == (h, w):
         return radiance
-    return cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LINEAR)
+    larger = radiance.shape[0] > h and radiance.shape[1] > w
+    return cv2.resize(radiance, (w, h), interpolation=cv2.INTER_AREA if larger else cv2.INTER_LINEAR)
 
 
 def exposure_factor(radiance: np.ndarray, e_map: np.ndarray, camera, *, fill: float = 0.85,
