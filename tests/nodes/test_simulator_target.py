@@ -61,3 +61,18 @@ def test_no_target_and_a_bad_board_are_one_clear_error():
     assert not reply.ok and "param 'target'" in reply.detail
     with pytest.raises(SimulatorError, match="target"):
         make(target="5by4")
+
+
+def test_a_targets_white_frame_is_supersampled_and_area_averaged():
+    from polarstripe.nodes.simulator_frames import WHITE_SUPERSAMPLE, model_scene, to_camera
+    from polarstripe.sim.scene import Scene
+
+    s = Scene()
+    s = s.replace(camera=s.camera.replace(resolution=(40, 30)))
+    assert model_scene(s, "flood", 1, target=True).camera.resolution == (120, 90)
+    assert model_scene(s, "gray:3:col:0", 1, target=True).camera.resolution == (40, 30)
+    assert model_scene(s, "flood", 1).camera.resolution == (40, 30)
+    k = WHITE_SUPERSAMPLE
+    fine = np.random.default_rng(0).random((30 * k, 40 * k))
+    block_mean = fine.reshape(30, k, 40, k).mean(axis=(1, 3))
+    assert np.allclose(to_camera(fine, (40, 30)), block_mean, atol=1e-12)
