@@ -134,7 +134,11 @@ class RigCalibrator(Node):
                 self.log.info("pose %d: %s", k, self.call(p.target_service, Empty, Empty()).detail)
             else:
                 self.log.warning("pose %d of %d: place the board; frames in %g s", k, p.poses, p.pose_wait_s)
-                self.take("heartbeat", p.pose_wait_s)
+                deadline = self.now() + p.pose_wait_s
+                while self.now() < deadline and not self.stopping:
+                    self.take("heartbeat", deadline - self.now())  # keeps the loop's inbox drained
+                if self.stopping:
+                    return False
             images = [self.grab(tag, SCAN_ID_BASE + k, i) for i, tag in enumerate(tags)]
             cam_size = (images[0].shape[1], images[0].shape[0])
             try:
