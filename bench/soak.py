@@ -22,8 +22,8 @@ Measured from the bus (the launch's own topics, as ``polarstripe topic`` reads t
 * **memory** — every node's RSS (``/proc/PID/status`` VmRSS) after the warm-up (``WARM_SCANS`` = 15
   completed scans, three passes over the methods: the compositor grows ~110 MB over its first ~15 scans,
   matplotlib and the depth path loading and caching, then stays flat) and at the end, for the process that
-  lived longest; a node whose RSS grew by more than ``GROWTH_BOUND_MB`` (or ``GROWTH_BOUND_FRACTION``,
-  whichever is larger) fails the soak;
+  lived longest (a respawned process from its own warm-up: 15 scans after it appeared); a node whose RSS
+  grew by more than ``GROWTH_BOUND_MB`` (or ``GROWTH_BOUND_FRACTION``, whichever is larger) fails the soak;
 * **recovery** — per kill, the time until the launcher's new process of that node is in the graph
   (respawned), until the first scan started after the kill was composited (first scan), and until every
   method that had worked before the kill has worked again in scans started after it (recovered: a killed
@@ -130,6 +130,7 @@ class Soak:
         self.lost = {"outside": 0, "within": 0}
         self.lost_by_topic: dict[str, int] = {}
         self.rss: dict[tuple[str, int], list[float]] = {}  # (node, pid) -> [first, last, samples]
+        self.seen: dict[tuple[str, int], int] = {}  # (node, pid) -> completed scans when first seen
         self.warm = False
         self.t0 = 0.0
 
@@ -233,7 +234,7 @@ class Soak:
             self.scans["completed"] += 1
             if not self.warm and self.scans["completed"] >= WARM_SCANS:
                 self.warm = True
-                self.rss.clear()  # memory counts from the warm-up on
+                self.rss.clear()  # memory counts from the warm-up on (a respawned process: from its own)
             self.methods_ok.add(msg.method)
             began = self.started.get(msg.scan_id, -1.0)
             for k in self.kills:  # scans started after the kill: the first composited, then every method
@@ -284,10 +285,14 @@ class Soak:
                     k["respawned_s"] = time.monotonic() - self.t0 - k["t_s"]
 
     def _sample(self) -> None:
+        done = self.scans["completed"]
         for name, e in self.graph()["nodes"].items():
             pid = e.get("pid")
+            seen = self.seen.setdefault((name, pid), done)
             mb = _rss_mb(pid) if pid else None
-            if mb is not None:
+            # a process counts from its own warm-up on: WARM_SCANS completed scans after it was first seen
+            # (a respawned node starts small and loads its modules and caches again)
+            if mb is not None and self.warm and done - seen >= WARM_SCANS * (seen > 0):
                 v = self.rss.setdefault((name, pid), [mb, mb, 0])
                 v[1], v[2] = mb, v[2] + 1
 
