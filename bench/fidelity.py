@@ -11,7 +11,10 @@ frame time, and Mitsuba's time at equal error — in one run.
   only, σ_t = 1…8) and, at sampled pixels of the default 640×480 tank, against the converged ``reference``
   level (median / max relative error of D, A, B).
 * **Time**: CPU seconds of a 640×480 frame of the default tank (stripe 14/30 and flood) per level, with all
-  orders and single scattering (best of ``--repeat``; one core: OMP/NUMBA threads are the caller's).
+  orders and single scattering (best of ``--repeat``; one core: OMP/NUMBA threads are the caller's): a
+  scan's frame, whose pattern-independent geometry the previous frame left in
+  :mod:`polarstripe.sim.geometry_cache`, and (``preview``, ``standard``) the same frame without the cache,
+  as a scan's first frame costs.
 * **Mitsuba at equal error**: the per-pixel relative noise of the stored references (from their two seeds)
   gives the samples Mitsuba needs for the model's error per level; its time scales with samples and pixels
   to a 640×480 frame (``seconds`` of the references on this machine class).
@@ -29,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from polarstripe.sim import geometry_cache
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import load_scene
 from polarstripe.sim.validation_scenes import cases, file_stem
@@ -112,6 +116,11 @@ def accuracy(data: Path) -> dict:
     return {"rows": rows, "single_vs_max_depth_2": single}
 
 
+def _uncached(scene, pattern: str, level: str):
+    with geometry_cache.disabled():
+        return render_components(scene, pattern, level)
+
+
 def _timed(fn, repeat: int) -> float:
     best = np.inf
     for _ in range(repeat):
@@ -152,6 +161,9 @@ def timing(repeat: int, quick: bool, samples: int) -> dict:
                 render_components(scene, pat, level, orders=orders)                     # warm
                 row[f"{name}_{orders}_s"] = _timed(lambda p=pat, lv=level, o=orders: render_components(
                     scene, p, lv, orders=o), 1 if level == "reference" else repeat)
+                if orders == "all" and level != "reference":    # a scan's first frame: no cached geometry
+                    row[f"{name}_all_uncached_s"] = _timed(lambda p=pat, lv=level: _uncached(scene, p, lv),
+                                                           repeat)
             if level != "reference":
                 c = render_components(scene, pat, level, orders="single")
                 for k in "DAB":
@@ -219,6 +231,14 @@ def _table(res: dict) -> str:
         lines.append(f"{lv:<10}{100 * s['max_err']:>8.1f}%{100 * s['max_err_below_8']:>7.1f}%"
                      f"{100 * s['median_err']:>7.1f}%" + frame + f"{single_s:>10.3f}{flood_s:>9.3f}"
                      f"{s['mitsuba_s_equal_error']:>24.0f}" + (f"{s['ratio']:>8.0f}x" if s["ratio"] else ""))
+    for lv in ("preview", "standard"):
+        t = tim["levels"][lv]
+        lines.append(f"{lv}: a scan's frames (pattern-independent geometry cached, sim/geometry_cache.py) "
+                     f"stripe {t['stripe_all_s']:.3f} s, flood {t['flood_all_s']:.3f} s; without the cache "
+                     f"(a scan's first frame) {t['stripe_all_uncached_s']:.3f} s, "
+                     f"{t['flood_all_uncached_s']:.3f} s: "
+                     f"{t['stripe_all_uncached_s'] / t['stripe_all_s']:.2f}x, "
+                     f"{t['flood_all_uncached_s'] / t['flood_all_s']:.2f}x")
     for lv in ("preview", "standard"):
         t = tim["levels"][lv]
         lines.append(f"single scattering ({lv}) vs its 'reference' level, max rel. error: "
