@@ -17,7 +17,15 @@ except KeyboardInterrupt:
     status = 130
 if sys.argv[1:2] == ["node"]:
     import logging
+    import threading
 
+    import zmq
+
+    # what the closed sockets still queue (the last heartbeat, "exiting") gets at most 0.25 s to leave:
+    # os._exit skips the context's termination, which is what waits for a socket's linger
+    ender = threading.Thread(target=zmq.Context.instance().destroy, kwargs={"linger": 250}, daemon=True)
+    ender.start()
+    ender.join(0.5)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()

@@ -1,7 +1,9 @@
 """The sequencer node: runs the demo of ``launch/sim.toml`` from start to end, then exits.
 
-0. Wait until every other node of the launch graph has been heard on ``heartbeat`` (start-up is tied to
-   readiness: a scan that starts before a node has connected loses what that node publishes).
+0. Wait until every other node of the launch graph has been heard on ``heartbeat`` and says it is ready (no
+   ``starting`` in its counters: its setup is done). Start-up is tied to readiness: a node not heard at all
+   within ``startup_timeout_s``, or heard starting and then silent, is a clear fault; one that keeps beating
+   while it sets up (the planner plans) is waited for up to ``setup_timeout_s``.
 1. Optionally ask the planner for a plan (``planner/plan``, Empty → Plan) and have the simulator move its
    source there (``simulator/move_source``, Plan → Ack; its reply comes after the move); optionally measure
    E_b, the analyzer angle of least backscatter (``polarizer/calibrate``), else take the ``eb_deg`` param.
@@ -45,7 +47,7 @@ from polarstripe.msgs import (
     ScanRequest,
 )
 from polarstripe.runtime.bus import BusError, BusTimeout
-from polarstripe.runtime.liveness import PeerLost
+from polarstripe.runtime.liveness import STARTING_DEADLINE_S, PeerLost
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -61,7 +63,8 @@ class Sequencer(Node):
         plan: bool = True  # ask planner/plan first
         move_source: bool = True  # have the simulator move its source to the plan
         wait_composite: bool = True  # wait for compositor/composite after each scan
-        startup_timeout_s: float = 30.0  # nodes and services may take this long to come up
+        startup_timeout_s: float = 30.0  # nodes and services may take this long to come up (first heartbeat)
+        setup_timeout_s: float = 600.0  # a node heard "starting" (its setup) may take this long to be ready
         ready_margin_s: float = 0.3  # after every node was heard, for subscriptions to settle
         scan_timeout_s: float = 600.0
         composite_timeout_s: float = 60.0
@@ -140,18 +143,26 @@ class Sequencer(Node):
         first scan start makes the simulator publish its ground truth, which the compositor and the recorder
         must both see. Without a graph (a node run by itself) there is nothing to wait for."""
         expected = set(self.graph.get("nodes", {})) - {self.name}
-        heard: set[str] = set()
-
-        def beat(hb: Heartbeat) -> bool:
-            heard.add(hb.node)
-            return expected <= heard
-
+        p, t0 = self.params, self.now()
+        last: dict[str, float] = {}  # when each node was last heard
+        ready: set[str] = set()  # nodes whose setup is done (a beat without "starting")
+        while expected and not expected <= ready and not self.stopping:
+            for hb in self.take("heartbeat", 0.1):
+                if hb.node in expected:
+                    last[hb.node] = self.now()
+                    if not hb.counters.get("starting"):
+                        ready.add(hb.node)
+            now, unheard = self.now(), expected - set(last)
+            if unheard and now - t0 > p.startup_timeout_s:
+                raise SequenceError(f"heartbeat: {', '.join(sorted(unheard))} not heard within "
+                                    f"{p.startup_timeout_s:g} s")
+            for name in sorted(set(last) - ready):
+                if now - last[name] > STARTING_DEADLINE_S:
+                    raise SequenceError(f"node {name!r} lost during its start-up: no heartbeat for "
+                                        f"{now - last[name]:.1f} s")
+                if now - t0 > p.setup_timeout_s:
+                    raise SequenceError(f"node {name!r} still starting after {p.setup_timeout_s:g} s")
         if expected:
-            try:
-                self.wait_for("heartbeat", beat, self.params.startup_timeout_s)
-            except BusTimeout:
-                raise SequenceError(f"heartbeat: {', '.join(sorted(expected - heard))} not heard within "
-                                    f"{self.params.startup_timeout_s:g} s") from None
             settle = self.now() + self.params.ready_margin_s
             while self.now() < settle and not self.stopping:
                 self.take("heartbeat", settle - self.now())

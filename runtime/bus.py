@@ -174,6 +174,10 @@ class PubSocket(_SocketOwner):
         self.endpoint = _bind(self.socket, endpoint)
         self._topics: dict[str, Publisher] = {}
 
+    def close(self, linger_s: float = 0.0) -> None:
+        """Close; ``linger_s`` > 0 gives what is still queued (a node's last heartbeat) that long to leave."""
+        self.socket.close(round(linger_s * 1000))
+
     def publisher(self, topic: str, msg_type: type[Message]) -> Publisher:
         """The publisher of ``topic`` (full name, e.g. ``/rig/camera/frame``) for messages of ``msg_type``."""
         pub = self._topics.get(topic)

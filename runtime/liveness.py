@@ -5,15 +5,17 @@ node keeps in the run directory so that a respawned node goes on where the old o
 ``heartbeat_s`` (0.25 s by default) from a thread of its own (``runtime/runner.py``), so a node busy in a long
 handler still beats; a process that dies (``kill -9``) stops beating at once. Besides the counters, a beat
 carries ``counters["incarnation"]`` (how many times the launcher had respawned the node when it started:
-0, 1, 2 …), ``counters["heartbeat_ms"]`` (its period, so a watcher knows the deadline without the graph) and,
+0, 1, 2 …), ``counters["heartbeat_ms"]`` (its period, so a watcher knows the deadline without the graph),
+``counters["starting"] = 1`` while its ``setup`` runs (it beats from before setup: alive, not yet ready) and,
 in the last beat of an orderly exit, ``counters["exiting"] = 1``.
 
 **The watch.** :class:`Liveness` turns beats into verdicts: a peer heard before is *lost* when it has not
-beaten for ``misses`` of its own periods (4 × 0.25 s = 1 s by default), when its last beat said it was
-exiting, or when a beat shows a higher incarnation than the one heard before (it died and came back between
-two checks). :meth:`Node.watch <polarstripe.runtime.node.Node.watch>` gives a node one, fed by its heartbeat
-subscription; ``wait_for(…, peers=[…])`` then raises :class:`PeerLost`, naming the peer, as soon as a peer
-the wait depends on is lost (within a deadline plus one ``wait_for`` slice of 0.05 s).
+beaten for ``misses`` of its own periods (4 × 0.25 s = 1 s by default; :data:`STARTING_DEADLINE_S` while it
+says it is starting: a setup that compiles or plans may hold the interpreter for a while), when its last beat
+said it was exiting, or when a beat shows a higher incarnation than the one heard before (it died and came
+back between two checks). :meth:`Node.watch <polarstripe.runtime.node.Node.watch>` gives a node one, fed by
+its heartbeat subscription; ``wait_for(…, peers=[…])`` then raises :class:`PeerLost`, naming the peer, as soon
+as a peer the wait depends on is lost (within a deadline plus one ``wait_for`` slice of 0.05 s).
 
 **Run state.** :class:`RunState` is one small JSON document per node in ``<run_dir>/state/<node>.json``
 (``run_dir`` from the launch graph; in memory only without one). The emitter keeps its next scan id there
@@ -34,14 +36,18 @@ from typing import Any
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat
 
-__all__ = ["DEFAULT_MISSES", "INCARNATION_ENV", "HeartbeatThread", "Liveness", "Peer", "PeerLost", "RunState",
-           "Watching", "incarnation"]
+__all__ = ["DEFAULT_MISSES", "INCARNATION_ENV", "STARTING_DEADLINE_S", "HeartbeatThread", "Liveness", "Peer",
+           "PeerLost", "RunState", "Watching", "incarnation"]
 
 INCARNATION_ENV = "POLARSTRIPE_INCARNATION"
 """Set by the launcher for each start of a node: 0 the first time, then its respawn count."""
 
 DEFAULT_MISSES = 4
 """A peer is lost after this many of its heartbeat periods without a beat."""
+
+
+STARTING_DEADLINE_S = 10.0
+"""How long a peer whose last beat said ``starting`` may stay silent before it is lost [s]."""
 
 
 def incarnation(environ: dict | None = None) -> int:
@@ -74,6 +80,7 @@ class Peer:
     period_s: float  # its heartbeat period (0: unknown, the watch's default is used)
     last_s: float  # when it was last heard (the watcher's clock)
     exiting: bool = False  # its last beat said it was stopping
+    starting: bool = False  # its last beat said its setup was still running
     lost: str = ""  # why it was declared lost ("" while alive)
     lost_incarnation: int = -1  # the incarnation that was lost (a newer one beating means it came back)
 
@@ -97,6 +104,8 @@ class Liveness:
         """How long ``name`` may stay silent before it is lost [s]."""
         peer = self.peers.get(name)
         period = peer.period_s if peer is not None and peer.period_s > 0 else self.default_period_s
+        if peer is not None and peer.starting:
+            return max(self.misses * period, STARTING_DEADLINE_S)
         return self.misses * period
 
     def heard(self, hb: Heartbeat) -> Peer:
@@ -117,6 +126,7 @@ class Liveness:
         elif inc < peer.incarnation:  # a late beat of an older incarnation
             return peer
         peer.last_s, peer.period_s = now, period or peer.period_s
+        peer.starting = bool(c.get("starting"))
         if c.get("exiting"):
             peer.exiting = True
             if not peer.lost:

@@ -120,6 +120,7 @@ class Node(Watching):
         self._services: dict[str, Handler] = {}
         self._stop_reason: str | None = None
         self._started = time.monotonic()
+        self.ready = False  # set once setup() is done; until then heartbeats say "starting"
         self._bad_logged: dict[str, int] = {}
         self.incarnation = 0  # set by the runner: how many times the launcher had respawned this node
 
@@ -379,6 +380,8 @@ class Node(Watching):
         c["bad"] = self.counters["bad"] + bad
         c["requests"], c["service_errors"] = requests, errors
         c["incarnation"], c["heartbeat_ms"] = self.incarnation, round(self.beat_period_s * 1000)
+        if not self.ready:
+            c["starting"] = 1
         if exiting:
             c["exiting"] = 1
         return Heartbeat(

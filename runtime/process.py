@@ -137,6 +137,7 @@ def interruptible(what: str) -> Iterator[None]:
 
 _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _EARLY: list[str] = []  # stop signals that came while the node's module was imported
+_BEFORE: dict = {}  # the handlers install_signals replaced
 
 
 @contextmanager
@@ -163,6 +164,7 @@ def install_signals(node: Node) -> StopGuard:
     """SIGINT and SIGTERM stop the node (see :class:`StopGuard`); returns the guard."""
     global _GUARD
     guard = _GUARD = StopGuard(node)
+    _BEFORE.update({s: signal.getsignal(s) for s in _STOP_SIGNALS})
     signal.signal(signal.SIGINT, guard.on_signal)
     signal.signal(signal.SIGTERM, guard.on_signal)
     if _EARLY:  # one came during the import and its KeyboardInterrupt was lost: stop as it asked
@@ -170,3 +172,13 @@ def install_signals(node: Node) -> StopGuard:
     # the launcher starts nodes with both blocked (runtime/launch.py): one that came meanwhile arrives now
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     return guard
+
+
+def release_signals() -> None:
+    """Undo :func:`install_signals` once the node has ended: a node run inside a longer process (a test, a
+    script) leaves no guard behind that would cut the next node's computation short."""
+    global _GUARD
+    _GUARD = None
+    for s, h in _BEFORE.items():
+        signal.signal(s, h)
+    _BEFORE.clear()

@@ -32,6 +32,7 @@ from polarstripe.runtime.process import (
     early_signals,
     install_logging,
     install_signals,
+    release_signals,
 )
 from polarstripe.runtime.service import ServiceClient, ServiceServer
 
@@ -143,7 +144,7 @@ class ZmqNodeBus:
             c.close()
         if self.server is not None:
             self.server.close()
-        self.pub_socket.close()
+        self.pub_socket.close(linger_s=0.25)  # the last heartbeat ("exiting") and log lines get out
 
 
 def default_endpoints(name: str) -> tuple[str, str]:
@@ -207,6 +208,7 @@ def run_node(
             raise
         node.exit_code = node.exit_code or 130
     finally:
+        release_signals()
         bus.close()
         for endpoint in (pub, srv):  # libzmq removes them on close, but not if the process ends first
             if endpoint.startswith("ipc://"):
@@ -215,24 +217,33 @@ def run_node(
 
 
 def _run(node: Node, bus: ZmqNodeBus) -> None:
-    """``setup``, the heartbeat thread (runtime/liveness.py: it beats while a handler is busy), the loop,
+    """The heartbeat thread (runtime/liveness.py: it beats while a handler is busy; ``starting`` until setup
+    is done, so a peer waiting for this node knows it is alive but not ready), ``setup``, the loop,
     ``teardown`` and the last heartbeat (``exiting``: peers know at once that the node stopped)."""
     hb_pub = bus.publisher(node.resolve("heartbeat"), Heartbeat)
     beat = node.params.heartbeat_s > 0
     beats = None
+    if beat:
+        beats = HeartbeatThread(node.beat_period_s, lambda: hb_pub.publish(node.heartbeat())).start()
     try:
         with bus.guard.interruptible("setup"):  # a stop signal ends a long setup (the planner plans)
             node.setup()
+        node.ready = True
     except NodeStopping as exc:
+        if beats is not None:
+            beats.stop()
+            hb_pub.publish(node.heartbeat(exiting=True))
         node.log.info("stopped during setup (%s)", exc.reason)
         try:
             node.teardown()  # what setup had opened (a half set-up node may lack attributes)
         except Exception as err:  # noqa: BLE001 - the node is stopping either way
             node.log.debug("teardown after an interrupted setup: %s", err)
         return
+    except BaseException:  # a setup that failed: no beats from a node on its way out
+        if beats is not None:
+            beats.stop()
+        raise
     node.log.info("started (pid %d, pub %s)", os.getpid(), bus.pub_socket.endpoint)
-    if beat:
-        beats = HeartbeatThread(node.beat_period_s, lambda: hb_pub.publish(node.heartbeat())).start()
     try:
         node.run()
     except NodeStopping as exc:  # a wait cut short by the stop: the node ends as it was told to

@@ -267,6 +267,7 @@ class NodeHarness:
         self._stop_delivered = self._torn_down = False
         self.node.events = self._events  # type: ignore[method-assign]  # the node's own, observed
         self.node.setup()
+        self.node.ready = True
 
     def full(self, name: str) -> str:
         return self.node.resolve(name)

@@ -124,6 +124,35 @@ def test_a_node_never_heard_fails_the_sequence_before_any_scan():
     assert any("heartbeat: simulator not heard within 2 s" in t for _, t in h.logs)
 
 
+def test_a_node_beating_in_its_setup_is_waited_for_beyond_the_startup_timeout():
+    """Start-up is tied to readiness: a node heard "starting" (the planner plans in its setup) is waited for
+    past ``startup_timeout_s`` while it beats; the first scan comes only after its first ready beat."""
+    h = rig({"methods": ["flood"], "plan": False, "startup_timeout_s": 2.0})
+    h.bus.graph = {"nodes": {"sequencer": {}, "planner": {}}}
+    beats = [(t / 10, {"starting": 1}) for t in range(0, 50, 2)] + [(5.0, {})]  # 5 s starting, then ready
+    take = h.bus.take
+
+    def beating(source, timeout_s):  # the planner's beats arrive on the virtual clock
+        while beats and beats[0][0] <= h.bus.clock:
+            t, counters = beats.pop(0)
+            h.queue("heartbeat", Heartbeat(node="planner", pid=1, uptime_s=t, counters=counters))
+        return take(source, timeout_s)
+
+    h.bus.take = beating
+    h.node.run()
+    assert h.node.exit_code == 0 and h.calls == ["scan flood 0 []"]
+    assert h.node.now() >= 5.0
+
+
+def test_a_node_that_stops_beating_in_its_setup_is_named():
+    h = rig({"methods": ["flood"], "plan": False, "startup_timeout_s": 2.0})
+    h.bus.graph = {"nodes": {"sequencer": {}, "planner": {}}}
+    h.queue("heartbeat", Heartbeat(node="planner", pid=1, uptime_s=0.1, counters={"starting": 1}))
+    h.node.run()
+    assert h.node.exit_code == 1 and h.calls == []
+    assert any("node 'planner' lost during its start-up: no heartbeat for 10" in t for _, t in h.logs), h.logs
+
+
 def test_repeat_runs_the_methods_that_many_times_and_zero_until_stopped():
     h = rig({"repeat": 3, "plan": False})
     h.node.run()

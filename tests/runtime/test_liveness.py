@@ -6,7 +6,7 @@ import json
 import pytest
 from polarstripe.msgs import Heartbeat, Log
 from polarstripe.runtime.bus import BusTimeout
-from polarstripe.runtime.liveness import Liveness, PeerLost, RunState, incarnation
+from polarstripe.runtime.liveness import STARTING_DEADLINE_S, Liveness, PeerLost, RunState, incarnation
 from polarstripe.runtime.node import Node, NodeError
 from polarstripe.runtime.testing import NodeHarness
 
@@ -38,6 +38,20 @@ def test_a_peer_is_lost_after_four_of_its_own_periods_without_a_beat():
     assert live.check(["grabber"]) is None  # 4 x 1 s for the slower one
     clock.t = 4.2
     assert live.check(["grabber"]).node == "grabber"
+
+
+def test_a_peer_in_its_setup_has_the_longer_starting_deadline_and_then_the_short_one():
+    clock = Clock()
+    live = Liveness(clock)
+    live.heard(beat("planner", starting=1))
+    clock.t = STARTING_DEADLINE_S - 0.1  # a setup that holds the interpreter (compiling, planning)
+    assert live.check(["planner"]) is None
+    live.heard(beat("planner"))  # setup done: the ordinary deadline of 4 periods from now on
+    clock.t += 1.01
+    assert live.check(["planner"]).node == "planner"
+    live.heard(beat("emitter", starting=1))
+    clock.t += STARTING_DEADLINE_S + 0.1
+    assert "no heartbeat for 10.10 s" in str(live.check(["emitter"]))
 
 
 def test_peers_never_heard_are_not_judged_and_a_beat_keeps_a_peer_alive():
@@ -171,6 +185,7 @@ from polarstripe.runtime.node import Node
 
 class Busy(Node):
     def setup(self):
+        time.sleep(1.5)  # a slow setup (the planner plans): beats say "starting" meanwhile
         self.every(0.5, self.block)
 
     def block(self):
@@ -217,6 +232,10 @@ def test_a_busy_node_keeps_beating_and_its_last_beat_says_it_exits(tmp_path):
     assert all(b.incarnation == 2 and b.counters["heartbeat_ms"] == 50 for b in beats)
     assert beats[-1].counters.get("exiting") == 1
     assert not any(b.counters.get("exiting") for b in beats[:-1])
+    starting = [bool(b.counters.get("starting")) for b in beats]
+    # beats from before setup ends (the first ones may come before the subscription has joined), "ready" after
+    assert any(starting) and not starting[-1], starting
+    assert starting == sorted(starting, reverse=True), starting  # never "starting" again once ready
 
 
 def test_a_node_may_beat_slower_than_heartbeat_s_and_its_beats_say_so():
