@@ -230,7 +230,8 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None, *,
     args = dict(args)
     for k in BUILTIN_ARGS:
         if k in args:
-            raise LaunchError(f"{where}: args.{k}: {k} is given by the launcher (one per run); pick another name")
+            raise LaunchError(f"{where}: args.{k}: {k} is given by the launcher (one per run); "
+                              "pick another name")
     explicit = set()
     for k, v in (overrides or {}).items():
         if k not in args:

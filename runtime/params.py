@@ -153,7 +153,8 @@ def max_pixels() -> int:
 
 
 def check_frame_size(width: int, height: int, *, what: str = "frame size") -> None:
-    """Raise ``ValueError`` (one line) when ``width``×``height`` is not positive or exceeds :func:`max_pixels`."""
+    """Raise ``ValueError`` (one line) when ``width``×``height`` is not positive or exceeds
+    :func:`max_pixels`."""
     if width < 1 or height < 1:
         raise ValueError(f"{what} {width}x{height}: width and height must be >= 1")
     limit = max_pixels()

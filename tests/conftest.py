@@ -1,5 +1,6 @@
 """Options for the whole suite: ``--hardware DEVICE`` runs the device contract suites (tests/nodes/drivers)
-on a real device as well as on the simulated one; registered here so that they work from the repository root."""
+on a real device as well as on the simulated one; registered here so that they work from the repository
+root."""
 
 
 def pytest_addoption(parser):

@@ -25,7 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "node": ("polarstripe.tools.node_cli", "run one node by itself"),
     "topic": ("polarstripe.tools.topic", "list, echo or time the topics of a running launch"),
     "render": ("polarstripe.tools.render_cli", "render one frame of a scene with the light-transport model"),
-    "figure": ("polarstripe.planning.figures", "plot the model's curves (D/S vs optical thickness, DOP vs angle)"),
+    "figure": ("polarstripe.planning.figures", "plot the model's curves (D/S vs τ, DOP vs angle)"),
     "plan": ("polarstripe.planning.plan_cli", "find the best camera-source separation and stripe scan"),
     "compare": ("polarstripe.planning.compare", "reproduce the paper's comparison of imaging methods"),
     "sweep": ("polarstripe.planning.sweep_cli", "run the planner over a grid of scenes (design studies)"),
@@ -34,7 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("polarstripe.tools.replay", "publish a recording on its original topics"),
     "view": ("polarstripe.tools.view", "contact sheet of the latest frames and composites"),
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
-    "calibrate": ("polarstripe.tools.calibrate_cli", "projector-camera calibration (Gray code, checkerboard)"),
+    "calibrate": ("polarstripe.tools.calibrate_cli", "calibrate projector and camera (Gray code)"),
     "keys": ("polarstripe.tools.keys_cli", "make a host's CURVE certificates, print a key's fingerprint"),
 }
 

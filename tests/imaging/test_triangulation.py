@@ -79,7 +79,8 @@ def test_depth_of_known_columns_is_the_ray_plane_intersection():
 
 
 def _scan(z_true, v, stripes, *, signal=2000.0, back=100.0, noise=3.0, seed=0):
-    """Stripe frames of a surface at depth z_true, area-sampled (4×4 sub-pixels) so edges fall between pixels."""
+    """Stripe frames of a surface at depth z_true, area-sampled (4×4 sub-pixels) so edges fall between
+    pixels."""
     rng = np.random.default_rng(seed)
     edges = stripe_edges(stripes, PW)
     sub = np.linspace(-0.375, 0.375, 4)

@@ -64,9 +64,9 @@ def test_the_chosen_separation_does_not_saturate_a_flood_frame(harness):
 
 
 def test_co_located_placements_score_nothing():
-    """Part of what the saturation guard was for (eq. 9's optimum at 1-2 cm, backscatter filling the frame) the
-    delineation margin does itself at d -> 0: a source next to the camera scores 0. (The guard still matters
-    a few cm out, where the objective is flat and a flood frame at the scene's exposure saturates.)"""
+    """Part of what the saturation guard was for (eq. 9's optimum at 1-2 cm, backscatter filling the frame)
+    the delineation margin does itself at d -> 0: a source next to the camera scores 0. (The guard still
+    matters a few cm out, where the objective is flat and a flood frame at the scene's exposure saturates.)"""
     h = NodeHarness(Planner, name="planner", params={**FAST, "separations": 3, "d_min_m": 0.001,
                                                         "d_max_m": 0.3, "publish_on_start": False})
     objective = h.node.plan.curves["objective"]
@@ -99,9 +99,9 @@ def test_changed_p_replans_with_the_measured_medium(harness):
     assert h.node.scene.medium.dop.model == "constant" and h.node.scene.medium.dop.p == pytest.approx(0.2)
     assert h.node.p_assumed == pytest.approx(0.2)
     after = h.published("planner/plan")[-1]
-    # the stripe margin (docs/planning.md §1), (E_own - max E_comp) / E_own with E = D + A + B(1 - p), falls as
-    # p falls wherever a competitor carries backscatter: less of it is filtered. The re-plan used the measured
-    # p, not the model's
+    # the stripe margin (docs/planning.md §1), (E_own - max E_comp) / E_own with E = D + A + B(1 - p), falls
+    # as p falls wherever a competitor carries backscatter: less of it is filtered. The re-plan used the
+    # measured p, not the model's
     assert np.all(after.curves["quality"] < before.curves["quality"])
 
 

@@ -493,7 +493,8 @@ def test_an_explicit_shared_name_in_use_by_another_launch_is_refused(tmp_path):
         # per run (the default) never clashes: a second launch of the same file starts
         other = tmp_path / "other"
         other.mkdir()
-        second = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(tmp_path / "test.toml")],
+        second = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch",
+                                   str(tmp_path / "test.toml")],
                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                   env={**_env(tmp_path), "POLARSTRIPE_RUNS": str(other / "runs")})
         deadline = time.monotonic() + 15
@@ -532,6 +533,6 @@ def test_a_node_refusing_its_settings_ends_the_launch_at_once(tmp_path):
     assert proc.wait(30) == 1, _output(tmp_path)
     assert time.monotonic() - t0 < 15  # not the required node's start-up timeout
     out = _output(tmp_path)
-    assert "refuses exit 2 (last line: polarstripe node: error: param 'fidelity': 'ultra' is not a fidelity)" \
-        in out, out
+    refusal = "param 'fidelity': 'ultra' is not a fidelity"
+    assert f"refuses exit 2 (last line: polarstripe node: error: {refusal})" in out, out
     assert "refuses exit 2 (its settings or device refused): stopping the launch" in out
