@@ -59,6 +59,8 @@ class Message:
     FIELDS: ClassVar[tuple[tuple[str, Kind], ...]] = ()
     FAST_FIELDS: ClassVar[tuple[tuple[str, Kind, type], ...]] = ()  # (name, kind, type accepted as is)
     FIELD_NAMES: ClassVar[frozenset[str]] = frozenset()
+    OLDER: ClassVar[dict[int, int]] = {}  # earlier versions still read: their number of fields
+    APPENDED: ClassVar[dict[int, tuple]] = {}  # per earlier version: the defaults of the fields it lacks
 
     header: Header = field(default_factory=Header)
 
@@ -66,8 +68,12 @@ class Message:
 REGISTRY: dict[str, type[Message]] = {}
 
 
-def message(type_name: str, *, version: int = 1):
+def message(type_name: str, *, version: int = 1, older: dict[int, int] | None = None):
     """Class decorator: make ``cls`` a frozen keyword-only dataclass and register it as ``type_name``.
+
+    ``older`` maps each earlier schema version that is still read to its number of fields: a version may
+    only append fields with defaults, and a message of an older version decodes with those defaults
+    (recordings made before stay readable).
 
     Raises
     ------
@@ -80,6 +86,7 @@ def message(type_name: str, *, version: int = 1):
             raise TypeError(f"@message({type_name!r}) needs a subclass of Message, got {cls!r}")
         cls = dataclass(frozen=True, kw_only=True)(cls)
         cls.TYPE, cls.VERSION = type_name, int(version)
+        cls.OLDER = dict(older or {})
         hints = typing.get_type_hints(cls)
         kinds = []
         for f in dataclasses.fields(cls):
@@ -90,6 +97,15 @@ def message(type_name: str, *, version: int = 1):
             except TypeError as exc:
                 raise TypeError(f"{cls.__name__}.{f.name}: {exc}; allowed: {FIELD_TYPES}") from None
         cls.FIELDS = tuple(kinds)
+        fields = [f for f in dataclasses.fields(cls) if f.name != "header"]
+        for v, n in cls.OLDER.items():
+            if not (1 <= v < cls.VERSION and 0 <= n <= len(fields)) or any(
+                    f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+                    for f in fields[n:]):
+                raise TypeError(f"{cls.__name__}: older version {v} with {n} fields: versions before "
+                                f"{cls.VERSION} may only lack trailing fields that have defaults")
+        cls.APPENDED = {v: tuple(f.default if f.default is not dataclasses.MISSING else f.default_factory()
+                                 for f in fields[n:]) for v, n in cls.OLDER.items()}
         cls.FAST_FIELDS = tuple((name, kind, exact_type(kind)) for name, kind in kinds)
         cls.FIELD_NAMES = frozenset(name for name, _ in kinds)
         old = REGISTRY.get(type_name)

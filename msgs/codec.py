@@ -137,7 +137,9 @@ def _header_class(topic: str, head: list, expect: type[Message] | None) -> type[
         raise MessageError(topic, "type", f"unknown message type {tname!r:.60}")
     if expect is not None and cls is not expect:
         raise MessageError(topic, "type", f"expected {expect.TYPE!r}, got {tname!r}")
-    if version != cls.VERSION:
+    if type(version) is int and version in cls.OLDER and len(head) - _N_HEAD == cls.OLDER[version]:
+        head.extend(cls.APPENDED[version])  # an older version: the fields it lacks take their defaults
+    elif version != cls.VERSION:
         raise MessageError(
             topic,
             "version",
@@ -264,14 +266,15 @@ def unpack(
     cls = REGISTRY.get(head[0]) if type(head[0]) is str else None
     bufs: list = []
     if cls is not None:
-        names = cls.FIELD_NAMES
-        for name, _kind in cls.FIELDS:
+        version = head[1]
+        n = cls.OLDER[version] if type(version) is int and version in cls.OLDER else len(cls.FIELDS)
+        for name, _kind in cls.FIELDS[:n]:  # an older version lacks the trailing fields: _build adds them
             if name not in fields:
                 raise MessageError(topic, name, f"missing (a {cls.TYPE!r} needs it)")
-        extra = sorted(map(str, fields.keys() - names))
+        extra = sorted(map(str, fields.keys() - {name for name, _ in cls.FIELDS[:n]}))
         if extra:
             raise MessageError(topic, extra[0], f"unknown field of {cls.TYPE!r}")
-        head += [_outline(kind, fields[name], bufs) for name, kind in cls.FIELDS]
+        head += [_outline(kind, fields[name], bufs) for name, kind in cls.FIELDS[:n]]
     return _build(topic, head, bufs, expect)
 
 

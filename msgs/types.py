@@ -33,11 +33,12 @@ class Frame(Message):
     step: int = 0
 
 
-@message("pattern")
+@message("pattern", version=2, older={1: 7})
 class Pattern(Message):
     """What the emitter lights now: flood, stripe ``index`` of ``count`` (``size`` px wide), a checker of
     ``size`` px shifted by ``shift`` px, Gray code bit ``index`` of the ``axis`` (``col``/``row``, its
-    ``inverse``; msgs/patterns.py), or nothing."""
+    ``inverse``; msgs/patterns.py), or nothing. Version 2 added ``axis`` and ``inverse`` (version 1 reads
+    with their defaults)."""
 
     kind: Literal["flood", "stripe", "checker", "off", "gray"]
     index: int = 0
@@ -103,12 +104,13 @@ class Composite(Message):
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-@message("medium_estimate", version=2)
+@message("medium_estimate", version=2, older={1: 3})
 class MediumEstimate(Message):
     """The medium as measured in situ: backscatter degree of polarization ``p`` and, when known, the
     extinction coefficient ``sigma_t_per_m`` [1/m] and the phase function's mean cosine, each with its 1σ
     uncertainty (None: not estimated). ``reason`` non-empty: the fit could not estimate σ_t and the mean
-    cosine, and says why (their fields are None then). Version 2 added the fields after ``scan_id``."""
+    cosine, and says why (their fields are None then). Version 2 added the fields after ``scan_id``
+    (version 1 reads with their defaults)."""
 
     p: float
     sigma_t_per_m: float | None = None

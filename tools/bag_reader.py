@@ -130,7 +130,7 @@ class BagReader:
         for cid, ch in sorted(summary.channels.items()):
             tname, version = _schema_type(self.path, ch.topic, summary.schemas.get(ch.schema_id), ch)
             cls = REGISTRY.get(tname)
-            if cls is not None and cls.VERSION != version:
+            if cls is not None and cls.VERSION != version and version not in cls.OLDER:
                 self._f.close()
                 raise BagError(
                     f"bag {self.path}: topic {ch.topic!r}: unknown schema version {version} of "
