@@ -1,9 +1,13 @@
 """Options for the whole suite: ``--hardware DEVICE`` runs the device contract suites (tests/nodes/drivers)
-on a real device as well as on the simulated one; registered here so that they work from the repository
-root."""
+on a real device as well as on the simulated one; ``--long`` also runs the tests marked ``long`` (minutes
+each, e.g. SIGINT at 40 moments), which the README's test command and CI leave out. Registered here so that
+they work from the repository root."""
+
+import pytest
 
 
 def pytest_addoption(parser):
+    parser.addoption("--long", action="store_true", help="also run the tests marked long (minutes each)")
     group = parser.getgroup("hardware", "device contract suites on real hardware")
     group.addoption(
         "--hardware",
@@ -16,3 +20,12 @@ def pytest_addoption(parser):
     group.addoption("--hardware-node-id", type=int, default=5, help="CANopen node id of the real drive")
     group.addoption("--hardware-eds", default=None, help="EDS of the real drive (default: the shipped one)")
     group.addoption("--hardware-address", default="0", help="ELLx address of the real device")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--long"):
+        return
+    skip = pytest.mark.skip(reason="a long test (minutes): run with --long")
+    for item in items:
+        if "long" in item.keywords:
+            item.add_marker(skip)

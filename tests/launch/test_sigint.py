@@ -162,8 +162,8 @@ def test_sigint_at_20_random_moments_stops_every_node_by_itself(tmp_path):
     assert len(results) >= 20
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(900)  # ~5 minutes
+@pytest.mark.long
+@pytest.mark.timeout(900)  # ~5 minutes: pytest --long
 def test_sigint_at_40_moments_spread_evenly(tmp_path):
     counts = dict.fromkeys(PHASES, 8)
     results = _run_moments(tmp_path, counts, seed=1212)
