@@ -163,7 +163,7 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _delineate_rows(best, second, index, edges, limits, out):
     dark, read_var, g, sat, k, min_contrast = limits[0], limits[1], limits[2], limits[3], limits[4], limits[5]
     m_win = int(limits[6])

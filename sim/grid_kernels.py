@@ -37,7 +37,7 @@ class Beams(NamedTuple):
     pre: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _axis(p, lo, h, n):
     """Lower cell index and trilinear fraction of coordinate p on one axis (clamped to the centres)."""
     if n < 2:
@@ -53,7 +53,7 @@ def _axis(p, lo, h, n):
     return i, f - i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def deposit_beams(grid, beams, sigma, step, phi, flux):
     """Add the fluence and flux of ``beams`` into the cells: a beam carrying p [W/m] at distance s from its
     start deposits p·e^{−σ s} ds along its way (exact per step), spread trilinearly from the step's middle;
@@ -104,7 +104,7 @@ def deposit_beams(grid, beams, sigma, step, phi, flux):
                         flux[i, j, k, 2] += ww * dz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sample_fields(grid, phi, flux, points, phi_out, flux_out):
     """Trilinear φ and F at ``points`` (m, 3) into ``phi_out`` (m,) and ``flux_out`` (m, 3)."""
     lo, h, n = grid
@@ -142,7 +142,7 @@ class ViewArgs(NamedTuple):
     origin: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
     """cum[i, r, j] = ∫_{t0}^{t0 + j·Δ} J_i(C + x·d, −d) e^{−σ(x − t0)} dx, Δ = (t1 − t0)/(K − 1) with
     K = cum.shape[2], for the fields phi (k, nx, ny, nz), flux (k, nx, ny, nz, 3): the in-scattered radiance
@@ -193,7 +193,7 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
                 cum[f, r, j + 1] = cum[f, r, j] + max(jv, 0.0) * w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def view_lookup(shape, t0, t1, cum, x_end, out):
     """Per pixel of a (h, w) image (``shape`` = (h, w, gh, gw)): out[f, m] the coarse rays' cumulative
     in-scatter of field f at the pixel's own depth x_end[m], bilinear between the four coarse rays around it
@@ -240,7 +240,7 @@ def view_lookup(shape, t0, t1, cum, x_end, out):
                 out[f, m] += wq * ((1.0 - a) * cum[f, r, j] + a * cum[f, r, j + 1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
     """Once-scattered glow toward ``eye`` at ``points`` (m, 3): out[m] = σ̃_s Σ_p P̃(μ_p) R_p Ω_p e^{−σ̃ r_p}
     [W m⁻³ sr⁻¹], over Lambertian patches (centre, normal, area, radiance R [W sr⁻¹ m⁻²]) packed as
@@ -270,14 +270,14 @@ def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
         out[m] = sigma_s * acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segment_lengths(a, points, lo, hi, out):
     """out[m] = length [m] of the segment a (3,) → points[m] inside the box [lo, hi]."""
     for m in range(points.shape[0]):
         out[m] = segment_in_box(a[0], a[1], a[2], points[m, 0], points[m, 1], points[m, 2], lo, hi)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
     """Bilinear upsampling of coarse (k, gh, gw) fields sampled at every ``step``-th pixel row and column
     (row a·step, column b·step) to the (h, w) image (flat, ``width`` = w) into out (k, h·w); bad[m] marks
@@ -306,7 +306,7 @@ def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
                          + tr * ((1 - tc) * coarse[q, r1, c0] + tc * coarse[q, r1, c1]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def upsample_within(small, ids_small, ids, out):
     """Twice-finer bilinear upsampling of ``small`` (h/2, w/2) to out (h·w flat), each pixel weighing only
     the coarse neighbours that see its own object (ids; pixel j sits at coarse coordinate j/2 − ¼, as

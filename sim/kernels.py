@@ -22,7 +22,7 @@ _FOUR_PI = 4.0 * math.pi
 _G_MAX = 1.0 - 1e-6
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _hg(omm, opm, g):
     if g > _G_MAX:
         g = _G_MAX
@@ -35,7 +35,7 @@ def _hg(omm, opm, g):
     return (1.0 - g) * (1.0 + g) / (_FOUR_PI * den * math.sqrt(den))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def phase_value(phase, omm, opm):
     """P [1/sr] of a ``PhaseArgs`` record given 1 − μ and 1 + μ."""
     if phase.code == 0:
@@ -54,7 +54,7 @@ def phase_value(phase, omm, opm):
     return phase.alpha * _hg(omm, opm, phase.g1) + (1.0 - phase.alpha) * _hg(omm, opm, -phase.g2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def unit_normal(ax, ay, az, dx, dy, dz, tol):
     """normalize(a × d), or a unit vector ⊥ d when |a × d| ≤ tol (a on the ray: any scattering plane)."""
     px, py, pz = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
@@ -70,7 +70,7 @@ def unit_normal(ax, ay, az, dx, dy, dz, tol):
     return px / pn, py / pn, pz / pn
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
     """Length [m] of the segment a→b inside the box [lo, hi] (as geometry.segment_length_in_box)."""
     vx, vy, vz = bx - ax, by - ay, bz - az
@@ -92,7 +92,7 @@ def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
     return max(min(t1, length) - t0, 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def line_integrals(light, medium, phase, quad, polarization, rays, intervals, out):
     """Accumulate the eq. 13 line integral of each interval into its ray (see the module docstring).
 
@@ -289,7 +289,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
             u_out[r] += u_ray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def camera_stokes(src, origin, dirs, cr, cu, sums, q_out, u_out):
     """Rotate per-ray (q, u) of ``sums`` (a ``Stokes`` record) from the scattering-plane frame (e_par_out =
     e_perp × (−d)) into the camera's (r, u) axes ``cr``, ``cu`` (render._camera_stokes)."""
@@ -313,7 +313,7 @@ def camera_stokes(src, origin, dirs, cr, cu, sums, q_out, u_out):
         u_out[i] = q[i] * s + u[i] * c
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def clip_rays(origin, dirs, x0, x1, apex, normals, eps, lo_out, hi_out):
     """[x0, x1] of rays origin + x·dir clipped to ∩ {n·(P − apex) ≥ 0} (patterns.clip_halfspaces); origin
     (1, 3) shared or (n, 3); a ray parallel to a plane (|n·d| ≤ eps·|n|) is kept or dropped whole."""
@@ -338,7 +338,7 @@ def clip_rays(origin, dirs, x0, x1, apex, normals, eps, lo_out, hi_out):
         lo_out[i], hi_out[i] = a0, a1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def direct_kernel(light, medium, cam, surface, out):
     """D = (ρ cos φ/π)·I0·e^{−σ_t(ℓ_LO + ℓ_CO)}/(d_LO² + r_s²) at the lit ``SurfacePoints``, else 0
     (transport.direct); ``light.position`` is (1, 3), ``cam`` (3,)."""

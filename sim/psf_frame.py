@@ -19,7 +19,7 @@ from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, mixture
 _LOG_LADDER = np.log(N_LADDER)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def footprints(hit, points, dirs, normals, cam, pitch, out):
     """A pixel's footprint on the object [m]: distance·pitch/√max(|cos|, 0.05) (1 where nothing is hit)."""
     for i in range(hit.size):
@@ -46,7 +46,7 @@ class LegOut(NamedTuple):
     keep: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
     """Per pixel that sees an object: n = fσ_sℓ, w = 1 − e^{−n}, the halo rms [px] (the table's rms per unit
     path, interpolated in log n, times ℓ over the pixel's footprint); out.spread = w·value,

@@ -36,7 +36,7 @@ class HitArrays(NamedTuple):
     point: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pixel_rays_kernel(frame, rows, cols, out):
     """Unit directions normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u) (issue 3) of a
     :class:`Pinhole` at pixel coordinates (rows, cols)."""
@@ -49,7 +49,7 @@ def pixel_rays_kernel(frame, rows, cols, out):
         out[k, 0], out[k, 1], out[k, 2] = x / n, y / n, z / n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def box_interval_kernel(origin, dirs, lo, hi, t0_out, t1_out):
     """Slab test [t0, t1] (t0 ≥ 0) of rays origin + t·dir in the box; origin (1, 3) shared or (n, 3)."""
     per = origin.shape[0] > 1
@@ -69,7 +69,7 @@ def box_interval_kernel(origin, dirs, lo, hi, t0_out, t1_out):
         t0_out[i], t1_out[i] = max(tmin, 0.0), tmax
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def intersect_kernel(kinds, params, origin, dirs, out):
     """Nearest hit per ray into ``out`` (:class:`HitArrays`; t = inf, index −1, normal 0, point = origin when
     none), as geometry.intersect; objects packed by ``geometry.pack_objects``."""
@@ -134,7 +134,7 @@ def intersect_kernel(kinds, params, origin, dirs, out):
         p_out[i, 0], p_out[i, 1], p_out[i, 2] = ox + tt * dx, oy + tt * dy, oz + tt * dz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def projector_coords_kernel(frame, points, col, row, depth):
     """Pattern coordinates (col, row) and depth of points in a :class:`Pinhole`; (−1, −1) behind it
     (depth ≤ 0)."""

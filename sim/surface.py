@@ -92,7 +92,7 @@ def surface_info(objects, hits: Hits) -> SurfaceInfo:
     return SurfaceInfo(hits.index.copy(), albedo, band, high)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _chart_kernel(index, k, points, chart, out):
     """The chart's albedo, band and bar high into ``out`` = (albedo, band, high) at the hits on object k."""
     origin, ra, ua, width, height, rho, low, bands, bars = chart

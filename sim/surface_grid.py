@@ -92,7 +92,7 @@ def _interpolate(kn, rn, vals, kap, rho, breaks):
     return np.exp(out) if positive else np.maximum(out, 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def interpolate_kernel(kn, rn, coef, kap, rho, out):
     """Piecewise cubic in κ (coefficients (4, intervals, rows), as scipy's PPoly) on every node row, then
     Lagrange in ϱ through the 4 (or 2) nearest rows; κ and ϱ are clamped to the node ranges."""

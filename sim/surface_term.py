@@ -88,7 +88,7 @@ def beam_nodes(src: Source, points: np.ndarray, n_side: int):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _beam_nodes_kernel(pc, pr, rect, rule, pattern, out):
     """The triangles of :func:`beam_nodes`, side by side (left, right, top, bottom; up then down each):
     apexes (pc, pr), the rectangle (c_lo, c_hi, r_lo, r_hi), a :class:`TriangleRule`, the pattern's
