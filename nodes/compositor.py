@@ -53,7 +53,7 @@ from polarstripe.msgs import (
     ScanEvent,
 )
 from polarstripe.nodes.compositor_depth import DepthStage
-from polarstripe.nodes.compositor_output import fmt, write_comparison, write_method
+from polarstripe.nodes.compositor_output import PublishedDepth, fmt, write_comparison, write_method
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -145,7 +145,7 @@ class Compositor(Node):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("compositor/medium_p")
-        self.depth = DepthStage.of(self.params, self.publisher("compositor/depth"), self.log)
+        self.depth = DepthStage.of(self.params, PublishedDepth(self.publisher("compositor/depth")), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         if self.params.use_truth:
@@ -403,7 +403,7 @@ class Compositor(Node):
             write_method(p.out, scan.method, image, self.metrics, image_format=p.image_format)
             if p.comparison:
                 write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
-                                 METHOD_NAMES, truth=getattr(self, "truth_s", None))
+                                 METHOD_NAMES, getattr(self, "truth_s", None), self.depth.publisher.maps)
 
 
 NODE = Compositor

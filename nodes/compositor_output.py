@@ -2,7 +2,8 @@
 percentile, saturated pixels white), ``<method>.tiff`` (float32 DN, NaN where masked, for analysis; or
 ``.npy``), ``metrics.json`` (rewritten atomically) and ``comparison.png`` (the ground truth T, the
 unscattered object radiance of docs/physics.md §10.8, and the methods side by side, like the paper's Fig. 6,
-the best method marked, a one-line legend of the two numbers)."""
+the best method marked, a one-line legend of the two numbers; below each stripe method, the depth map it
+published on ``compositor/depth``, docs/depth.md)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,21 @@ LEGEND = ("contrast: Michelson (bright − dark)/(bright + dark) of the chart's 
           "error: relative RMS against the ground truth T, the unscattered object radiance (gain fitted), "
           "0 = perfect, lower is better")
 TRUTH_LABEL = "ground truth T (unscattered)"     # sim/truth.py: flood light attenuated, never scattered
+DEPTH_BAR_LABEL = "z [m]"  # along the camera's optical axis (msgs/depth.py)
+DEPTH_CMAP, INVALID_GREY = "viridis", (0.6, 0.6, 0.6)  # a neutral grey, not a colour of the depth map
+STRIPE_METHODS = ("stripes", "polarized_stripes")  # the methods with a depth (nodes/compositor_depth.py)
+
+
+class PublishedDepth:
+    """The ``compositor/depth`` publisher that keeps the last :class:`~polarstripe.msgs.DepthMap` of each
+    method: the comparison figure shows the depth exactly as it was published."""
+
+    def __init__(self, publisher):
+        self.publisher, self.maps = publisher, {}
+
+    def publish(self, depth) -> None:
+        self.publisher.publish(depth)
+        self.maps[depth.method] = depth
 
 
 def display_range(image: np.ma.MaskedArray) -> tuple[float, float]:
@@ -71,18 +87,70 @@ def best_method(metrics: dict, methods) -> str | None:
     return max(contrasts, key=contrasts.get) if contrasts else None
 
 
-def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.ndarray | None = None) -> None:
+def depth_title(method: str, depth) -> str:
+    """A depth panel's title: the valid fraction of the drawn map, of the objects and the RMS error against
+    the simulator's depth truth when the compositor had it (``depth.metrics``, nodes/compositor_depth.py)."""
+    z = np.asarray(depth.depth_m)
+    m = depth.metrics or {}
+    objects = _number(m.get("valid_fraction_of_objects"))
+    rms = _number(m.get("depth_rms_mm"))
+    line = f"valid {100 * float(np.isfinite(z).mean()):.0f} % of pixels"
+    line += f" ({100 * objects:.0f} % of objects)" if objects is not None else ""
+    error = f"RMS {rms:.1f} mm vs depth truth" if rms is not None else "no depth truth: no RMS"
+    return f"{method}: depth (grey: none)\n{line}\n{error}"
+
+
+def _depth_panels(methods, metrics: dict, depth: dict | None) -> dict:
+    """Stripe method -> its DepthMap of the scan in ``metrics`` (None: that scan published none)."""
+    if depth is None:
+        return {}
+    return {m: d if (d := depth.get(m)) is not None and d.scan_id == metrics.get(m, {}).get("scan_id")
+            else None for m in methods if m in STRIPE_METHODS}
+
+
+def _depth_range(maps) -> tuple[float, float]:
+    """The 1st to 99th percentile [m] of the valid depths of all ``maps`` (one colour scale for all)."""
+    z = np.concatenate([np.asarray(d.depth_m, np.float64).ravel() for d in maps] or [np.zeros(0)])
+    z = z[np.isfinite(z)]
+    if not z.size:
+        return 0.0, 1.0
+    lo, hi = np.percentile(z, (1, 99))
+    return float(lo), float(max(hi, lo + 1e-3))
+
+
+def _draw_depth(fig, ax, method: str, depth, lo: float, hi: float) -> None:
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if depth is None:
+        ax.set_title(f"{method}: depth\nnone for this scan (see the log)", fontsize=8)
+        return
+    cmap = plt.get_cmap(DEPTH_CMAP).with_extremes(bad=INVALID_GREY)
+    shown = ax.imshow(np.ma.masked_invalid(np.asarray(depth.depth_m, np.float64)), cmap=cmap, vmin=lo,
+                      vmax=hi, interpolation="nearest")
+    bar = fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
+    bar.set_label(DEPTH_BAR_LABEL, fontsize=7)
+    bar.ax.tick_params(labelsize=6)
+    ax.set_title(depth_title(method, depth), fontsize=8)
+
+
+def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.ndarray | None = None,
+                     depth: dict | None = None) -> None:
     """The ground truth ``truth`` (T [DN], when given) and the composites of ``results`` (method -> masked
     image) side by side in ``order``, each stretched from its 1st to 99.5th percentile, titled with contrast
-    and error; the best method (:func:`best_method`) framed and marked; :data:`LEGEND` below."""
+    and error; the best method (:func:`best_method`) framed and marked; :data:`LEGEND` below. With ``depth``
+    (method -> published DepthMap), a second row holds each stripe method's depth map of the same scan
+    under its composite (one colour scale, invalid grey, titled by :func:`depth_title`). Written to a
+    temporary file and renamed: a reader never sees half a figure."""
 
     matplotlib.use("Agg")
 
     methods = [m for m in order if m in results]
     panels = ([(TRUTH_LABEL, np.ma.masked_invalid(np.asarray(truth, np.float64)))] if truth is not None
               else []) + [(m, results[m]) for m in methods]
+    depths = _depth_panels(methods, metrics, depth)
+    rows = 2 if depths else 1
     best = best_method(metrics, methods)
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.3), squeeze=False)
+    fig, axes = plt.subplots(rows, len(panels), figsize=(3.2 * len(panels), 3.3 * rows), squeeze=False)
     for ax, (name, img) in zip(axes[0], panels, strict=True):
         lo, hi = display_range(img)
         ax.imshow(np.ma.filled(img, hi), cmap="gray", vmin=lo, vmax=hi)
@@ -101,10 +169,19 @@ def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.n
             spine.set_visible(name == best)
             spine.set_color("tab:green")
             spine.set_linewidth(3)
+    if depths:
+        lo, hi = _depth_range([d for d in depths.values() if d is not None])
+        for ax, (name, _) in zip(axes[1], panels, strict=True):
+            if name in depths:
+                _draw_depth(fig, ax, name, depths[name], lo, hi)
+            else:
+                ax.set_axis_off()
     fig.text(0.5, 0.01, LEGEND, ha="center", va="bottom", fontsize=6, wrap=True)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=100)
+    fig.tight_layout(rect=(0, 0.23 / rows, 1, 1))
+    tmp = path + ".tmp"
+    fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
+    os.replace(tmp, path)
 
 
 def fmt(x) -> str:
