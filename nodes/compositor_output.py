@@ -177,7 +177,7 @@ def write_comparison(path: str, results: dict, metrics: dict, order, truth: np.n
             else:
                 ax.set_axis_off()
     fig.text(0.5, 0.01, LEGEND, ha="center", va="bottom", fontsize=6, wrap=True)
-    fig.tight_layout(rect=(0, 0.23 / rows, 1, 1))
+    fig.tight_layout(rect=(0, 0.07 / rows, 1, 1))  # 0.23 in for the legend
     tmp = path + ".tmp"
     fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
