@@ -270,7 +270,11 @@ class Cia402Stage(Cia402Watch, RotationStage):
         if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
             raise StageFault(f"{self.name}: cannot reset, the drive's heartbeat is still missing")
         if not self._wait_pdo():
-            raise StageFault(f"{self.name}: cannot reset, no TPDO1 from the drive")
+            # the drive may have left OPERATIONAL without our seeing it yet (a reset by another master whose
+            # heartbeat is still on its way): NMT start again (a no-op for an OPERATIONAL node, CiA 301)
+            self._nmt_start()
+            if not self._wait_pdo(timeout=max(2.0, self.pdo_timeout_s)):
+                raise StageFault(f"{self.name}: cannot reset, no TPDO1 from the drive")
         self.node.emcy.reset()
         with self._lock:
             self._target_counts = self._pos
