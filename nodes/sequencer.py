@@ -108,6 +108,7 @@ class Sequencer(Node):
         self.pass_scans: list[int] = []
         self.watch("heartbeat")  # runtime/liveness.py: waits on a lost peer end at once
         self.results: dict[str, dict] = {}
+        self.clients: dict[tuple[str, float], object] = {}  # see call()
 
     def run(self) -> None:
         try:
@@ -124,8 +125,12 @@ class Sequencer(Node):
 
     # ---- steps ---------------------------------------------------------------------------------------------
     def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
-        """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``."""
-        client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
+        """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``. One client per
+        service and timeout, made once (a client per call left a socket behind every scan)."""
+        key = (service, timeout_s)
+        client = self.clients.get(key)
+        if client is None:
+            client = self.clients[key] = self.client(service, req_type, resp_type, timeout_s=timeout_s)
         now = self.now  # the node's clock (virtual in the harness)
         deadline = now() + self.params.startup_timeout_s
         while True:

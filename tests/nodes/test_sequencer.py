@@ -153,6 +153,23 @@ def test_a_node_that_stops_beating_in_its_setup_is_named():
     assert any("node 'planner' lost during its start-up: no heartbeat for 10" in t for _, t in h.logs), h.logs
 
 
+def test_a_service_gets_one_client_however_many_scans_call_it():
+    """A client is a socket: one per call grew a soak's sequencer by ~15 KB a scan (bench soak)."""
+    h = rig({"repeat": 3, "plan": False})
+    made = []
+    client = h.bus.client
+
+    def counting(service, req, resp, timeout_s):
+        made.append(service)
+        return client(service, req, resp, timeout_s)
+
+    h.bus.client = counting
+    h.node.run()
+    scans = [c for c in h.calls if c.startswith("scan")]
+    assert len(scans) >= 6, h.calls  # 3 passes over the methods
+    assert made.count(h.node.resolve("emitter/start_scan")) == 1, made
+
+
 def test_repeat_runs_the_methods_that_many_times_and_zero_until_stopped():
     h = rig({"repeat": 3, "plan": False})
     h.node.run()
