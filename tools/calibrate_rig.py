@@ -70,6 +70,7 @@ class RigCalibrator(Node):
     SUBSCRIBES = {"camera/frame": Frame, "heartbeat": Heartbeat}
 
     def setup(self):
+        self.clients: dict[tuple[str, float], object] = {}  # per service and timeout: a client is a socket
         self.subscribe("camera/frame", mode="all")
         self.subscribe("heartbeat", mode="all")
 
@@ -90,7 +91,10 @@ class RigCalibrator(Node):
     def call(self, service: str, req_type, request, *, timeout_s: float = 5.0) -> Ack:
         """Call ``service`` (reply Ack), retrying while it is not up yet (``startup_timeout_s``); a refusal
         is an error naming the service."""
-        client = self.client(service, req_type, Ack, timeout_s=timeout_s)
+        key = (service, timeout_s)
+        if key not in self.clients:
+            self.clients[key] = self.client(service, req_type, Ack, timeout_s=timeout_s)
+        client = self.clients[key]
         deadline = self.now() + self.params.startup_timeout_s
         while True:
             try:
