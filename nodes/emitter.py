@@ -182,7 +182,6 @@ class Emitter(Node):
         self.next_id = int(self.run_state.get("next_scan_id", 1))
         if self.next_id > 1:
             self.log.info("incarnation %d: scan ids go on from %d", self.incarnation, self.next_id)
-        self.results: dict[int, ScanEvent] = {}
         self.current: _Run | None = None  # the scan being run
         self._state: tuple[PolarizerState, float] | None = None  # newest polarizer/state not yet looked at
         self.every(0.01, self.on_tick, name="scan")
@@ -361,7 +360,6 @@ class Emitter(Node):
             except ScanFault as exc:
                 self.log.error("%s", exc)
         self.scan_pub.publish(final)
-        self.results[run.plan.scan_id] = final
         if final.event == "done":
             t = run.timing
             self.log.info("scan %d (%s) done in %.3f s: %d frames, analyzer %.3f s, camera %.3f s, "
