@@ -271,7 +271,8 @@ def unpack(
         for name, _kind in cls.FIELDS[:n]:  # an older version lacks the trailing fields: _build adds them
             if name not in fields:
                 raise MessageError(topic, name, f"missing (a {cls.TYPE!r} needs it)")
-        extra = sorted(map(str, fields.keys() - {name for name, _ in cls.FIELDS[:n]}))
+        names = cls.FIELD_NAMES if n == len(cls.FIELDS) else {name for name, _ in cls.FIELDS[:n]}
+        extra = sorted(map(str, fields.keys() - names))
         if extra:
             raise MessageError(topic, extra[0], f"unknown field of {cls.TYPE!r}")
         head += [_outline(kind, fields[name], bufs) for name, kind in cls.FIELDS[:n]]
