@@ -140,6 +140,11 @@ _EARLY: list[str] = []  # stop signals that came while the node's module was imp
 _BEFORE: dict = {}  # the handlers install_signals replaced
 
 
+def early_signal_seen() -> bool:
+    """Whether a stop signal came while the node's module was imported (:func:`early_signals`)."""
+    return bool(_EARLY)
+
+
 @contextmanager
 def early_signals() -> Iterator[None]:
     """Around importing a node's module (seconds of numba, scipy, OpenCV on a loaded machine): a stop signal

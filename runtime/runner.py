@@ -29,6 +29,7 @@ from polarstripe.runtime.params import build_params
 from polarstripe.runtime.process import (
     GuardedClient,
     StopGuard,
+    early_signal_seen,
     early_signals,
     install_logging,
     install_signals,
@@ -171,8 +172,13 @@ def run_node(
     from ``pub``/``srv`` (default :func:`default_endpoints`), ``connect`` (PUB endpoints to subscribe to)
     and ``services`` (service name → ROUTER endpoint).
     """
-    with early_signals():  # a Ctrl-C during the node module's import ends it at once (exit 130)
-        cls = load_node_class(spec)
+    try:
+        with early_signals():  # a Ctrl-C during the node module's import ends it at once (exit 130)
+            cls = load_node_class(spec)
+    except ImportError:
+        if early_signal_seen():  # the KeyboardInterrupt landed in an extension's init, which reports it as
+            raise KeyboardInterrupt from None  # "ImportError: initialization failed": still the user's stop
+        raise
     graph = load_graph(graph_file) if graph_file else {}
     name = name or cls.__name__.lower()
     entry = graph.get("nodes", {}).get(name, {})

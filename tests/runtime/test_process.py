@@ -142,3 +142,30 @@ def test_a_signal_while_the_node_module_is_imported_ends_it_and_is_remembered():
         process._EARLY.clear()
         signal.signal(signal.SIGINT, handlers[0])
         signal.signal(signal.SIGTERM, handlers[1])
+
+
+def test_a_signal_that_an_extensions_import_turns_into_an_import_error_is_still_a_stop(tmp_path, monkeypatch):
+    """A KeyboardInterrupt that lands in a C extension's module init comes back as "ImportError:
+    initialization failed" (seen once in tests/launch/test_sigint.py): after an early stop signal the node's
+    command still ends as a Ctrl-C (exit 130, no traceback), not as a broken import (exit 1)."""
+    from polarstripe.runtime import process
+    from polarstripe.runtime.runner import run_node
+
+    (tmp_path / "ext_like.py").write_text(
+        "import os, signal, time\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(1.0)\n"
+        "except KeyboardInterrupt:\n"
+        "    raise ImportError('initialization failed')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_node("ext_like:Anything", pub=f"ipc://{tmp_path}/p", srv=f"ipc://{tmp_path}/s")
+        assert process._EARLY == ["SIGTERM"]
+    finally:
+        process._EARLY.clear()
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
