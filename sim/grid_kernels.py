@@ -173,8 +173,8 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
                 w = (math.exp(-sigma * a0) - math.exp(-sigma * (a0 + ds))) / sigma
             else:
                 w = ds
-            for f in range(nf):
-                p = 0.0
+            for f in range(nf):  # sample_fields' trilinear loop, written out: a shared helper taking the
+                p = 0.0            # field's slices cost 9 % of a preview frame (measured)
                 fd = 0.0
                 for cx in range(2):
                     wx = tx if cx else 1.0 - tx

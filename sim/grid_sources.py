@@ -30,7 +30,7 @@ from polarstripe.sim.grid_kernels import (
     view_lookup,
 )
 from polarstripe.sim.multiple import Field, Grid
-from polarstripe.sim.patterns import gray_lit, stripe_columns
+from polarstripe.sim.patterns import gray_lit, pattern_lit, stripe_columns
 from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 from polarstripe.sim.transport import Source
 
@@ -253,21 +253,10 @@ def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarr
     v = src.position - points
     d2 = (v * v).sum(1)
     cos = np.clip((normals * v).sum(1) / np.sqrt(np.maximum(d2, 1e-300)), 0.0, None)
-    lit = np.ones(points.shape[0], bool)
-    if src.frame is not None:
-        col, row, depth = projector_coords(src.frame, points)
-        fr, pat = src.frame, src.pattern
-        lit = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
-        if lit_fraction is not None:
-            lit &= lit_fraction > 0
-        elif pat.kind == "stripe":
-            s0, s1 = stripe_columns(pat, fr.w)
-            lit &= (col >= s0) & (col < s1)
-        elif pat.kind == "checker":
-            sh = pat.shift % (2 * pat.size)
-            lit &= (np.floor((col - sh) / pat.size) + np.floor(row / pat.size)) % 2 == 0
-        elif pat.kind == "gray":
-            lit &= gray_lit(pat, col, row)
+    # with the pattern's area average (lit_fraction) only the frame is checked here: the fraction weighs
+    lit = pattern_lit(None if lit_fraction is not None else src.pattern, src.frame, points)
+    if lit_fraction is not None and src.frame is not None:
+        lit &= lit_fraction > 0
     if len(objects) and lit.any():
         idx = np.nonzero(lit)[0]
         lit[idx[occluded(objects, src.position, points[idx] + 1e-7 * normals[idx])]] = False

@@ -47,12 +47,13 @@ from polarstripe.sim.grid_sources import (
 from polarstripe.sim.kernel_records import PhaseArgs
 from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders, zero_field
 from polarstripe.sim.orders import OrdersPlan
+from polarstripe.sim.patterns import pattern_lit
 from polarstripe.sim.psf import halo_table, mixture, spread
 from polarstripe.sim.psf_frame import object_radiance
 from polarstripe.sim.psf_stencil import stencil_blur
 from polarstripe.sim.similarity import pair_retention_of, truncated_code
 from polarstripe.sim.surface import surface_info
-from polarstripe.sim.surface_field import View, camera_frame_stokes, pattern_lit, single_parts
+from polarstripe.sim.surface_field import View, camera_frame_stokes, single_parts
 from polarstripe.sim.transport import Source, direct
 
 

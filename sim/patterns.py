@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.msgs.patterns import PatternError, gray_lit, parse, stripe_columns
 from polarstripe.msgs.patterns import PatternSpec as Pattern
-from polarstripe.sim.geometry import Frame
+from polarstripe.sim.geometry import Frame, projector_coords
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
@@ -144,3 +144,23 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
     if not rays:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     return np.concatenate(rays), np.concatenate(los), np.concatenate(his)
+
+
+def pattern_lit(pattern: Pattern | None, frame, points: np.ndarray) -> np.ndarray:
+    """Which ``points`` (m, 3) the projector lights: inside its ``frame`` (a pinhole; None: everywhere, a
+    point source) and, unless ``pattern`` is None, on a lit pixel of the stripe, checker or Gray pattern."""
+    if frame is None:
+        return np.ones(points.shape[0], bool)
+    col, row, depth = projector_coords(frame, points)
+    ok = (depth > 0) & (row >= 0) & (row < frame.h) & (col >= 0) & (col < frame.w)
+    if pattern is None:
+        return ok
+    if pattern.kind == "stripe":
+        c0, c1 = stripe_columns(pattern, frame.w)
+        ok &= (col >= c0) & (col < c1)
+    elif pattern.kind == "checker":
+        shift = pattern.shift % (2 * pattern.size)
+        ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0
+    elif pattern.kind == "gray":
+        ok &= gray_lit(pattern, col, row)
+    return ok

@@ -10,10 +10,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
+from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays
 from polarstripe.sim.kernel_records import Stokes
 from polarstripe.sim.kernels import camera_stokes
-from polarstripe.sim.patterns import Pattern, gray_lit, lit_intervals, stripe_columns
+from polarstripe.sim.patterns import Pattern, lit_intervals, pattern_lit, stripe_columns
 from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.surface import SurfaceInfo
 from polarstripe.sim.surface_grid import plane_stripe_field
@@ -61,22 +61,6 @@ def single_parts(view: View, src: Source, need) -> tuple[np.ndarray, ...]:
         if "p" in need:
             Bq, Bu = camera_frame_stokes(src, scene, cam, dirs, B, q, u)
     return D, A, B, Bq, Bu
-
-
-def pattern_lit(pattern: Pattern, frame, points: np.ndarray) -> np.ndarray:
-    if frame is None:
-        return np.ones(points.shape[0], bool)
-    col, row, depth = projector_coords(frame, points)
-    ok = (depth > 0) & (row >= 0) & (row < frame.h) & (col >= 0) & (col < frame.w)
-    if pattern.kind == "stripe":
-        c0, c1 = stripe_columns(pattern, frame.w)
-        ok &= (col >= c0) & (col < c1)
-    elif pattern.kind == "checker":
-        shift = pattern.shift % (2 * pattern.size)
-        ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0
-    elif pattern.kind == "gray":
-        ok &= gray_lit(pattern, col, row)
-    return ok
 
 
 def a_field(src: Source, scene: Scene, fid, cam, hits, surf: SurfaceInfo, pixels) -> np.ndarray:

@@ -25,10 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.sim.geometry import intersect, occluded, pinhole_frame, pixel_rays
-from polarstripe.sim.patterns import parse_pattern
+from polarstripe.sim.patterns import parse_pattern, pattern_lit
 from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.surface import SurfaceInfo, surface_info
-from polarstripe.sim.surface_field import pattern_lit
 from polarstripe.sim.transport import direct, make_source
 
 
