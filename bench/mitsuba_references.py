@@ -70,7 +70,8 @@ def reference_scene(sigma_t: float, plane: bool, resolution: int = RESOLUTION) -
     # exposure pinned to the value the stored references were made with (radiance does not depend on it)
     cam = s.camera.replace(position=(0.0, 0.0, z), look_at=(0.0, 0.0, s.medium.extent.max[2]),
                            resolution=(resolution, resolution), exposure_s=REFERENCE_EXPOSURE_S)
-    src = s.projector.replace(model="point", position=(SEPARATION_M, 0.0, z))
+    src = s.projector.replace(model="point", position=(SEPARATION_M, 0.0, z),   # unpolarized, as the
+                             polarization=s.projector.polarization.replace(dop=0.0))  # emitter renders
     lo, hi = s.medium.extent.min, s.medium.extent.max
     wall = PlaneObject(point=(0.0, 0.0, hi[2]), normal=(0.0, 0.0, -1.0), size=(hi[0] - lo[0], hi[1] - lo[1]),
                        albedo=0.6)
@@ -233,7 +234,9 @@ Scene: the default tank (`load_scene(None)`: 60 × 60 × 38 cm, albedo 1, TTHG m
 [1/m] as listed; camera 32×32, fov 60°, at (0, 0, −0.05) m looking along +z; isotropic point source of
 1 W/sr at (0.2, 0, −0.05) m (world +x is on the image left, so the left half is nearer the source). Camera
 and source sit 5 cm outside the entry face: a point light inside the medium gives an estimator of infinite
-variance. Cases:
+variance. Mitsuba's emitters are unpolarized, and every scene says so (`projector.polarization.dop = 0`):
+a polarized source changes the model's intensity through the Mueller matrix's m12 (docs/physics.md §5).
+Cases:
 
 {chr(10).join(f'- `{c}`: {d}' for c, (_, _, d) in CASES.items())}
 

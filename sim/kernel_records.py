@@ -64,9 +64,14 @@ class Quadrature(NamedTuple):
 
 
 class Polarization(NamedTuple):
-    """Whether to accumulate the Stokes sums, the source's unit E-field (3,), its DOP and the medium's δ."""
+    """Whether to accumulate the Stokes sums (``on``); whether the intensity scattered from the polarized
+    source takes the Mueller matrix's m12·Q (``mueller``: the Rayleigh-δ model with DOP_L > 0); whether the
+    rays run from the source and ``Light`` is the receiver (``reversed``: A's beams); the source's unit
+    E-field (3,), its DOP and the medium's δ (docs/physics.md §5)."""
 
     on: bool
+    mueller: bool
+    reversed: bool
     e_field: np.ndarray
     dop_l: float
     depol: float

@@ -93,6 +93,20 @@ def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
 
 
 @njit(cache=True, nogil=True)
+def _m12_over_m11(omm, opm, big):
+    """m12/m11 of the Rayleigh-δ reduced matrix (docs/physics.md §5): −Δ·¾(1 − μ²) / (Δ·¾(1 + μ²) + 1 − Δ)."""
+    mu = 0.5 * (opm - omm)
+    return -big * 0.75 * (omm * opm) / (big * 0.75 * (1.0 + mu * mu) + 1.0 - big)
+
+
+@njit(cache=True, nogil=True)
+def _cos2psi(aa, bb):
+    """cos 2ψ of a field with components aa in the scattering plane and bb normal to it (0 if none)."""
+    nrm = aa * aa + bb * bb
+    return (aa * aa - bb * bb) / nrm if nrm > 0 else 0.0
+
+
+@njit(cache=True, nogil=True)
 def line_integrals(light, medium, phase, quad, polarization, rays, intervals, out):
     """Accumulate the eq. 13 line integral of each interval into its ray (see the module docstring).
 
@@ -103,7 +117,8 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
     src_pos, radius, inten, inside, facing = light
     st, ss, box_lo, box_hi = medium
     nodes, gl_t, gl_w, gl_n, sub_all, nsubs, width, split_alphas = quad
-    pol, e_field, dop_l, depol = polarization
+    pol, mueller, reverse, e_field, dop_l, depol = polarization
+    big = (1.0 - depol) / (1.0 + depol / 2.0)
     origin, dirs, view_start = rays
     ray, lo, hi = intervals
     b_out, q_out, u_out = out
@@ -142,6 +157,14 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
             kf = r if per_face else 0
             nfx, nfy, nfz = facing[kf, 0], facing[kf, 1], facing[kf, 2]
         a0, a1 = lo[j], hi[j]
+        bb = hw = dw = 0.0
+        if pol or mueller:
+            # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray);
+            # the incident E-field's components: bb normal to the plane, aa in it (per node, or dw reversed)
+            px, py, pz = unit_normal(hx, hy, hz, dx, dy, dz, 1e-12 * math.sqrt(h2))
+            bb = px * ex + py * ey + pz * ez
+            wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
+            hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
         # split where the scattering angle crosses multiples of the forward-lobe width
         ne = 0
         edges[ne] = a0
@@ -240,6 +263,9 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 total = 0.0
                 for i in range(gl_n[rule]):
                     v = gl_w[rule, i] * phase_value(phase, omm_a[i], opm_a[i]) * math.exp(-(ang[i] - m))
+                    if mueller:     # I = P·(1 + m12/m11·Q_in): the matrix normalised by its m11 is P
+                        v *= 1.0 + _m12_over_m11(omm_a[i], opm_a[i], big) * dop_l * _cos2psi(
+                            dw if reverse else (-hw + uu[i] * dw) / max(dly[i], 1e-300), bb)
                     if use_facing:
                         cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
                                  ) / max(dly[i], 1e-300)
@@ -254,12 +280,6 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 b_ray += b
                 if not pol:
                     continue
-                # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray)
-                px, py, pz = unit_normal(hx, hy, hz, dx, dy, dz, 1e-12 * math.sqrt(h2))
-                bb = px * ex + py * ey + pz * ez
-                wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
-                hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
-                big = (1.0 - depol) / (1.0 + depol / 2.0)
                 tot = 0.0
                 qs = 0.0
                 us = 0.0

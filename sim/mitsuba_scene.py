@@ -216,6 +216,9 @@ def to_mitsuba(scene: Scene, pattern: str | Pattern = "flood", *, max_depth: int
     -------
     dict with keys ``type`` (``scene``), ``integrator``, ``sensor``, ``water`` (the medium), ``tank``,
     ``light`` and ``object_<k>`` per object. Raises SceneError for a non-flood pattern with a point source.
+    The emitter is unpolarized whatever ``projector.polarization`` says: compare its intensities with the
+    model of the same scene with ``projector.polarization.dop = 0`` (a polarized source changes the model's
+    intensity through the Mueller matrix's m12, docs/physics.md §5).
     """
     if not isinstance(scene, Scene):
         raise SceneError(f"scene must be a Scene (see load_scene), got {type(scene).__name__}")

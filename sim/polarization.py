@@ -1,8 +1,10 @@
 """Polarization: the depolarized-Rayleigh Mueller model of the backscatter DOP and the linear analyzer.
 
 Mueller model (paper appendix eq. 15; docs/physics.md §5): Hansen & Travis' depolarized Rayleigh reduced
-matrix with depolarization factor δ, in the scattering-plane frame with Q = I_∥ − I_⊥ (Bohren–Huffman),
-scaled by the phase function for the intensity. δ = 0.2 gives DOP_B = 0.8 at backscatter.
+matrix with depolarization factor δ, in the scattering-plane frame with Q = I_∥ − I_⊥ (Bohren–Huffman).
+The medium's Mueller matrix is the phase function times this matrix normalised by its m11, so light
+scattered from a polarized source has intensity P·(1 + m12/m11·Q_in) (docs/physics.md §5). δ = 0.2 gives
+DOP_B = 0.8 at backscatter.
 """
 
 from __future__ import annotations

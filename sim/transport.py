@@ -102,7 +102,11 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     polarization : also return the B-weighted Stokes (q, u) per ray in the scattering-plane frame.
     facing : optional (n, 3) unit normals at the source point: multiplies the integrand by
         max(0, n·(Y − L))/d_LY (the Lambertian cosine when the "source" is a surface point, for A).
-        ``src.position`` may then be (n, 3), one point per ray (inside the medium).
+        ``src.position`` may then be (n, 3), one point per ray (inside the medium), and the rays are the
+        projector's beams (light travels along ``dirs``).
+
+    With the Rayleigh-δ DOP model and a polarized source (DOP_L > 0) the radiance includes the Mueller
+    matrix's m12·Q_in whether or not the Stokes sums are asked for (docs/physics.md §5).
     splits : scattering angles, in forward-lobe widths, where intervals are split.
 
     Returns
@@ -117,11 +121,12 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
         return (b_out, q_out, u_out) if polarization else b_out
     pol = bool(polarization) and src.dop_model.model == "rayleigh"
+    mueller = src.dop_model.model == "rayleigh" and src.dop_l > 0.0
     f64 = np.ascontiguousarray
     face = np.zeros((0, 3)) if facing is None else f64(facing, float).reshape(-1, 3)
     kernels.line_integrals(
         _light(src, face), _medium(src), records.PhaseArgs(*_phase_code(src.phase)),
-        _quadrature(int(nodes), src.phase, tuple(splits)), _polarization(src, pol),
+        _quadrature(int(nodes), src.phase, tuple(splits)), _polarization(src, pol, mueller, facing is not None),
         records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
         records.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
         records.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
@@ -138,9 +143,9 @@ def _medium(src: Source) -> records.Medium:
                           np.asarray(src.box_hi, float))
 
 
-def _polarization(src: Source, on: bool) -> records.Polarization:
-    depol = float(src.dop_model.depolarization) if on else 0.0
-    return records.Polarization(on, np.asarray(src.e_field, float), float(src.dop_l), depol)
+def _polarization(src: Source, on: bool, mueller: bool, reverse: bool) -> records.Polarization:
+    depol = float(src.dop_model.depolarization) if on or mueller else 0.0
+    return records.Polarization(on, mueller, reverse, np.asarray(src.e_field, float), float(src.dop_l), depol)
 
 
 def _phase_code(phase) -> tuple:

@@ -40,6 +40,7 @@ def _tank(sigma_t: float, albedo: float, phase: Phase, *, point: bool = False, w
     cam = s.camera.replace(position=(0.0, 0.0, z), look_at=(0.0, 0.0, hi[2]),
                            resolution=(RESOLUTION, RESOLUTION))
     proj = s.projector.replace(model="point" if point else "pinhole", position=(SEPARATION_M, 0.0, z),
+                               polarization=s.projector.polarization.replace(dop=0.0),
                                look_at=(0.0, 0.0, hi[2]))
     objs = tuple(extra)
     if wall:

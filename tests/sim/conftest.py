@@ -60,6 +60,34 @@ def projector_pixel(proj, y):
     return w / 2 + (v @ r / vf) / s, h / 2 - (v @ u / vf) / s
 
 
+def mueller_intensity(scene):
+    """f(k_in, k_out): intensity of light scattered from the scene's polarized source along k_in into k_out,
+    per unit of the phase function: 1 + (m12/m11)·Q_in with the depolarized-Rayleigh reduced matrix (Hansen &
+    Travis) and Q_in = DOP_L cos 2ψ, ψ the angle between the source's E-field and the scattering plane."""
+    pr, dop = scene.projector, scene.medium.dop
+    if dop.model != "rayleigh" or pr.polarization.dop == 0:
+        return lambda k_in, k_out: 1.0
+    _, _, r, u, *_ = frame(pr.position, pr.look_at, pr.up, 60.0, 2, 2)
+    a = np.radians(pr.polarization.angle_deg)
+    e = np.cos(a) * r + np.sin(a) * u
+    big = (1 - dop.depolarization) / (1 + dop.depolarization / 2)
+    dop_l = pr.polarization.dop
+
+    def f(k_in, k_out):
+        """k_in, k_out: (..., 3) unit vectors."""
+        k_in, k_out = np.asarray(k_in, float), np.asarray(k_out, float)
+        n = np.cross(k_in, k_out)
+        nn = np.linalg.norm(n, axis=-1)
+        n = n / np.maximum(nn, 1e-300)[..., None]
+        e_par, e_perp = np.cross(n, k_in) @ e, n @ e
+        cos2psi = (e_par ** 2 - e_perp ** 2) / np.maximum(e_par ** 2 + e_perp ** 2, 1e-300)
+        mu = (k_in * k_out).sum(-1)
+        m11, m12 = big * 0.75 * (1 + mu * mu) + 1 - big, -big * 0.75 * (1 - mu * mu)
+        # straight forward or back (no scattering plane): m12 = 0
+        return np.where(nn < 1e-12, 1.0, 1 + m12 / m11 * dop_l * cos2psi)
+    return f
+
+
 import types  # noqa: E402
 
 import pytest  # noqa: E402
@@ -69,4 +97,5 @@ import pytest  # noqa: E402
 def ref():
     """The plain reference helpers above, as a namespace."""
     return types.SimpleNamespace(frame=frame, ray=ray, hg=hg, tthg_params=tthg_params, tthg=tthg, slab=slab,
-                                 projector_pixel=projector_pixel)
+                                 projector_pixel=projector_pixel,
+                                 mueller_intensity=mueller_intensity)

@@ -35,7 +35,7 @@ def _quadrature(nodes, width=math.pi, splits=()):
 def _line(light, medium, phase, origin, d, x0, x1, nodes=64, width=math.pi, splits=()):
     out = Stokes(np.zeros(1), np.zeros(1), np.zeros(1))
     kernels.line_integrals(light, medium, phase, _quadrature(nodes, width, splits),
-                           Polarization(False, np.array([0.0, 1.0, 0.0]), 1.0, 0.0),
+                           Polarization(False, False, False, np.array([0.0, 1.0, 0.0]), 1.0, 0.0),
                            Rays(np.asarray(origin, float).reshape(1, 3), np.asarray(d, float).reshape(1, 3),
                                 np.zeros(1)),
                            Intervals(np.zeros(1, np.int64), np.array([x0]), np.array([x1])), out)

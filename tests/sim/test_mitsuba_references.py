@@ -238,7 +238,8 @@ def test_render_truth_single_scattering_with_mitsuba():
 
     s = load_scene(None)
     s = s.replace(camera=s.camera.replace(resolution=(16, 12)), medium=s.medium.replace(sigma_t=2.0),
-                  objects=(PlaneObject(size=(0.6, 0.6), albedo=0.6),))
+                  objects=(PlaneObject(size=(0.6, 0.6), albedo=0.6),),      # Mitsuba's emitter: unpolarized
+                  projector=s.projector.replace(polarization=s.projector.polarization.replace(dop=0.0)))
     img = render_truth(s, "flood", max_depth=2, spp=2048, seed=0)
     assert img.shape == (12, 16) and img.dtype == np.float64
     big = s.replace(camera=s.camera.replace(resolution=(64, 48)))

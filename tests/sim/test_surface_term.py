@@ -39,7 +39,7 @@ def test_node_weights_add_up_to_the_lit_rectangles_solid_angle(pattern, cols):
     np.testing.assert_allclose(beam_nodes(src, pts, 4).weight.sum(axis=1), want, rtol=5e-3)   # side = 4
 
 
-def test_thin_beam_a_is_its_solid_angle_times_the_line_integral_along_the_axis():
+def test_thin_beam_a_is_its_solid_angle_times_the_line_integral_along_the_axis(ref):
     """A projector of 0.02° lights one beam L + t·k: A(O) → (ρ/π) e^{−σ_t ℓ_CO}·Ω·∫ σ_s P I0
     e^{−σ_t(t + d_XO)} n·(X − O)/d_XO³ dt (docs/physics.md §2.4), Ω its solid angle; adaptive quadrature."""
     st, alb, g, rho = 2.0, 0.9, 0.5, 0.7
@@ -49,6 +49,7 @@ def test_thin_beam_a_is_its_solid_angle_times_the_line_integral_along_the_axis()
                                       resolution=(4, 4)),
                   objects=(PlaneObject(point=(0.0, 0.0, 0.38), normal=(0.0, 0.0, -1.0)),))
     src = make_source(scene, parse_pattern("flood"))
+    mueller = ref.mueller_intensity(scene)         # the polarized source's m12 (docs/physics.md §5)
     O, n = np.array([0.0, 0.0, 0.38]), np.array([0.0, 0.0, -1.0])
     got = surface_scatter_beams(src, scene.objects, np.zeros(3), O[None], n[None], np.array([rho]), 32, 8)[0]
     k = np.array([0.0, 0.0, 1.0])
@@ -59,7 +60,7 @@ def test_thin_beam_a_is_its_solid_angle_times_the_line_integral_along_the_axis()
         v = O - (L + t * k)                           # X → O
         d = np.linalg.norm(v)
         mu = k @ v / d
-        p = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * mu) ** 1.5)
+        p = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * mu) ** 1.5) * mueller(k, v / d)
         return alb * st * p * math.exp(-st * (t + d)) * (-(n @ v)) / d ** 3
 
     want = rho / math.pi * math.exp(-st * 0.38) * omega * quad(f, 0.0, 0.38, epsabs=0, epsrel=1e-12)[0]
