@@ -6,7 +6,11 @@ evaluation of the stripes is one own-sheet call per location (O and its neighbou
 per other sheet that crosses an observed ray (docs/planning.md §1.3). Measured in one run at each model
 fidelity, beside the alternative that renders whole frames: one full flood frame of the scene timed, times
 the number of model evaluations a plan makes (not for ``reference``, which computes A at every pixel).
-Target: ≤ 1 s per plan on one core, optimum within one grid step of ``reference``.
+Target: ≤ 1 s per plan on one core, optimum within one grid step of ``reference``. Each planner variant of
+``--plan-orders`` (the model's orders of scattering, all and single) is timed.
+
+``--end-to-end`` judges the picks instead: full scans through the compositor's pipeline, the regret per method
+and scene (:mod:`polarstripe.bench.planner_e2e`).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import json
 import time
 
 import numpy as np
+from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.planner import SceneModel, default_separations, plan
 from polarstripe.sim.render import render_components
@@ -30,6 +35,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="plans timed per fidelity; the median is kept")
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="exposure rule of the plan (see `polarstripe plan --help`)")
+    planner_e2e.configure(parser)
 
 
 def _optima(plans) -> dict[str, float]:
@@ -41,14 +47,15 @@ def _optima(plans) -> dict[str, float]:
     return out
 
 
-def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: str) -> dict:
+def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: str,
+        orders: str = "all") -> dict:
 
     scene = load_scene(scene_path)
     seps = default_separations(n_sep)
     step = float(seps[1] - seps[0])
     rows = {}
     for fid in fidelities:
-        model = SceneModel(scene, fidelity=fid)
+        model = SceneModel(scene, fidelity=fid, orders=orders)
         plan(model, seps[:2])  # warm caches (phase tables, quadrature nodes)
         counter = {"calls": 0}
 
@@ -65,9 +72,9 @@ def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: s
         row = {"seconds_per_plan": float(np.median(times)), "cpu_seconds_per_plan": float(np.median(cpu)),
                "model_evaluations": evaluations, "optima_m": _optima(plans)}
         if fid != "reference":  # reference computes A at every pixel: a whole frame takes minutes
-            render_components(scene, "flood", fid)
+            render_components(scene, "flood", fid, orders=orders)
             t0 = time.perf_counter()
-            render_components(scene, "flood", fid)
+            render_components(scene, "flood", fid, orders=orders)
             row["whole_frame_seconds_estimate"] = time.perf_counter() - t0
             row["whole_frame_plan_seconds_estimate"] = row["whole_frame_seconds_estimate"] * evaluations
         rows[fid] = row
@@ -77,21 +84,34 @@ def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: s
             r["steps_from_reference"] = {k: round(abs(v - ref[k]) / step, 3)
                                          for k, v in r["optima_m"].items()}
             r["max_steps_from_reference"] = max(r["steps_from_reference"].values())
-    return {"separations": n_sep, "grid_step_m": step, "exposure": exposure, "target_seconds": 1.0,
-            "fidelities": rows}
+    return {"separations": n_sep, "grid_step_m": step, "exposure": exposure, "orders": orders,
+            "target_seconds": 1.0, "fidelities": rows}
 
 
 def main(args: argparse.Namespace) -> int:
 
+    if args.end_to_end:
+        return planner_e2e.main(args)
     fids = [f.strip() for f in args.fidelities.split(",") if f.strip()]
     if not fids:
         raise PolarstripeError("--fidelities: no fidelity given")
-    res = run(args.scene, args.separations, fids, args.repeats, args.exposure)
+    variants = [v.strip() for v in args.plan_orders.split(",") if v.strip()]
+    if not variants or any(v not in ("all", "single") for v in variants):
+        raise PolarstripeError(f"--plan-orders: comma-separated 'all' and/or 'single', got "
+                               f"{args.plan_orders!r}")
+    results = {v: run(args.scene, args.separations, fids, args.repeats, args.exposure, v) for v in variants}
     if args.json:
-        print(json.dumps(res))
+        print(json.dumps(results[variants[0]] if len(variants) == 1 else {"orders": results}))
         return 0
-    print(f"planner: {res['separations']} separations × (flood + 3 stripe locations) × {{unpolarized, "
-          f"polarized}}, grid step {res['grid_step_m'] * 100:.2f} cm, exposure {res['exposure']}, one core")
+    for res in results.values():
+        _print_timing(res)
+    return 0
+
+
+def _print_timing(res: dict) -> None:
+    print(f"planner ({res['orders']} orders): {res['separations']} separations × (flood + 3 stripe "
+          f"locations) × {{unpolarized, polarized}}, grid step {res['grid_step_m'] * 100:.2f} cm, exposure "
+          f"{res['exposure']}, one core")
     print(f"{'fidelity':<10} {'s/plan':>8} {'cpu s':>7} {'evals':>6} {'whole frames (est.)':>20} "
           f"{'× slower':>9} {'max steps from ref':>19}")
     for fid, r in res["fidelities"].items():
@@ -113,4 +133,4 @@ def main(args: argparse.Namespace) -> int:
         verdict = "within" if ok_s else "NOT within" if steps is not None else "not compared to"
         print(f"{fid}: {'meets' if ok_t else 'misses'} the 1 s target (CPU time); optimum {verdict} one "
               "grid step of reference")
-    return 0
+    print()

@@ -1,0 +1,131 @@
+"""The end-to-end truth of plans (planning/validate.py, planning/validate_table.py): full scans through the
+compositor's pipeline, checked against the sensor's closed-form noise in clear water, and the regret table's
+bookkeeping against hand-made curves."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from polarstripe.planning.validate import ScanSettings, curves, scan_scene
+from polarstripe.planning.validate_table import default_grid, regret_rows, validate
+from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.scene import SceneError, load_scene, with_separation
+
+TINY = ScanSettings(fidelity="preview", n_stripes=4, width=32, exposure="method")
+
+
+@pytest.fixture(scope="module")
+def tank():
+    return load_scene(None)
+
+
+def _noise_limited_error(scene, exposure_scale: float) -> float:
+    """‖noise‖ / ‖T‖ in DN when the image is T itself: EMVA 1288 by hand (docs/physics.md §7): per pixel
+    μ_e = L·η·(π a²/4)·s²·cos⁴α·t/(hc/λ), σ² = (σ_r² + μ_e + μ_dark)/K² + 1/12 [DN²]."""
+    cam = scene.camera
+    t = cam.exposure_s * exposure_scale
+    fr = pinhole_frame(cam.position, cam.look_at, cam.up, cam.fov_deg, cam.resolution)
+    dirs = pixel_rays(fr)
+    cos_a = dirs @ fr.f
+    hits = intersect(scene.objects, fr.position, dirs)
+    lit = np.isfinite(hits.t)
+    # T in clear water: rho cos(phi)/pi * I0 / d_LO^2 (no attenuation; the source's radius is 1 mm)
+    src = np.asarray(scene.projector.position)
+    to_src = src - hits.point[lit]
+    d2 = np.sum(to_src ** 2, axis=1)
+    cos_phi = np.clip(np.sum(to_src * hits.normal[lit], axis=1) / np.sqrt(d2), 0.0, None)
+    radiance = np.zeros(dirs.shape[0])
+    radiance[lit] = 0.6 / math.pi * cos_phi * scene.projector.intensity_w_sr / (
+        d2 + scene.projector.source_radius_m ** 2)
+    photon = 6.62607015e-34 * 299792458.0 / (cam.wavelength_nm * 1e-9)
+    mu_e = radiance * cam.qe * math.pi * cam.aperture_m ** 2 / 4 * fr.s ** 2 * cos_a ** 4 * t / photon
+    var_dn = (cam.read_noise_e ** 2 + mu_e + cam.dark_current_e_s * t) / cam.gain_e_per_dn ** 2 + 1 / 12
+    return float(np.sqrt(var_dn.sum()) / np.linalg.norm(mu_e / cam.gain_e_per_dn))
+
+
+def test_clear_water_every_composite_is_the_object_up_to_sensor_noise(tank):
+    """With sigma_t = 0 the frames hold T (no A, no B): the flood frame, the stripe max (eq. 7) and the
+    unrecovered E_b (no backscatter: p is not estimated) differ from T by the sensor's noise alone."""
+    clear = tank.replace(medium=tank.medium.replace(sigma_t=0.0))
+    got = curves(clear, [0.1], TINY, methods=("flood", "stripes", "polarized_flood"))
+    small = scan_scene(clear, TINY.width)
+    sd = with_separation(small, 0.1)
+    for method in ("flood", "stripes", "polarized_flood"):
+        row = got[method][0]
+        predicted = _noise_limited_error(sd, row["exposure_scale"] * (0.5 if "polarized" in method else 1))
+        assert row["saturated_fraction"] == 0.0
+        assert row["error"] == pytest.approx(predicted, rel=0.3), method
+    assert "p not estimated" in got["polarized_flood"][0]["note"]
+    assert got["stripes"][0]["depth_valid_fraction"] > 0.5
+    assert got["stripes"][0]["depth_rms_mm"] < 20.0
+
+
+def test_murky_water_stripes_beat_flood_and_polarization_helps(tank):
+    """At sigma_t = 5 /m the flood carries all the backscatter; the stripe composite (eq. 7) removes most of
+    it and eq. 6 more (the paper's Fig. 6 ordering), at a mid separation."""
+    got = curves(tank, [0.15], TINY)
+    err = {m: rows[0]["error"] for m, rows in got.items()}
+    assert err["stripes"] < err["flood"]
+    assert err["polarized_flood"] < err["flood"]
+    assert err["polarized_stripes"] < err["stripes"]
+    assert got["polarized_flood"][0]["error_e_b"] < err["flood"]
+    assert 0.0 < got["polarized_flood"][0]["p"] <= 1.0
+
+
+def test_validate_regret_is_at_least_one_and_best_is_the_minimum(tank):
+    grid = [0.03, 0.1, 0.3]
+    res = validate(tank, grid, TINY, plan_orders=("single",), plan_fidelity="preview", n_plan=6)
+    scored = {m: res["curves"][m] + res["extra"][m] for m in res["curves"]}
+    for row in res["rows"]:
+        key = "error" if row["image"] == "composite" else "error_e_b"
+        errs = {r["separation_m"]: r[key] for r in scored[row["method"]]}
+        assert row["best_error"] == min(errs.values())
+        assert errs[row["best_m"]] == row["best_error"]
+        assert row["pick_error"] == errs[min(errs, key=lambda d: abs(d - row["pick_m"]))]
+        assert row["regret"] >= 1.0
+        assert row["regret"] == pytest.approx(row["pick_error"] / row["best_error"])
+        assert row["best_at_edge"] == (row["best_m"] <= grid[0] or row["best_m"] >= grid[-1])
+
+
+def test_regret_rows_by_hand():
+    grid = [0.02, 0.1, 0.6]
+    curve = {0.02: 0.9, 0.1: 0.4, 0.6: 0.7, 0.2: 0.5}
+    at = {m: {d: {"error": e, "error_e_b": e + 0.1} for d, e in curve.items()}
+          for m in ("flood", "polarized_flood", "stripes", "polarized_stripes")}
+    picks = {"x": {k: {"separation_m": 0.2, "at_edge": False, "reading": "E", "readings": {}}
+                   for k in ("flood", "flood_polarized", "stripes", "stripes_polarized")}}
+    picks["x"]["stripes"]["separation_m"] = 0.6
+    picks["x"]["stripes"]["at_edge"] = True
+    rows = {(r["method"], r["image"]): r for r in regret_rows(at, grid, picks)}
+    assert rows[("flood", "composite")]["regret"] == pytest.approx(0.5 / 0.4)
+    assert rows[("flood", "composite")]["best_m"] == 0.1
+    assert rows[("flood", "composite")]["best_at_edge"] is False
+    assert rows[("stripes", "composite")]["regret"] == pytest.approx(0.7 / 0.4)
+    assert rows[("stripes", "composite")]["pick_at_edge"] is True
+    assert rows[("polarized_stripes", "E_b")]["regret"] == pytest.approx(0.6 / 0.5)
+    at["flood"] = {0.02: {"error": 0.3}, 0.1: {"error": 0.4}}  # best at the grid's end; the pick unscored
+    rows = {(r["method"], r["image"]): r for r in regret_rows(at, grid, picks)}
+    assert rows[("flood", "composite")]["best_at_edge"] is True
+    flood = rows[("flood", "composite")]
+    assert flood["pick_error"] is None and flood["regret"] is None
+
+
+def test_bad_settings_are_one_line_errors(tank):
+    with pytest.raises(SceneError, match="exposure must be one of"):
+        curves(tank, [0.1], ScanSettings(exposure="bright"))
+    with pytest.raises(SceneError, match="stripes must be"):
+        curves(tank, [0.1], ScanSettings(n_stripes=1))
+    with pytest.raises(SceneError, match="positive separations"):
+        curves(tank, [-0.1], TINY)
+    with pytest.raises(SceneError, match="grid"):
+        default_grid(1)
+    assert default_grid(3, 0.02, 0.5).tolist() == pytest.approx([0.02, 0.1, 0.5])
+
+
+def test_bench_end_to_end_unknown_scene_is_one_line():
+    r = subprocess.run([sys.executable, "-m", "polarstripe", "bench", "planner", "--end-to-end", "--scenes",
+                        "no_such_scene"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "no_such_scene" in r.stderr and "Traceback" not in r.stderr
