@@ -52,6 +52,7 @@ class Planner(Node):
         calibration: str = ""  # rig calibration file: the camera's and projector's pinholes (docs/depth.md)
         resolution: str = ""  # camera "WxH"; "" = the scene's
         fidelity: str = "preview"
+        orders: Literal["all", "single"] = "all"  # the model's: as the scene needs (sim/orders.py) | paper's
         modality: Literal["stripes", "flood"] = "stripes"
         polarized: bool = True
         stripes: int = 30
@@ -122,7 +123,7 @@ class Planner(Node):
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
 
         p = self.params
-        model = SceneModel(self.scene, fidelity=p.fidelity, n_stripes=p.stripes)
+        model = SceneModel(self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders)
         seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]

@@ -44,9 +44,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", default="160x120", help="camera resolution WxH (default 160x120)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--fidelity", default="preview", help="model fidelity (default preview)")
-    parser.add_argument("--orders", choices=("single", "all"), default="single",
-                        help="orders of scattering: the paper's single scattering (default) or all orders "
-                             "(sim/orders.py); the truth is the unscattered object radiance either way")
+    parser.add_argument("--orders", choices=("all", "single"), default="all",
+                        help="orders of scattering: all (default: those the scene needs, sim/orders.py, as "
+                             "the simulator renders) or the paper's single scattering; the truth is the "
+                             "unscattered object radiance either way")
     parser.add_argument("--sigma-t", nargs="+", type=float, default=(5.0, 12.0), metavar="SIGMA_T",
                         help="extinction coefficients [1/m] of the scattering levels (default 5 12)")
     parser.add_argument("--checkers", nargs=2, type=int, default=(10, 20), metavar=("SMALL", "LARGE"),
@@ -106,7 +107,7 @@ class _Camera:
 
 
 def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rng,
-              orders: str = "single") -> dict:
+              orders: str = "all") -> dict:
     """All methods at one scattering level; returns images (radiance estimates) and their scores."""
 
     scene = scene.replace(medium=scene.medium.replace(sigma_t=sigma_t))

@@ -140,6 +140,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         "brightest competitor (O under the other sheets, the unlit neighbour O'); eq9, the "
                         "paper's eq. 9 as printed, which counts the sheet's own backscatter as edge signal "
                         "and so favours the co-located source (docs/planning.md)")
+    parser.add_argument("--orders", choices=("all", "single"), default="all",
+                        help="orders of scattering of the planner's model: all (default: those the scene "
+                        "needs, sim/orders.py, as the simulator renders) or the paper's single scattering")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
 
@@ -238,7 +241,8 @@ def main(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     seps = default_separations(args.separations, args.range[0], args.range[1])
-    model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes, edge=args.edge)
+    model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes, edge=args.edge,
+                       orders=args.orders)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     doc = plan_to_json(plan(model, seps, modalities=modalities, k_detect=args.k_detect,
                             exposure=args.exposure))

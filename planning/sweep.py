@@ -89,7 +89,8 @@ def evaluate_scene(job: SceneJob) -> dict:
     spec, params = job.spec, job.params
     scene = scene_for(spec.base, params)
     exposure = "auto" if params.get("exposure") == "auto" else "scene"
-    model = SceneModel(scene, fidelity=spec.fidelity, n_stripes=int(params["stripes"]), edge=spec.edge)
+    model = SceneModel(scene, fidelity=spec.fidelity, n_stripes=int(params["stripes"]), edge=spec.edge,
+                       orders=spec.orders)
     plans = plan(model, spec.separations, modalities=spec.modalities, k_detect=spec.k_detect,
                  exposure=exposure)
     curves, out = {}, {}

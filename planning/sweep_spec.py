@@ -8,6 +8,7 @@ A spec names a base scene, the planner's options and a grid; every combination o
     modalities = ["flood", "stripes"]
     edge = "margin"                # stripe measure: margin | eq9
     k_detect = 3.0                 # W's detection threshold [noise std]
+    orders = "all"                 # the model's orders of scattering: all (as the scene needs) | single
     max_scenes = 10000             # refuse larger grids (raise it here if you mean it)
 
     [grid]
@@ -39,11 +40,12 @@ from polarstripe.errors import PolarstripeError
 from polarstripe.planning.objectives import EDGES, MODALITIES
 from polarstripe.planning.scene_model import SceneModel
 from polarstripe.sim.geometry import point_in_box
+from polarstripe.sim.orders import ORDERS
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, with_separation
 
 AXES = ("sigma_t", "albedo", "mean_cosine", "object_albedo", "exposure", "stripes")
-TOP_KEYS = {"scene", "fidelity", "modalities", "edge", "k_detect", "max_scenes", "grid"}
+TOP_KEYS = {"scene", "fidelity", "modalities", "edge", "k_detect", "max_scenes", "grid", "orders"}
 MAX_SCENES = 10_000
 MAX_SEPARATIONS = 1_000
 
@@ -64,6 +66,7 @@ class SweepSpec:
     separations: np.ndarray
     axes: dict[str, tuple]
     source: str = ""
+    orders: str = "all"
 
     @property
     def n_scenes(self) -> int:
@@ -173,6 +176,9 @@ def parse_spec(data: dict, base_dir: Path | None = None, source: str = "") -> Sw
     edge = data.get("edge", "margin")
     if edge not in EDGES:
         raise SweepSpecError(f"edge must be one of {EDGES}, got {edge!r}")
+    orders = data.get("orders", "all")
+    if orders not in ORDERS:
+        raise SweepSpecError(f"orders must be one of {', '.join(ORDERS)}, got {orders!r}")
     k_detect = _number("k_detect", data.get("k_detect", 3.0))
     if k_detect < 0:
         raise SweepSpecError(f"k_detect must be >= 0, got {k_detect!r}")
@@ -198,7 +204,7 @@ def parse_spec(data: dict, base_dir: Path | None = None, source: str = "") -> Sw
                             words=("auto", "scene") if k == "exposure" else ())
         elif k in defaults:
             axes[k] = defaults[k]
-    spec = SweepSpec(base, fidelity, mods, edge, float(k_detect), seps, axes, source)
+    spec = SweepSpec(base, fidelity, mods, edge, float(k_detect), seps, axes, source, orders)
     if spec.n_scenes > limit:
         sizes = " × ".join(f"{k} {len(v)}" for k, v in axes.items())
         raise SweepSpecError(f"grid: {spec.n_scenes} scenes ({sizes}) exceed max_scenes = {limit}; raise "

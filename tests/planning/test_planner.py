@@ -34,7 +34,9 @@ def paper_geometry():
 @pytest.fixture(scope="module")
 def fig8_flood(paper_geometry):
     w, h = paper_geometry.camera.resolution
-    model = SceneModel(paper_geometry, fidelity="preview", pixels=[[h // 2, w // 2]])
+    # Fig. 9a is the paper's single-scattering model (with all orders the noise-free E_b curve peaks inside
+    # the range: forward scatter brings the far source's object light back; docs/planning.md §7)
+    model = SceneModel(paper_geometry, fidelity="preview", pixels=[[h // 2, w // 2]], orders="single")
     coarse, fine = default_separations(15, 0.02, 0.6), default_separations(29, 0.02, 0.6)
     return (coarse, plan(model, coarse, modalities=("flood",), exposure="auto"),
             plan(model, fine, modalities=("flood",), exposure="auto"))
@@ -279,8 +281,11 @@ def test_margin_rejects_the_colocated_source_that_eq9_prefers():
     scene = load_scene(None)
     scene = scene.replace(medium=scene.medium.replace(sigma_t=6.0))
     seps = np.array([0.01, 0.03, 0.1, 0.2, 0.35, 0.5])
-    eq9 = plan(SceneModel(scene, fidelity="preview", edge="eq9"), seps, modalities=("stripes",))
-    margin = plan(SceneModel(scene, fidelity="preview"), seps, modalities=("stripes",))
+    # the margin as derived (docs/planning.md §1), on the paper's single-scattering model: with all orders
+    # its optimum moves to the range's far end, which the end-to-end truth does not support (§7)
+    eq9 = plan(SceneModel(scene, fidelity="preview", edge="eq9", orders="single"), seps,
+               modalities=("stripes",))
+    margin = plan(SceneModel(scene, fidelity="preview", orders="single"), seps, modalities=("stripes",))
     for key in ("stripes", "stripes_polarized"):
         assert eq9[key].curve.best_separation_m <= 0.03
         m = margin[key]

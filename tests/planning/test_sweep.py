@@ -41,6 +41,7 @@ def _spec(**over):
     ({"grid": {"exposure": ["sometimes"]}}, r"grid.exposure\[0\] must be a number"),
     ({"modalities": ["laser"]}, "modalities"),
     ({"max_scenes": 0}, "max_scenes"),
+    ({"orders": "double"}, "orders must be one of all, single"),
 ])
 def test_bad_specs_fail_before_anything_runs(data, match):
     with pytest.raises(SweepSpecError, match=match):
@@ -93,6 +94,14 @@ def test_serial_table_matches_the_planner():
                                   plans["flood_polarized"].readings["S_hat"].objective)
     assert mine[0]["best_flood_m"] == plans["flood"].curve.best_separation_m
     assert mine[0]["flood_reading"] == plans["flood_polarized"].reading
+    # orders = "single" plans with the paper's model, which gives other curves than all orders (the default)
+    single = run_sweep(_spec(orders="single"), jobs=0)
+    _, rows1 = table_rows(single)
+    paper = plan(SceneModel(scene, fidelity="preview", n_stripes=8, orders="single"), spec.separations)
+    np.testing.assert_array_equal([r["objective_stripes_E_b"] for r in rows1 if r["scene"] == 1],
+                                  paper["stripes_polarized"].curve.objective)
+    assert not np.allclose(paper["stripes_polarized"].curve.objective,
+                           plans["stripes_polarized"].curve.objective)
 
 
 def _fake(job: SceneJob) -> dict:
