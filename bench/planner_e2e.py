@@ -8,15 +8,22 @@ every pick, composed by the compositor's pipeline and scored against the unscatt
 (:mod:`polarstripe.planning.validate`, :mod:`polarstripe.planning.validate_table`). The table gives per
 method and scene the pick, its error, the best separation and its error, the regret (pick error ÷ best)
 and whether the best lies at the grid's edge (``>``: it may lie beyond). Target: regret ≤ 1.05.
+
+The scored scans do not depend on the planner, so they are kept (``--cache DIR``, default
+``$XDG_CACHE_HOME/polarstripe/planner-e2e``; ``--no-cache``) in a file named by a hash of the model's and the
+pipeline's code (``sim/``, ``imaging/``, ``planning/validate.py``): a second run with another objective scans
+only its new picks; a change to the model starts a new file.
 """
 
 from __future__ import annotations
 
 import argparse
 import glob
+import hashlib
 import json
 import os
 import time
+from pathlib import Path
 
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
@@ -54,6 +61,59 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     g.add_argument("--seed", type=int, default=1, help="sensor noise seed")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--cache", default=None, metavar="DIR",
+                   help="where scored scans are kept between runs (default $XDG_CACHE_HOME/polarstripe/"
+                        "planner-e2e)")
+    g.add_argument("--no-cache", action="store_true", help="scan everything, keep nothing")
+
+
+def code_hash() -> str:
+    """sha256 of the code a scored scan depends on: sim/, imaging/ and planning/validate.py."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    files = [*root.glob("sim/*.py"), *root.glob("imaging/*.py"), root / "planning" / "validate.py"]
+    for path in sorted(files):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+class ScanCache:
+    """Scored scans by :func:`~polarstripe.planning.validate_table.scan_key`, in one JSON file per code hash
+    (written whole, atomically, by :meth:`save`)."""
+
+    def __init__(self, folder: str):
+        self.path = Path(folder) / f"scans-{code_hash()}.json"
+        try:
+            self.rows = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            self.rows = {}
+        self.dirty = False
+
+    @staticmethod
+    def _digest(key: str) -> str:
+        return hashlib.sha256(key.encode()).hexdigest()
+
+    def get(self, key: str):
+        return self.rows.get(self._digest(key))
+
+    def put(self, key: str, row: dict) -> None:
+        self.rows[self._digest(key)] = row
+        self.dirty = True
+
+    def save(self) -> None:
+        if not self.dirty:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.rows))
+        os.replace(tmp, self.path)
+        self.dirty = False
+
+
+def default_cache_dir() -> str:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "polarstripe", "planner-e2e")
 
 
 def scene_paths(args) -> list[str]:
@@ -82,13 +142,14 @@ def run(args) -> dict:
     grid = default_grid(args.grid, *args.grid_range)
     paths = scene_paths(args)
     scenes = [(os.path.splitext(os.path.basename(p))[0], load_scene(p)) for p in paths]
+    cache = None if args.no_cache else ScanCache(args.cache or default_cache_dir())
     bar = None
     if not args.no_progress:
         from tqdm import tqdm
         bar = tqdm(total=0, unit="sep", desc="end to end", leave=False)
     out = {"grid_m": grid.tolist(), "settings": vars(settings), "plan_orders": list(variants),
            "plan_fidelity": args.plan_fidelity, "target_regret": TARGET_REGRET, "scenes": {}}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         for name, scene in scenes:
             if bar is not None:
@@ -97,13 +158,17 @@ def run(args) -> dict:
             res = validate(scene, grid, settings, plan_orders=variants, plan_fidelity=args.plan_fidelity,
                            progress=(lambda: bar.update(1)) if bar is not None else None,
                            on_total=(lambda n: setattr(bar, "total", bar.total + n)) if bar is not None
-                           else None)
+                           else None, cache=cache)
             res["seconds"] = time.perf_counter() - t
             out["scenes"][name] = res
+            if cache is not None:
+                cache.save()
     finally:
         if bar is not None:
             bar.close()
     out["seconds"] = time.perf_counter() - t0
+    out["cpu_seconds"] = time.process_time() - c0
+    out["cache"] = None if cache is None else str(cache.path)
     return out
 
 
@@ -116,8 +181,11 @@ def print_table(res: dict) -> None:
     print(f"planner end to end: {len(res['grid_m'])} separations "
           f"{res['grid_m'][0] * 100:.0f}-{res['grid_m'][-1] * 100:.0f} cm (log) + every pick; scans at "
           f"{s['fidelity']}, {s['orders']} orders, {s['n_stripes']} stripes, width {s['width']}, exposure "
-          f"{s['exposure']}; error vs T (whole frame, gain fitted); regret = error at pick / best error; "
-          f"{res['seconds']:.0f} s")
+          f"{s['exposure']}; error vs T (whole frame, gain fitted); regret = error at pick / best error")
+    scanned = sum(sc["scanned"] for sc in res["scenes"].values())
+    cached = sum(sc["cached"] for sc in res["scenes"].values())
+    print(f"{res['seconds']:.0f} s ({res['cpu_seconds']:.0f} s CPU); {scanned} method scans made, {cached} "
+          f"from the cache {res['cache'] or '(none)'}")
     head = (f"{'plan':<7} {'method':<18} {'image':<9} {'scene':<15} {'pick cm':>8} {'err':>6} "
             f"{'best cm':>8} {'err':>6} {'regret':>7}")
     print(head)

@@ -165,6 +165,8 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
                 methods=METHODS) -> dict[str, dict]:
     """Each method's scan at camera–source separation ``separation_m`` [m], composed and scored (module
     docstring). ``scene`` is taken as given (its camera already at the scan's width: :func:`scan_scene`).
+    Each method's noise comes from its own stream of ``settings.seed``: a row does not depend on which
+    other methods were scanned with it.
 
     Returns
     -------
@@ -189,12 +191,12 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
     bright, dark = chart & surf.chart_high, chart & ~surf.chart_high
     if not (bright.any() and dark.any()):
         bright = dark = None
-    rng = np.random.default_rng(settings.seed)
     cam0 = sd.camera
     flood_e = analyzer(flood, None)
     angles, calibration_note = None, ""
     if any(m.startswith("polarized") for m in methods):
         scale = _scale(settings.exposure, cam0, [flood_e], flood_e)
+        rng = np.random.default_rng([settings.seed, len(METHODS)])
         angles, calibration_note = _calibrate(flood, cam0, scale, rng, background)
     depth_z = depth_truth(sd) if stripes else None
     geom = RigGeometry.from_dict(rig_geometry(sd)) if stripes and sd.projector.model == "pinhole" else None
@@ -204,7 +206,7 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
         passes = [[analyzer(c, a) for c in comps] for a in (angles if method.startswith("polarized")
                                                              else (None,))]
         scale = _scale(settings.exposure, cam0, [f for p in passes for f in p], flood_e)
-        cam = _Sensor(cam0, scale, rng)
+        cam = _Sensor(cam0, scale, np.random.default_rng([settings.seed, METHODS.index(method)]))
         shape = flood_e.shape
         views, votes = {}, RunningArgmax(shape, np.uint16) if "stripes" in method else None
         for k, radiances in enumerate(passes):

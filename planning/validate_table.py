@@ -16,13 +16,15 @@ planner's range, the same of the plan (``pick_at_edge``).
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 
 import numpy as np
 from polarstripe.planning.planner import default_separations, plan
 from polarstripe.planning.scene_model import SceneModel
-from polarstripe.planning.validate import METHODS, ScanSettings, curves, scan_scene, score_scans
-from polarstripe.sim.scene import Scene, SceneError
+from polarstripe.planning.validate import METHODS, ScanSettings, scan_scene, score_scans
+from polarstripe.sim.scene import Scene, SceneError, scene_to_dict
 
 #: (method, image scored, planner curve key, reading of that curve or None for the plan's choice)
 JUDGED = (("flood", "error", "flood", None),
@@ -66,9 +68,16 @@ def _pick_of(picks: dict, key: str, reading: str | None) -> float:
     return entry["readings"][reading]
 
 
+def scan_key(scene: Scene, settings: ScanSettings, separation_m: float, method: str) -> str:
+    """A text that names one scored scan: the scene, the settings, the separation and the method (what a
+    cache of rows keys on; the model's code is the cache's to add)."""
+    return json.dumps([scene_to_dict(scene), dataclasses.asdict(settings), round(float(separation_m), 9),
+                       method], sort_keys=True)
+
+
 def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("all",),
              plan_fidelity: str = "standard", n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
-             on_total=None) -> dict:
+             on_total=None, cache=None) -> dict:
     """The end-to-end table of one scene (module docstring).
 
     Parameters
@@ -79,37 +88,50 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     plan_orders : the planner variants, each an ``orders`` of its SceneModel.
     plan_fidelity, n_plan, plan_range : the planner's fidelity and separation grid.
     progress : called once per separation scanned; ``on_total(n)`` first, with their number.
+    cache : optional mapping-like store of scored rows by :func:`scan_key` (``get(key)``, ``put(key, row)``):
+        a row found there is not scanned again.
 
     Returns
     -------
-    {"grid_m", "curves": {method: [row per grid separation]}, "picks": {variant: {...}},
+    {"grid_m", "curves": {method: [row per grid separation]}, "extra": {method: [rows at picks off the
+    grid]}, "picks": {variant: {...}}, "scanned": rows scanned, "cached": rows from the cache,
     "rows": [one per (variant, method, image)]} (:func:`regret_rows`).
     """
     settings = settings or ScanSettings()
+    settings.check()
     grid = sorted(float(d) for d in grid_m)
+    if not grid or any(not (math.isfinite(d) and d > 0) for d in grid):
+        raise SceneError("grid: need positive separations [m]")
     seps = default_separations(n_plan, *plan_range)
     picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
                               separations_m=seps) for o in plan_orders}
-    on_grid = {round(d, 9) for d in grid}
-    extra: dict[float, set] = {}  # a pick off the grid: only the methods picked there are scanned
-    for p in picks.values():
+    jobs: dict[float, set] = {round(d, 9): set(METHODS) for d in grid}
+    for p in picks.values():  # a pick off the grid: only the methods picked there are scanned
         for method, _, key, reading in JUDGED:
-            d = round(_pick_of(p, key, reading), 9)
-            if d not in on_grid:
-                extra.setdefault(d, set()).add(method)
+            jobs.setdefault(round(_pick_of(p, key, reading), 9), set()).add(method)
     if on_total is not None:
-        on_total(len(grid) + len(extra))
-    made = curves(scene, grid, settings, METHODS, progress=progress)
-    at = {m: {round(r["separation_m"], 9): r for r in rows} for m, rows in made.items()}
-    scans = {m: [] for m in METHODS}
+        on_total(len(jobs))
     small = scan_scene(scene, settings.width)
-    for d in sorted(extra):
-        for m, row in score_scans(small, d, settings, [m for m in METHODS if m in extra[d]]).items():
-            at[m][d] = row
-            scans[m].append(row)
+    at: dict[str, dict[float, dict]] = {m: {} for m in METHODS}
+    counts = {"scanned": 0, "cached": 0}
+    for d in sorted(jobs):
+        keys = {m: scan_key(scene, settings, d, m) for m in METHODS if m in jobs[d]}
+        found = {m: cache.get(k) for m, k in keys.items()} if cache is not None else {}
+        need = [m for m in keys if found.get(m) is None]
+        made = score_scans(small, d, settings, need) if need else {}
+        for m in keys:
+            if m in made and cache is not None:
+                cache.put(keys[m], made[m])
+            at[m][d] = made[m] if m in made else found[m]
+        counts["scanned"] += len(made)
+        counts["cached"] += len(keys) - len(made)
         if progress is not None:
             progress()
-    result = {"grid_m": grid, "curves": made, "extra": scans, "picks": picks}
+    on_grid = {round(d, 9) for d in grid}
+    result = {"grid_m": grid,
+              "curves": {m: [at[m][round(d, 9)] for d in grid] for m in METHODS},
+              "extra": {m: [r for d, r in sorted(at[m].items()) if d not in on_grid] for m in METHODS},
+              "picks": picks, **counts}
     result["rows"] = regret_rows(at, grid, picks)
     return result
 

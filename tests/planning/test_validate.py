@@ -74,9 +74,29 @@ def test_murky_water_stripes_beat_flood_and_polarization_helps(tank):
     assert 0.0 < got["polarized_flood"][0]["p"] <= 1.0
 
 
+class _Store:
+    def __init__(self):
+        self.rows = {}
+
+    def get(self, key):
+        return self.rows.get(key)
+
+    def put(self, key, row):
+        self.rows[key] = row
+
+
 def test_validate_regret_is_at_least_one_and_best_is_the_minimum(tank):
     grid = [0.03, 0.1, 0.3]
-    res = validate(tank, grid, TINY, plan_orders=("single",), plan_fidelity="preview", n_plan=6)
+    store = _Store()
+    kw = dict(plan_orders=("single",), plan_fidelity="preview", n_plan=6, cache=store)
+    res = validate(tank, grid, TINY, **kw)
+    assert res["cached"] == 0 and res["scanned"] == len(store.rows) >= 3 * 4
+    # a second run takes every scan from the cache and gives the same table; a row does not depend on the
+    # methods scanned beside it (each has its own noise stream)
+    again = validate(tank, grid, TINY, **kw)
+    assert again["scanned"] == 0 and again["cached"] == res["scanned"] and again["rows"] == res["rows"]
+    alone = curves(tank, [0.1], TINY, methods=("stripes",))["stripes"][0]
+    assert alone == res["curves"]["stripes"][1]
     scored = {m: res["curves"][m] + res["extra"][m] for m in res["curves"]}
     for row in res["rows"]:
         key = "error" if row["image"] == "composite" else "error_e_b"
@@ -129,3 +149,16 @@ def test_bench_end_to_end_unknown_scene_is_one_line():
                         "no_such_scene"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert "no_such_scene" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_scan_cache_keeps_rows_across_runs_per_code_version(tmp_path):
+    from polarstripe.bench.planner_e2e import ScanCache, code_hash
+
+    cache = ScanCache(str(tmp_path))
+    assert cache.get("k") is None
+    cache.put("k", {"error": 0.25})
+    cache.save()
+    assert cache.path.name == f"scans-{code_hash()}.json" and len(code_hash()) == 16
+    assert ScanCache(str(tmp_path)).get("k") == {"error": 0.25}
+    cache.path.write_text("{not json")  # a broken file is a cold cache, not an error
+    assert ScanCache(str(tmp_path)).get("k") is None
