@@ -2,8 +2,10 @@
 
 Prints the optimum and the curve per modality (flood: CQM·W, stripes: GQM·W), with and without a polarizer;
 ``--json`` prints one object keyed ``flood``, ``flood_polarized``, ``stripes``, ``stripes_polarized``;
-``--plot`` draws curves like the paper's Figs. 9a and 10d (noise-free beside noisy). :func:`plan_to_json` and
-:data:`PLAN_SCHEMA` (JSON Schema 2020-12) define the JSON.
+``--plot`` draws curves like the paper's Figs. 9a and 10d (noise-free beside noisy); ``--validate`` judges the
+picks end to end, full scans through the compositor's pipeline on a grid of separations and at each pick
+(:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``).
+:func:`plan_to_json` and :data:`PLAN_SCHEMA` (JSON Schema 2020-12) define the JSON.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from polarstripe.planning.planner import (
     default_separations,
     plan,
 )
+from polarstripe.planning.validate import EXPOSURES, ScanSettings
+from polarstripe.planning.validate_table import default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
 
 HELP = ("find the best camera-source separation and stripe scan (flood CQM*W, stripes margin*W; "
@@ -115,7 +119,11 @@ PLAN_SCHEMA = {
     "minProperties": 1,
     "additionalProperties": False,
     "properties": {"flood": _ENTRY, "flood_polarized": _FLOOD_POL_ENTRY, "stripes": _STRIPE_ENTRY,
-                   "stripes_polarized": _STRIPE_ENTRY},
+                   "stripes_polarized": _STRIPE_ENTRY,
+                   "validation": {"type": "object", "required": ["grid_m", "rows", "curves"],
+                                  "properties": {"rows": {"type": "array", "items": {
+                                      "type": "object", "required": ["method", "image", "pick_m",
+                                                                     "pick_error", "best_m", "regret"]}}}}},
 }
 
 
@@ -143,6 +151,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--orders", choices=("all", "single"), default="all",
                         help="orders of scattering of the planner's model: all (default: those the scene "
                         "needs, sim/orders.py, as the simulator renders) or the paper's single scattering")
+    parser.add_argument("--validate", action="store_true",
+                        help="judge the picks end to end: full scans (all orders, standard) through the "
+                        "compositor's pipeline, error vs the unscattered object, regret (planning.md §7)")
+    parser.add_argument("--validate-grid", type=int, default=8, metavar="N",
+                        help="separations of --validate's grid, log-spaced 2-60 cm (default 8)")
+    parser.add_argument("--validate-width", type=int, default=160, metavar="W",
+                        help="camera width of --validate's scans (default 160)")
+    parser.add_argument("--validate-exposure", choices=EXPOSURES, default="rig",
+                        help="exposure of --validate's scans (default rig: see bench planner --help)")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
 
@@ -192,6 +209,22 @@ def _print_tables(doc: dict) -> None:
                           f"{c['weight'][k]:7.3f}" for _, c in cols)
             sat = " saturated" if any(c["saturated"][k] for _, c in cols if c.get("saturated")) else ""
             print(f"  {d * 100:9.1f}{row}{sat}")
+
+
+def _print_validation(v: dict) -> None:
+    g = v["grid_m"]
+    print(f"end to end ({len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm and each pick; error vs "
+          "the unscattered object, whole frame, gain fitted; regret = error at the pick / best):")
+    print(f"  {'method':<18} {'image':<9} {'pick cm':>8} {'error':>6} {'best cm':>8} {'error':>6} "
+          f"{'regret':>7}")
+
+    def num(x, f):
+        return "-" if x is None else format(x, f)
+
+    for r in v["rows"]:
+        print(f"  {r['method']:<18} {r['image']:<9} {r['pick_m'] * 100:8.1f} {num(r['pick_error'], '6.3f')} "
+              f"{num(r['best_m'] and r['best_m'] * 100, '7.1f')}{'>' if r['best_at_edge'] else ' '} "
+              f"{num(r['best_error'], '6.3f')} {num(r['regret'], '7.3f')}")
 
 
 _STYLE = {"E": "-", "E_b": "--", "S_hat": ":"}
@@ -244,14 +277,23 @@ def main(args: argparse.Namespace) -> int:
     model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes, edge=args.edge,
                        orders=args.orders)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
-    doc = plan_to_json(plan(model, seps, modalities=modalities, k_detect=args.k_detect,
-                            exposure=args.exposure))
+    plans = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
+    doc = plan_to_json(plans)
+    if args.validate:
+        settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width,
+                                exposure=args.validate_exposure)
+        res = validate(scene, default_grid(args.validate_grid), settings,
+                       picks={args.orders: picks_of(plans)})
+        doc["validation"] = {"grid_m": res["grid_m"], "settings": vars(settings), "rows": res["rows"],
+                             "curves": res["curves"], "extra": res["extra"]}
     if args.plot:
         plot_plan(doc, args.plot)
     if args.json:
         print(json.dumps(doc))
     else:
         _print_tables(doc)
+        if "validation" in doc:
+            _print_validation(doc["validation"])
         if args.plot:
             print(f"plot written to {args.plot}")
     return 0

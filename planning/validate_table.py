@@ -52,10 +52,15 @@ def planner_picks(scene: Scene, *, orders: str, fidelity: str = "standard", n_st
     "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults."""
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     model = SceneModel(scene, fidelity=fidelity, n_stripes=n_stripes, orders=orders)
+    return picks_of(plan(model, seps, exposure=exposure))
+
+
+def picks_of(plans: dict) -> dict[str, dict]:
+    """The picks (:func:`planner_picks`) of plans made by :func:`polarstripe.planning.planner.plan`."""
     out = {}
-    for key, mp in plan(model, seps, exposure=exposure).items():
-        i = mp.curve.best_index
-        out[key] = {"separation_m": mp.curve.best_separation_m, "at_edge": i in (0, len(seps) - 1),
+    for key, mp in plans.items():
+        i, n = mp.curve.best_index, len(mp.curve.separations_m)
+        out[key] = {"separation_m": mp.curve.best_separation_m, "at_edge": i in (0, n - 1),
                     "reading": mp.reading,
                     "readings": {r: c.best_separation_m for r, c in mp.readings.items()}}
     return out
@@ -77,7 +82,7 @@ def scan_key(scene: Scene, settings: ScanSettings, separation_m: float, method: 
 
 def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("all",),
              plan_fidelity: str = "standard", n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
-             on_total=None, cache=None) -> dict:
+             on_total=None, cache=None, picks: dict | None = None) -> dict:
     """The end-to-end table of one scene (module docstring).
 
     Parameters
@@ -90,6 +95,8 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     progress : called once per separation scanned; ``on_total(n)`` first, with their number.
     cache : optional mapping-like store of scored rows by :func:`scan_key` (``get(key)``, ``put(key, row)``):
         a row found there is not scanned again.
+    picks : optional {variant: :func:`picks_of` plans} already made (then ``plan_*`` are not used); the
+        methods whose planner curves they lack are left out.
 
     Returns
     -------
@@ -102,13 +109,16 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     grid = sorted(float(d) for d in grid_m)
     if not grid or any(not (math.isfinite(d) and d > 0) for d in grid):
         raise SceneError("grid: need positive separations [m]")
-    seps = default_separations(n_plan, *plan_range)
-    picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
-                              separations_m=seps) for o in plan_orders}
-    jobs: dict[float, set] = {round(d, 9): set(METHODS) for d in grid}
+    if picks is None:
+        seps = default_separations(n_plan, *plan_range)
+        picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
+                                  separations_m=seps) for o in plan_orders}
+    methods = [m for m in METHODS if any(j[0] == m and j[2] in p for j in JUDGED for p in picks.values())]
+    jobs: dict[float, set] = {round(d, 9): set(methods) for d in grid}
     for p in picks.values():  # a pick off the grid: only the methods picked there are scanned
         for method, _, key, reading in JUDGED:
-            jobs.setdefault(round(_pick_of(p, key, reading), 9), set()).add(method)
+            if key in p:
+                jobs.setdefault(round(_pick_of(p, key, reading), 9), set()).add(method)
     if on_total is not None:
         on_total(len(jobs))
     small = scan_scene(scene, settings.width)
@@ -129,8 +139,8 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
             progress()
     on_grid = {round(d, 9) for d in grid}
     result = {"grid_m": grid,
-              "curves": {m: [at[m][round(d, 9)] for d in grid] for m in METHODS},
-              "extra": {m: [r for d, r in sorted(at[m].items()) if d not in on_grid] for m in METHODS},
+              "curves": {m: [at[m][round(d, 9)] for d in grid] for m in methods},
+              "extra": {m: [r for d, r in sorted(at[m].items()) if d not in on_grid] for m in methods},
               "picks": picks, **counts}
     result["rows"] = regret_rows(at, grid, picks)
     return result
@@ -142,6 +152,8 @@ def regret_rows(at: dict[str, dict[float, dict]], grid: list[float], picks: dict
     rows = []
     for variant, p in picks.items():
         for method, image, key, reading in JUDGED:
+            if key not in p:
+                continue
             scored = at[method]
             d_pick = _pick_of(p, key, reading)
             errors = {d: r.get(image) for d, r in scored.items()}

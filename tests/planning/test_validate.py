@@ -162,3 +162,26 @@ def test_scan_cache_keeps_rows_across_runs_per_code_version(tmp_path):
     assert ScanCache(str(tmp_path)).get("k") == {"error": 0.25}
     cache.path.write_text("{not json")  # a broken file is a cold cache, not an error
     assert ScanCache(str(tmp_path)).get("k") is None
+
+
+def test_plan_validate_judges_the_plans_own_picks(capsys):
+    import json
+
+    import jsonschema
+    from polarstripe.planning.plan_cli import PLAN_SCHEMA, _print_validation
+
+    args = ["plan", "--modality", "flood", "--separations", "4", "--fidelity", "preview", "--validate",
+            "--validate-grid", "2", "--validate-width", "32", "--json"]
+    r = subprocess.run([sys.executable, "-m", "polarstripe", *args], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    jsonschema.validate(doc, PLAN_SCHEMA)
+    v = doc["validation"]
+    assert set(v["curves"]) == {"flood", "polarized_flood"}  # no stripe plan: no stripe scans
+    assert {(row["method"], row["image"]) for row in v["rows"]} == {
+        ("flood", "composite"), ("polarized_flood", "composite"), ("polarized_flood", "E_b")}
+    flood = next(row for row in v["rows"] if row["method"] == "flood")
+    assert flood["pick_m"] == doc["flood"]["best_separation"] and flood["regret"] >= 1.0
+    _print_validation(v)
+    assert "polarized_flood" in capsys.readouterr().out
