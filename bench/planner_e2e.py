@@ -46,6 +46,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                    "log-spaced over --grid-range)")
     g.add_argument("--grid-range", nargs=2, type=float, default=(0.02, 0.6), metavar=("MIN_M", "MAX_M"),
                    help="end-to-end grid range in metres (default 0.02 0.6)")
+    g.add_argument("--refine", type=int, default=1, metavar="N",
+                   help="rounds of bisection around each method's best (default 1: its two log-midpoints)")
     g.add_argument("--fidelity", default="standard", help="fidelity of the scans' renders (default standard)")
     g.add_argument("--orders", choices=("all", "single"), default="all",
                    help="orders of scattering of the scans' renders (default all: the simulator's)")
@@ -147,7 +149,8 @@ def run(args) -> dict:
     if not args.no_progress:
         from tqdm import tqdm
         bar = tqdm(total=0, unit="sep", desc="end to end", leave=False)
-    out = {"grid_m": grid.tolist(), "settings": vars(settings), "plan_orders": list(variants),
+    out = {"grid_m": grid.tolist(), "refine": args.refine, "settings": vars(settings),
+           "plan_orders": list(variants),
            "plan_fidelity": args.plan_fidelity, "target_regret": TARGET_REGRET, "scenes": {}}
     t0, c0 = time.perf_counter(), time.process_time()
     try:
@@ -158,7 +161,7 @@ def run(args) -> dict:
             res = validate(scene, grid, settings, plan_orders=variants, plan_fidelity=args.plan_fidelity,
                            progress=(lambda: bar.update(1)) if bar is not None else None,
                            on_total=(lambda n: setattr(bar, "total", bar.total + n)) if bar is not None
-                           else None, cache=cache)
+                           else None, cache=cache, refine=args.refine)
             res["seconds"] = time.perf_counter() - t
             out["scenes"][name] = res
             if cache is not None:
@@ -179,7 +182,8 @@ def _f(v, fmt):
 def print_table(res: dict) -> None:
     s = res["settings"]
     print(f"planner end to end: {len(res['grid_m'])} separations "
-          f"{res['grid_m'][0] * 100:.0f}-{res['grid_m'][-1] * 100:.0f} cm (log) + every pick; scans at "
+          f"{res['grid_m'][0] * 100:.0f}-{res['grid_m'][-1] * 100:.0f} cm (log) + every pick + "
+          f"{res['refine']} bisection(s) around each best; scans at "
           f"{s['fidelity']}, {s['orders']} orders, {s['n_stripes']} stripes, width {s['width']}, exposure "
           f"{s['exposure']}; error vs T (whole frame, gain fitted); regret = error at pick / best error")
     scanned = sum(sc["scanned"] for sc in res["scenes"].values())

@@ -3,9 +3,10 @@
 For one scene: the planner (:func:`polarstripe.planning.planner.plan` on a
 :class:`~polarstripe.planning.scene_model.SceneModel`, once per objective variant, e.g. single scattering and
 all orders) picks a separation per method; the end-to-end curves (:mod:`polarstripe.planning.validate`) are
-computed on a grid of separations and at every pick. Per method and variant:
+computed on a grid of separations, at every pick, and at the geometric midpoints either side of each best
+(``refine`` rounds of bisection). Per method and variant:
 
-    regret = error(pick) / min(error over the grid and the picks)    (≥ 1; 1: the pick is the best seen)
+    regret = error(pick) / min(error over every separation scanned)    (≥ 1; 1: the pick is the best seen)
 
 Each method is judged on the image the compositor publishes (eq. 7 for stripes, eq. 6's Ŝ for the polarized
 methods) at the pick of the planner's curve for it (the polarized flood: the recommended reading's); the
@@ -82,7 +83,7 @@ def scan_key(scene: Scene, settings: ScanSettings, separation_m: float, method: 
 
 def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("all",),
              plan_fidelity: str = "standard", n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
-             on_total=None, cache=None, picks: dict | None = None) -> dict:
+             on_total=None, cache=None, picks: dict | None = None, refine: int = 1) -> dict:
     """The end-to-end table of one scene (module docstring).
 
     Parameters
@@ -97,11 +98,13 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
         a row found there is not scanned again.
     picks : optional {variant: :func:`picks_of` plans} already made (then ``plan_*`` are not used); the
         methods whose planner curves they lack are left out.
+    refine : rounds of bisection: each scans, per method and image, the geometric midpoints between the best
+        separation so far and its scanned neighbours (the grid's best is up to half a log step off).
 
     Returns
     -------
-    {"grid_m", "curves": {method: [row per grid separation]}, "extra": {method: [rows at picks off the
-    grid]}, "picks": {variant: {...}}, "scanned": rows scanned, "cached": rows from the cache,
+    {"grid_m", "curves": {method: [row per grid separation]}, "extra": {method: [rows off the grid: picks,
+    bisections]}, "picks": {variant: {...}}, "scanned": rows scanned, "cached": rows from the cache,
     "rows": [one per (variant, method, image)]} (:func:`regret_rows`).
     """
     settings = settings or ScanSettings()
@@ -124,19 +127,31 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     small = scan_scene(scene, settings.width)
     at: dict[str, dict[float, dict]] = {m: {} for m in METHODS}
     counts = {"scanned": 0, "cached": 0}
-    for d in sorted(jobs):
-        keys = {m: scan_key(scene, settings, d, m) for m in METHODS if m in jobs[d]}
-        found = {m: cache.get(k) for m, k in keys.items()} if cache is not None else {}
-        need = [m for m in keys if found.get(m) is None]
-        made = score_scans(small, d, settings, need) if need else {}
-        for m in keys:
-            if m in made and cache is not None:
-                cache.put(keys[m], made[m])
-            at[m][d] = made[m] if m in made else found[m]
-        counts["scanned"] += len(made)
-        counts["cached"] += len(keys) - len(made)
-        if progress is not None:
-            progress()
+
+    def run(jobs: dict[float, set]) -> None:
+        for d in sorted(jobs):
+            keys = {m: scan_key(scene, settings, d, m) for m in METHODS if m in jobs[d]}
+            found = {m: cache.get(k) for m, k in keys.items()} if cache is not None else {}
+            need = [m for m in keys if found.get(m) is None]
+            made = score_scans(small, d, settings, need) if need else {}
+            for m in keys:
+                if m in made and cache is not None:
+                    cache.put(keys[m], made[m])
+                at[m][d] = made[m] if m in made else found[m]
+            counts["scanned"] += len(made)
+            counts["cached"] += len(keys) - len(made)
+            if progress is not None:
+                progress()
+
+    run(jobs)
+    for _ in range(refine):  # bisect (in log d) either side of each image's best so far
+        more: dict[float, set] = {}
+        for method, image in {(j[0], j[1]) for j in JUDGED if j[0] in methods}:
+            for d in _bisections(at[method], image):
+                more.setdefault(d, set()).add(method)
+        if on_total is not None:
+            on_total(len(more))
+        run(more)
     on_grid = {round(d, 9) for d in grid}
     result = {"grid_m": grid,
               "curves": {m: [at[m][round(d, 9)] for d in grid] for m in methods},
@@ -144,6 +159,15 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
               "picks": picks, **counts}
     result["rows"] = regret_rows(at, grid, picks)
     return result
+
+
+def _bisections(scored: dict[float, dict], image: str) -> list[float]:
+    """Geometric midpoints between the separation of the least ``image`` error and its scanned neighbours."""
+    seps = sorted(d for d, r in scored.items() if r.get(image) is not None and math.isfinite(r[image]))
+    if len(seps) < 2:
+        return []
+    i = min(range(len(seps)), key=lambda k: scored[seps[k]][image])
+    return [round(math.sqrt(seps[j] * seps[i]), 9) for j in (i - 1, i + 1) if 0 <= j < len(seps)]
 
 
 def regret_rows(at: dict[str, dict[float, dict]], grid: list[float], picks: dict) -> list[dict]:

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 from polarstripe.planning.validate import ScanSettings, curves, scan_scene
-from polarstripe.planning.validate_table import default_grid, regret_rows, validate
+from polarstripe.planning.validate_table import _bisections, default_grid, regret_rows, validate
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.scene import SceneError, load_scene, with_separation
 
@@ -130,6 +130,13 @@ def test_regret_rows_by_hand():
     assert rows[("flood", "composite")]["best_at_edge"] is True
     flood = rows[("flood", "composite")]
     assert flood["pick_error"] is None and flood["regret"] is None
+
+
+def test_bisection_scans_either_side_of_the_best():
+    scored = {0.02: {"error": 0.5}, 0.08: {"error": 0.3}, 0.32: {"error": 0.4}, 0.5: {"error": None}}
+    assert _bisections(scored, "error") == pytest.approx([0.04, 0.16])
+    assert _bisections({0.02: {"error": 0.1}, 0.08: {"error": 0.3}}, "error") == pytest.approx([0.04])
+    assert _bisections({0.02: {"error": 0.1}}, "error") == []
 
 
 def test_bad_settings_are_one_line_errors(tank):
