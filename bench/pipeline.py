@@ -80,7 +80,7 @@ params = {{ {sim} }}
 [[node]]
 name = "polarizer"
 module = "polarstripe.nodes.polarizer"
-params = {{ backend = "cia402", interface = "zmq", channel = "{can}" }}
+params = {{ stage = "cia402", stage_options = {{ interface = "zmq", channel = "{can}" }} }}
 [[node]]
 name = "grabber"
 module = "polarstripe.nodes.grabber"

@@ -35,8 +35,9 @@ Scan ids count from 1 and never repeat within a launch: the next id is kept in t
 between scans (``polarizer/calibrate`` shows flood through it, then ``off``); refused while a scan runs or
 waits.
 
-Display backends come from :mod:`polarstripe.nodes.drivers` (``null`` for the simulator and CI, ``window``,
-``serial``).
+The display is a backend of :mod:`polarstripe.nodes.drivers` (``null`` for the simulator and CI,
+``window``, ``serial``, or an entry point's), named by ``display`` and made from ``display_options`` (the
+backend's own ``Options``, the projector's size among them: docs/nodes.md).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 from polarstripe.msgs import (
     Ack,
@@ -58,7 +60,7 @@ from polarstripe.msgs import (
     ScanRequest,
 )
 from polarstripe.nodes.drivers.errors import DriverError
-from polarstripe.nodes.drivers.registry import open_backend
+from polarstripe.nodes.drivers.registry import check_backend, open_backend
 from polarstripe.runtime.bus import BusError
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
@@ -132,11 +134,8 @@ class Emitter(Node):
     """Runs scans as a state machine stepped by the loop (see the module docstring)."""
 
     class Params(NodeParams):
-        display: str = "null"  # display backend: null | window | serial
-        display_width: int = 1024  # projector size [px] (pattern semantics)
-        display_height: int = 768
-        display_port: str = ""  # serial: the trigger box's port
-        display_index: int = 0  # window: which screen
+        display: str = "null"  # display backend: null | window | serial, or an entry point's
+        display_options: dict[str, Any] = {}  # the backend's own options (its Options)
         stripes: int = 30  # when the request says 0
         checker_size: int = 16  # hf_separation checker squares [projector px]
         analyzer_deg: list[float] = []  # polarized methods without angles in the request: [E_b, E_w]
@@ -148,6 +147,7 @@ class Emitter(Node):
 
         def validate(self):
             super().validate()
+            check_backend("display", self.display, self.display_options)
             for key in ("settle_timeout_s", "trigger_timeout_s", "frame_timeout_s"):
                 if not getattr(self, key) > 0:
                     raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
@@ -169,12 +169,7 @@ class Emitter(Node):
         self.serve("emitter/show", self.show)
         self.trigger = self.client("camera/trigger", FrameRequest, Ack, timeout_s=p.trigger_timeout_s)
         self.mount = self.client("camera/analyzer", AnalyzerMount, Ack, timeout_s=p.trigger_timeout_s)
-        kwargs: dict = {"width": p.display_width, "height": p.display_height}
-        if p.display == "serial":
-            kwargs["port"] = p.display_port
-        elif p.display == "window":
-            kwargs["display_index"] = p.display_index
-        self.display = open_backend("display", p.display, **kwargs)
+        self.display = open_backend("display", p.display, p.display_options)
         self.queue: deque[tuple[ScanPlan, float]] = deque()  # (plan, when requested)
         # scan ids never repeat within a launch: the next one is kept in the run directory, so a respawned
         # emitter goes on from there (runtime/liveness.py)

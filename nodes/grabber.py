@@ -1,7 +1,9 @@
 """The grabber node: takes one frame per ``camera/trigger`` and publishes it on ``camera/frame``.
 
-The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``file``, ``sim``), opened when the
-node starts. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one
+The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``file``, ``sim``, or one added
+through the ``polarstripe.drivers`` entry points), named by ``camera`` and made from ``camera_options`` (the
+backend's own ``Options``: docs/nodes.md) when the node starts; ``exposure_s`` and ``gain`` are set through
+the camera role. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one
 :class:`~polarstripe.nodes.drivers.camera.CameraFrame` and publishes it as one ``Frame`` (the image as the
 camera delivered it, with the exposure, gain and bit depth it was taken with) tagged with the pattern, the
 scan and step, and the analyzer angle. The angle is decided here and only here, where the stage's state is
@@ -25,9 +27,12 @@ from __future__ import annotations
 import math
 import time
 
-from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState, RenderRequest
+from typing import Any
+
+from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState
+from polarstripe.nodes.drivers.backend import BackendContext
 from polarstripe.nodes.drivers.errors import DriverError
-from polarstripe.nodes.drivers.registry import open_backend
+from polarstripe.nodes.drivers.registry import check_backend, open_backend
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
@@ -37,18 +42,15 @@ class Grabber(Node):
     """Grabs a frame per trigger from a camera backend (see the module docstring)."""
 
     class Params(NodeParams):
-        camera: str = "sim"  # backend name: sim | v4l2 | file (or an entry point)
-        device: str = ""  # v4l2: index or /dev/videoN; file: folder, glob or video
-        width: int = 0  # v4l2 requested size (0: the driver's)
-        height: int = 0
+        camera: str = "sim"  # camera backend: sim | v4l2 | file, or an entry point's
+        camera_options: dict[str, Any] = {}  # the backend's own options (its Options)
         exposure_s: float | None = None  # None: the backend's (the simulator's scene)
-        gain: float | None = None
-        loop: bool = False  # file: start again at the end
-        grab_timeout_s: float = 10.0  # a grab that takes longer is a fault
-        render_service: str = "simulator/render"  # sim backend: the simulator's service
+        gain: float | None = None  # None: the backend's
+        grab_timeout_s: float = 10.0  # a grab (and a service the camera calls) that takes longer is a fault
 
         def validate(self):
             super().validate()
+            check_backend("camera", self.camera, self.camera_options)
             if not self.grab_timeout_s > 0:
                 raise ValueError(f"grab_timeout_s must be > 0, got {self.grab_timeout_s}")
             if self.exposure_s is not None and not (math.isfinite(self.exposure_s) and self.exposure_s > 0):
@@ -68,7 +70,7 @@ class Grabber(Node):
         self.counters["grab_faults"] = 0
         self.counters["frames_oversize"] = 0  # frames beyond $POLARSTRIPE_MAX_PIXELS, dropped
         self.camera = None
-        self._render_client = None
+        self._service_clients: dict = {}  # kept across reopening the camera
         try:
             self.camera = self.open_camera()
         except DriverError as exc:  # started without a camera: every trigger says so until one appears
@@ -81,28 +83,27 @@ class Grabber(Node):
 
     # ---- camera --------------------------------------------------------------------------------------------
     def open_camera(self):
-        """Open the backend named by the ``camera`` param with the node's params."""
+        """Open the backend named by ``camera`` with ``camera_options``, then set exposure and gain."""
         p = self.params
-        kwargs: dict = {}
-        if p.camera == "sim":
-            if self._render_client is None:
-                self._render_client = self.client(p.render_service, RenderRequest, Frame,
-                                                  timeout_s=p.grab_timeout_s)
-            kwargs["render"] = self._render_client.call
+        cam = open_backend("camera", p.camera, p.camera_options, context=BackendContext(service=self._service))
+        try:
             if p.exposure_s is not None:
-                kwargs.update(exposure_s=p.exposure_s, send_exposure=True)
-        elif p.camera == "v4l2":
-            kwargs["device"] = int(p.device) if p.device.isdigit() else (p.device or 0)
-            kwargs.update(width=p.width or None, height=p.height or None)
-        elif p.camera == "file":
-            kwargs.update(source=p.device, loop=p.loop)
-        if p.camera != "sim" and p.exposure_s is not None:
-            kwargs["exposure_s"] = p.exposure_s
-        cam = open_backend("camera", p.camera, **kwargs)
-        if p.gain is not None:
-            cam.gain = p.gain
+                cam.exposure_s = p.exposure_s
+            if p.gain is not None:
+                cam.gain = p.gain
+        except DriverError:
+            cam.close()
+            raise
         self.log.info("camera %s open", cam.name)
         return cam
+
+    def _service(self, name: str, request_type: type, reply_type: type):
+        """The call of service ``name`` for the camera (one client per service, bounded by
+        ``grab_timeout_s``)."""
+        if name not in self._service_clients:
+            self._service_clients[name] = self.client(name, request_type, reply_type,
+                                                      timeout_s=self.params.grab_timeout_s)
+        return self._service_clients[name].call
 
     # ---- handlers ------------------------------------------------------------------------------------------
     def on_state(self, msg: PolarizerState) -> None:
@@ -136,8 +137,7 @@ class Grabber(Node):
             except DriverError as exc:
                 return self._fault(req, f"camera {self.params.camera!r} unavailable: {exc}")
         cam = self.camera
-        if hasattr(cam, "request"):
-            cam.request(req.pattern, analyzer=self.analyzer_in, scan_id=req.scan_id, step=req.step)
+        cam.request(req.pattern, analyzer=self.analyzer_in, scan_id=req.scan_id, step=req.step)
         if req.exposure_s is not None:
             try:
                 cam.exposure_s = req.exposure_s

@@ -1,9 +1,11 @@
 """The polarizer node: turns the analyzer with a :class:`~polarstripe.nodes.drivers.stage.RotationStage` and
 says where it is.
 
-Backends (param ``backend``): ``cia402`` (a CANopen CiA 402 drive on python-can: ``interface``/``channel``,
-``zmq`` + ``ipc://…`` in simulation, ``socketcan`` + ``can0`` on a rig), ``ell14`` (Thorlabs ELL14 on serial
-``port``) and ``sim`` (an in-process motion model).
+The stage is a backend of :mod:`polarstripe.nodes.drivers`, named by ``stage`` and made from
+``stage_options`` (the backend's own ``Options``: docs/nodes.md) and the node's software limits ``min_deg`` /
+``max_deg``: ``cia402`` (a CANopen CiA 402 drive on python-can: ``interface``/``channel``, ``zmq`` +
+``ipc://…`` in simulation, ``socketcan`` + ``can0`` on a rig), ``ell14`` (Thorlabs ELL14 on serial ``port``),
+``sim`` (an in-process motion model), or an entry point's.
 
 * subscribes ``polarizer/cmd`` (:class:`PolarizerCommand`): move to ``target_deg``;
 * publishes ``polarizer/state`` (:class:`PolarizerState`) every ``1/rate_hz`` s and as soon as anything
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Literal
+from typing import Any
 
 from polarstripe.msgs import (
     Ack,
@@ -43,7 +45,7 @@ from polarstripe.msgs import (
     PolarizerState,
 )
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
-from polarstripe.nodes.drivers.registry import open_backend
+from polarstripe.nodes.drivers.registry import check_backend, open_backend
 from polarstripe.nodes.polarizer_calibration import Calibrating
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
@@ -56,19 +58,10 @@ class Polarizer(Calibrating, Node):
     """The analyzer's rotation stage as a node (see the module docstring)."""
 
     class Params(NodeParams):
-        backend: Literal["cia402", "ell14", "sim"] = "sim"
-        interface: str = "socketcan"  # python-can interface (cia402)
-        channel: str = "can0"  # python-can channel (cia402)
-        node_id: int = 5  # CANopen node id (cia402)
-        counts_per_deg: float = 1000.0  # encoder counts per analyzer degree (cia402)
-        heartbeat_ms: int | None = None  # the drive's producer heartbeat (cia402); None: the driver's
-        heartbeat_timeout_s: float | None = None  # consumer heartbeat timeout (cia402); None: the driver's
-        pdo_timeout_s: float | None = None  # TPDO1 older than this is stale (cia402); None: the driver's
-        port: str = "/dev/ttyUSB0"  # serial port (ell14)
-        address: str = "0"  # device address on the line (ell14)
-        min_deg: float = -360.0
+        stage: str = "sim"  # stage backend: cia402 | ell14 | sim, or an entry point's
+        stage_options: dict[str, Any] = {}  # the backend's own options (its Options)
+        min_deg: float = -360.0  # software limits [deg], passed to the stage
         max_deg: float = 360.0
-        speed_deg_s: float = 180.0
         start_deg: float | None = None  # move here once connected
         rate_hz: float = 10.0  # steady publishing rate of polarizer/state
         poll_s: float = 0.02  # how often a change is looked for while a move or a fault is in progress
@@ -87,6 +80,7 @@ class Polarizer(Calibrating, Node):
 
         def validate(self):
             super().validate()
+            check_backend("stage", self.stage, self.stage_options)
             if not self.min_deg < self.max_deg:
                 raise ValueError(f"min_deg={self.min_deg} must be below max_deg={self.max_deg}")
             for key in ("rate_hz", "poll_s", "idle_poll_s", "settle_timeout_s", "connect_retry_s",
@@ -150,18 +144,8 @@ class Polarizer(Calibrating, Node):
             self.stage = None
 
     def _open_stage(self):
-
         p = self.params
-        limits = {"min_deg": p.min_deg, "max_deg": p.max_deg}
-        if p.backend == "cia402":
-            timing = {k: getattr(p, k) for k in ("heartbeat_ms", "heartbeat_timeout_s", "pdo_timeout_s")
-                      if getattr(p, k) is not None}
-            return open_backend("stage", "cia402", channel=p.channel, node_id=p.node_id,
-                                interface=p.interface, counts_per_deg=p.counts_per_deg,
-                                speed_deg_s=p.speed_deg_s, **limits, **timing)
-        if p.backend == "ell14":
-            return open_backend("stage", "ell14", port=p.port, address=p.address, **limits)
-        return open_backend("stage", "sim", deg_per_s=p.speed_deg_s, **limits)
+        return open_backend("stage", p.stage, p.stage_options, min_deg=p.min_deg, max_deg=p.max_deg)
 
     def _connect(self) -> None:
         self._next_connect = self.now() + self.params.connect_retry_s
@@ -172,7 +156,7 @@ class Polarizer(Calibrating, Node):
             self.stage = self._open_stage()
         except Exception as exc:  # any backend or bus failure: a published fault, retried
             self.counters["connects_failed"] += 1
-            text = f"{self.params.backend} stage not connected: {type(exc).__name__}: {exc}"
+            text = f"{self.params.stage} stage not connected: {type(exc).__name__}: {exc}"
             if text != self._connect_error:
                 self.log.error("%s (retrying every %g s)", text, self.params.connect_retry_s)
             self._connect_error = text

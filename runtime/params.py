@@ -1,5 +1,5 @@
-"""Typed node parameters: a frozen dataclass per node, filled from defaults, the launch file and the
-command line.
+"""Typed parameters: a frozen dataclass per node (:class:`NodeParams`) or per hardware backend (its
+``Options``, nodes/drivers/backend.py), filled from defaults, the launch file and the command line.
 
 ::
 
@@ -12,8 +12,9 @@ command line.
                 raise ValueError("must be > 0")   # reported as: node 'talker': param 'rate_hz' ...
 
 Values may arrive as strings (``--param rate_hz=5``, ``${arg}`` substitution in a launch file); they are
-coerced to the declared type. Supported types: bool, int, float, str, ``Literal[...]`` of str, ``X | None``
-and ``list[X]`` of those scalars.
+coerced to the declared type. Supported types: bool, int, float, str, ``Literal[...]`` of str, ``X | None``,
+``list[X]`` of those scalars, and ``dict[str, Any]`` (a TOML table, or JSON text on the command line: a
+backend's options, checked by the backend's own ``Options``). A field without a default must be given.
 """
 
 from __future__ import annotations
@@ -33,32 +34,39 @@ class ParamError(PolarstripeError, ValueError):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class NodeParams:
-    """Parameters every node has. Subclasses are made frozen keyword-only dataclasses automatically."""
+class ParamSet:
+    """Typed settings; subclasses are made frozen keyword-only dataclasses automatically, and a list or dict
+    default is copied for each instance."""
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        for key, value in list(vars(cls).items()):
+            if key in cls.__dict__.get("__annotations__", {}) and isinstance(value, list | dict):
+                setattr(cls, key, dataclasses.field(default_factory=lambda v=value: type(v)(v)))
+        dataclasses.dataclass(frozen=True, kw_only=True)(cls)
+
+    def validate(self) -> None:  # noqa: B027 - optional hook
+        """Override to check values together; raise ``ValueError`` naming the problem."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+class NodeParams(ParamSet):
+    """Parameters every node has."""
 
     heartbeat_s: float = 0.25  # heartbeat period [s]; a peer is lost after 4 missed (runtime/liveness.py)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     max_message_bytes: int = 128 * 2**20  # larger received messages are dropped as bad [bytes]
     pub_hwm: int = 100  # messages queued per subscriber before the publisher drops (seen as gaps)
 
-    def __init_subclass__(cls, **kw):
-        super().__init_subclass__(**kw)
-        for key, value in list(vars(cls).items()):  # a list default is fine here: each instance gets a copy
-            if key in cls.__dict__.get("__annotations__", {}) and isinstance(value, list):
-                setattr(cls, key, dataclasses.field(default_factory=lambda v=value: list(v)))
-        dataclasses.dataclass(frozen=True, kw_only=True)(cls)
-
     def validate(self) -> None:
-        """Override to check values together; raise ``ValueError`` naming the problem."""
         if self.heartbeat_s < 0:
             raise ValueError(f"heartbeat_s must be >= 0, got {self.heartbeat_s}")
         if self.pub_hwm < 1:
             raise ValueError(f"pub_hwm must be >= 1, got {self.pub_hwm}")
         if self.max_message_bytes <= 0:
             raise ValueError(f"max_message_bytes must be > 0, got {self.max_message_bytes}")
-
-    def as_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 _TRUE, _FALSE = {"true", "yes", "on", "1"}, {"false", "no", "off", "0"}
@@ -86,6 +94,15 @@ def _coerce(tp: Any, value: Any) -> Any:
         if not isinstance(value, list | tuple):
             raise ValueError("expected a list")
         return [_coerce(args[0], v) for v in value]
+    if origin is dict or tp is dict:
+        if isinstance(value, str):
+            try:
+                value = json.loads(value) if value.strip() else {}
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"not a table ({exc})") from None
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+            raise ValueError("expected a table {name: value}")
+        return dict(value)
     if tp is bool:
         if isinstance(value, bool):
             return value
@@ -115,26 +132,35 @@ def _coerce(tp: Any, value: Any) -> Any:
     raise ValueError(f"unsupported parameter type {tp!r}")
 
 
-def build_params(cls: type[NodeParams], values: dict[str, Any], *, node: str = "?") -> NodeParams:
-    """Make ``cls`` from ``values`` (strings are coerced), then run ``validate``.
+def build_params(cls: type[ParamSet], values: dict[str, Any], *, node: str = "?", what: str = "",
+                 noun: str = "param") -> ParamSet:
+    """Make ``cls`` from ``values`` (strings are coerced), then run ``validate``. Error texts start with
+    ``what`` (default: ``node 'NAME'``) and call a key a ``noun``.
 
-    Raises :class:`ParamError` for an unknown key, a value of the wrong type, or a failed validation.
+    Raises :class:`ParamError` for an unknown or missing key, a value of the wrong type, or a failed
+    validation.
     """
+    what = what or f"node {node!r}"
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    fields = dataclasses.fields(cls)
+    names = {f.name for f in fields}
     kwargs = {}
     for key, value in values.items():
         if key not in names:
-            raise ParamError(f"node {node!r}: unknown param {key!r} (known: {', '.join(sorted(names))})")
+            raise ParamError(f"{what}: unknown {noun} {key!r} (known: {', '.join(sorted(names)) or 'none'})")
         try:
             kwargs[key] = _coerce(hints[key], value)
         except ValueError as exc:
-            raise ParamError(f"node {node!r}: param {key!r}: bad value {value!r}: {exc}") from None
+            raise ParamError(f"{what}: {noun} {key!r}: bad value {value!r}: {exc}") from None
+    missing = [f.name for f in fields if f.name not in kwargs and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ParamError(f"{what}: missing {noun} {', '.join(map(repr, missing))}")
     params = cls(**kwargs)
     try:
         params.validate()
     except ValueError as exc:
-        raise ParamError(f"node {node!r}: params: {exc}") from None
+        raise ParamError(f"{what}: {noun}s: {exc}") from None
     return params
 
 

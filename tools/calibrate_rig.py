@@ -46,7 +46,7 @@ class RigCalibrator(Node):
 
     class Params(NodeParams):
         out: str = "rig.yaml"  # the calibration file (OpenCV FileStorage; .yaml, .xml or .json)
-        projector: str = "1024x768"  # the emitter's display size WxH (its display_width/height)
+        projector: str = "1024x768"  # the emitter's display size WxH (its display_options width, height)
         board: str = "8x6"  # inner corners COLSxROWS
         square_m: float = 0.015
         poses: int = 8

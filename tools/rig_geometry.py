@@ -137,11 +137,11 @@ def _nodes(metadata: dict) -> dict:
 
 def _projector_size(nodes: dict, scene: Scene) -> tuple[int, int]:
     for node in nodes.values():
-        params = node.get("params", {}) or {}
-        if "display_width" in params or "display_height" in params:
+        display = (node.get("params", {}) or {}).get("display_options", {}) or {}
+        if isinstance(display, dict) and ("width" in display or "height" in display):
             try:
-                w = int(params.get("display_width", scene.projector.resolution[0]))
-                h = int(params.get("display_height", scene.projector.resolution[1]))
+                w = int(display.get("width") or scene.projector.resolution[0])
+                h = int(display.get("height") or scene.projector.resolution[1])
             except (TypeError, ValueError):
                 continue
             if w > 0 and h > 0:

@@ -6,7 +6,10 @@ returns nothing raises :class:`DeviceLost`, never a blank frame), exposure and g
 counter, the context manager and an idempotent :meth:`~Camera.close`. A backend implements ``_grab`` (the
 image and the device's own metadata) and, where the device can, ``_apply_exposure`` / ``_apply_gain``; a
 device that reports the exposure or bit depth it actually used (the simulator) sets ``_exposure_s`` /
-``_bit_depth`` in ``_grab``, and the frame carries those.
+``_bit_depth`` in ``_grab``, and the frame carries those. :meth:`Camera.request` says what the next frame is
+for; a camera that makes its frame on demand (the simulator's) uses it, a free-running one ignores it.
+Exposure and gain are the role's settings, set by the node through the properties; everything else a
+backend takes is in its ``Options`` (nodes/drivers/backend.py).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
+from polarstripe.nodes.drivers.backend import Backend
 from polarstripe.nodes.drivers.errors import DeviceLost, DriverError, DriverTimeout, DriverValueError
 
 
@@ -42,7 +46,7 @@ class CameraFrame:
     metadata: dict = field(default_factory=dict)
 
 
-class Camera(ABC):
+class Camera(Backend, ABC):
     """A camera: ``grab(timeout) -> CameraFrame``; ``exposure_s`` and ``gain`` are settable.
 
     :param name: how the camera is named in error texts (device path, file).
@@ -83,6 +87,11 @@ class Camera(ABC):
                             self.name, metadata)
         self._seq += 1
         return frame
+
+    def request(self, pattern: str, *, analyzer: bool = True, scan_id: int = 0, step: int = 0) -> None:
+        """What the next :meth:`grab` is for: the ``pattern`` tag lit, the analyzer in the path or not, the
+        scan and step. A camera that makes its frame on demand renders that; a free-running one ignores it
+        (the default)."""
 
     @property
     def exposure_s(self) -> float:

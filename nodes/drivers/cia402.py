@@ -28,6 +28,7 @@ import time
 import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoError
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers import cia402_states as cia
 from polarstripe.nodes.drivers.cia402_states import EDS_PATH, State
 from polarstripe.nodes.drivers.cia402_watch import BusWatch, Cia402Watch
@@ -56,6 +57,20 @@ class Cia402Stage(Cia402Watch, RotationStage):
     :param tolerance_deg: how far from the target a settled stage may be.
     :param homing_method: the CiA 402 homing method :meth:`home` writes to 0x6098.
     """
+
+    class Options(BackendOptions):
+        interface: str = "zmq"  # python-can interface: socketcan on a rig, zmq in simulation
+        channel: str = "polarstripe"  # python-can channel: can0, or the simulator's ipc://... segment
+        node_id: int = 5  # the drive's CANopen node id
+        counts_per_deg: float = 1000.0  # encoder counts per analyzer degree, gear included
+        speed_deg_s: float | None = 180.0  # profile velocity [deg/s]; None: the drive's
+        heartbeat_ms: int = 100  # the drive's producer heartbeat [ms]
+        heartbeat_timeout_s: float = 0.5  # a heartbeat older than this is a lost drive [s]
+        pdo_timeout_s: float = 0.5  # TPDO1 older than this is stale [s]
+        sdo_timeout_s: float = 0.3  # SDO reply timeout [s]
+        tolerance_deg: float = 0.01  # how far from the target a settled stage may be [deg]
+        connect_timeout_s: float = 3.0
+        homing_method: int = 37  # the CiA 402 homing method written to 0x6098
 
     def __init__(
         self,

@@ -10,8 +10,9 @@ index j has bit BIT of its Gray code j XOR (j >> 1) at 1 (INV = 0) or 0 (INV = 1
 ``GrayCodePattern`` (the projector calibration, docs/depth.md "Calibration").
 
 :class:`Display` owns the shared behaviour (pattern parsing and validation, the current pattern, the context
-manager, an idempotent :meth:`~Display.close`); a backend implements ``_show``. :class:`NullDisplay` (CI, the
-simulator) lights nothing and remembers what it was asked to show.
+manager, an idempotent :meth:`~Display.close`); a backend implements ``_show`` and declares its ``Options``
+(nodes/drivers/backend.py). :class:`NullDisplay` (CI, the simulator) lights nothing and remembers what it was
+asked to show.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from collections import deque
 
 import numpy as np
 from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, stripe_columns
+from polarstripe.nodes.drivers.backend import Backend, BackendOptions
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 
 
@@ -72,7 +74,7 @@ def render_pattern(
     return image
 
 
-class Display(ABC):
+class Display(Backend, ABC):
     """A pattern output (projector, trigger box, laser line): ``show(pattern)``, ``blank()``, ``close()``.
 
     :param width, height: the projector's size [pixels] (for the image and for pattern semantics).
@@ -131,6 +133,11 @@ class Display(ABC):
 
 class NullDisplay(Display):
     """Lights nothing; keeps the last ``history`` patterns shown (CI, the simulator, dry runs)."""
+
+    class Options(BackendOptions):
+        width: int = 1280  # the projector's size [px] (pattern semantics)
+        height: int = 800
+        history: int = 1000  # patterns remembered
 
     def __init__(self, width: int = 1280, height: int = 800, history: int = 1000):
         super().__init__(width, height, name="null display")

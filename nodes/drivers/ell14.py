@@ -21,6 +21,7 @@ import threading
 import time
 
 import serial
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.errors import (
     DeviceError,
     DriverError,
@@ -83,6 +84,14 @@ class Ell14Stage(RotationStage):
     :param timeout_s: reply timeout for a query [s]; a move waits ``move_timeout_s``.
     :param busy_timeout_s: how long a ``GS09`` (busy) reply is retried before it is a fault.
     """
+
+    class Options(BackendOptions):
+        port: str  # the serial port (/dev/ttyUSB0) or a pyserial URL
+        address: str = "0"  # the device address on the line, 0-F
+        timeout_s: float = 0.5  # reply timeout for a query [s]
+        move_timeout_s: float = 5.0  # a move must end within this [s]
+        busy_timeout_s: float = 2.0  # how long a busy reply (GS09) is retried [s]
+        tolerance_deg: float = 0.01  # how far from the target a settled stage may be [deg]
 
     def __init__(
         self,

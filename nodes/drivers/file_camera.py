@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.camera import Camera
 from polarstripe.nodes.drivers.errors import DriverError, EndOfFrames
 
@@ -24,6 +25,12 @@ IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pgm")
 
 class FileCamera(Camera):
     """Frames from ``source``: a folder of images, a glob (``"run/frame_*.png"``), or a video file."""
+
+    class Options(BackendOptions):
+        source: str  # a folder of images, a glob ("run/frame_*.png") or a video file
+        loop: bool = False  # start again at the end
+        fps: float | None = None  # pace the frames; None: as fast as grabbed
+        bit_depth: int | None = None  # significant bits; None: the file's sample size
 
     def __init__(self, source: str | os.PathLike, *, loop: bool = False, fps: float | None = None,
                  exposure_s: float = 0.01, gain: float = 1.0, bit_depth: int | None = None):

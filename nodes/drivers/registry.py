@@ -1,27 +1,44 @@
-"""Backends by name: a role → name → ``"module:Class"`` table, plus the ``polarstripe.drivers`` entry points.
-points.
+"""Backends by name: a role → name → ``"module:Class"`` table, extended by the ``polarstripe.drivers`` entry
+points; :func:`open_backend` makes one from its options.
 
 Modules are imported only when a backend is asked for (like python-can's ``can/interfaces/__init__.py`` and
 ``can/interface.py``), so a missing optional extra costs nothing until it is used, and then the error names
 the backend, the module and the extra to install.
 
-Entry points: a distribution adds backends with names ``"<role>.<name>"``::
+A distribution adds backends with entry point names ``"<role>.<name>"``; the class subclasses the role's ABC
+(:class:`~polarstripe.nodes.drivers.camera.Camera`, :class:`~polarstripe.nodes.drivers.display.Display`,
+:class:`~polarstripe.nodes.drivers.stage.RotationStage`) and declares its ``Options``
+(nodes/drivers/backend.py)::
 
     [project.entry-points."polarstripe.drivers"]
     "camera.aravis" = "mypkg.aravis_camera:AravisCamera"
+
+A launch file then names it like a built-in one: ``camera = "aravis"``, ``camera_options = {...}``. A built-in
+name wins over an entry point of the same name.
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from importlib.metadata import entry_points
+from typing import Any
 
+from polarstripe.nodes.drivers.backend import Backend, BackendContext, BackendOptions
 from polarstripe.nodes.drivers.errors import BackendUnavailable
+from polarstripe.runtime.params import ParamError, build_params
 
 ENTRY_POINT_GROUP = "polarstripe.drivers"
 _PKG = "polarstripe.nodes.drivers"
 
-#: role -> backend name -> "module:Class". The simulator camera backend is added by the simulator package.
+#: role -> the ABC every backend of the role subclasses
+ROLES: dict[str, str] = {
+    "stage": f"{_PKG}.stage:RotationStage",
+    "display": f"{_PKG}.display:Display",
+    "camera": f"{_PKG}.camera:Camera",
+}
+
+#: role -> backend name -> "module:Class": the built-in backends (their simulated twins included)
 BACKENDS: dict[str, dict[str, str]] = {
     "stage": {
         "cia402": f"{_PKG}.cia402:Cia402Stage",
@@ -55,9 +72,22 @@ def _table(role: str) -> dict[str, str]:
     return table
 
 
+def _import(target: str, what: str, extra: str | None = None) -> type:
+    module_name, _, class_name = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        hint = f"; install it with: pip install 'polarstripe[{extra}]'" if extra else ""
+        raise BackendUnavailable(f"{what} needs module {module_name}, which failed to import: {exc}{hint}") from exc
+    try:
+        return getattr(module, class_name)
+    except AttributeError as exc:
+        raise BackendUnavailable(f"{what}: module {module_name} has no {class_name}") from exc
+
+
 def register_backend(role: str, name: str, target: str) -> None:
-    """Add backend ``name`` of ``role`` as ``"module:Class"`` (imported only when used), e.g. the simulator's
-    camera: ``register_backend("camera", "sim", "polarstripe.sim.camera:SimCamera")``."""
+    """Add backend ``name`` of ``role`` as ``"module:Class"`` (imported only when used), for backends that
+    live outside a distribution, e.g. ``register_backend("camera", "acme", "acme_camera:AcmeCamera")``."""
     module, _, cls = target.partition(":")
     if not module or not cls:
         raise BackendUnavailable(f"backend target {target!r} is not 'module:Class'")
@@ -72,29 +102,47 @@ def backend_names(role: str) -> list[str]:
 def load_backend(role: str, name: str) -> type:
     """Import and return the backend class ``name`` of ``role``.
 
-    :raises BackendUnavailable: unknown role or name, or the module failed to import (the text names the
-        backend, the module and the optional extra to install).
+    :raises BackendUnavailable: unknown role or name, the module failed to import (the text names the
+        backend, the module and the optional extra to install), or the class is not a backend of the role.
     """
     table = _table(role)
     if name not in table:
         raise BackendUnavailable(f"unknown {role} backend {name!r} (choose from {', '.join(sorted(table))})")
-    module_name, _, class_name = table[name].partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        extra = EXTRAS.get(f"{role}.{name}")
-        hint = f"; install it with: pip install 'polarstripe[{extra}]'" if extra else ""
-        raise BackendUnavailable(
-            f"{role} backend {name!r} needs module {module_name}, which failed to import: {exc}{hint}"
-        ) from exc
-    try:
-        return getattr(module, class_name)
-    except AttributeError as exc:
-        raise BackendUnavailable(
-            f"{role} backend {name!r}: module {module_name} has no {class_name}"
-        ) from exc
+    what = f"{role} backend {name!r}"
+    cls = _import(table[name], what, EXTRAS.get(f"{role}.{name}"))
+    base = _import(ROLES[role], f"{role} role") if role in ROLES else Backend
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise BackendUnavailable(f"{what}: {table[name]} is not a subclass of {base.__module__}.{base.__name__}")
+    return cls
 
 
-def open_backend(role: str, name: str, **kwargs):
-    """Construct backend ``name`` of ``role`` with ``kwargs`` (the backend's own constructor arguments)."""
-    return load_backend(role, name)(**kwargs)
+def backend_options(role: str, name: str, options: Mapping[str, Any] | None = None) -> BackendOptions:
+    """The checked ``Options`` of backend ``name`` of ``role`` from a launch file's table ``options``.
+
+    :raises BackendUnavailable: as :func:`load_backend`.
+    :raises ParamError: an unknown or missing option, or a bad value (one line naming backend and key).
+    """
+    cls = load_backend(role, name)
+    return build_params(cls.Options, dict(options or {}), what=f"{role} backend {name!r}", noun="option")
+
+
+def check_backend(role: str, name: str, options: Mapping[str, Any] | None = None) -> None:
+    """For a node's ``Params.validate``: raise ``ValueError`` (one line) when backend ``name`` does not exist
+    or cannot be imported, or ``options`` do not fit its ``Options``."""
+    try:
+        backend_options(role, name, options)
+    except (BackendUnavailable, ParamError) as exc:
+        raise ValueError(str(exc)) from None
+
+
+def open_backend(role: str, name: str, options: Mapping[str, Any] | None = None, *,
+                 context: BackendContext | None = None, **common):
+    """Make backend ``name`` of ``role`` from its ``options`` (checked by its ``Options``), lending it the
+    node's ``context`` and passing ``common``, the settings the node owns for every backend of the role.
+
+    :raises BackendUnavailable: as :func:`load_backend`.
+    :raises ParamError: bad options.
+    :raises DriverError: the backend failed to open (its own errors).
+    """
+    cls = load_backend(role, name)
+    return cls.from_options(backend_options(role, name, options), context, **common)

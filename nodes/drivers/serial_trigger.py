@@ -26,6 +26,7 @@ import time
 
 import serial
 from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.display import Display
 from polarstripe.nodes.drivers.errors import DeviceError, DriverError, DriverTimeout, DriverValueError
 
@@ -52,6 +53,13 @@ class SerialTriggerDisplay(Display):
 
     :param timeout_s: reply timeout per request [s].
     """
+
+    class Options(BackendOptions):
+        port: str  # the serial port (/dev/ttyACM0) or a pyserial URL
+        baudrate: int = 115_200
+        timeout_s: float = 0.5  # reply timeout per request [s]
+        width: int = 1280  # the projector's size [px] (pattern semantics)
+        height: int = 800
 
     def __init__(
         self,

@@ -12,6 +12,7 @@ that from ``polarizer/state``.
 ::
 
     cam = SimCamera(render=client.call)          # client: the node's simulator/render service client
+    # in a node: open_backend("camera", "sim", {"render_service": "simulator/render"}, context=...)
     cam.request("stripe:3/30", analyzer=True, scan_id=7, step=3)
     frame = cam.grab(timeout=6.0)   # CameraFrame; frame.metadata: pattern, scan_id, step
 """
@@ -21,9 +22,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from polarstripe.msgs import RenderRequest
+from polarstripe.msgs import Frame, RenderRequest
+from polarstripe.nodes.drivers.backend import BackendContext, BackendOptions
 from polarstripe.nodes.drivers.camera import Camera
-from polarstripe.nodes.drivers.errors import DeviceLost, DriverTimeout
+from polarstripe.nodes.drivers.errors import DeviceLost, DriverError, DriverTimeout
 
 
 class SimCamera(Camera):
@@ -34,6 +36,16 @@ class SimCamera(Camera):
     :param exposure_s: exposure [s] sent with each request once set (the constructor value is sent only if
         ``send_exposure``).
     """
+
+    class Options(BackendOptions):
+        render_service: str = "simulator/render"  # the simulator's service that renders a frame
+
+    @classmethod
+    def from_options(cls, options: Options, context: BackendContext | None = None, **common) -> SimCamera:
+        """Call the simulator through the node's service ``options.render_service``."""
+        if context is None or context.service is None:
+            raise DriverError("sim camera: needs the node's service calls (a BackendContext)")
+        return cls(context.service(options.render_service, RenderRequest, Frame), **common)
 
     def __init__(self, render: Callable, *, exposure_s: float = 0.008, gain: float = 1.0, bit_depth: int = 12,
                  send_exposure: bool = False, name: str = "sim camera"):

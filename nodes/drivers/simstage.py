@@ -11,11 +11,17 @@ from __future__ import annotations
 import threading
 import time
 
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.stage import RotationStage
 
 
 class SimStage(RotationStage):
     """An in-process stage: ``deg_per_s`` speed, ``settle_s`` settle time, starts at ``start_deg``."""
+
+    class Options(BackendOptions):
+        deg_per_s: float = 180.0  # rotation speed [deg/s]
+        settle_s: float = 0.01  # settle time after a move [s]
+        start_deg: float = 0.0  # where it starts [deg]
 
     def __init__(
         self,

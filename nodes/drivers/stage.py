@@ -2,7 +2,9 @@
 
 :class:`RotationStage` owns what every backend shares: software limits, the fault latch, waiting for the stage
 to settle with a timeout, the context manager and an idempotent :meth:`~RotationStage.close`. A backend
-implements :meth:`_start_move`, :meth:`_read_angle`, :meth:`_is_settled`, :meth:`_reset` and :meth:`_home`.
+implements :meth:`_start_move`, :meth:`_read_angle`, :meth:`_is_settled`, :meth:`_reset` and :meth:`_home`,
+and declares its ``Options`` (nodes/drivers/backend.py); the software limits are the node's, passed to every
+backend (``min_deg``, ``max_deg``).
 
 The contract that matters to the polarizer node: a stage never reports a wrong angle. While the position is
 not known to be true (a fault is latched, the data are stale, a move is in flight on a device that cannot
@@ -16,10 +18,11 @@ import threading
 import time
 from abc import ABC, abstractmethod
 
+from polarstripe.nodes.drivers.backend import Backend
 from polarstripe.nodes.drivers.errors import DriverTimeout, DriverValueError, StageFault
 
 
-class RotationStage(ABC):
+class RotationStage(Backend, ABC):
     """A rotation stage: ``move_to(angle_deg)``, then ``wait_settled``; faults are latched as text.
 
     :param min_deg, max_deg: software limits [deg]; a target outside raises :class:`DriverValueError`.

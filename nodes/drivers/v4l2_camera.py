@@ -14,6 +14,7 @@ import os
 
 import cv2
 import numpy as np
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.camera import Camera
 from polarstripe.nodes.drivers.errors import DeviceLost, DriverError
 
@@ -35,9 +36,17 @@ class V4l2Camera(Camera):
     :param gain: the driver's ``gain`` control value, or None to leave it.
     """
 
-    def __init__(self, device: int | str = 0, *, width: int | None = None, height: int | None = None,
+    class Options(BackendOptions):
+        device: str = "0"  # index or /dev/videoN
+        width: int | None = None  # requested frame size [px]; None: the driver's
+        height: int | None = None
+        pixel_formats: list[str] = ["Y16 ", "Y10 ", "GREY"]  # FOURCCs to try, best first
+
+    def __init__(self, device: int | str = "0", *, width: int | None = None, height: int | None = None,
                  pixel_formats: tuple[str, ...] = ("Y16 ", "Y10 ", "GREY"), exposure_s: float = 0.01,
                  gain: float | None = None):
+        if isinstance(device, str) and device.isdigit():
+            device = int(device)
         name = f"V4L2 camera {device}"
         path = f"/dev/video{device}" if isinstance(device, int) else str(device)
         if not os.path.exists(path):

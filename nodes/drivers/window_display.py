@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 from polarstripe.msgs.patterns import PatternSpec
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.display import Display, render_pattern
 from polarstripe.nodes.drivers.errors import BackendUnavailable, DriverError
 
@@ -39,6 +40,14 @@ class WindowDisplay(Display):
     :param fullscreen: False opens an ordinary window (for a look on the desktop).
     :param level: the lit grey level (0-255); the projector's black level is what it shows for 0.
     """
+
+    class Options(BackendOptions):
+        width: int | None = None  # output size [px]; None: the output's native size
+        height: int | None = None
+        display_index: int = 0  # which monitor/connector
+        driver: str | None = None  # SDL video driver: kmsdrm, x11, wayland, dummy; None: SDL's choice
+        fullscreen: bool = True  # false: an ordinary window
+        level: int = 255  # the lit grey level (0-255)
 
     def __init__(
         self,

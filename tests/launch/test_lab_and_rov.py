@@ -40,7 +40,8 @@ def test_lab_rig_dry_run(tmp_path):
     nodes = graph["nodes"]
     assert set(nodes) == {"polarizer", "grabber", "emitter", "compositor", "planner", "sequencer"}
     pol = nodes["polarizer"]["params"]
-    assert pol["backend"] == "cia402" and pol["interface"] == "socketcan" and pol["channel"] == "can0"
+    assert pol["stage"] == "cia402"
+    assert pol["stage_options"]["interface"] == "socketcan" and pol["stage_options"]["channel"] == "can0"
     assert nodes["grabber"]["params"]["camera"] == "v4l2"
     assert nodes["emitter"]["params"]["display"] == "window"
     assert nodes["compositor"]["params"]["chart_bright_roi"] == [200, 260, 300, 900]

@@ -66,7 +66,7 @@ params = {{ resolution = "48x36", can_channel = "{can}" {sim_params} }}
 [[node]]
 name = "polarizer"
 module = "polarstripe.nodes.polarizer"
-params = {{ backend = "cia402", interface = "zmq", channel = "{can}" {polarizer_params} }}
+params = {{ stage = "cia402", stage_options = {{ interface = "zmq", channel = "{can}" }} {polarizer_params} }}
 [[node]]
 name = "grabber"
 module = "polarstripe.nodes.grabber"

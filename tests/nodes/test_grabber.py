@@ -101,7 +101,8 @@ def test_file_backend_plays_16_bit_images_then_faults_at_the_end(tmp_path):
     images = [rng.integers(0, 4096, (6, 7), dtype=np.uint16) for _ in range(2)]
     for i, im in enumerate(images):
         cv2.imwrite(str(tmp_path / f"frame_{i:03d}.png"), im)
-    h = NodeHarness(Grabber, name="grabber", params={"camera": "file", "device": str(tmp_path)})
+    h = NodeHarness(Grabber, name="grabber", params={"camera": "file",
+                                                          "camera_options": {"source": str(tmp_path)}})
     for step in range(2):
         assert h.call("camera/trigger", FrameRequest(scan_id=1, step=step, pattern="flood")).ok
     got = [f.image for f in h.published("camera/frame")]
@@ -113,7 +114,8 @@ def test_file_backend_plays_16_bit_images_then_faults_at_the_end(tmp_path):
 
 
 def test_missing_device_is_reported_on_every_trigger(tmp_path):
-    h = NodeHarness(Grabber, name="grabber", params={"camera": "file", "device": str(tmp_path / "none")})
+    h = NodeHarness(Grabber, name="grabber", params={"camera": "file",
+                                                          "camera_options": {"source": str(tmp_path / "none")}})
     assert any(level == "ERROR" for level, _ in h.logs)
     ack = h.call("camera/trigger", FrameRequest(scan_id=1, step=0, pattern="flood"))
     assert not ack.ok and "unavailable" in ack.detail and "none" in ack.detail
@@ -129,7 +131,8 @@ def test_an_oversize_frame_is_dropped_logged_once_and_the_node_keeps_running(tmp
         cv2.imwrite(str(tmp_path / f"frame_{i:03d}.png"), big)
     cv2.imwrite(str(tmp_path / "frame_003.png"), np.zeros((10, 10), np.uint16))  # 100 px
     monkeypatch.setenv("POLARSTRIPE_MAX_PIXELS", "1000")
-    h = NodeHarness(Grabber, name="grabber", params={"camera": "file", "device": str(tmp_path)})
+    h = NodeHarness(Grabber, name="grabber", params={"camera": "file",
+                                                          "camera_options": {"source": str(tmp_path)}})
     for step in range(3):
         ack = h.call("camera/trigger", FrameRequest(scan_id=1, step=step, pattern="flood"))
         assert not ack.ok and "50x40" in ack.detail and "beyond the limit of 0.001 Mpx" in ack.detail

@@ -48,7 +48,7 @@ def test_a_respawned_simulator_keeps_the_planned_source_position(tmp_path):
 
 
 def test_a_respawned_polarizer_keeps_its_calibration(tmp_path):
-    params = {"backend": "sim", "min_deg": -90.0, "max_deg": 90.0}
+    params = {"stage": "sim", "min_deg": -90.0, "max_deg": 90.0}
     first = NodeHarness(in_run(Polarizer, tmp_path, 0), name="polarizer", namespace="/rig", params=params)
     assert first.node.least_backscatter_deg is None
     first.node.least_backscatter_deg = 12.5  # as a calibration's fit sets it

@@ -1,11 +1,11 @@
 """Typed node parameters (runtime/params.py): defaults, coercion of strings, validation, one clear line."""
 
 import dataclasses
-from typing import Literal
+from typing import Any, Literal
 
 import pytest
 from polarstripe.nodes.demo import Talker
-from polarstripe.runtime.params import NodeParams, ParamError, build_params, parse_assignments
+from polarstripe.runtime.params import NodeParams, ParamError, ParamSet, build_params, parse_assignments
 
 
 class _Params(NodeParams):
@@ -39,6 +39,22 @@ def test_params_are_typed_coerced_and_validated():
         parse_assignments(["novalue"])
     assert parse_assignments(["a=b=c"]) == {"a": "b=c"}
 
+
+
+class _Options(ParamSet):
+    port: str
+    table: dict[str, Any] = {"a": 1}
+
+
+def test_tables_from_toml_or_json_and_required_keys():
+    o = build_params(_Options, {"port": "/dev/ttyUSB1", "table": '{"device": "/dev/video2", "width": 640}'})
+    assert o.table == {"device": "/dev/video2", "width": 640} and o.port == "/dev/ttyUSB1"
+    d1, d2 = build_params(_Options, {"port": "p"}), build_params(_Options, {"port": "p", "table": ""})
+    assert d1.table == {"a": 1} and d1.table is not _Options(port="p").table and d2.table == {}
+    with pytest.raises(ParamError, match=r"^backend 'b': option 'table': bad value '\[1\]': expected a table"):
+        build_params(_Options, {"port": "p", "table": "[1]"}, what="backend 'b'", noun="option")
+    with pytest.raises(ParamError, match=r"^backend 'b': missing option 'port'$"):
+        build_params(_Options, {}, what="backend 'b'", noun="option")
 
 
 def test_each_instance_gets_its_own_list_and_params_are_frozen():

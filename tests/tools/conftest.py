@@ -42,7 +42,7 @@ GRAPH = {
     "nodes": {
         "simulator": {"module": "polarstripe.nodes.simulator", "params": {"resolution": "64x48"}},
         "emitter": {"module": "polarstripe.nodes.emitter",
-                    "params": {"display_width": 40, "display_height": 30}},
+                    "params": {"display_options": {"width": 40, "height": 30}}},
     },
 }
 

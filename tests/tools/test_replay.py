@@ -173,7 +173,7 @@ params = {{ resolution = "64x48", fidelity = "preview", can_channel = "{can}" }}
 [[node]]
 name = "polarizer"
 module = "polarstripe.nodes.polarizer"
-params = {{ backend = "cia402", interface = "zmq", channel = "{can}" }}
+params = {{ stage = "cia402", stage_options = {{ interface = "zmq", channel = "{can}" }} }}
 [[node]]
 name = "grabber"
 module = "polarstripe.nodes.grabber"

@@ -36,8 +36,8 @@ def test_emitter_shows_a_gray_pattern():
     from polarstripe.nodes.emitter import Emitter
     from polarstripe.runtime.testing import NodeHarness
 
-    h = NodeHarness(Emitter, name="emitter", namespace="/rig", params={"display_width": 16,
-                                                                        "display_height": 8})
+    h = NodeHarness(Emitter, name="emitter", namespace="/rig", params={"display_options": {
+                                                                        "width": 16, "height": 8}})
     ack = h.call("emitter/show", Pattern.of("gray:0:col:0"))
     assert ack.ok, ack.detail
     assert isinstance(h.node.display, NullDisplay)
