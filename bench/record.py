@@ -4,7 +4,7 @@ Measured in one run, on the file system of ``--dir`` (default: the system temp d
 
 * **plain write** — the same payload bytes (the frames' packed messages) with ``f.write``, then ``fsync``: the
   limit of this disk (its page cache, really, for a short run; the ``fsync`` time is reported apart);
-* **BagWriter** — :class:`~polarstripe.tools.bag.BagWriter` in this process (no bus), uncompressed
+* **BagWriter** — :class:`~polarstripe.runtime.bag.BagWriter` in this process (no bus), uncompressed
   and zstd, beside the peer, ``mcap.Writer`` with the same payloads (it copies each payload three times);
 * **recorder over the bus** — ``polarstripe record`` in its own process, subscribed (``mode="all"``) to a
   publisher in this process over ipc: frames sent as fast as the publisher can (the recorder's sustained
@@ -44,9 +44,9 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, Writer
 from polarstripe.msgs import Frame, decode, encode, json_schema, pack
+from polarstripe.runtime.bag import BagWriter
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.bus import PubSocket
-from polarstripe.tools.bag import BagWriter
-from polarstripe.tools.bag_reader import BagReader
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import time
-
 from typing import Any
 
 from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState
@@ -85,7 +84,8 @@ class Grabber(Node):
     def open_camera(self):
         """Open the backend named by ``camera`` with ``camera_options``, then set exposure and gain."""
         p = self.params
-        cam = open_backend("camera", p.camera, p.camera_options, context=BackendContext(service=self._service))
+        context = BackendContext(service=self._service)
+        cam = open_backend("camera", p.camera, p.camera_options, context=context)
         try:
             if p.exposure_s is not None:
                 cam.exposure_s = p.exposure_s

@@ -9,7 +9,7 @@ itself dies. At the end it prints one line per node (exit status or signal, whet
 respawns) and writes them to ``exits.json`` in the run directory (:meth:`Launcher.exits`).
 
 Recording: ``--record FILE`` adds a node ``recorder`` running
-``polarstripe.tools.record:Recorder`` with param ``path = FILE``, started first and stopped last
+``polarstripe.nodes.recorder:Recorder`` with param ``path = FILE``, started first and stopped last
 so it sees the whole run.
 """
 

@@ -14,7 +14,7 @@ from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, sock_dir
 from polarstripe.runtime.runner import load_node_class
 
-RECORDER = "polarstripe.tools.record:Recorder"
+RECORDER = "polarstripe.nodes.recorder:Recorder"
 
 
 def _free_port(host: str) -> int:

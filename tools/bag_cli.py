@@ -15,9 +15,9 @@ import argparse
 import json
 import time
 
-from polarstripe.tools.bag import COMPRESSIONS
+from polarstripe.runtime.bag import COMPRESSIONS
+from polarstripe.runtime.bag_reader import BagReader, recover
 from polarstripe.tools.bag_export import FORMATS
-from polarstripe.tools.bag_reader import BagReader, recover
 
 HELP = "inspect, recover, export (ROS 2, Foxglove) or import (ROS 2) recordings"
 

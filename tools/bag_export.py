@@ -5,14 +5,14 @@
 * ``--to foxglove``: one MCAP file with Foxglove's schemas (:mod:`polarstripe.tools.export_foxglove`), the
   live bridge's channels.
 
-Both map each message through :class:`~polarstripe.tools.rig_views.RigViews` (images, camera info, tf,
+Both map each message through :class:`~polarstripe.nodes.rig_views.RigViews` (images, camera info, tf,
 logs, plottable records). Options: ``--topics`` (names or shell patterns, full or relative to the recorded
 namespace), ``--start``/``--end`` (seconds from the recording's start), ``--image-every N`` (keep every N-th
 camera frame and projector pattern of each topic; composites are always kept), ``--scene FILE`` (the rig's
 geometry when the recording does not name it). A tqdm progress bar runs on a terminal.
 
 The output is written under a temporary name beside ``OUT`` and renamed at the end: an error or Ctrl-C
-leaves nothing half-written. Errors a user can cause are :class:`~polarstripe.tools.bag.BagError`
+leaves nothing half-written. Errors a user can cause are :class:`~polarstripe.runtime.bag.BagError`
 (one line): a file that is not a finished bag, a channel that is not a polarstripe one, an existing output,
 a topic filter that matches nothing, a selection with no message.
 """
@@ -29,12 +29,12 @@ from pathlib import Path
 
 from polarstripe import __version__
 from polarstripe.msgs import Composite, Frame, Pattern
+from polarstripe.nodes.rig_geometry import geometry_from_metadata
+from polarstripe.nodes.rig_views import Packed, RigViews
+from polarstripe.runtime.bag import BagError
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.sim.scene import SceneError
-from polarstripe.tools.bag import BagError
 from polarstripe.tools.bag_fastread import FastReader, parse_packed
-from polarstripe.tools.bag_reader import BagReader
-from polarstripe.tools.rig_geometry import geometry_from_metadata
-from polarstripe.tools.rig_views import Packed, RigViews
 
 FORMATS = ("ros2", "foxglove")
 DECIMATED = (Frame.TYPE, Pattern.TYPE)

@@ -11,7 +11,7 @@ usual; either way the message is validated like any decoded message. ``mapped=Tr
 on the development VM neither way was consistently faster, and faulting a mapping in page by page (an older
 kernel) cost twice the read, so reading is the default.
 
-The bag must have been opened (and checked) by :class:`~polarstripe.tools.bag_reader.BagReader`.
+The bag must have been opened (and checked) by :class:`~polarstripe.runtime.bag_reader.BagReader`.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ import numpy as np
 from polarstripe.msgs import Message, unpack
 from polarstripe.msgs.codec import HEADER_ITEMS, decode_views
 from polarstripe.msgs.fields import ArrayKind, DictKind, OptionalKind
-from polarstripe.tools.bag import BagError
-from polarstripe.tools.bag_reader import BagReader
+from polarstripe.runtime.bag import BagError
+from polarstripe.runtime.bag_reader import BagReader
 
 BIG = 64 * 1024  # payloads from this size on are parsed without copying their bins
 _MSG = struct.Struct("<BQHIQQ")  # message record: opcode, length, channel, sequence, log time, publish time

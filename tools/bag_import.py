@@ -20,7 +20,7 @@ ROS 2                                             polarstripe
 Everything else (camera info, tf, joint states, composite images and metrics: the compositor makes them
 again) is skipped and listed. A camera on a ROS 2 rig publishes its ``sensor_msgs/Image`` on ``T/image`` and
 a ``FrameInfo`` with the same header stamp on ``T/info``. Log time = the rosbag2 timestamp. A bag without a
-frame, an unreadable bag and an existing output are one-line :class:`~polarstripe.tools.bag.BagError`\\ s;
+frame, an unreadable bag and an existing output are one-line :class:`~polarstripe.runtime.bag.BagError`\\ s;
 the output is written under a temporary name and renamed at the end.
 """
 
@@ -49,7 +49,7 @@ from polarstripe.msgs import (
     ScanEvent,
     unpack,
 )
-from polarstripe.tools.bag import BagError, BagWriter
+from polarstripe.runtime.bag import BagError, BagWriter
 from polarstripe.tools.export_ros2 import PACKAGE, ROSOUT, require, typestore
 
 _DTYPES = {"mono8": ("u1", 1), "8UC1": ("u1", 1), "mono16": ("u2", 1), "16UC1": ("u2", 1), "8SC1": ("i1", 1),

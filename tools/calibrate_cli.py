@@ -19,7 +19,6 @@ import sys
 import tempfile
 import time
 
-import cv2
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.calibration import (
@@ -27,13 +26,13 @@ from polarstripe.imaging.calibration import (
     Board,
     CalibrationError,
     calibrate,
-    coverage_image,
     decode_pose,
     load,
     save,
 )
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.msgs.patterns import gray_code
+from polarstripe.nodes.rig_calibrator import coverage_path, write_coverage
 from polarstripe.sim import scene_target as target
 from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.render import render_components, render_frame
@@ -165,20 +164,6 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
                                f"{MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
     return cal, rig_geometry(scene), scene
-
-
-def coverage_path(out: str) -> str:
-    """``rig_coverage.png`` beside ``rig.yaml``."""
-    return os.path.splitext(out)[0] + "_coverage.png"
-
-
-def write_coverage(path: str, poses, proj_size) -> None:
-    """The coverage view (imaging.calibration.coverage_image), replaced atomically: watch it fill in."""
-    base, ext = os.path.splitext(path)
-    tmp = f"{base}.tmp{os.getpid()}{ext}"
-    if not cv2.imwrite(tmp, coverage_image(poses, proj_size)):
-        raise PolarstripeError(f"cannot write {path!r}")
-    os.replace(tmp, path)
 
 
 def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:

@@ -1,6 +1,6 @@
 """Views as an MCAP file the Foxglove app opens directly: the schemas and encodings of
-:mod:`polarstripe.tools.foxglove_schemas` (the live bridge's), written by
-:class:`~polarstripe.tools.bag.BagWriter` (payloads as buffers: image pixels are not copied again).
+:mod:`polarstripe.nodes.foxglove_schemas` (the live bridge's), written by
+:class:`~polarstripe.runtime.bag.BagWriter` (payloads as buffers: image pixels are not copied again).
 
 Channels carry the schema's message encoding (``protobuf`` for the ``foxglove.*`` schemas, ``json`` for the
 ``polarstripe.*`` records); message ``log_time`` and ``publish_time`` are the recording's log time. The
@@ -9,8 +9,8 @@ recording's metadata records (``launch``, ``versions``, ``recording``) are copie
 
 from __future__ import annotations
 
-from polarstripe.tools.bag import BagWriter
-from polarstripe.tools.foxglove_schemas import FoxgloveEncoder
+from polarstripe.nodes.foxglove_schemas import FoxgloveEncoder
+from polarstripe.runtime.bag import BagWriter
 from polarstripe.tools.prealloc import Preallocator
 
 

@@ -1,4 +1,4 @@
-"""Views (:mod:`polarstripe.tools.rig_views`) as ROS 2 messages, written to a rosbag2 (MCAP storage, CDR)
+"""Views (:mod:`polarstripe.nodes.rig_views`) as ROS 2 messages, written to a rosbag2 (MCAP storage, CDR)
 with the ``rosbags`` library (pure Python, no ROS install; ``pip install 'polarstripe[ros2]'``).
 
 =================  =========================================  ==========================================
@@ -18,7 +18,7 @@ Image encodings: uint16 ``mono16``, uint8 ``mono8``, bool ``mono8`` (0/255), flo
 ``64FC1``. Pixels are little-endian and copied bit for bit. Stamps are the recording's log times.
 
 The bag is written in rosbag2 format 8 (ROS 2 Jazzy's ``metadata.yaml``) with the Jazzy message
-definitions. Its MCAP file is written by :class:`~polarstripe.tools.bag.BagWriter` through a rosbags storage
+definitions. Its MCAP file is written by :class:`~polarstripe.runtime.bag.BagWriter` through a rosbags storage
 plugin: an image's CDR is a few header bytes plus the pixels, which go from the recording's chunk to the
 file without another copy (``rosbags``' own MCAP writer copies each message four times).
 """
@@ -33,9 +33,7 @@ import numpy as np
 from mcap.data_stream import RecordBuilder
 from mcap.records import Header as McapHeader
 from polarstripe import __version__
-from polarstripe.tools.bag import MAGIC, BagError, BagWriter
-from polarstripe.tools.prealloc import Preallocator
-from polarstripe.tools.rig_views import (
+from polarstripe.nodes.rig_views import (
     NESTED,
     RECORDS,
     Calibration,
@@ -46,6 +44,8 @@ from polarstripe.tools.rig_views import (
     Record,
     Transforms,
 )
+from polarstripe.runtime.bag import MAGIC, BagError, BagWriter
+from polarstripe.tools.prealloc import Preallocator
 
 try:
     from rosbags.interfaces import (
@@ -82,7 +82,7 @@ def require() -> None:
 
 
 def msg_text(kind: str) -> str:
-    """The ``.msg`` definition of record ``kind`` (:data:`~polarstripe.tools.rig_views.RECORDS`)."""
+    """The ``.msg`` definition of record ``kind`` (:data:`~polarstripe.nodes.rig_views.RECORDS`)."""
     lines = [] if kind in NESTED else ["std_msgs/Header header"]
     for name, typ in RECORDS[kind]:
         base, arr = (typ[:-2], "[]") if typ.endswith("[]") else (typ, "")

@@ -19,9 +19,9 @@ import numpy as np
 import zmq
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import REGISTRY, Composite, Frame, Message
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.bus import Subscriber
 from polarstripe.runtime.graph import find_graph, load_graph, pub_endpoints
-from polarstripe.tools.bag_reader import BagReader
 
 HELP = "write a contact sheet of the latest frames and composites"
 VIEW_TYPES = ("frame", "composite")

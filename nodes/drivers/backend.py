@@ -1,7 +1,7 @@
 """What every backend has: its own typed ``Options``, and one way to be made from them.
 
-python-can's ``Bus(interface=..., **kwargs)`` hands every argument it does not know to the backend; here a node
-keeps the backend's name and a table of its options (``camera = "v4l2"``, ``camera_options = {device =
+python-can's ``Bus(interface=..., **kwargs)`` hands every argument it does not know to the backend; here a
+node keeps the backend's name and a table of its options (``camera = "v4l2"``, ``camera_options = {device =
 "/dev/video2", width = 1280}``) and hands the table on. The backend declares what it takes::
 
     class AcmeCamera(Camera):

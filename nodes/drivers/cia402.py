@@ -28,8 +28,8 @@ import time
 import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoError
-from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers import cia402_states as cia
+from polarstripe.nodes.drivers.backend import BackendOptions
 from polarstripe.nodes.drivers.cia402_states import EDS_PATH, State
 from polarstripe.nodes.drivers.cia402_watch import BusWatch, Cia402Watch
 from polarstripe.nodes.drivers.errors import DriverError, DriverTimeout, StageFault

@@ -78,7 +78,8 @@ def _import(target: str, what: str, extra: str | None = None) -> type:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         hint = f"; install it with: pip install 'polarstripe[{extra}]'" if extra else ""
-        raise BackendUnavailable(f"{what} needs module {module_name}, which failed to import: {exc}{hint}") from exc
+        raise BackendUnavailable(
+            f"{what} needs module {module_name}, which failed to import: {exc}{hint}") from exc
     try:
         return getattr(module, class_name)
     except AttributeError as exc:
@@ -112,7 +113,8 @@ def load_backend(role: str, name: str) -> type:
     cls = _import(table[name], what, EXTRAS.get(f"{role}.{name}"))
     base = _import(ROLES[role], f"{role} role") if role in ROLES else Backend
     if not (isinstance(cls, type) and issubclass(cls, base)):
-        raise BackendUnavailable(f"{what}: {table[name]} is not a subclass of {base.__module__}.{base.__name__}")
+        raise BackendUnavailable(
+            f"{what}: {table[name]} is not a subclass of {base.__module__}.{base.__name__}")
     return cls
 
 

@@ -8,8 +8,8 @@ import msgpack
 import pytest
 from polarstripe.msgs import MessageError, Pattern, decode, unpack
 from polarstripe.msgs.base import Message, message
-from polarstripe.tools.bag import BagWriter
-from polarstripe.tools.bag_reader import BagReader
+from polarstripe.runtime.bag import BagWriter
+from polarstripe.runtime.bag_reader import BagReader
 
 
 def _v1_frames(type_name, *values):

@@ -114,8 +114,8 @@ def test_file_backend_plays_16_bit_images_then_faults_at_the_end(tmp_path):
 
 
 def test_missing_device_is_reported_on_every_trigger(tmp_path):
-    h = NodeHarness(Grabber, name="grabber", params={"camera": "file",
-                                                          "camera_options": {"source": str(tmp_path / "none")}})
+    options = {"source": str(tmp_path / "none")}
+    h = NodeHarness(Grabber, name="grabber", params={"camera": "file", "camera_options": options})
     assert any(level == "ERROR" for level, _ in h.logs)
     ack = h.call("camera/trigger", FrameRequest(scan_id=1, step=0, pattern="flood"))
     assert not ack.ok and "unavailable" in ack.detail and "none" in ack.detail

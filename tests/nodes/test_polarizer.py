@@ -29,6 +29,8 @@ def drive(can_channel, spawn_drive):
         d.close()
 
 
+FAST_SIM = {"stage": "sim", "stage_options": {"deg_per_s": 1e5}}  # the in-process stage, moves at once
+
 def _node(drive, **params):
     base = {"stage": "cia402", "stage_options": {"interface": "zmq", "channel": drive.channel,
                                                  "speed_deg_s": 720.0},
@@ -201,7 +203,7 @@ def test_calibrate_finds_the_angle_of_least_backscatter():
     object elsewhere: Malus's law gives the least light at chi + 90 = 110 deg, i.e. -70 deg in [-90, 90]."""
     chi, dop, b = 20.0, 0.7, 1000.0
     h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
-                    params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "min_deg": -90.0, "max_deg": 90.0,
+                    params={**FAST_SIM, "min_deg": -90.0, "max_deg": 90.0,
                             "calibrate_angles_deg": [0.0, 45.0, 90.0, 135.0], "dark_offset_dn": 64.0,
                             "calibrate_roi": [0, 8, 0, 16]})
     rng = np.random.default_rng(1)
@@ -229,7 +231,7 @@ def test_calibrate_finds_the_angle_of_least_backscatter():
 
 
 def test_calibrate_without_frames_fails_cleanly():
-    h = NodeHarness(Polarizer, params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "frame_timeout_s": 0.2,
+    h = NodeHarness(Polarizer, params={**FAST_SIM, "frame_timeout_s": 0.2,
                                        "calibrate_show_service": ""})  # no emitter to light the scene
     h.on_call("camera/trigger", lambda req: Ack(ok=True))  # a frame is never published
     t0 = time.monotonic()
@@ -243,7 +245,7 @@ def _lit_calibration(show):
     """A polarizer whose grabber answers with a frame as bright as what the emitter shows (``show``
     answers emitter/show); returns the harness and the list of (what was shown, when) events."""
     h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
-                    params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "calibrate_angles_deg": [0.0, 60.0, 120.0]})
+                    params={**FAST_SIM, "calibrate_angles_deg": [0.0, 60.0, 120.0]})
     events = []
 
     def on_show(req):
@@ -286,7 +288,8 @@ def test_ell14_backend_moves_and_a_failed_move_is_a_fault():
     from polarstripe.nodes.drivers.simell14 import SimEll14
 
     with SimEll14(deg_per_s=2000.0) as dev:
-        h = NodeHarness(Polarizer, params={"stage": "ell14", "stage_options": {"port": dev.port}, "auto_resets": 0,
+        h = NodeHarness(Polarizer, params={"stage": "ell14", "auto_resets": 0,
+                                           "stage_options": {"port": dev.port},
                                            "min_deg": -90.0, "max_deg": 90.0})
         try:
             h.deliver("polarizer/cmd", PolarizerCommand(target_deg=40.0))
@@ -304,7 +307,7 @@ def test_ell14_backend_moves_and_a_failed_move_is_a_fault():
 def test_polls_fast_only_while_a_move_or_a_fault_is_in_progress():
     """Settled and fault-free, the stage is looked at every idle_poll_s (the steady rate); a command polls at
     poll_s again until it settles, so the settle is published as promptly as before."""
-    h = NodeHarness(Polarizer, params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "poll_s": 0.01,
+    h = NodeHarness(Polarizer, params={**FAST_SIM, "poll_s": 0.01,
                                        "idle_poll_s": 0.1, "rate_hz": 10.0})
     try:
         assert h.advance(1.0).count("poll") <= 11  # idle: 10 polls a second, not 100
@@ -331,7 +334,7 @@ def test_the_node_keeps_serving_and_publishing_while_it_calibrates():
     """The calibration is stepped by the loop: while it waits for a frame the state is still published, a
     reset is answered and a second calibration refused; the reply comes when the frame times out."""
     h = NodeHarness(Polarizer, name="polarizer", namespace="/rig",
-                    params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "frame_timeout_s": 0.5, "rate_hz": 10.0,
+                    params={**FAST_SIM, "frame_timeout_s": 0.5, "rate_hz": 10.0,
                             "calibrate_show_service": "", "calibrate_angles_deg": [0.0, 60.0]})
     asked = []
 
@@ -352,7 +355,7 @@ def test_the_node_keeps_serving_and_publishing_while_it_calibrates():
 
 
 def test_a_stop_answers_a_calibration_under_way():
-    h = NodeHarness(Polarizer, params={"stage": "sim", "stage_options": {"deg_per_s": 1e5}, "calibrate_show_service": ""})
+    h = NodeHarness(Polarizer, params={**FAST_SIM, "calibrate_show_service": ""})
     h.on_call("camera/trigger", lambda req: Ack(ok=True))
     pending = h.request("polarizer/calibrate", CalibrateRequest(angles_deg=[0.0, 90.0]))
     h.advance(0.1)

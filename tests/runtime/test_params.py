@@ -51,7 +51,7 @@ def test_tables_from_toml_or_json_and_required_keys():
     assert o.table == {"device": "/dev/video2", "width": 640} and o.port == "/dev/ttyUSB1"
     d1, d2 = build_params(_Options, {"port": "p"}), build_params(_Options, {"port": "p", "table": ""})
     assert d1.table == {"a": 1} and d1.table is not _Options(port="p").table and d2.table == {}
-    with pytest.raises(ParamError, match=r"^backend 'b': option 'table': bad value '\[1\]': expected a table"):
+    with pytest.raises(ParamError, match=r"^backend 'b': option 'table': bad value '\[1\]': expected a tab"):
         build_params(_Options, {"port": "p", "table": "[1]"}, what="backend 'b'", noun="option")
     with pytest.raises(ParamError, match=r"^backend 'b': missing option 'port'$"):
         build_params(_Options, {}, what="backend 'b'", noun="option")

@@ -28,7 +28,7 @@ from polarstripe.msgs import (
     PolarizerState,
     ScanEvent,
 )
-from polarstripe.tools.bag import BagWriter
+from polarstripe.runtime.bag import BagWriter
 
 if os.environ.get("CI"):
     for _name in ("rosbags", "foxglove", "google.protobuf"):

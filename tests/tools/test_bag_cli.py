@@ -1,6 +1,6 @@
 """``polarstripe bag info|recover`` (tools/bag_cli.py): what info reports (the recorder's gaps, a type this
 build does not know, an empty bag, several files, JSON), what recover prints, and its argument errors. Run in
-process through ``polarstripe.tools.cli.main``; test_bag.py runs the subprocess paths."""
+process through ``polarstripe.tools.cli.main``; tests/runtime/test_bag.py runs the subprocess paths."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from polarstripe.msgs import Frame, Header, Log, json_schema, pack
-from polarstripe.tools.bag import BagWriter
+from polarstripe.runtime.bag import BagWriter
 from polarstripe.tools.bag_cli import info
 from polarstripe.tools.cli import main
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from polarstripe.msgs import unpack
-from polarstripe.tools.bag import BagWriter
+from polarstripe.runtime.bag import BagWriter
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.tools.bag_fastread import BIG, FastReader, parse_packed
-from polarstripe.tools.bag_reader import BagReader
 
 
 def _same(a, b) -> None:

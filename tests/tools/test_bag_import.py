@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Frame, ScanEvent
 from polarstripe.nodes.compositor import Compositor
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.testing import NodeHarness
 from polarstripe.tools.bag_export import ExportOptions, export
 from polarstripe.tools.bag_import import import_ros2
-from polarstripe.tools.bag_reader import BagReader
 from polarstripe.tools.cli import main
 
 pytest.importorskip("rosbags", reason="CI installs the test extra (rosbags)")

@@ -12,10 +12,10 @@ from collections import defaultdict
 import numpy as np
 import pytest
 from polarstripe.msgs import unpack
-from polarstripe.tools.bag import BagError, BagWriter
+from polarstripe.nodes.rig_geometry import pinhole
+from polarstripe.runtime.bag import BagError, BagWriter
 from polarstripe.tools.bag_export import ExportOptions, export
 from polarstripe.tools.cli import main
-from polarstripe.tools.rig_geometry import pinhole
 
 rosbags = pytest.importorskip("rosbags", reason="CI installs the test extra (rosbags)")
 pytest.importorskip("foxglove", reason="CI installs the test extra (foxglove-sdk)")

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
 from polarstripe.msgs import Frame, unpack
+from polarstripe.runtime.bag import BagError
+from polarstripe.runtime.bag_reader import BagReader, check_file, recover
 from polarstripe.runtime.bus import PubSocket
-from polarstripe.tools.bag import BagError
-from polarstripe.tools.bag_reader import BagReader, check_file, recover
 
 SHAPE = (120, 160)
 

@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 from polarstripe.msgs import Composite, Frame, Header, Log
+from polarstripe.runtime.bag import BagWriter
+from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.bus import BusTimeout, Subscriber
 from polarstripe.runtime.graph import find_graph, load_graph, pub_endpoints
-from polarstripe.tools.bag import BagWriter
-from polarstripe.tools.bag_reader import BagReader
 
 T0 = 1_700_000_000_000_000_000
 
@@ -86,8 +86,8 @@ def test_replay_paces_by_log_time_and_keeps_messages_intact(tmp_path, monkeypatc
 
 def test_replayer_publishes_each_message_when_its_log_time_is_due(tmp_path):
     """Virtual clock: recorded 0.2 s apart, at rate 2 message k is due 0.1·k s after the start delay."""
+    from polarstripe.nodes.replayer import Replayer
     from polarstripe.runtime.testing import NodeHarness
-    from polarstripe.tools.replay import Replayer
 
     bag = _bag(tmp_path / "b.mcap", n=6, spacing_s=0.2)
     h = NodeHarness(
@@ -112,8 +112,8 @@ def test_replayer_publishes_each_message_when_its_log_time_is_due(tmp_path):
 
 
 def test_replayer_start_skips_the_beginning(tmp_path):
+    from polarstripe.nodes.replayer import Replayer
     from polarstripe.runtime.testing import NodeHarness
-    from polarstripe.tools.replay import Replayer
 
     bag = _bag(tmp_path / "b.mcap", n=6, spacing_s=0.2)  # frames at 0, 0.2, … 1.0 s
     h = NodeHarness(

@@ -1,5 +1,5 @@
 """Looking at a rig: the contact sheet (from a bag and live). The Foxglove bridge has its own tests
-(tests/tools/test_foxglove_bridge.py)."""
+(tests/nodes/test_foxglove_bridge.py)."""
 
 import struct
 import subprocess
@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 from polarstripe.msgs import Composite, Frame
+from polarstripe.runtime.bag import BagWriter
 from polarstripe.runtime.bus import PubSocket
-from polarstripe.tools.bag import BagWriter
 from polarstripe.tools.view import ViewError, contact_sheet, latest_from_bag, latest_live, tiles
 
 

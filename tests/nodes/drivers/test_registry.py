@@ -8,8 +8,8 @@ from types import SimpleNamespace
 
 import pytest
 from polarstripe.nodes.drivers import registry
-from polarstripe.nodes.drivers.display import NullDisplay
 from polarstripe.nodes.drivers.backend import Backend, BackendContext
+from polarstripe.nodes.drivers.display import NullDisplay
 from polarstripe.nodes.drivers.errors import BackendUnavailable, DriverError
 from polarstripe.runtime.params import ParamError
 
@@ -69,7 +69,8 @@ def test_every_builtin_option_is_a_constructor_keyword_with_the_same_default(rol
                 assert default is inspect.Parameter.empty, (role, name, f.name)  # required in both
             else:
                 mine = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
-                assert mine == (list(default) if isinstance(default, tuple) else default), (role, name, f.name)
+                expected = list(default) if isinstance(default, tuple) else default
+                assert mine == expected, (role, name, f.name)
 
 
 def test_options_are_typed_and_checked():
@@ -77,7 +78,7 @@ def test_options_are_typed_and_checked():
     assert (opts.node_id, opts.speed_deg_s, opts.interface) == (7, None, "zmq")
     with pytest.raises(ParamError, match=r"^stage backend 'ell14': missing option 'port'$"):
         registry.backend_options("stage", "ell14", {})
-    with pytest.raises(ValueError, match=r"^display backend 'null': unknown option 'colour' \(known: height, "):
+    with pytest.raises(ValueError, match=r"^display backend 'null': unknown option 'colour' \(known: heig"):
         registry.check_backend("display", "null", {"colour": "red"})
     with pytest.raises(ValueError, match=r"^unknown display backend 'hologram'"):
         registry.check_backend("display", "hologram", {})

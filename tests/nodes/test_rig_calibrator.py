@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.msgs import Ack, Frame
 from polarstripe.msgs.patterns import gray_code
+from polarstripe.nodes.rig_calibrator import SCAN_ID_BASE, RigCalibrator
 from polarstripe.runtime.testing import NodeHarness
-from polarstripe.tools.calibrate_rig import SCAN_ID_BASE, RigCalibrator
 
 
 def test_a_board_never_seen_fails_cleanly_and_leaves_the_previous_file(tmp_path):

@@ -1,6 +1,6 @@
 """Writing MCAP bags of bus messages: a zero-copy chunked writer with crash-bounded loss.
 
-The layout of a bag and a message's payload are in :mod:`polarstripe.tools.bag_format` (its names are
+The layout of a bag and a message's payload are in :mod:`polarstripe.runtime.bag_format` (its names are
 importable from here too: ``BagError``, ``payload``, ``MAGIC``, ``COMPRESSIONS`` …).
 
 :class:`BagWriter` follows mcap's writer lifecycle (``start`` / ``add_message`` / ``flush`` / ``finish``) but
@@ -38,7 +38,7 @@ from mcap.records import (
     SummaryOffset,
 )
 from polarstripe.msgs import Message, json_schema
-from polarstripe.tools.bag_format import (
+from polarstripe.runtime.bag_format import (
     COMPRESSIONS,
     MAGIC,
     MESSAGE_ENCODING,

@@ -6,12 +6,12 @@ to a launch file (``launch/sim.toml`` and ``launch/rov.toml`` have it behind the
 
     [[node]]
     name = "foxglove"
-    module = "polarstripe.tools.foxglove_bridge:FoxgloveBridge"
+    module = "polarstripe.nodes.foxglove_bridge:FoxgloveBridge"
     params = { port = 8765 }          # then open ws://<host>:8765 in the Foxglove app
 
 It subscribes to the chosen topics (default: every topic of the launch; camera frames and projector patterns
 ``mode="latest"``, a viewer drops what it cannot show; everything else ``mode="all"``) and logs each message
-as the views of :mod:`polarstripe.tools.rig_views` in the schemas of :mod:`polarstripe.tools.foxglove_schemas`
+as the views of :mod:`polarstripe.nodes.rig_views` in the schemas of :mod:`polarstripe.nodes.foxglove_schemas`
 (the same channels as ``polarstripe bag export --to foxglove``): images as ``foxglove.RawImage``
 (``<topic>/image`` for frames and patterns, ``<topic>/<name>`` per composite image), camera intrinsics as
 ``foxglove.CameraCalibration``, the rig's poses as ``foxglove.FrameTransforms`` on ``/tf_static`` (sent
@@ -29,14 +29,14 @@ import json
 import time
 
 from polarstripe.msgs import REGISTRY, Frame, Message, Pattern
+from polarstripe.nodes.foxglove_schemas import FoxgloveEncoder
+from polarstripe.nodes.rig_geometry import geometry_from_metadata
+from polarstripe.nodes.rig_views import TF_STATIC, Image, RigViews, Transforms
+from polarstripe.runtime.bag import BagError
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.node import Node, NodeError
 from polarstripe.runtime.params import NodeParams
 from polarstripe.sim.scene import SceneError
-from polarstripe.tools.bag import BagError
-from polarstripe.tools.foxglove_schemas import FoxgloveEncoder
-from polarstripe.tools.rig_geometry import geometry_from_metadata
-from polarstripe.tools.rig_views import TF_STATIC, Image, RigViews, Transforms
 
 _LATEST = (Frame, Pattern)  # big and frequent: the newest only
 

@@ -1,8 +1,8 @@
 """Reading polarstripe bags: :class:`BagReader` (checked at open: MCAP magic, footer, every channel's schema
 and version), :func:`check_file`, and :func:`recover` for a file whose writer died.
 
-The layout is described in :mod:`polarstripe.tools.bag`. ``polarstripe bag info`` and ``replay``
-read through here; errors a user can cause are :class:`~polarstripe.tools.bag.BagError`, one line
+The layout is described in :mod:`polarstripe.runtime.bag`. ``polarstripe bag info`` and ``replay``
+read through here; errors a user can cause are :class:`~polarstripe.runtime.bag.BagError`, one line
 naming the file and topic.
 """
 
@@ -22,8 +22,8 @@ from mcap.records import Channel, Chunk, MessageIndex, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 from polarstripe.msgs import REGISTRY, Message, unpack
+from polarstripe.runtime.bag import MAGIC, MESSAGE_ENCODING, SCHEMA_ENCODING, BagError, BagWriter
 from polarstripe.runtime.graph import resolve
-from polarstripe.tools.bag import MAGIC, MESSAGE_ENCODING, SCHEMA_ENCODING, BagError, BagWriter
 
 
 # ---- reader ------------------------------------------------------------------------------------------------

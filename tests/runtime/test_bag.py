@@ -13,8 +13,8 @@ import pytest
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.stream_reader import StreamReader
 from polarstripe.msgs import Composite, Frame, Header, Log, ScanEvent, json_schema, pack, unpack
-from polarstripe.tools.bag import BagError, BagWriter, payload
-from polarstripe.tools.bag_reader import BagReader, check_file, recover
+from polarstripe.runtime.bag import BagError, BagWriter, payload
+from polarstripe.runtime.bag_reader import BagReader, check_file, recover
 
 
 def _frame(i: int, shape=(48, 64)) -> Frame:

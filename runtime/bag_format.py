@@ -1,5 +1,5 @@
-"""The layout of a polarstripe bag, and a message's payload in it (written by :mod:`polarstripe.tools.bag`,
-read by :mod:`polarstripe.tools.bag_reader`).
+"""The layout of a polarstripe bag, and a message's payload in it (written by :mod:`polarstripe.runtime.bag`,
+read by :mod:`polarstripe.runtime.bag_reader`).
 
 A polarstripe bag is an MCAP file (https://mcap.dev/spec):
 

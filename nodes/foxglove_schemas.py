@@ -1,5 +1,5 @@
-"""Views (:mod:`polarstripe.tools.rig_views`) in the schemas the Foxglove app decodes: one encoder for the
-live bridge (:mod:`polarstripe.tools.foxglove_bridge`) and the MCAP export
+"""Views (:mod:`polarstripe.nodes.rig_views`) in the schemas the Foxglove app decodes: one encoder for the
+live bridge (:mod:`polarstripe.nodes.foxglove_bridge`) and the MCAP export
 (:mod:`polarstripe.tools.export_foxglove`), so both show the same channels.
 
 =============  =================================  ========================================================
@@ -29,8 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from polarstripe.tools.bag import BagError
-from polarstripe.tools.rig_views import (
+from polarstripe.nodes.rig_views import (
     NESTED,
     RECORDS,
     Calibration,
@@ -40,6 +39,7 @@ from polarstripe.tools.rig_views import (
     Record,
     Transforms,
 )
+from polarstripe.runtime.bag import BagError
 
 try:
     from foxglove import messages as fm
@@ -86,7 +86,7 @@ def _sdk_schema(cls) -> SchemaSpec:
 
 
 def record_schema(kind: str) -> dict:
-    """The JSON Schema of record ``kind`` (:data:`~polarstripe.tools.rig_views.RECORDS`)."""
+    """The JSON Schema of record ``kind`` (:data:`~polarstripe.nodes.rig_views.RECORDS`)."""
     props = {}
     for name, typ in RECORDS[kind]:
         base = typ[:-2] if typ.endswith("[]") else typ

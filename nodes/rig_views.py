@@ -1,7 +1,7 @@
 """What a recorded or live message looks like to the robotics tools: one message becomes a few *views*
 (an image, a camera calibration, transforms, a log line, a joint, a record of plottable numbers), and each
 exporter maps the views to its own types (:mod:`polarstripe.tools.export_ros2` to ROS 2 messages,
-:mod:`polarstripe.tools.foxglove_schemas` to Foxglove schemas). One mapping, so the ROS 2 bag, the Foxglove
+:mod:`polarstripe.nodes.foxglove_schemas` to Foxglove schemas). One mapping, so the ROS 2 bag, the Foxglove
 MCAP and the live Foxglove bridge show the same topics.
 
 =========================  ====================================================================
@@ -44,7 +44,7 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.drivers.display import render_pattern
 from polarstripe.nodes.drivers.errors import DriverValueError
-from polarstripe.tools.rig_geometry import CAMERA, PROJECTOR, Intrinsics, Pose, RigGeometry, pinhole
+from polarstripe.nodes.rig_geometry import CAMERA, PROJECTOR, Intrinsics, Pose, RigGeometry, pinhole
 
 TF_STATIC = "/tf_static"
 DEFAULT_PROJECTOR = (1024, 768)  # px, without a scene (sim.scene.Projector's default)

@@ -22,8 +22,18 @@ from __future__ import annotations
 
 import os
 
+import cv2
 import numpy as np
-from polarstripe.imaging.calibration import MIN_POSES, Board, CalibrationError, calibrate, decode_pose, save
+from polarstripe.errors import PolarstripeError
+from polarstripe.imaging.calibration import (
+    MIN_POSES,
+    Board,
+    CalibrationError,
+    calibrate,
+    coverage_image,
+    decode_pose,
+    save,
+)
 from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
 from polarstripe.msgs.patterns import gray_code
 from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
@@ -32,10 +42,22 @@ from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.params import NodeParams
 from polarstripe.sim.scene import SceneError, parse_size
 from polarstripe.sim.scene_target import parse_board
-from polarstripe.tools.calibrate_cli import coverage_path, write_coverage
 
 SCAN_ID_BASE = CALIBRATION_SCAN_ID + 1000  # frames of pose k carry scan id SCAN_ID_BASE + k
 
+
+def coverage_path(out: str) -> str:
+    """``rig_coverage.png`` beside ``rig.yaml``."""
+    return os.path.splitext(out)[0] + "_coverage.png"
+
+
+def write_coverage(path: str, poses, proj_size) -> None:
+    """The coverage view (imaging.calibration.coverage_image), replaced atomically: watch it fill in."""
+    base, ext = os.path.splitext(path)
+    tmp = f"{base}.tmp{os.getpid()}{ext}"
+    if not cv2.imwrite(tmp, coverage_image(poses, proj_size)):
+        raise PolarstripeError(f"cannot write {path!r}")
+    os.replace(tmp, path)
 
 class RigCalibrationError(CalibrationError):
     """A step of the calibration over the nodes failed; the text names the service, topic or pose."""

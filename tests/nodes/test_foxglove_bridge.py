@@ -27,7 +27,7 @@ pytest.importorskip("foxglove", reason="CI installs the test extra (foxglove-sdk
 pytest.importorskip("google.protobuf", reason="CI installs the test extra (protobuf)")
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
-from polarstripe.tools.foxglove_bridge import FoxgloveBridge  # noqa: E402
+from polarstripe.nodes.foxglove_bridge import FoxgloveBridge  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
@@ -259,9 +259,9 @@ def test_sim_launch_with_foxglove_serves_a_composite_image(sim_run):
 
 @pytest.mark.slow
 def test_sim_recording_exports_imports_and_replays(sim_run):
+    from polarstripe.runtime.bag_reader import BagReader
     from polarstripe.tools.bag_export import ExportOptions, export
     from polarstripe.tools.bag_import import import_ros2
-    from polarstripe.tools.bag_reader import BagReader
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 

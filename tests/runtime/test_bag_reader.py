@@ -1,5 +1,5 @@
-"""The bag reader (tools/bag_reader.py) beyond test_bag.py: topic names, channels it must refuse, a type this
-build does not know, the time filter, and the files check_file and recover must turn away."""
+"""The bag reader (runtime/bag_reader.py) beyond test_bag.py: topic names, channels it must refuse, a type
+this build does not know, the time filter, and the files check_file and recover must turn away."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import DataEnd, Footer
 from mcap.records import Header as McapHeader
 from polarstripe.msgs import Header, Log, PolarizerCommand, json_schema, pack
-from polarstripe.tools.bag import MAGIC, BagError, BagWriter
-from polarstripe.tools.bag_reader import BagReader, TopicSummary, check_file, recover
+from polarstripe.runtime.bag import MAGIC, BagError, BagWriter
+from polarstripe.runtime.bag_reader import BagReader, TopicSummary, check_file, recover
 
 
 def _log(i: int, seq: int | None = None) -> Log:
