@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import os
 import platform
 import time
 from importlib.metadata import PackageNotFoundError, version
@@ -23,7 +22,7 @@ from typing import Literal
 from polarstripe import __version__
 from polarstripe.msgs import REGISTRY, Message
 from polarstripe.runtime.bag import BagError, BagWriter
-from polarstripe.runtime.graph import load_graph, resolve
+from polarstripe.runtime.graph import load_graph, pid_alive, resolve
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -60,16 +59,6 @@ def launch_metadata(graph: dict) -> dict[str, str]:
 def split_path(path: Path, index: int, split: bool) -> Path:
     """``run.mcap`` when not splitting, else ``run_000.mcap``, ``run_001.mcap``, …"""
     return path.with_name(f"{path.stem}_{index:03d}{path.suffix or '.mcap'}") if split else path
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass
-    return True
 
 
 def _message_type(graph: dict, tname: str) -> type[Message] | None:
@@ -187,7 +176,7 @@ class Recorder(Node):
         d = self.params.split_duration_s
         if d and self.writer.stats.message_count and time.monotonic() - self.writer.started_at >= d:
             self._rotate()
-        if self._launcher_pid and not _alive(self._launcher_pid):
+        if self._launcher_pid and not pid_alive(self._launcher_pid):
             self.stop("the launch ended")
 
     def _rotate(self) -> None:

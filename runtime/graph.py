@@ -72,7 +72,8 @@ def load_graph(path: str | Path) -> dict:
     return graph
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one of another user counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -100,7 +101,7 @@ def find_graph(explicit: str | None = None, *, running: bool = True) -> Path:
             pid = int(json.loads(p.read_text()).get("pid", 0))
         except (OSError, ValueError):
             continue
-        if pid and _alive(pid):
+        if pid and pid_alive(pid):
             return p
     what = "running launch" if running else "launch"
     raise GraphError(f"no {what} found in {root} (start one with 'polarstripe launch FILE', or pass --graph)")

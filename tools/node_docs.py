@@ -1,10 +1,11 @@
-"""``polarstripe docs nodes [-o docs/nodes.md]``: the node reference, written from the code that holds the facts.
+"""``polarstripe docs nodes [-o docs/nodes.md]``: the node reference, written from the code that holds the
+facts.
 
 For every node class in ``nodes/``: what it is (the first paragraph of its docstring), its params (type,
 default, the comment on the field's line), the topics it publishes and subscribes and the services it serves
-(``PUBLISHES``, ``SUBSCRIBES``, ``SERVES``, with their message types); then the params every node has, and every
-built-in hardware backend's ``Options``. ``tests/tools/test_node_docs.py`` checks that docs/nodes.md is what
-this writes, so the reference cannot drift from the code.
+(``PUBLISHES``, ``SUBSCRIBES``, ``SERVES``, with their message types); then the params every node has, and
+every built-in hardware backend's ``Options``. ``tests/tools/test_node_docs.py`` checks that docs/nodes.md is
+what this writes, so the reference cannot drift from the code.
 """
 
 from __future__ import annotations
@@ -34,12 +35,13 @@ edit by hand: tests/tools/test_node_docs.py fails when this file and the code di
 
 Every node of `nodes/`: its params (set in a launch file's `params = {...}`, or `polarstripe node ... -p
 KEY=VALUE`), the topics it publishes and subscribes and the services it serves, relative to the launch
-namespace. The ideas behind them are in docs/architecture.md; the hardware backends' own options are at the end.
+namespace. The ideas behind them are in docs/architecture.md; the hardware backends' own options are at the
+end.
 """
 
 
 def _field_notes(cls: type) -> dict[str, tuple[str, str]]:
-    """``{field: (annotation as written, the comment on its line)}`` for the fields ``cls`` itself declares."""
+    """``{field: (annotation as written, the comment on its line)}`` for the fields ``cls`` declares."""
     try:
         source = textwrap.dedent(inspect.getsource(cls))
     except (OSError, TypeError):
@@ -66,7 +68,7 @@ def _cell(text: str) -> str:
 
 
 def params_table(cls: type, *, skip: type | None = None) -> list[str]:
-    """A markdown table of the fields of ``cls`` (a params or options dataclass), without those of ``skip``."""
+    """A markdown table of the fields of ``cls`` (params or options), without those of ``skip``."""
     notes: dict[str, tuple[str, str]] = {}
     for klass in reversed(cls.__mro__):
         notes.update(_field_notes(klass) if "__annotations__" in klass.__dict__ else {})
@@ -135,7 +137,8 @@ def render() -> str:
     for role in sorted(BACKENDS):
         for name in sorted(BACKENDS[role]):
             cls = load_backend(role, name)
-            out += [f"### {role} `{name}`: {cls.__name__}", "", f"`{BACKENDS[role][name]}` — {_summary(cls)}", ""]
+            out += [f"### {role} `{name}`: {cls.__name__}", "",
+                    f"`{BACKENDS[role][name]}` — {_summary(cls)}", ""]
             out += params_table(cls.Options) + [""]
     return "\n".join(out).rstrip() + "\n"
 

@@ -18,6 +18,7 @@ simulator's camera calls a service) overrides ``from_options`` and uses the :cla
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -41,8 +42,9 @@ class BackendContext:
     service: Callable[[str, type, type], Callable[[Any], Any]] | None = None
 
 
-class Backend:
-    """The base of every role's ABC (camera, display, stage): the declared ``Options`` and the factory."""
+class Backend(ABC):
+    """The base of every role's ABC (camera, display, stage): the declared ``Options``, the factory, and the
+    context manager around the role's idempotent ``close``."""
 
     Options: ClassVar[type[BackendOptions]] = BackendOptions
 
@@ -50,3 +52,13 @@ class Backend:
     def from_options(cls, options: BackendOptions, context: BackendContext | None = None, **common):
         """Make the backend from its checked ``options`` and the node's ``common`` settings of the role."""
         return cls(**options.as_dict(), **common)
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the device; idempotent."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -128,12 +128,6 @@ class Camera(Backend, ABC):
         self._worker.shutdown(wait=False, cancel_futures=True)
         self._close()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # -- for backends --------------------------------------------------------------------------------------
     def _check_exposure(self, value: float) -> float:
         value = float(value)

@@ -118,12 +118,6 @@ class Display(Backend, ABC):
             self._closed = True
             self._close()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     @abstractmethod
     def _show(self, pattern: PatternSpec) -> float: ...
 

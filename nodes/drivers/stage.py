@@ -135,12 +135,6 @@ class RotationStage(Backend, ABC):
         self._closed = True
         self._close()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # -- for backends -------------------------------------------------------------------------------------
     def _latch_fault(self, text: str) -> None:
         with self._fault_lock:

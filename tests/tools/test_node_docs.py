@@ -29,5 +29,5 @@ def test_every_node_a_launch_file_starts_is_in_the_reference():
 
 def test_a_param_is_listed_with_its_type_default_and_comment():
     rows = [line for line in node_docs.render().splitlines() if line.startswith("| `grab_timeout_s` ")]
-    assert rows == ["| `grab_timeout_s` | `float` | `10.0` | a grab (and a service the camera calls) that takes "
-                    "longer is a fault |"]
+    assert rows == ["| `grab_timeout_s` | `float` | `10.0` | a grab (and a service the camera calls) that "
+                    "takes longer is a fault |"]
