@@ -27,7 +27,7 @@ from pathlib import Path
 
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
-from polarstripe.planning.validate_table import default_grid, validate
+from polarstripe.planning.validate_table import VARIANTS, default_grid, validate
 from polarstripe.sim.scene import load_scene
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
@@ -51,9 +51,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--fidelity", default="standard", help="fidelity of the scans' renders (default standard)")
     g.add_argument("--orders", choices=("all", "single"), default="all",
                    help="orders of scattering of the scans' renders (default all: the simulator's)")
-    g.add_argument("--plan-orders", default="all,single",
-                   help="planner variants, comma-separated orders of its model (default all,single)")
-    g.add_argument("--plan-fidelity", default="standard", help="the planner's fidelity (default standard)")
+    g.add_argument("--plan-orders", default="error,all,single",
+                   help="planner variants, comma-separated: error (the error measure, all orders), all, "
+                        "single (the paper's measures with that model; default error,all,single)")
+    g.add_argument("--plan-fidelity", default=None,
+                   help="the planner's fidelity (default: preview for the error measure, standard for the "
+                        "paper's)")
     g.add_argument("--width", type=int, default=160,
                    help="camera width of the scans (default 160; exposure scaled per pixel solid angle)")
     g.add_argument("--scan-exposure", choices=EXPOSURES, default="rig",
@@ -135,8 +138,8 @@ def scene_paths(args) -> list[str]:
 
 def run(args) -> dict:
     variants = tuple(v.strip() for v in args.plan_orders.split(",") if v.strip())
-    if not variants or any(v not in ("all", "single") for v in variants):
-        raise PolarstripeError(f"--plan-orders: comma-separated 'all' and/or 'single', got "
+    if not variants or any(v not in VARIANTS for v in variants):
+        raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got "
                                f"{args.plan_orders!r}")
     settings = ScanSettings(fidelity=args.fidelity, orders=args.orders, n_stripes=args.stripes,
                             width=args.width, exposure=args.scan_exposure, seed=args.seed)

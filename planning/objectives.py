@@ -43,11 +43,15 @@ from polarstripe.imaging.quality import (
     log_snr_weight,
     recovered_signal_noise_e,
 )
+from polarstripe.planning.predicted_error import reading_error
 from polarstripe.sim.scene import SceneError
 
 MODALITIES = ("flood", "stripes")
 READINGS = {"flood": ("E", "E_b", "S_hat"), "stripes": ("E", "E_b")}
 EDGES = ("margin", "eq9")
+#: what the planner maximises: ``error`` (1 − the composite's expected error against T,
+#: planning/predicted_error.py) or ``paper`` (CQM·W for flood, the margin or eq. 9 ·W for stripes)
+MEASURES = ("error", "paper")
 READING_NAMES = {"E": "no polarizer (E = S + B)",
                  "E_b": "best-polarized image E_b (eq. 4, optical filtering)",
                  "S_hat": "recovered signal Ŝ (eq. 6, post-processing)"}
@@ -77,6 +81,11 @@ class Samples:
     backscatter: np.ndarray
     dop: np.ndarray
     competitors: Competitors | None = None
+    # the error measure's whole-image samples (planning/image_model.py): the backscatter's angle [rad],
+    # T, and each pixel's location (group)
+    chi: np.ndarray | None = None
+    truth: np.ndarray | None = None
+    group: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -159,8 +168,37 @@ def _check(modality: str, reading: str, edge: str) -> None:
         raise SceneError(f"edge must be one of {EDGES}, got {edge!r}")
 
 
+def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: float = 0.05) -> Objective:
+    """The ``error`` measure per location: quality = 1 − the reading's expected error against T
+    (planning/predicted_error.py), weight 1 (the noise is inside the error), saturated where every pixel of
+    the location is. ``samples`` hold electrons at the scene's exposure; ``noise.electrons_per_radiance`` is
+    the exposure's multiplier (inf: the noise-free, unsaturating sensor)."""
+    if samples.truth is None:
+        raise SceneError("the error measure needs whole-image samples with T (planning/image_model.py)")
+    scale = float(np.max(noise.electrons_per_radiance))
+    ideal = math.isinf(scale)
+    k = 1.0 if ideal else scale
+    truth = np.asarray(samples.truth, np.float64)
+    group = np.zeros(truth.shape, np.int64) if samples.group is None else samples.group
+    n = int(group.max()) + 1 if group.size else 0      # a group of −1: pixels left out
+    s_e = (np.asarray(samples.direct) + np.asarray(samples.indirect)) * k
+    b_e = np.asarray(samples.backscatter) * k
+    dop = np.asarray(samples.dop)
+    chi = np.zeros_like(s_e) if samples.chi is None else np.asarray(samples.chi)
+    quality, saturated = np.zeros(n), np.zeros(n, bool)
+    for g in range(n):
+        at = group == g
+        err, sat = reading_error(reading, s_e[..., at], b_e[..., at], dop[..., at], chi[..., at],
+                                 truth[at] * k, full_well_e=math.inf if ideal else noise.full_well_e,
+                                 dark_e=noise.dark_e, read_noise_e=noise.read_noise_e,
+                                 quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal)
+        quality[g], saturated[g] = 1.0 - err, sat >= 1.0
+    return Objective(quality, np.ones(n), saturated)
+
+
 def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: str = "E",
-              edge: str = "margin", k_detect: float = 3.0, p_min: float = 0.05) -> Objective:
+              edge: str = "margin", k_detect: float = 3.0, p_min: float = 0.05,
+              measure: str = "paper") -> Objective:
     """The planner's objective per observed point, in log space (module docstring; docs/planning.md).
 
     Parameters
@@ -186,6 +224,12 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: s
     Objective
         ``value`` = quality·W, 0 where the scored frame saturates.
     """
+    if measure == "error":
+        if reading not in READINGS["flood"]:
+            raise SceneError(f"reading must be one of {READINGS['flood']}, got {reading!r}")
+        return error_objective(samples, noise, reading, p_min)
+    if measure != "paper":
+        raise SceneError(f"measure must be one of {MEASURES}, got {measure!r}")
     _check(modality, reading, edge)
     d, a, b = (np.maximum(np.asarray(x, np.float64), 0.0) for x in (samples.direct, samples.indirect,
                                                                        samples.backscatter))

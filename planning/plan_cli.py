@@ -21,9 +21,9 @@ from polarstripe.planning.planner import (
     MODALITIES,
     SCAN_TYPES,
     Curve,
-    SceneModel,
     default_separations,
     plan,
+    plan_model,
 )
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
 from polarstripe.planning.validate_table import default_grid, picks_of, validate
@@ -134,7 +134,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="plan one modality only (default: both)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     parser.add_argument("--plot", metavar="PNG", default=None, help="write the curves to this PNG file")
-    parser.add_argument("--fidelity", default="standard", help="model fidelity: preview, standard, reference")
+    parser.add_argument("--measure", choices=("error", "paper"), default="error",
+                        help="what is maximised: 'error' (default: 1 − the composite's expected error "
+                             "against the unscattered object, from low-resolution whole frames) or 'paper' (CQM·W, "
+                             "the delineation margin or eq. 9 ·W at three observed points)")
+    parser.add_argument("--fidelity", default=None,
+                        help="model fidelity: preview, standard, reference (default: preview for the error "
+                             "measure, standard for the paper's)")
     parser.add_argument("--separations", type=int, default=60,
                         help="number of separations swept (default 60)")
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
@@ -274,8 +280,8 @@ def main(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     seps = default_separations(args.separations, args.range[0], args.range[1])
-    model = SceneModel(scene, fidelity=args.fidelity, n_stripes=args.stripes, edge=args.edge,
-                       orders=args.orders)
+    model = plan_model(scene, measure=args.measure, fidelity=args.fidelity, n_stripes=args.stripes,
+                       edge=args.edge, orders=args.orders)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
     doc = plan_to_json(plans)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+from polarstripe.planning.image_model import ImageModel
 from polarstripe.planning.objectives import (
     EDGES,
     IDEAL_SENSOR,
@@ -32,12 +33,14 @@ from polarstripe.planning.objectives import (
 from polarstripe.planning.scene_model import SceneModel
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["EDGES", "IDEAL_SENSOR", "MODALITIES", "SCAN_TYPES", "Competitors", "Curve", "ModalityPlan",
-           "Objective", "PlanModel", "Samples", "SceneModel", "SensorNoise", "auto_exposure_scale",
-           "compare_scans", "default_separations", "objective", "plan", "recommend_reading"]
+__all__ = ["EDGES", "IDEAL_SENSOR", "MODALITIES", "SCAN_TYPES", "Competitors", "Curve", "ImageModel",
+           "ModalityPlan", "Objective", "PlanModel", "Samples", "SceneModel", "SensorNoise",
+           "auto_exposure_scale", "compare_scans", "default_separations", "objective", "plan", "plan_model",
+           "recommend_reading"]
 
 SCAN_TYPES = ("rotate", "translate", "both")
-POLARIZED_READINGS = {"flood": ("E_b", "S_hat"), "stripes": ("E_b",)}
+POLARIZED_READINGS = {"paper": {"flood": ("E_b", "S_hat"), "stripes": ("E_b",)},
+                      "error": {"flood": ("E_b", "S_hat"), "stripes": ("E_b", "S_hat")}}
 TIE = 0.02  # relative: E_b wins a tie with Ŝ (one frame, no post-processing)
 
 
@@ -96,6 +99,20 @@ class ModalityPlan:
     scan: dict | None = None
     exposure_scale: float = 1.0
     edge: str | None = None
+
+
+def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_stripes: int = 30,
+               orders: str = "all", edge: str = "margin"):
+    """The model :func:`plan` sweeps for a measure: the ``error`` measure renders low-resolution whole frames
+    (:class:`ImageModel`, ``preview`` unless ``fidelity`` says otherwise), the ``paper``'s measures
+    evaluate a few observed points (:class:`SceneModel`, ``standard`` by default, ``edge`` its stripe
+    measure)."""
+    if measure == "error":
+        return ImageModel(scene, fidelity=fidelity or "preview", n_stripes=n_stripes, orders=orders)
+    if measure == "paper":
+        return SceneModel(scene, fidelity=fidelity or "standard", n_stripes=n_stripes, edge=edge,
+                          orders=orders)
+    raise SceneError(f"measure must be 'error' or 'paper', got {measure!r}")
 
 
 def default_separations(n: int = 60, d_min_m: float = 0.01, d_max_m: float = 0.6) -> np.ndarray:
@@ -169,11 +186,12 @@ def auto_exposure_scale(samples: list[Samples], noise: SensorNoise, fill: float 
     return (fill * noise.full_well_e - noise.dark_e) / brightest
 
 
-def recommend_reading(curves: dict[str, Curve], p: float, *, tie: float = TIE) -> dict:
+def recommend_reading(curves: dict[str, Curve], p: float, *, tie: float = TIE, prefer: str = "E_b") -> dict:
     """Which polarized flood reading to use, E_b (eq. 4) or Ŝ (eq. 6), and why.
 
-    The better best objective wins; within ``tie`` (relative) E_b wins, since it needs one frame and no
-    post-processing. The reason names the trade: Ŝ removes the residual backscatter B(1 − p) that limits
+    The better best objective wins; within ``tie`` (relative) ``prefer`` wins: E_b for the paper's measures
+    (one frame, no post-processing), Ŝ for the error measure (the image the compositor publishes). The
+    reason names the trade: Ŝ removes the residual backscatter B(1 − p) that limits
     E_b's contrast (CQM) but multiplies the noise by √(2(1 + 1/p²)) (docs/physics.md §4.2), which W charges;
     ``p`` is the backscatter DOP at Ŝ's optimum (for the reason's text).
     """
@@ -181,15 +199,24 @@ def recommend_reading(curves: dict[str, Curve], p: float, *, tie: float = TIE) -
     vb, vs = float(eb.objective.max()), float(sh.objective.max())
     ib, js = eb.best_index, sh.best_index
     gain = float(noise_gain(max(p, 1e-3)))
-    pick = "S_hat" if vs > vb * (1.0 + tie) else "E_b"
+    if prefer == "S_hat":
+        pick = "E_b" if vb > vs * (1.0 + tie) else "S_hat"
+    else:
+        pick = "S_hat" if vs > vb * (1.0 + tie) else "E_b"
     at = (f"best E_b {vb:.3g} at {eb.separations_m[ib] * 100:.0f} cm (CQM {eb.quality[ib]:.2f}, W "
           f"{eb.weight[ib]:.2f}); best Ŝ {vs:.3g} at {sh.separations_m[js] * 100:.0f} cm (contrast "
           f"{sh.quality[js]:.2f}, W {sh.weight[js]:.2f})")
-    if pick == "S_hat":
+    if prefer == "S_hat":       # the error measure: quality is 1 − the expected error against T
+        at = (f"expected error against T: E_b {1 - vb:.3f} at {eb.separations_m[ib] * 100:.0f} cm, Ŝ "
+              f"{1 - vs:.3f} at {sh.separations_m[js] * 100:.0f} cm")
+        why = ("the compositor publishes Ŝ, within 2 % of E_b or better" if pick == "S_hat" else
+               f"eq. 6's noise (×{gain:.1f}, p = {p:.2f}) and its over- or under-subtraction where p varies "
+               "cost more than the backscatter it removes; use the composite's E_b layer")
+    elif pick == "S_hat":
         why = (f"removing the residual backscatter raises the contrast from {eb.quality[js]:.2f} to "
                f"{sh.quality[js]:.2f}, worth eq. 6's noise gain ×{gain:.1f} (p = {p:.2f}) at this light "
                "level")
-    elif vs >= vb * (1.0 - tie):
+    elif prefer == "E_b" and vs >= vb * (1.0 - tie):
         why = "the two are within 2 %; E_b needs one frame and no post-processing"
     else:
         why = (f"eq. 6 multiplies the noise by ×{gain:.1f} (p = {p:.2f}); the light is too weak to pay for "
@@ -197,11 +224,11 @@ def recommend_reading(curves: dict[str, Curve], p: float, *, tie: float = TIE) -
     return {"reading": pick, "reason": f"{READING_NAMES[pick]}: {why}; {at}"}
 
 
-def _readings(samples, noise, modality, readings, edge, **kw):
+def _readings(samples, noise, modality, readings, edge, measure, **kw):
     """{reading: (objectives, noise-free objectives)} over the sweep."""
     out = {}
     for r in readings:
-        args = dict(modality=modality, reading=r, edge=edge, **kw)
+        args = dict(modality=modality, reading=r, edge=edge, measure=measure, **kw)
         out[r] = ([objective(s, noise, **args) for s in samples],
                   [objective(s, IDEAL_SENSOR, **args) for s in samples])
     return out
@@ -229,6 +256,7 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
         if m not in MODALITIES:
             raise SceneError(f"modality must be one of {MODALITIES}, got {m!r}")
     edge = getattr(model, "edge", "margin")
+    measure = getattr(model, "measure", "paper")
     lateral = np.asarray(model.lateral_positions_m(), np.float64)
     out: dict[str, ModalityPlan] = {}
     for modality in modalities:
@@ -240,13 +268,15 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
         scale = auto_exposure_scale(samples, model.noise) if exposure == "auto" else 1.0
         noise = dataclasses.replace(model.noise,
                                     electrons_per_radiance=model.noise.electrons_per_radiance * scale)
-        for polarized, readings in ((False, ("E",)), (True, POLARIZED_READINGS[modality])):
-            scored = _readings(samples, noise, modality, readings, edge, k_detect=k_detect, p_min=p_min)
+        for polarized, readings in ((False, ("E",)), (True, POLARIZED_READINGS[measure][modality])):
+            scored = _readings(samples, noise, modality, readings, edge, measure, k_detect=k_detect,
+                               p_min=p_min)
             curves = {r: _curve(seps, *scored[r]) for r in readings}
             rec = None
             if len(readings) > 1:
                 at = samples[curves["S_hat"].best_index]
-                rec = recommend_reading(curves, float(np.mean(np.clip(at.dop, p_min, 1.0))))
+                rec = recommend_reading(curves, float(np.mean(np.clip(at.dop, p_min, 1.0))),
+                                        prefer="S_hat" if measure == "error" else "E_b")
             chosen = rec["reading"] if rec else readings[0]
             mp = ModalityPlan(modality, polarized, curves[chosen], reading=chosen,
                               readings=curves if len(readings) > 1 else {}, recommendation=rec,

@@ -22,8 +22,7 @@ import json
 import math
 
 import numpy as np
-from polarstripe.planning.planner import default_separations, plan
-from polarstripe.planning.scene_model import SceneModel
+from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.planning.validate import METHODS, ScanSettings, scan_scene, score_scans
 from polarstripe.sim.scene import Scene, SceneError, scene_to_dict
 
@@ -47,12 +46,21 @@ def default_grid(n: int = 10, d_min_m: float = 0.02, d_max_m: float = 0.6) -> np
     return np.geomspace(d_min_m, d_max_m, int(n))
 
 
-def planner_picks(scene: Scene, *, orders: str, fidelity: str = "standard", n_stripes: int = 30,
+#: planner variants: name → (measure, orders of its model): the error measure (the default planner), the
+#: paper's measures with all orders and with the paper's single scattering
+VARIANTS = {"error": ("error", "all"), "all": ("paper", "all"), "single": ("paper", "single")}
+
+
+def planner_picks(scene: Scene, *, orders: str, fidelity: str | None = None, n_stripes: int = 30,
                   separations_m=None, exposure: str = "scene") -> dict[str, dict]:
     """The planner's pick per planner curve key (``flood``, ``flood_polarized``, …): {"separation_m",
-    "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults."""
+    "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults; ``orders``
+    names the variant (:data:`VARIANTS`)."""
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
-    model = SceneModel(scene, fidelity=fidelity, n_stripes=n_stripes, orders=orders)
+    if orders not in VARIANTS:
+        raise SceneError(f"planner variant must be one of {', '.join(VARIANTS)}, got {orders!r}")
+    measure, model_orders = VARIANTS[orders]
+    model = plan_model(scene, measure=measure, fidelity=fidelity, n_stripes=n_stripes, orders=model_orders)
     return picks_of(plan(model, seps, exposure=exposure))
 
 
@@ -81,8 +89,8 @@ def scan_key(scene: Scene, settings: ScanSettings, separation_m: float, method: 
                        method], sort_keys=True)
 
 
-def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("all",),
-             plan_fidelity: str = "standard", n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
+def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("error",),
+             plan_fidelity: str | None = None, n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
              on_total=None, cache=None, picks: dict | None = None, refine: int = 1) -> dict:
     """The end-to-end table of one scene (module docstring).
 
@@ -91,7 +99,7 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     scene : Scene
     grid_m : separations [m] of the end-to-end curves.
     settings : how the scans are rendered and exposed (:class:`~polarstripe.planning.validate.ScanSettings`).
-    plan_orders : the planner variants, each an ``orders`` of its SceneModel.
+    plan_orders : the planner variants (:data:`VARIANTS`: ``error``, ``all``, ``single``).
     plan_fidelity, n_plan, plan_range : the planner's fidelity and separation grid.
     progress : called once per separation scanned; ``on_total(n)`` first, with their number.
     cache : optional mapping-like store of scored rows by :func:`scan_key` (``get(key)``, ``put(key, row)``):

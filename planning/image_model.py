@@ -1,0 +1,125 @@
+"""The planner's model for the ``error`` measure: a low-resolution render of the whole image per separation.
+
+:class:`ImageModel` serves :func:`polarstripe.planning.planner.plan` like
+:class:`~polarstripe.planning.scene_model.SceneModel`, but instead of a few observed points it renders the
+components of the whole frame at a low resolution (``width`` pixels, the exposure scaled by the pixel's
+solid angle so each pixel collects the electrons of the scene camera's), with every order of scattering as
+the scene needs (:mod:`polarstripe.sim.orders`), and T, the unscattered object radiance the composite is
+scored against (docs/physics.md §10.8). Values are electrons at the scene's exposure (its ``noise`` converts
+with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the full well apply as they are.
+
+* flood: one flood frame; one location (group 0).
+* stripes: the scan's frames (the projector aimed as the rig aims it, N stripes; every ``stripe_step``-th
+  with a step > 1, and then only the pixels they light or that see no object), composed by eq. 7 as the
+  compositor does; one location per observed point, the pixels nearest its column.
+
+:mod:`polarstripe.planning.predicted_error` turns these into the expected error of each reading.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from polarstripe.planning.objectives import Samples, SensorNoise
+from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import Scene, SceneError, with_separation
+from polarstripe.sim.sensor import electrons_per_radiance
+from polarstripe.sim.truth import unscattered_object
+
+DEFAULT_WIDTH = 48
+
+
+def _frame(part):
+    return pinhole_frame(part.position, part.look_at, part.up, part.fov_deg, part.resolution)
+
+
+class ImageModel:
+    """Whole low-resolution frames per separation (module docstring).
+
+    Parameters
+    ----------
+    scene : Scene
+    fidelity : model fidelity of the renders (``preview`` by default: the measure compares separations,
+        and `bench planner --end-to-end` shows what the level costs in regret).
+    n_stripes : stripes per scan.
+    width : camera width [px] of the renders (the height keeps the aspect, at least 8).
+    fractions : where the observed points sit on the centre row (fractions of the width): their stripes
+        are the stripe locations.
+    orders : ``all`` (as the scene needs) or ``single``.
+    """
+
+    measure = "error"
+    edge = "margin"
+
+    def __init__(self, scene: Scene, fidelity: str = "preview", n_stripes: int = 30,
+                 width: int = DEFAULT_WIDTH, fractions=(0.25, 0.5, 0.75), orders: str = "all",
+                 stripe_step: int = 1):
+        if orders not in ("single", "all"):
+            raise SceneError(f"orders must be 'single' or 'all', got {orders!r}")
+        if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
+            raise SceneError(f"n_stripes must be a positive integer, got {n_stripes!r}")
+        if int(width) < 8:
+            raise SceneError(f"width must be at least 8 pixels, got {width!r}")
+        w0, h0 = scene.camera.resolution
+        w = min(int(width), w0)
+        h = max(8, round(w * h0 / w0))
+        cam = scene.camera.replace(resolution=(w, h), exposure_s=scene.camera.exposure_s * (w / w0) ** 2)
+        self.scene = scene.replace(camera=cam)
+        if isinstance(stripe_step, bool) or int(stripe_step) != stripe_step or not 1 <= stripe_step:
+            raise SceneError(f"stripe_step must be a positive integer, got {stripe_step!r}")
+        self.fidelity, self.n_stripes, self.orders = fidelity, int(n_stripes), orders
+        self.stripe_step = int(stripe_step)
+        self.shape = (h, w)
+        self._e = electrons_per_radiance(cam).reshape(-1)
+        frame = _frame(cam)
+        self.pixels = np.array([[h // 2, min(w - 1, int(w * f))] for f in fractions], np.int64)
+        dirs = pixel_rays(frame, self.pixels)
+        hits = intersect(scene.objects, frame.position, dirs)
+        if not np.all(np.isfinite(hits.t)):
+            raise SceneError(f"planner pixels {self.pixels[~np.isfinite(hits.t)].tolist()} see no object")
+        self._points = hits.point
+        cols = np.tile(np.arange(w), h)
+        self._columns = np.argmin(np.abs(cols[:, None] - self.pixels[None, :, 1]), axis=1)
+        axis = np.subtract(with_separation(scene, 1.0).projector.position, cam.position)
+        self._lateral = (self._points - np.asarray(cam.position)) @ (axis / np.linalg.norm(axis))
+        gain = cam.gain_e_per_dn
+        self.noise = SensorNoise(1.0, cam.read_noise_e, cam.dark_current_e_s * cam.exposure_s,
+                                 gain / np.sqrt(12.0),
+                                 min(cam.full_well_e, ((1 << cam.bits) - 1 - cam.offset_dn) * gain))
+
+    def observed_pixels(self) -> np.ndarray:
+        return self.pixels
+
+    def lateral_positions_m(self) -> np.ndarray:
+        return self._lateral
+
+    def _render(self, scene: Scene, pattern: str):
+        c = render_components(scene, pattern, self.fidelity, orders=self.orders)
+        return (c.D.reshape(-1), (c.D + c.A).reshape(-1), c.B.reshape(-1), c.p.reshape(-1),
+                c.chi_rad.reshape(-1))
+
+    def _samples(self, truth, parts, keep, group) -> Samples:
+        d, s, b, p, chi = (x[keep] for x in parts)
+        e = self._e[keep]
+        return Samples(d * e, (s - d) * e, b * e, p, chi=chi, truth=truth[keep] * e, group=group)
+
+    def flood(self, d_lc_m: float) -> Samples:
+        sd = with_separation(self.scene, d_lc_m, aim=True)
+        parts = self._render(sd, "flood")
+        keep = np.ones(parts[0].size, bool)
+        return self._samples(unscattered_object(sd)[0].reshape(-1), parts, keep,
+                             np.zeros(keep.size, np.int64))
+
+    def stripes(self, d_lc_m: float) -> Samples:
+        """Every ``stripe_step``-th stripe's frame of the scan, (F, n): the objective composes them by eq. 7
+        at each analyzer angle. Locations: each pixel belongs to the nearest observed point's column."""
+        sd = with_separation(self.scene, d_lc_m, aim=True)
+        truth = unscattered_object(sd)[0].reshape(-1)
+        parts = [self._render(sd, f"stripe:{k}/{self.n_stripes}")
+                 for k in range(0, self.n_stripes, self.stripe_step)]
+        d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
+        group = self._columns
+        if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)
+            group = np.where((d > 0).any(axis=0) | (truth <= 0), group, -1)
+        return Samples(d * self._e, (s - d) * self._e, b * self._e, p, chi=chi, truth=truth * self._e,
+                       group=group)

@@ -1,0 +1,130 @@
+"""The planner's ``error`` measure: the expected end-to-end error of a method's composite against T.
+
+What the rig's user gets is judged by the compositor's score (docs/physics.md §10.8, docs/planning.md §7):
+the composite Ŝ against the unscattered object T after fitting a gain, e = min_g ‖g Ŝ − T‖/‖T‖ over the
+frame's unsaturated pixels. The planner predicts that number from a low-resolution render of the
+components (:mod:`polarstripe.planning.image_model`), per pixel x, in electrons:
+
+* the reading's noise-free composite m(x): the frame E = S + B; through the analyzer crossed to the mean
+  backscatter polarization E_b = ½(S + B) − ½ B p cos 2(χ − χ̄) (p and χ per pixel: one analyzer angle
+  cannot follow the DOP's angle across the image); or eq. 6, Ŝ = E_b(1 + 1/p̂) + E_w(1 − 1/p̂) with one p̂
+  estimated as the compositor does (ratio of medians over object-free pixels, else over all), so where
+  p(x) ≠ p̂ the backscatter is under- or over-subtracted, B(1 − p/p̂);
+* its noise variance v(x) (EMVA 1288: shot noise of the frame's own electrons, dark, read and
+  quantization; eq. 6 carries (1 + 1/p̂)² v_b + (1 − 1/p̂)² v_w); a scan's eq. 7 maximum over noisy frames
+  has its mean and variance from seeded draws (the brightest of many dark frames is not their mean);
+* pixels whose frame (either frame, for eq. 6) reaches the full well are left out, as the compositor masks
+  them; no pixel left scores e = 1.
+
+With the gain fitted over the noisy image, the expected error is
+
+    e² = 1 − ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T‖²)
+
+(noise is independent of T and adds Σ v to ‖Ŝ‖² on average). Everything the water does to the image is
+in m: the forward-scattered light and the blur (in A), the multiply scattered backscatter, its DOP and
+angle across the image. Nothing is 1 by construction: Ŝ with the model's p everywhere still carries the
+over-/under-subtraction where p varies, and the noise of eq. 6.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+READINGS = ("E", "E_b", "S_hat")
+
+
+def expected_error(mean, variance, truth, valid) -> float:
+    """e = sqrt(1 − ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T‖²)) over ``valid`` pixels; 1 when none is valid or T = 0."""
+    m, v, t = (np.asarray(x, np.float64)[valid] for x in (mean, variance, truth))
+    tt = float(np.sum(t * t))
+    mm = float(np.sum(m * m) + np.sum(v))
+    if m.size == 0 or tt <= 0.0 or mm <= 0.0:
+        return 1.0
+    c = float(np.sum(m * t)) ** 2 / (mm * tt)
+    return math.sqrt(max(0.0, 1.0 - min(c, 1.0)))
+
+
+def frame_variance(frame_e, *, dark_e: float, read_noise_e: float, quantization_e: float):
+    """Noise variance [e²] of a frame of mean ``frame_e`` electrons (shot, dark, read, quantization)."""
+    return np.maximum(frame_e, 0.0) + dark_e + read_noise_e ** 2 + quantization_e ** 2
+
+
+def polarized_frames(s, b, p, chi):
+    """(E_b, E_w): the frames through an ideal analyzer crossed to and along the B·p-weighted mean
+    polarization angle χ̄ (over every frame given): E = ½(S + B) ∓ ½ B p cos 2(χ − χ̄) (docs/physics.md
+    §4.1)."""
+    w = b * p
+    chi_bar = 0.5 * math.atan2(float(np.sum(w * np.sin(2 * chi))), float(np.sum(w * np.cos(2 * chi))))
+    pol = 0.5 * b * p * np.cos(2.0 * (chi - chi_bar))
+    half = 0.5 * (s + b)
+    return half - pol, half + pol
+
+
+def composite(frames, variances, draws: int = 8):
+    """eq. 7 over a scan's frames (axis 0): the per-pixel maximum's mean and variance [e, e²].
+
+    One frame is its own composite. For several, the maximum of noisy frames sits above the maximum of
+    their means (dark pixels take the brightest of F noise draws), so both moments come from ``draws``
+    seeded Gaussian draws of every frame (zero variance: the maximum of the means).
+    """
+    if frames.shape[0] == 1:
+        return frames[0], variances[0]
+    if not np.any(variances > 0):
+        return frames.max(axis=0), np.zeros(frames.shape[1:])
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((draws,) + frames.shape)
+    top = (frames[None] + np.sqrt(variances)[None] * z).max(axis=1)
+    return top.mean(axis=0), top.var(axis=0, ddof=1)
+
+
+def estimate_p_hat(e_b, e_w, object_free, valid, p_min: float) -> float:
+    """p̂ = median(E_w − E_b) / median(E_w + E_b) over the valid object-free pixels (all valid pixels when
+    there are none), clipped to [p_min, 1] (the compositor's estimate, docs/physics.md §4.2)."""
+    use = valid & object_free
+    if not np.any(use):
+        use = valid
+    if not np.any(use):
+        return 1.0
+    den = float(np.median((e_w + e_b)[use]))
+    if den <= 0.0:
+        return 1.0
+    return float(np.clip(np.median((e_w - e_b)[use]) / den, p_min, 1.0))
+
+
+def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float, dark_e: float = 0.0,
+                  read_noise_e: float = 0.0, quantization_e: float = 0.0, p_min: float = 0.05,
+                  noise: bool = True) -> tuple[float, float]:
+    """(expected error, saturated fraction) of one reading's composite over the given pixels.
+
+    ``s_e``, ``b_e``: signal S = D + A and backscatter B in electrons, (n,) for one frame or (F, n) for the
+    F frames of a scan (composed by eq. 7 at each analyzer angle, :func:`composite`); ``p``, ``chi``: the
+    backscatter's DOP and angle [rad], shaped alike; ``truth_e``: T (n,) in electrons (0 where no object).
+    ``noise=False`` gives the noise-free error (the bias alone).
+    """
+    s_e, b_e = np.atleast_2d(np.asarray(s_e, np.float64)), np.atleast_2d(np.asarray(b_e, np.float64))
+    t_e = np.asarray(truth_e, np.float64)
+    p = np.clip(np.nan_to_num(np.atleast_2d(np.asarray(p, np.float64))), 0.0, 1.0)
+    chi = np.atleast_2d(np.asarray(chi, np.float64))
+    kw = dict(dark_e=dark_e, read_noise_e=read_noise_e, quantization_e=quantization_e)
+
+    def frames(x):
+        return composite(x, frame_variance(x, **kw) if noise else np.zeros_like(x))
+
+    if reading == "E":
+        mean, var = frames(s_e + b_e)
+        brightest = mean
+    else:
+        (e_b, v_b), (e_w, v_w) = (frames(x) for x in polarized_frames(s_e, b_e, p, chi))
+        if reading == "E_b":
+            mean, var, brightest = e_b, v_b, e_b
+        else:
+            brightest = np.maximum(e_b, e_w)
+            ph = estimate_p_hat(e_b, e_w, t_e <= 0.0, brightest + dark_e < full_well_e, p_min)
+            mean = e_b * (1.0 + 1.0 / ph) + e_w * (1.0 - 1.0 / ph)
+            var = (1.0 + 1.0 / ph) ** 2 * v_b + (1.0 - 1.0 / ph) ** 2 * v_w
+    valid = brightest + dark_e < full_well_e
+    if not noise:
+        var = np.zeros_like(var)
+    return expected_error(mean, var, t_e, valid), float(1.0 - np.mean(valid)) if valid.size else 1.0
