@@ -36,16 +36,13 @@ import time
 from concurrent.futures import Future
 
 import numpy as np
-from polarstripe.msgs import Composite, Frame, MediumEstimate, Plan, ScanEvent
+from polarstripe.msgs import Composite, Frame, MediumEstimate, Method, Plan, ScanEvent
 from polarstripe.planning.medium_fit import downsample, estimate_p, fit_medium
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import load_scene, parse_size, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
-
-STRIPE_METHODS = ("stripes", "polarized_stripes")
-FLOOD_METHODS = ("flood", "polarized_flood")
 
 
 class Estimator(Node):
@@ -114,15 +111,16 @@ class Estimator(Node):
 
     def on_scan(self, event: ScanEvent) -> None:
         if event.event == "start":
-            if event.method in STRIPE_METHODS + FLOOD_METHODS:
+            method = Method.lookup(event.method)
+            if method is not None and method.family in ("stripe", "flood"):  # not hf_separation's checkers
                 self.scans = {event.scan_id: {"event": event, "frames": []}}  # one scan at a time
             return
         scan = self.scans.pop(event.scan_id, None)
         if scan is None or event.event != "done":
             return
-        method, frames = scan["event"].method, scan["frames"]
+        method, frames = Method(scan["event"].method), scan["frames"]
         sep = self.separation(event.scan_id)
-        if method in FLOOD_METHODS:
+        if method.family == "flood":
             self.keep_flood(sep, scan["event"], frames, self.truths.get(event.scan_id))
         elif sep not in self.fitted and frames:
             self.fitted.add(sep)
@@ -144,7 +142,7 @@ class Estimator(Node):
         if not floods:
             return
         keep = self.floods.setdefault(sep, {})
-        if start.method == "flood":
+        if not Method(start.method).polarized:
             keep["flood"] = [f.image for f in floods]
         elif len(start.analyzer_deg) == 2:  # E_b at the first angle, E_w at the second
             def nearest(f: Frame) -> int:

@@ -41,6 +41,7 @@ from polarstripe.msgs import (
     Empty,
     Heartbeat,
     MediumEstimate,
+    Method,
     Plan,
     PolarizerState,
     ScanEvent,
@@ -81,6 +82,8 @@ class Sequencer(Node):
             super().validate()
             if not self.methods:
                 raise ValueError("methods must name at least one scan method")
+            for method in self.methods:
+                Method.parse(method)
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
             if self.max_rescans < 0:
@@ -184,7 +187,7 @@ class Sequencer(Node):
                 if not ack.ok:
                     raise SequenceError(f"simulator/move_source: {ack.detail}")
         self.eb_deg = p.eb_deg
-        if p.calibrate or any(m.startswith("polarized") for m in p.methods):
+        if p.calibrate or any(Method(m).polarized for m in p.methods):
             self.wait_stage_ready()
         if p.calibrate:
 
@@ -211,7 +214,7 @@ class Sequencer(Node):
         step (the source is moved then)."""
         p, est_node = self.params, self.params.estimator
         if not (p.rescan and self.plan is not None and est_node in self.graph.get("nodes", {})
-                and any("stripes" in m for m in p.methods)):
+                and any(Method(m).striped for m in p.methods)):
             return False
         try:
             est = self.wait_for("medium/estimate", lambda e: e.scan_id in self.pass_scans,
@@ -256,7 +259,7 @@ class Sequencer(Node):
     def scan_peers(self, method: str) -> list[str]:
         """The nodes of the launch graph that the waits of a ``method`` scan depend on."""
         p, nodes = self.params, self.graph.get("nodes", {})
-        names = [*p.scan_peers, *(p.polarized_peers if method.startswith("polarized") else [])]
+        names = [*p.scan_peers, *(p.polarized_peers if Method(method).polarized else [])]
         return [n for n in names if n in nodes and n != self.name
                 and (p.wait_composite or n != "compositor")]
 
@@ -313,8 +316,8 @@ class Sequencer(Node):
     def scan_once(self, method: str) -> bool:
         p = self.params
         peers = self.scan_peers(method)
-        polarized = method.startswith("polarized")
-        req = ScanRequest(method=method, stripes=p.stripes if "stripes" in method else 0,
+        polarized = Method(method).polarized
+        req = ScanRequest(method=method, stripes=p.stripes if Method(method).striped else 0,
                           analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
         t0 = time.monotonic()
         reply = self.call("emitter/start_scan", ScanRequest, ScanEvent, req, timeout_s=5.0)
