@@ -73,9 +73,7 @@ class Estimator(Node):
     def setup(self):
         scene = load_scene(self.params.scene or None)
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
-            (w, h), cam = parse_size(self.params.resolution), scene.camera
-            exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
-            scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
+            scene = scene.replace(camera=scene.camera.resized(parse_size(self.params.resolution)))
         self.scene = scene
         self.scans: dict[int, dict] = {}  # scan id -> {"event": start ScanEvent, "frames": [Frame]}
         self.truths: dict[int, Composite] = {}

@@ -155,6 +155,12 @@ class Camera(_Part):
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise SceneError(f"camera.seed must be an integer, got {self.seed!r}")
 
+    def resized(self, resolution: tuple[int, int]) -> Camera:
+        """This camera at ``resolution`` (w, h), the exposure scaled by (w/w₀)² to keep a frame's DN level:
+        at the same field of view a pixel's solid angle, and so the light it collects, goes as 1/w²."""
+        exposure_s = self.exposure_s * (resolution[0] / self.resolution[0]) ** 2
+        return self.replace(resolution=resolution, exposure_s=exposure_s)
+
 
 @dataclass(frozen=True)
 class SourcePolarization(_Part):
