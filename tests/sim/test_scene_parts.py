@@ -50,7 +50,7 @@ def test_a_point_source_on_the_camera_is_refused_with_one_clear_error(tmp_path):
 
 def test_a_resized_camera_keeps_the_dn_level():
     """Half the width at the same field of view: a pixel sees 4× the solid angle, so the exposure is quartered
-    and a pixel at the centre collects the same electrons per unit radiance (sim/sensor.py's pinhole model)."""
+    and a pixel at the centre collects the same electrons per unit radiance (sim/sensor.py's pinhole)."""
     cam = Camera(resolution=(640, 480), exposure_s=0.004)
     small = cam.resized((320, 240))
     assert small.resolution == (320, 240) and small.exposure_s == pytest.approx(0.001, rel=1e-12)
