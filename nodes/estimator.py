@@ -37,7 +37,7 @@ from concurrent.futures import Future
 
 import numpy as np
 from polarstripe.msgs import Composite, Frame, MediumEstimate, Method, Plan, ScanEvent
-from polarstripe.planning.medium_fit import downsample, estimate_p, fit_medium
+from polarstripe.planning.medium_fit import FitSettings, ScanFrames, downsample, fit_medium, p_of_pair
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.render import resolve_fidelity
@@ -206,14 +206,15 @@ class Estimator(Node):
         small, out, n_avg = downsample(scene, dict(stripes, flood=job.get("flood", [])),
                                        width=self.fit_width(w), full_scale=full)
         flood = out.pop("flood") or None
-        result = fit_medium(small, out, flood, polarized_pair=job.get("pair"), object_free=job.get("free"),
-                            n_stripes_used=self.params.stripes_used, frames_averaged=n_avg,
-                            fidelity=self.params.fidelity)
+        scan = ScanFrames(out, flood, polarized_pair=job.get("pair"), object_free=job.get("free"),
+                          frames_averaged=n_avg)
+        result = fit_medium(small, scan, FitSettings(fidelity=self.params.fidelity,
+                                                     n_stripes_used=self.params.stripes_used))
         p, p_std = result.p, result.p_std
         why_p = result.extra.get("p_reason", "no analyzer pair" if job.get("pair") is None else "")
         if math.isnan(p) and job.get("pair") is not None:
             dark = dark_offset_dn(scene.camera)
-            p, p_std, why_p = estimate_p(job["pair"], job.get("free"), dark, full - 0.5)
+            p, p_std, why_p = p_of_pair(job["pair"], job.get("free"), dark, full - 0.5)
         return result, p, p_std, time.perf_counter() - t0, why_p
 
     def publish(self, job: dict, result, p: float, p_std: float, seconds: float, why_p: str) -> None:
