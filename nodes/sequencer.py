@@ -24,8 +24,9 @@
 5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
-Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
-of a failure names the service or topic and what happened.
+Services that are not up yet, or whose node is lost and respawned, are retried until ``startup_timeout_s``
+(runtime/client.py); every wait has a timeout, and the text of a failure names the service or topic and what
+happened.
 """
 
 from __future__ import annotations
@@ -111,12 +112,11 @@ class Sequencer(Node):
         self.pass_scans: list[int] = []
         self.watch("heartbeat")  # runtime/liveness.py: waits on a lost peer end at once
         self.results: dict[str, dict] = {}
-        self.clients: dict[tuple[str, float], object] = {}  # see call()
 
     def run(self) -> None:
         try:
             ok = self.sequence()
-        except SequenceError as exc:
+        except (SequenceError, PeerLost) as exc:  # PeerLost: a call's server lost outside a scan
             self.log.error("%s", exc)
             ok = False
         if self.results:
@@ -128,22 +128,16 @@ class Sequencer(Node):
 
     # ---- steps ---------------------------------------------------------------------------------------------
     def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
-        """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``. One client per
-        service and timeout, made once (a client per call left a socket behind every scan)."""
-        key = (service, timeout_s)
-        client = self.clients.get(key)
-        if client is None:
-            client = self.clients[key] = self.client(service, req_type, resp_type, timeout_s=timeout_s)
-        now = self.now  # the node's clock (virtual in the harness)
-        deadline = now() + self.params.startup_timeout_s
-        while True:
-            try:
-                return client.call(request)
-            except BusTimeout as exc:
-                if now() >= deadline or self.stopping:
-                    raise SequenceError(f"{service}: {exc}") from None
-            except BusError as exc:
-                raise SequenceError(f"{service}: {exc}") from None
+        """Call ``service``, retried while it is not up (or its node is respawned) until
+        ``startup_timeout_s`` (runtime/client.py). A server lost for good raises ServiceLost, a PeerLost:
+        a scan's recovery takes it (:meth:`scan`)."""
+        client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
+        try:
+            return client.call(request, retry_s=self.params.startup_timeout_s)
+        except PeerLost:
+            raise
+        except BusError as exc:
+            raise SequenceError(f"{service}: {exc}") from None
 
     def wait_graph_ready(self) -> None:
         """Wait until every other node of the launch graph has been heard (its heartbeat), then one more beat
