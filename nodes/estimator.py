@@ -1,5 +1,5 @@
 """The estimator node: σ_t, the phase function's mean cosine g and the backscatter DOP p of the medium,
-fitted in situ to the frames the scans already take (issue 11 item 3; the fit is docs/planning.md §6,
+fitted in situ to the frames the scans already take (the fit is docs/planning.md §6,
 :func:`polarstripe.planning.medium_fit.fit_medium`).
 
 It listens to ``emitter/scan`` and ``camera/frame`` and keeps, per source pose, the last flood frame (a

@@ -181,4 +181,4 @@ class RigCalibrator(Node):
         return True
 
 
-NODE = "RigCalibrator"
+NODE = RigCalibrator

@@ -383,4 +383,4 @@ class SequenceError(Exception):
     """A step of the sequence failed; the text names the service and what happened."""
 
 
-NODE = "Sequencer"
+NODE = Sequencer

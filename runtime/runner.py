@@ -40,7 +40,7 @@ from polarstripe.runtime.service import ServiceClient, ServiceServer
 
 
 def load_node_class(spec: str) -> type[Node]:
-    """``"package.module:Class"`` (or ``"package.module"`` whose ``NODE`` names the class) → the class.
+    """``"package.module:Class"`` (or ``"package.module"`` whose ``NODE`` is the class) → the class.
 
     Raises :class:`PolarstripeError` naming the spec if the module or class is missing.
     """
@@ -50,8 +50,6 @@ def load_node_class(spec: str) -> type[Node]:
     except ModuleNotFoundError as exc:
         raise PolarstripeError(f"node {spec!r}: module {exc.name!r} not found") from None
     obj = getattr(module, cls_name or "NODE", None)
-    if isinstance(obj, str):
-        obj = getattr(module, obj, None)
     if not (isinstance(obj, type) and issubclass(obj, Node)):
         what = f"class {cls_name!r}" if cls_name else "NODE attribute naming its Node class"
         raise PolarstripeError(f"node {spec!r}: module {module_name!r} has no {what} (a Node subclass)")

@@ -120,7 +120,7 @@ class Polarizer(_Part):
 
 @dataclass(frozen=True)
 class Camera(_Part):
-    """Pinhole camera (issue 3 geometry) with an EMVA 1288 sensor and an optional analyzer."""
+    """Pinhole camera (docs/scene-format.md "Geometry") with an EMVA 1288 sensor and an optional analyzer."""
 
     position: Vec3 = (0.0, 0.0, 0.0)
     look_at: Vec3 = (0.0, 0.0, 0.38)
