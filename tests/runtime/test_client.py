@@ -61,7 +61,11 @@ def rig(tmp_path):
 
     bus = ZmqNodeBus("caller", pub=nodes["caller"]["pub"], srv=nodes["caller"]["srv"], graph=graph)
     caller = Node("caller", bus=bus, namespace="/t")
-    yield start, caller
+    server = start()
+    client = caller.client("slow/wait", Log, Ack, timeout_s=30.0)
+    assert client is caller.client("slow/wait", Log, Ack, timeout_s=30.0)  # one client, made once
+    assert client.wait_for_service(60.0), "the server never beat ready"
+    yield start, server, client
     for p in procs:
         if p.poll() is None:
             p.kill()
@@ -70,11 +74,7 @@ def rig(tmp_path):
 
 
 def test_a_pending_call_fails_when_its_server_is_killed_not_at_its_timeout(rig):
-    start, caller = rig
-    server = start()
-    client = caller.client("slow/wait", Log, Ack, timeout_s=30.0)
-    assert client is caller.client("slow/wait", Log, Ack, timeout_s=30.0)  # one client, made once
-    assert client.wait_for_service(60.0), "the server never beat ready"
+    _, server, client = rig
     assert client.call(_wait("0")).detail == "0"
 
     killed = []
@@ -87,7 +87,6 @@ def test_a_pending_call_fails_when_its_server_is_killed_not_at_its_timeout(rig):
     with pytest.raises(ServiceLost) as lost:
         client.call(_wait("30"))  # the handler sleeps 30 s; the server dies 1 s into it
     after_kill = time.monotonic() - killed[0]
-    print(f"ServiceLost {after_kill:.2f} s after the kill")
     assert after_kill < 2.0, f"the failure came {after_kill:.2f} s after the kill"
     assert isinstance(lost.value, PeerLost) and isinstance(lost.value, ServiceError)
     assert lost.value.node == "slow" and "no heartbeat for" in str(lost.value)
@@ -100,10 +99,7 @@ def test_a_pending_call_fails_when_its_server_is_killed_not_at_its_timeout(rig):
 
 
 def test_a_call_with_retries_waits_for_the_respawned_server(rig):
-    start, caller = rig
-    server = start()
-    client = caller.client("slow/wait", Log, Ack, timeout_s=30.0)
-    assert client.wait_for_service(60.0)
+    start, server, client = rig
     server.send_signal(signal.SIGKILL)
     server.wait(10)
     time.sleep(1.5)  # its beats have stopped: lost
