@@ -60,8 +60,7 @@ def depth_scene(sigma_t: float, width: int = 160) -> Scene:
     n /= np.linalg.norm(n)
     objects = (SphereObject(center=(0.02, 0.0, 0.26), radius=0.05, albedo=0.6),
                PlaneObject(point=(0.0, 0.0, 0.34), normal=tuple(n), size=(0.4, 0.3), albedo=0.6))
-    cam = s.camera.replace(resolution=(width, width * 3 // 4),
-                           exposure_s=s.camera.exposure_s * (width / s.camera.resolution[0]) ** 2)
+    cam = s.camera.resized((width, width * 3 // 4))
     return s.replace(objects=objects, camera=cam, medium=s.medium.replace(sigma_t=float(sigma_t)))
 
 

@@ -17,10 +17,7 @@ from polarstripe.imaging.metrics import michelson_contrast, signal_error
 from polarstripe.imaging.polarization import estimate_p, recover_signal
 from polarstripe.imaging.separation import separate_direct_global
 from polarstripe.imaging.validation import ImagingError, roi_slices
-
-#: the methods :func:`compose` knows (the rig's ``Method`` values)
-METHODS = ("flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation")
-POLARIZED = ("polarized_flood", "polarized_stripes")
+from polarstripe.msgs.methods import METHOD_NAMES, Method
 
 
 @dataclass(frozen=True)
@@ -113,15 +110,16 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
       (α = ½, b = 0: L_d = L⁺ − L⁻, L_g = 2 L⁻); Ŝ = L_d, the direct image (in water the global part
       holds A and B together, the paper's eq. 3).
     """
-    if method not in METHODS:
-        raise ImagingError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    known = Method.lookup(method)
+    if known is None:
+        raise ImagingError(f"method: {method!r} is not one of {', '.join(METHOD_NAMES)}")
     angles = list(views)
     if not angles:
         raise ImagingError("views: no frames")
-    if method in POLARIZED:
+    if known.polarized:
         return _polarized(method, views, dark_offset, saturation, object_free, p_min)
     view = views[angles[0]]
-    if method == "hf_separation":
+    if known is Method.HF_SEPARATION:
         direct, glob = separate_direct_global(view.maximum.astype(np.float64) - dark_offset,
                                               view.minimum.astype(np.float64) - dark_offset,
                                               lit_fraction=lit_fraction, black_level=black_level)

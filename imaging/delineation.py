@@ -35,6 +35,7 @@ Stripes are assumed to cross camera rows (a horizontal camera–projector baseli
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -154,19 +155,29 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
         raise ImagingError(f"edge_window: need an integer >= 1 (pixels per side), got {edge_window!r}")
     sat = np.inf if noise.saturation_dn is None else finite_param("saturation", noise.saturation_dn)
     out = np.empty(best.shape)
-    # the noise model and the thresholds, one record for the kernel: dark [DN], read variance [DN²],
-    # gain [DN/e⁻], saturation [DN], k_sigma, min_contrast
-    limits = np.array([float(noise.dark_dn), float(noise.read_noise_dn) ** 2, float(noise.dn_per_electron),
-                       float(sat), finite_param("k_sigma", k_sigma, low=0.0),
-                       finite_param("min_contrast", min_contrast, low=0.0), float(edge_window)])
-    _delineate_rows(best, second, index, edges, limits, out)
+    tests = _Tests(float(noise.dark_dn), float(noise.read_noise_dn) ** 2, float(noise.dn_per_electron),
+                   float(sat), finite_param("k_sigma", k_sigma, low=0.0),
+                   finite_param("min_contrast", min_contrast, low=0.0), int(edge_window))
+    _delineate_rows(best, second, index, edges, tests, out)
     return out
 
 
+class _Tests(NamedTuple):
+    """The noise model and the validity thresholds, one record for the kernel (numba takes a NamedTuple)."""
+
+    dark: float  # [DN]
+    read_var: float  # read noise variance [DN²]
+    dn_per_electron: float  # [DN/e⁻]
+    saturation: float  # [DN]; inf: none
+    k_sigma: float
+    min_contrast: float
+    edge_window: int  # most pixels per side of an edge's fit
+
+
 @njit(cache=True, nogil=True)
-def _delineate_rows(best, second, index, edges, limits, out):
-    dark, read_var, g, sat, k, min_contrast = limits[0], limits[1], limits[2], limits[3], limits[4], limits[5]
-    m_win = int(limits[6])
+def _delineate_rows(best, second, index, edges, tests, out):
+    dark, read_var, g, sat = tests.dark, tests.read_var, tests.dn_per_electron, tests.saturation
+    k, min_contrast, m_win = tests.k_sigma, tests.min_contrast, tests.edge_window
     h, w = best.shape
     ok = np.empty(w, np.bool_)
     kind = np.empty(w + 1, np.int8)  # gap p sits between pixels p − 1 and p: 0 same stripe, 1 edge, 2 break

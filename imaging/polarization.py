@@ -187,8 +187,27 @@ def aolp(s1, s2) -> np.ndarray:
     return 0.5 * np.arctan2(s2, s1)
 
 
+def _object_free_pixels(e_b, e_w, roi, dark_offset: float, saturation: float | None):
+    """(E_w − E_b, E_w + E_b) at the region's pixels below ``saturation`` in both frames, offset subtracted
+    (1-D, row-major), for :func:`estimate_p` and :func:`p_bootstrap_std`."""
+    eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
+    for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
+        if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
+            raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
+    same_shape(e_b=eb_raw, e_w=ew_raw)
+    index = roi_slices("roi", roi, eb_raw.shape)
+    off = finite_param("dark_offset", dark_offset)
+    eb, ew = eb_raw[index].astype(np.float64), ew_raw[index].astype(np.float64)
+    valid = np.ones(eb.shape, bool)
+    if saturation is not None:
+        sat = finite_param("saturation", saturation)
+        valid &= (eb < sat) & (ew < sat)
+    eb, ew = eb[valid] - off, ew[valid] - off
+    return ew - eb, ew + eb
+
+
 def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
-               p_min: float = 0.05) -> float:
+               p_min: float | None = 0.05, min_pixels: int = 1) -> float:
     """Backscatter DOP p from an object-free region (S ≈ 0), robust to noise, offset and saturation.
 
     p̂ = median(E_w - E_b) / median(E_w + E_b) over the region's valid pixels, clipped to [p_min, 1].
@@ -203,39 +222,55 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
         Black level subtracted from both frames first (an offset left in biases p̂ low).
     saturation : float, optional
         Pixels at or above this level in either frame are left out (E_w saturates first).
-    p_min : float
-        Lower clamp, in (0, 1]: eq. 6 divides by p.
+    p_min : float or None
+        Lower clamp, in (0, 1]: eq. 6 divides by p. None: no clamp, a p̂ outside (0, 1] raises (a
+        published estimate, planning/medium_fit.py).
+    min_pixels : int
+        The fewest valid pixels to estimate from.
 
     Returns
     -------
     float
 
+    Raises
+    ------
+    ImagingError
+        Bad input, fewer than ``min_pixels`` valid pixels, no backscatter above the offset, or (``p_min``
+        None) p̂ outside (0, 1]; the text says which.
+
     Notes
     -----
     Where S = 0 eqs. 4-5 give E_w - E_b = p (E_w + E_b) at every pixel, so the ratio of medians is exact
     without noise even when B varies over the region (scaling preserves the order), and medians ignore
-    outliers. Raises when no valid pixel is left.
+    outliers.
     """
-    eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
-    for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
-        if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
-            raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
-    same_shape(e_b=eb_raw, e_w=ew_raw)
-    index = roi_slices("roi", roi, eb_raw.shape)
-    off = finite_param("dark_offset", dark_offset)
-    pmin = finite_param("p_min", p_min, low=0.0, high=1.0, low_open=True)
-    eb, ew = eb_raw[index].astype(np.float64), ew_raw[index].astype(np.float64)
-    valid = np.ones(eb.shape, bool)
-    if saturation is not None:
-        sat = finite_param("saturation", saturation)
-        valid &= (eb < sat) & (ew < sat)
-    eb, ew = eb[valid] - off, ew[valid] - off
-    if eb.size == 0:
+    pmin = None if p_min is None else finite_param("p_min", p_min, low=0.0, high=1.0, low_open=True)
+    diff, total_px = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
+    if diff.size == 0:
         raise ImagingError("roi: no unsaturated pixels left to estimate p from")
-    total = float(np.median(ew + eb))
+    if diff.size < min_pixels:
+        raise ImagingError(f"roi: only {diff.size} unsaturated pixels to estimate p from (need {min_pixels})")
+    total = float(np.median(total_px))
     if total <= 0.0:
         raise ImagingError(f"roi: no backscatter above the dark offset (median E_w + E_b = {total:.3g})")
-    return float(np.clip(np.median(ew - eb) / total, pmin, 1.0))
+    p = np.median(diff) / total
+    if pmin is not None:
+        return float(np.clip(p, pmin, 1.0))
+    if not 0.0 < p <= 1.0:
+        raise ImagingError(f"p = {p:.3g} from the analyzer pair is outside (0, 1]")
+    return float(p)
+
+
+def p_bootstrap_std(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
+                    n_boot: int = 200, seed: int = 0) -> float:
+    """The spread (standard deviation) of :func:`estimate_p`'s unclamped ratio of medians over ``n_boot``
+    bootstrap resamplings of the same pixels (arguments as there; ``seed`` seeds the resampling)."""
+    diff, total = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
+    if diff.size == 0:
+        raise ImagingError("roi: no unsaturated pixels left to estimate p from")
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, total.size, size=(n_boot, total.size))
+    return float(np.std(np.median(diff[idx], axis=1) / np.median(total[idx], axis=1)))
 
 
 def least_backscatter_angle(angles_deg: Sequence[float], frames, roi=None, *, dark_offset: float = 0.0,

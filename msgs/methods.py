@@ -30,6 +30,12 @@ class Method(enum.StrEnum):
         """True when it takes every pattern at two analyzer angles (E_b and E_w)."""
         return self in (Method.POLARIZED_FLOOD, Method.POLARIZED_STRIPES)
 
+    @property
+    def striped(self) -> bool:
+        """True when its frames are stripes: a scan of it delineates the stripes, so it yields a depth map
+        (docs/depth.md) and the medium fit reads it (docs/planning.md §6)."""
+        return self.family == "stripe"
+
     def patterns(self, n_stripes: int, checker_size: int) -> tuple[PatternSpec, ...]:
         """The patterns of one pass at one analyzer angle, in order."""
         if self.family == "flood":
@@ -44,6 +50,11 @@ class Method(enum.StrEnum):
             return parse(tag).kind == self.family
         except PatternError:
             return False
+
+    @classmethod
+    def lookup(cls, name: str) -> Method | None:
+        """The method called ``name``, None for any other text (a name read off the wire)."""
+        return cls._value2member_map_.get(name)
 
     @classmethod
     def parse(cls, name: str) -> Method:

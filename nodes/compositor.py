@@ -239,7 +239,7 @@ class Compositor(Node):
         old = self.scan
         if old is not None and old.done:  # still waiting for frames or its truth: finished with what it has
             self._short(old)
-            self._finish(old)
+            self._end_scan(old)
         elif old is not None:
             self.log.warning("scan %d started before scan %d ended: the old one is dropped", ev.scan_id,
                              old.scan_id)
@@ -292,7 +292,7 @@ class Compositor(Node):
             scan.waiting_truth = True
             self._arm(TRUTH_DEADLINE, self.params.truth_wait_s, self._truth_deadline)
         else:
-            self._finish(scan)
+            self._end_scan(scan)
 
     def on_truth(self, truth: Composite) -> None:
         self._truth_heard, self._truth_silent = True, False
@@ -301,7 +301,7 @@ class Compositor(Node):
             del self.truths[next(iter(self.truths))]
         scan = self.scan
         if scan is not None and scan.waiting_truth and truth.scan_id == scan.scan_id:
-            self._finish(scan)
+            self._end_scan(scan)
 
     def _truth_deadline(self) -> None:
         self.cancel(TRUTH_DEADLINE)
@@ -312,7 +312,7 @@ class Compositor(Node):
             self._truth_silent = True
             self.log.info("no ground truth on simulator/truth within %g s: not waited for again",
                           self.params.truth_wait_s)
-        self._finish(scan)
+        self._end_scan(scan)
 
     def _arm(self, timer: str, delay_s: float, callback) -> None:
         self.cancel(timer)
@@ -323,11 +323,12 @@ class Compositor(Node):
         self.cancel(TRUTH_DEADLINE)
         self.scan = None
 
-    def _finish(self, scan: _Scan) -> None:
-        """The scan's composite, or (nothing to composite) a Composite with ``metrics["error"]``."""
+    def _end_scan(self, scan: _Scan) -> None:
+        """Close the scan and publish its composite, or (nothing to composite) a Composite with
+        ``metrics["error"]``."""
         self._close()
         try:
-            self.finish(scan)
+            self._composite(scan)
         except PolarstripeError as exc:  # published, so that nobody waits for a composite in vain
             self.counters["scans_failed"] += 1
             self.log.error("scan %d (%s): no composite: %s", scan.scan_id, scan.method, exc)
@@ -351,7 +352,9 @@ class Compositor(Node):
             truth = None
         return truth
 
-    def finish(self, scan: _Scan) -> None:
+    def _composite(self, scan: _Scan) -> None:
+        """Compose and score the scan, publish it (and p) and write its files; PolarstripeError when there
+        is nothing to composite."""
         if scan.frames == 0:
             raise PolarstripeError("no frames")
         rc, p = self.running, self.params
@@ -369,12 +372,25 @@ class Compositor(Node):
                        black_level=p.black_level, p_min=p.p_min)
         if made.note:
             self.log.warning("scan %d: %s", scan.scan_id, made.note)
+        m = self._metrics(scan, made, truth, dark)
+        if (depth := self.depth.run(scan.method, scan.scan_id, dark, rc.saturation, free, truth, p.out)):
+            m["depth"] = depth
+        self._publish(scan, made, m)
+        if p.out:
+            write_method(p.out, scan.method, made.image, self.metrics, image_format=p.image_format)
+            if p.comparison:
+                write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
+                                 METHOD_NAMES, getattr(self, "truth_s", None), self.depth.publisher.maps)
+
+    def _metrics(self, scan: _Scan, made, truth: Composite | None, dark: float) -> dict:
+        """The scan's numbers: its frames and settings, p, and the scores of the composite (the chart's
+        bars from the params or the truth, the error against the truth)."""
+        p = self.params
         bright, dim = _roi(p.chart_bright_roi), _roi(p.chart_dark_roi)
         if bright is None and truth is not None:
             band, high = truth.images["chart_band"], truth.images["chart_high"]
             if np.any((band >= 0) & high) and np.any((band >= 0) & ~high):
                 bright, dim = (band >= 0) & high, (band >= 0) & ~high
-        image = made.image
         m = {"scan_id": scan.scan_id, "frames": scan.frames, "frames_dropped": scan.dropped,
              "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
              "saturated_pixels": made.saturated_pixels}
@@ -382,11 +398,15 @@ class Compositor(Node):
             m["p"] = made.p
         if scan.fault:
             m["fault"] = scan.fault
-        m.update(score(image, bright=bright, dark=dim, truth=None if truth is None else truth.images["S"]))
+        m.update(score(made.image, bright=bright, dark=dim,
+                       truth=None if truth is None else truth.images["S"]))
         if "metrics_error" in m:  # e.g. every bar pixel saturated: no number rather than a wrong one
             self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, m["metrics_error"])
-        if (depth := self.depth.run(scan.method, scan.scan_id, dark, rc.saturation, free, truth, p.out)):
-            m["depth"] = depth
+        return m
+
+    def _publish(self, scan: _Scan, made, m: dict) -> None:
+        """``compositor/composite`` (and ``compositor/medium_p`` with p), kept for the comparison."""
+        image = made.image
         images = {"composite": np.ma.filled(image, 0.0).astype(np.float32),
                   "saturated": np.ma.getmaskarray(image).astype(np.uint8)}
         images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in made.layers.items()})
@@ -399,11 +419,5 @@ class Compositor(Node):
         self.log.info("scan %d %s: %d frames, contrast %s, error vs truth %s%s", scan.scan_id, scan.method,
                       scan.frames, fmt(m["contrast"]), fmt(m["error_vs_truth"]),
                       f", p {made.p:.3f}" if made.p is not None else "")
-        if p.out:
-            write_method(p.out, scan.method, image, self.metrics, image_format=p.image_format)
-            if p.comparison:
-                write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
-                                 METHOD_NAMES, getattr(self, "truth_s", None), self.depth.publisher.maps)
-
 
 NODE = Compositor

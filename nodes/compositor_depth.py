@@ -25,12 +25,11 @@ from polarstripe.imaging import calibration
 from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
 from polarstripe.imaging.triangulation import RigGeometry, Triangulator, stripe_edges
 from polarstripe.imaging.validation import ImagingError, roi_slices
-from polarstripe.msgs import DepthMap
+from polarstripe.msgs import DepthMap, Method
 from polarstripe.msgs.patterns import PatternError, parse
 from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.scene import SceneError, load_scene
 
-STRIPE_METHODS = ("stripes", "polarized_stripes")
 CALIBRATION_KEYS = calibration.FILE_KEYS
 
 
@@ -135,7 +134,7 @@ class DepthStage:
         return depth.metrics
 
     def start(self, method: str, stripes: int) -> None:
-        self.active = self.geometry is not None and method in STRIPE_METHODS and stripes > 0
+        self.active = self.geometry is not None and Method(method).striped and stripes > 0
         self.count = stripes
         if self.running is not None:
             self.running.reset()

@@ -14,6 +14,7 @@ import cv2
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from polarstripe.msgs import Method
 
 LEGEND = ("contrast: Michelson (bright − dark)/(bright + dark) of the chart's bars, 0…1, higher is better "
           "(> 1: the dark bars fell below 0, backscatter over-subtracted — not a contrast)   ·   "
@@ -22,7 +23,6 @@ LEGEND = ("contrast: Michelson (bright − dark)/(bright + dark) of the chart's 
 TRUTH_LABEL = "ground truth T (unscattered)"     # sim/truth.py: flood light attenuated, never scattered
 DEPTH_BAR_LABEL = "z [m]"  # along the camera's optical axis (msgs/depth.py)
 DEPTH_CMAP, INVALID_GREY = "viridis", (0.6, 0.6, 0.6)  # a neutral grey, not a colour of the depth map
-STRIPE_METHODS = ("stripes", "polarized_stripes")  # the methods with a depth (nodes/compositor_depth.py)
 
 
 class PublishedDepth:
@@ -105,7 +105,7 @@ def _depth_panels(methods, metrics: dict, depth: dict | None) -> dict:
     if depth is None:
         return {}
     return {m: d if (d := depth.get(m)) is not None and d.scan_id == metrics.get(m, {}).get("scan_id")
-            else None for m in methods if m in STRIPE_METHODS}
+            else None for m in methods if (known := Method.lookup(m)) is not None and known.striped}
 
 
 def _depth_range(maps) -> tuple[float, float]:

@@ -370,4 +370,4 @@ class Emitter(Node):
             raise ScanFault(f"camera/analyzer: {ack.detail}")
 
 
-NODE = "Emitter"
+NODE = Emitter

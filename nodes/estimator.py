@@ -1,5 +1,5 @@
 """The estimator node: σ_t, the phase function's mean cosine g and the backscatter DOP p of the medium,
-fitted in situ to the frames the scans already take (issue 11 item 3; the fit is docs/planning.md §6,
+fitted in situ to the frames the scans already take (the fit is docs/planning.md §6,
 :func:`polarstripe.planning.medium_fit.fit_medium`).
 
 It listens to ``emitter/scan`` and ``camera/frame`` and keeps, per source pose, the last flood frame (a
@@ -36,16 +36,13 @@ import time
 from concurrent.futures import Future
 
 import numpy as np
-from polarstripe.msgs import Composite, Frame, MediumEstimate, Plan, ScanEvent
-from polarstripe.planning.medium_fit import downsample, estimate_p, fit_medium
+from polarstripe.msgs import Composite, Frame, MediumEstimate, Method, Plan, ScanEvent
+from polarstripe.planning.medium_fit import FitSettings, ScanFrames, downsample, fit_medium, p_of_pair
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import load_scene, parse_size, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
-
-STRIPE_METHODS = ("stripes", "polarized_stripes")
-FLOOD_METHODS = ("flood", "polarized_flood")
 
 
 class Estimator(Node):
@@ -76,9 +73,7 @@ class Estimator(Node):
     def setup(self):
         scene = load_scene(self.params.scene or None)
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
-            (w, h), cam = parse_size(self.params.resolution), scene.camera
-            exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
-            scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
+            scene = scene.replace(camera=scene.camera.resized(parse_size(self.params.resolution)))
         self.scene = scene
         self.scans: dict[int, dict] = {}  # scan id -> {"event": start ScanEvent, "frames": [Frame]}
         self.truths: dict[int, Composite] = {}
@@ -114,15 +109,16 @@ class Estimator(Node):
 
     def on_scan(self, event: ScanEvent) -> None:
         if event.event == "start":
-            if event.method in STRIPE_METHODS + FLOOD_METHODS:
+            method = Method.lookup(event.method)
+            if method is not None and method.family in ("stripe", "flood"):  # not hf_separation's checkers
                 self.scans = {event.scan_id: {"event": event, "frames": []}}  # one scan at a time
             return
         scan = self.scans.pop(event.scan_id, None)
         if scan is None or event.event != "done":
             return
-        method, frames = scan["event"].method, scan["frames"]
+        method, frames = Method(scan["event"].method), scan["frames"]
         sep = self.separation(event.scan_id)
-        if method in FLOOD_METHODS:
+        if method.family == "flood":
             self.keep_flood(sep, scan["event"], frames, self.truths.get(event.scan_id))
         elif sep not in self.fitted and frames:
             self.fitted.add(sep)
@@ -144,7 +140,7 @@ class Estimator(Node):
         if not floods:
             return
         keep = self.floods.setdefault(sep, {})
-        if start.method == "flood":
+        if not Method(start.method).polarized:
             keep["flood"] = [f.image for f in floods]
         elif len(start.analyzer_deg) == 2:  # E_b at the first angle, E_w at the second
             def nearest(f: Frame) -> int:
@@ -210,14 +206,15 @@ class Estimator(Node):
         small, out, n_avg = downsample(scene, dict(stripes, flood=job.get("flood", [])),
                                        width=self.fit_width(w), full_scale=full)
         flood = out.pop("flood") or None
-        result = fit_medium(small, out, flood, polarized_pair=job.get("pair"), object_free=job.get("free"),
-                            n_stripes_used=self.params.stripes_used, frames_averaged=n_avg,
-                            fidelity=self.params.fidelity)
+        scan = ScanFrames(out, flood, polarized_pair=job.get("pair"), object_free=job.get("free"),
+                          frames_averaged=n_avg)
+        result = fit_medium(small, scan, FitSettings(fidelity=self.params.fidelity,
+                                                     n_stripes_used=self.params.stripes_used))
         p, p_std = result.p, result.p_std
         why_p = result.extra.get("p_reason", "no analyzer pair" if job.get("pair") is None else "")
         if math.isnan(p) and job.get("pair") is not None:
             dark = dark_offset_dn(scene.camera)
-            p, p_std, why_p = estimate_p(job["pair"], job.get("free"), dark, full - 0.5)
+            p, p_std, why_p = p_of_pair(job["pair"], job.get("free"), dark, full - 0.5)
         return result, p, p_std, time.perf_counter() - t0, why_p
 
     def publish(self, job: dict, result, p: float, p_std: float, seconds: float, why_p: str) -> None:

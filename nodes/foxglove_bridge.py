@@ -144,4 +144,4 @@ class FoxgloveBridge(Node):
             server.stop()
 
 
-NODE = "FoxgloveBridge"
+NODE = FoxgloveBridge

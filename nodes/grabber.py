@@ -170,4 +170,4 @@ class Grabber(Node):
         return Ack(ok=True, detail=f"{w}x{h} in {time.monotonic() - t0:.3f} s")
 
 
-NODE = "Grabber"
+NODE = Grabber

@@ -98,9 +98,7 @@ class Planner(Node):
             except SceneError as exc:
                 raise SceneError(f"node {self.name!r}: param 'calibration': {exc}") from None
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
-            (w, h), cam = parse_size(self.params.resolution), scene.camera
-            exposure_s = cam.exposure_s * (w / cam.resolution[0]) ** 2
-            scene = scene.replace(camera=cam.replace(resolution=(w, h), exposure_s=exposure_s))
+            scene = scene.replace(camera=scene.camera.resized(parse_size(self.params.resolution)))
         self.scene = scene
         self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
         if "medium_p" in self.run_state:
@@ -236,9 +234,7 @@ def warm_kernels() -> None:
     compiling and no start-up wait races the compiler; with a warm cache it takes about a second."""
 
     scene = load_scene(None)
-    cam = scene.camera
-    small = cam.replace(resolution=(32, 24), exposure_s=cam.exposure_s * (32 / cam.resolution[0]) ** 2)
-    scene = scene.replace(camera=small)
+    scene = scene.replace(camera=scene.camera.resized((32, 24)))
     for fidelity in ("preview", "standard"):
         for pattern in ("flood", "stripe:3/8", "checker:8:0"):
             render_frame(scene, pattern, polarizer_deg=0.0, fidelity=fidelity, seed=0)

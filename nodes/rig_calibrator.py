@@ -92,7 +92,6 @@ class RigCalibrator(Node):
     SUBSCRIBES = {"camera/frame": Frame, "heartbeat": Heartbeat}
 
     def setup(self):
-        self.clients: dict[tuple[str, float], object] = {}  # per service and timeout: a client is a socket
         self.subscribe("camera/frame", mode="all")
         self.subscribe("heartbeat", mode="all")
 
@@ -111,22 +110,13 @@ class RigCalibrator(Node):
 
     # ---- steps ---------------------------------------------------------------------------------------------
     def call(self, service: str, req_type, request, *, timeout_s: float = 5.0) -> Ack:
-        """Call ``service`` (reply Ack), retrying while it is not up yet (``startup_timeout_s``); a refusal
-        is an error naming the service."""
-        key = (service, timeout_s)
-        if key not in self.clients:
-            self.clients[key] = self.client(service, req_type, Ack, timeout_s=timeout_s)
-        client = self.clients[key]
-        deadline = self.now() + self.params.startup_timeout_s
-        while True:
-            try:
-                reply = client.call(request)
-                break
-            except BusTimeout as exc:
-                if self.now() >= deadline or self.stopping:
-                    raise RigCalibrationError(f"{service}: {exc}") from None
-            except BusError as exc:
-                raise RigCalibrationError(f"{service}: {exc}") from None
+        """Call ``service`` (reply Ack), retried while it is not up yet or its node is respawned
+        (``startup_timeout_s``, runtime/client.py); a refusal is an error naming the service."""
+        client = self.client(service, req_type, Ack, timeout_s=timeout_s)
+        try:
+            reply = client.call(request, retry_s=self.params.startup_timeout_s)
+        except BusError as exc:
+            raise RigCalibrationError(f"{service}: {exc}") from None
         if not reply.ok:
             raise RigCalibrationError(f"{service}: {reply.detail}")
         return reply
@@ -191,4 +181,4 @@ class RigCalibrator(Node):
         return True
 
 
-NODE = "RigCalibrator"
+NODE = RigCalibrator

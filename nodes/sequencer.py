@@ -24,8 +24,9 @@
 5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
-Services that are not up yet are retried until ``startup_timeout_s``; every wait has a timeout, and the text
-of a failure names the service or topic and what happened.
+Services that are not up yet, or whose node is lost and respawned, are retried until ``startup_timeout_s``
+(runtime/client.py); every wait has a timeout, and the text of a failure names the service or topic and what
+happened.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from polarstripe.msgs import (
     Empty,
     Heartbeat,
     MediumEstimate,
+    Method,
     Plan,
     PolarizerState,
     ScanEvent,
@@ -81,6 +83,8 @@ class Sequencer(Node):
             super().validate()
             if not self.methods:
                 raise ValueError("methods must name at least one scan method")
+            for method in self.methods:
+                Method.parse(method)
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
             if self.max_rescans < 0:
@@ -108,12 +112,11 @@ class Sequencer(Node):
         self.pass_scans: list[int] = []
         self.watch("heartbeat")  # runtime/liveness.py: waits on a lost peer end at once
         self.results: dict[str, dict] = {}
-        self.clients: dict[tuple[str, float], object] = {}  # see call()
 
     def run(self) -> None:
         try:
             ok = self.sequence()
-        except SequenceError as exc:
+        except (SequenceError, PeerLost) as exc:  # PeerLost: a call's server lost outside a scan
             self.log.error("%s", exc)
             ok = False
         if self.results:
@@ -125,22 +128,16 @@ class Sequencer(Node):
 
     # ---- steps ---------------------------------------------------------------------------------------------
     def call(self, service: str, req_type, resp_type, request, *, timeout_s: float = 2.0):
-        """Call ``service``, retrying while it is not up yet, until ``startup_timeout_s``. One client per
-        service and timeout, made once (a client per call left a socket behind every scan)."""
-        key = (service, timeout_s)
-        client = self.clients.get(key)
-        if client is None:
-            client = self.clients[key] = self.client(service, req_type, resp_type, timeout_s=timeout_s)
-        now = self.now  # the node's clock (virtual in the harness)
-        deadline = now() + self.params.startup_timeout_s
-        while True:
-            try:
-                return client.call(request)
-            except BusTimeout as exc:
-                if now() >= deadline or self.stopping:
-                    raise SequenceError(f"{service}: {exc}") from None
-            except BusError as exc:
-                raise SequenceError(f"{service}: {exc}") from None
+        """Call ``service``, retried while it is not up (or its node is respawned) until
+        ``startup_timeout_s`` (runtime/client.py). A server lost for good raises ServiceLost, a PeerLost:
+        a scan's recovery takes it (:meth:`scan`)."""
+        client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
+        try:
+            return client.call(request, retry_s=self.params.startup_timeout_s)
+        except PeerLost:
+            raise
+        except BusError as exc:
+            raise SequenceError(f"{service}: {exc}") from None
 
     def wait_graph_ready(self) -> None:
         """Wait until every other node of the launch graph has been heard (its heartbeat), then one more beat
@@ -184,7 +181,7 @@ class Sequencer(Node):
                 if not ack.ok:
                     raise SequenceError(f"simulator/move_source: {ack.detail}")
         self.eb_deg = p.eb_deg
-        if p.calibrate or any(m.startswith("polarized") for m in p.methods):
+        if p.calibrate or any(Method(m).polarized for m in p.methods):
             self.wait_stage_ready()
         if p.calibrate:
 
@@ -211,7 +208,7 @@ class Sequencer(Node):
         step (the source is moved then)."""
         p, est_node = self.params, self.params.estimator
         if not (p.rescan and self.plan is not None and est_node in self.graph.get("nodes", {})
-                and any("stripes" in m for m in p.methods)):
+                and any(Method(m).striped for m in p.methods)):
             return False
         try:
             est = self.wait_for("medium/estimate", lambda e: e.scan_id in self.pass_scans,
@@ -256,7 +253,7 @@ class Sequencer(Node):
     def scan_peers(self, method: str) -> list[str]:
         """The nodes of the launch graph that the waits of a ``method`` scan depend on."""
         p, nodes = self.params, self.graph.get("nodes", {})
-        names = [*p.scan_peers, *(p.polarized_peers if method.startswith("polarized") else [])]
+        names = [*p.scan_peers, *(p.polarized_peers if Method(method).polarized else [])]
         return [n for n in names if n in nodes and n != self.name
                 and (p.wait_composite or n != "compositor")]
 
@@ -313,8 +310,8 @@ class Sequencer(Node):
     def scan_once(self, method: str) -> bool:
         p = self.params
         peers = self.scan_peers(method)
-        polarized = method.startswith("polarized")
-        req = ScanRequest(method=method, stripes=p.stripes if "stripes" in method else 0,
+        polarized = Method(method).polarized
+        req = ScanRequest(method=method, stripes=p.stripes if Method(method).striped else 0,
                           analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
         t0 = time.monotonic()
         reply = self.call("emitter/start_scan", ScanRequest, ScanEvent, req, timeout_s=5.0)
@@ -386,4 +383,4 @@ class SequenceError(Exception):
     """A step of the sequence failed; the text names the service and what happened."""
 
 
-NODE = "Sequencer"
+NODE = Sequencer

@@ -404,4 +404,4 @@ class Simulator(Node):
         return Ack(ok=True, detail=req.command)
 
 
-NODE = "Simulator"
+NODE = Simulator

@@ -61,7 +61,7 @@ def rig_scene(path: str, resolution: str, exposure_s: float | None, sigma_t: flo
     base = load_scene(path or None)
     res, cam = parse_resolution(resolution), base.camera
     if res is not None and res != cam.resolution:
-        cam = cam.replace(resolution=res, exposure_s=cam.exposure_s * (res[0] / cam.resolution[0]) ** 2)
+        cam = cam.resized(res)
     if exposure_s is not None:
         cam = cam.replace(exposure_s=exposure_s)
     medium = base.medium

@@ -27,6 +27,7 @@ from polarstripe.imaging.compose import Composition, compose, score
 from polarstripe.imaging.composite import RunningComposite
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import ImagingError
+from polarstripe.msgs.methods import Method
 from polarstripe.sim import sensor
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components
@@ -97,7 +98,7 @@ class _Camera:
             views[float(k)] = rc.result()
         made = compose(method, views, dark_offset=self.offset, saturation=self.saturation,
                        object_free=background, black_level=black_level)
-        if method.startswith("polarized") and made.p is None:
+        if Method(method).polarized and made.p is None:
             raise ImagingError(f"{method}: {made.note}")
         return made
 

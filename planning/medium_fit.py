@@ -37,6 +37,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from polarstripe.imaging.polarization import estimate_p, p_bootstrap_std
+from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs.patterns import PatternError, parse
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene
@@ -76,6 +78,52 @@ class MediumFit:
     extra: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class ScanFrames:
+    """What the fit reads of one scan: DN frames (h, w) at the resolution of the scene's camera.
+
+    Attributes
+    ----------
+    stripes : pattern (``"stripe:K/N"``) → the frames of that pattern (one without analyzer, or an analyzer
+        pair at φ, φ + 90°).
+    flood : the flood pattern's frames, the same way, or None.
+    polarized_pair : (E_b, E_w) frames for p, or None (p not estimated).
+    object_free : bool (h, w) mask where p is read (None: the whole frame).
+    frames_averaged : pixels averaged into each frame pixel (:func:`downsample`), for the noise.
+    """
+
+    stripes: dict[str, list[np.ndarray]]
+    flood: list[np.ndarray] | None = None
+    polarized_pair: tuple[np.ndarray, np.ndarray] | None = None
+    object_free: np.ndarray | None = None
+    frames_averaged: int = 1
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """How the fit samples and models the frames.
+
+    Attributes
+    ----------
+    fidelity : the model rendered (``sim/render.py``), the simulator's.
+    n_stripes_used : stripes of the scan used (evenly spread).
+    rows, cols : the pixel grid per frame (None: every row / column but the border). Frames of a few thousand
+        pixels suffice: block-average larger ones and pass a scene whose camera has that resolution
+        (:func:`downsample`).
+    model_error : ε_B, the model's relative error of the backscatter B.
+    """
+
+    fidelity: str = "preview"
+    n_stripes_used: int = 4
+    rows: int | None = None
+    cols: int | None = None
+    model_error: float = MODEL_ERROR
+
+
+class _Refused(Exception):
+    """A step found the frames unusable; the text is the :class:`MediumFit` reason."""
+
+
 def frame_intensity(frames: list[np.ndarray]) -> np.ndarray:
     """Polarization-free DN of one pattern: one frame without analyzer, or the mean of an analyzer pair at φ
     and φ + 90° (½(k1 + k2)(D + A + B), docs/physics.md §4.1)."""
@@ -99,85 +147,69 @@ def _usable(img: np.ndarray, sat: np.ndarray, sigma: np.ndarray, rows, cols) -> 
     return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
-def estimate_p(pair: tuple[np.ndarray, np.ndarray] | None, object_free: np.ndarray | None, dark: float,
-               saturation: float, n_boot: int = 200, seed: int = 0) -> tuple[float, float, str]:
-    """(p, its bootstrap std, reason) from an (E_b, E_w) pair over object-free pixels (physics.md §4.2)."""
+def p_of_pair(pair: tuple[np.ndarray, np.ndarray] | None, object_free: np.ndarray | None, dark: float,
+              saturation: float) -> tuple[float, float, str]:
+    """(p, its bootstrap std, "") from an (E_b, E_w) pair over object-free pixels (docs/physics.md §4.2, by
+    :func:`~polarstripe.imaging.polarization.estimate_p`, unclamped), or (nan, nan, the reason)."""
     if pair is None:
         return math.nan, math.nan, "no analyzer pair"
-    eb, ew = (np.asarray(f, np.float64) - dark for f in pair)
-    ok = (pair[0] < saturation) & (pair[1] < saturation)
-    if object_free is not None:
-        ok &= object_free
-    diff, tot = (ew - eb)[ok], (ew + eb)[ok]
-    keep = tot > 0
-    diff, tot = diff[keep], tot[keep]
-    if tot.size < MIN_PIXELS:
-        return math.nan, math.nan, f"only {tot.size} unsaturated object-free pixels for p"
-    p = float(np.median(diff) / np.median(tot))
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, tot.size, size=(n_boot, tot.size))
-    boot = np.median(diff[idx], axis=1) / np.median(tot[idx], axis=1)
-    if not 0.0 < p <= 1.0:
-        return math.nan, math.nan, f"p = {p:.3g} from the analyzer pair is outside (0, 1]"
-    return p, float(np.std(boot)), ""
+    kw = dict(roi=object_free, dark_offset=dark, saturation=saturation)
+    try:
+        p = estimate_p(*pair, p_min=None, min_pixels=MIN_PIXELS, **kw)
+        return p, p_bootstrap_std(*pair, **kw), ""
+    except ImagingError as exc:
+        return math.nan, math.nan, f"p: {exc}"
 
 
-def fit_medium(scene: Scene, stripe_frames: dict[str, list[np.ndarray]],
-               flood_frames: list[np.ndarray] | None, *,
-               polarized_pair: tuple[np.ndarray, np.ndarray] | None = None, fidelity: str = "preview",
-               n_stripes_used: int = 4, rows: int | None = None, cols: int | None = None,
-               model_error: float = MODEL_ERROR, object_free: np.ndarray | None = None,
-               frames_averaged: int = 1) -> MediumFit:
-    """Fit σ_t, the TTHG mean cosine g and p to a scan's frames (the module docstring has the method).
-
-    Parameters
-    ----------
-    scene : the rig as known (camera incl. resolution and exposure, projector at the scan's separation,
-        objects, the medium's albedo and DOP model); its σ_t and g are not used.
-    stripe_frames : pattern (``"stripe:K/N"``) → the frames of that pattern (one without analyzer, or an
-        analyzer pair at φ, φ + 90°), DN (h, w).
-    flood_frames : the flood pattern's frames, the same way, or None.
-    polarized_pair : (E_b, E_w) frames for p, or None (p not estimated).
-    n_stripes_used : stripes of the scan used (evenly spread); rows × cols : the pixel grid per frame
-        (None: every row / column but the border). Frames of a few thousand pixels suffice: block-average
-        larger ones and pass a scene whose camera has that resolution (:func:`downsample`).
-    object_free : bool (h, w) mask for p (default: the whole frame).
-    frames_averaged : pixels averaged into each frame pixel (:func:`downsample`), for the noise.
-    """
-    cam = scene.camera
-    w, h = cam.resolution
-    dark, full = dark_offset_dn(cam), float(full_scale_dn(cam))
-    items: list[tuple[str, np.ndarray]] = []
+def _pick_frames(frames: ScanFrames, n_stripes_used: int, size: tuple[int, int]):
+    """[(tag, polarization-free image, frames averaged)] of ``n_stripes_used`` evenly spread stripes, then
+    the flood's if any; and how many of them are stripes."""
     keys = []
-    for tag in stripe_frames:
+    for tag in frames.stripes:
         try:
             spec = parse(tag)
         except PatternError:
             spec = None
         if spec is None or spec.kind != "stripe":
-            return MediumFit(False, reason=f"{tag!r} is not a stripe pattern")
+            raise _Refused(f"{tag!r} is not a stripe pattern")
         keys.append((spec.index, tag))
     keys.sort()
+    items = []
     if keys:
         n_use = min(n_stripes_used, len(keys))
         pick = ((np.arange(n_use) + 0.5) * len(keys) / n_use).astype(int)
-        items += [(keys[int(i)][1], frame_intensity(stripe_frames[keys[int(i)][1]])) for i in pick]
-    n_stripe_items = len(items)
-    if flood_frames:
-        items.append(("flood", frame_intensity(flood_frames)))
-    if not n_stripe_items:
-        return MediumFit(False, reason="no stripe frames (the sheet's backscatter is what the fit reads)")
-    for _, img in items:
+        for i in pick:
+            tag = keys[int(i)][1]
+            items.append((tag, frame_intensity(frames.stripes[tag]), len(frames.stripes[tag])))
+    n_stripes = len(items)
+    if frames.flood:
+        items.append(("flood", frame_intensity(frames.flood), len(frames.flood)))
+    if not n_stripes:
+        raise _Refused("no stripe frames (the sheet's backscatter is what the fit reads)")
+    w, h = size
+    for _, img, _ in items:
         if img.shape != (h, w):
-            return MediumFit(False, reason=f"frame of {img.shape[1]}x{img.shape[0]} px, the rig's camera is "
-                                           f"{w}x{h}")
-    grid_r = np.unique(np.linspace(1, h - 2, rows or h - 2).round().astype(int))
-    grid_c = np.unique(np.linspace(1, w - 2, cols or w - 2).round().astype(int))
+            raise _Refused(f"frame of {img.shape[1]}x{img.shape[0]} px, the rig's camera is {w}x{h}")
+    return items, n_stripes
+
+
+@dataclass
+class _Samples:
+    """The fit's data: per frame the pixels used; over all of them y (DN above dark) and its noise σ."""
+
+    pixels: list[np.ndarray]
+    y: np.ndarray
+    noise: np.ndarray
+
+
+def _sample(items, n_stripes: int, cam, frames_averaged: int, grid) -> _Samples:
+    """The usable pixels of each frame (not saturated, on no edge, 3σ above the dark level), refusing frames
+    mostly saturated, a sheet not visible, or too few pixels."""
+    dark, full = dark_offset_dn(cam), float(full_scale_dn(cam))
+    grid_r, grid_c = grid
     k_gain = cam.gain_e_per_dn
-    e_map = electrons_per_radiance(cam)
-    pixels, ys, sig, which, visible, saturated = [], [], [], [], 0, 0
-    for j, (tag, img) in enumerate(items):
-        n_avg = len(stripe_frames.get(tag, flood_frames or [1]))
+    pixels, ys, sig, visible, saturated = [], [], [], 0, 0
+    for j, (_, img, n_avg) in enumerate(items):
         sat = img >= full - 0.5
         y = img - dark
         # noise of the mean of n_avg frames: (σ_read² + e)/K² + 1/12 per frame, e from the measured level
@@ -185,95 +217,137 @@ def fit_medium(scene: Scene, stripe_frames: dict[str, list[np.ndarray]],
         s_noise = np.sqrt(var / (n_avg * frames_averaged))
         pix = _usable(y, sat, s_noise, grid_r, grid_c)
         saturated += int(sat[np.ix_(grid_r, grid_c)].sum())
-        if j < n_stripe_items:
+        if j < n_stripes:
             visible += int(np.sum(y[pix[:, 0], pix[:, 1]] > SNR_VISIBLE * s_noise[pix[:, 0], pix[:, 1]])) \
                 if len(pix) else 0
         pix = pix[y[pix[:, 0], pix[:, 1]] > 3.0 * s_noise[pix[:, 0], pix[:, 1]]] if len(pix) else pix
-        yy = y[pix[:, 0], pix[:, 1]]
         pixels.append(pix)
-        ys.append(yy)
+        ys.append(y[pix[:, 0], pix[:, 1]])
         sig.append(s_noise[pix[:, 0], pix[:, 1]])
-        which.append(np.full(len(pix), j))
     n_grid = len(items) * grid_r.size * grid_c.size
     if saturated > 0.5 * n_grid:
-        return MediumFit(False, reason=f"saturated: {saturated} of {n_grid} sampled pixels at full scale "
-                                       "(shorten the exposure)")
+        raise _Refused(f"saturated: {saturated} of {n_grid} sampled pixels at full scale "
+                       "(shorten the exposure)")
     if visible < MIN_PIXELS:
-        return MediumFit(False, reason=f"no visible sheet: {visible} stripe-frame pixels are "
-                                       f"{SNR_VISIBLE:.0f}σ above the dark level (need {MIN_PIXELS})")
-    y_all, s_noise_all = np.concatenate(ys), np.concatenate(sig)
-    if y_all.size < MIN_PIXELS + 2:
-        return MediumFit(False, reason=f"only {y_all.size} usable pixels (edges, saturation, noise)")
-    evals = [0]
-    cache: dict[tuple[float, float], np.ndarray] = {}
+        raise _Refused(f"no visible sheet: {visible} stripe-frame pixels are {SNR_VISIBLE:.0f}σ above the "
+                       f"dark level (need {MIN_PIXELS})")
+    out = _Samples(pixels, np.concatenate(ys), np.concatenate(sig))
+    if out.y.size < MIN_PIXELS + 2:
+        raise _Refused(f"only {out.y.size} usable pixels (edges, saturation, noise)")
+    return out
 
-    def at_node(log_sigma: float, g_node: float) -> np.ndarray:
+
+def _scale(y: np.ndarray, m: np.ndarray, sigma: np.ndarray) -> float:
+    """k̂ = Σ y m/σ² / Σ m²/σ²: the free scale (source radiance × exposure × transmittance) in closed form."""
+    return np.sum(y * m / sigma ** 2) / max(np.sum(m * m / sigma ** 2), 1e-300)
+
+
+class _FrameModel:
+    """m_i at the sampled pixels: the simulator's model (:func:`render_components`, whole frames) of the
+    scene's medium at (log σ_t, g), rendered at g nodes G_STEP apart and cached, B, D and A in DN."""
+
+    def __init__(self, scene: Scene, tags: list[str], pixels: list[np.ndarray], fidelity: str):
+        self.scene, self.tags, self.pixels, self.fidelity = scene, tags, pixels, fidelity
+        self.to_dn = electrons_per_radiance(scene.camera) / scene.camera.gain_e_per_dn
+        self.cache: dict[tuple[float, float], np.ndarray] = {}
+        self.evaluations = 0
+
+    def at_node(self, log_sigma: float, g_node: float) -> np.ndarray:
+        """(3, n): B, D and A at the sampled pixels for σ_t = exp(log_sigma), g = ``g_node``."""
         key = (round(log_sigma, 12), round(g_node, 6))
-        if key not in cache:
-            sc = scene.replace(medium=scene.medium.replace(sigma_t=math.exp(log_sigma),
-                                                           phase=Phase("tthg", g_node)))
+        if key not in self.cache:
+            sc = self.scene.replace(medium=self.scene.medium.replace(sigma_t=math.exp(log_sigma),
+                                                                     phase=Phase("tthg", g_node)))
             out = []
-            for (tag, _), pix in zip(items, pixels, strict=True):
+            for tag, pix in zip(self.tags, self.pixels, strict=True):
                 if len(pix):
                     # the whole (small) frame: the path the simulator's frames take (A's grid, the blurs);
                     # at 64x48 it costs less than A exact at a few dozen pixels
-                    c = render_components(sc, tag, fidelity, need=("D", "A", "B"))
+                    c = render_components(sc, tag, self.fidelity, need=("D", "A", "B"))
                     r, q = pix[:, 0], pix[:, 1]
-                    to_dn = e_map[r, q] / k_gain
+                    to_dn = self.to_dn[r, q]
                     out.append(np.stack([c.B[r, q] * to_dn, c.D[r, q] * to_dn, c.A[r, q] * to_dn]))
-            cache[key] = np.concatenate(out, axis=1)
-            evals[0] += 1
-        return cache[key]
+            self.cache[key] = np.concatenate(out, axis=1)
+            self.evaluations += 1
+        return self.cache[key]
 
-    def model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """m at x = (log σ_t, g), linear in g between nodes G_STEP apart (each new g costs the model a
         forward-cone table, docs/physics.md §10.3), and dm/dg of that interpolant."""
         i = min(int((x[1] - G_BOUNDS[0]) / G_STEP), N_NODES - 2)
         ga = G_BOUNDS[0] + i * G_STEP
         t = (x[1] - ga) / G_STEP
-        ma, mb = at_node(float(x[0]), ga).sum(axis=0), at_node(float(x[0]), ga + G_STEP).sum(axis=0)
+        ma, mb = self.at_node(float(x[0]), ga).sum(axis=0), self.at_node(float(x[0]), ga + G_STEP).sum(axis=0)
         return (1 - t) * ma + t * mb, (mb - ma) / G_STEP
 
-    def weights(x: np.ndarray) -> np.ndarray:
+    def weights(self, x: np.ndarray, y: np.ndarray, noise: np.ndarray, model_error: float) -> np.ndarray:
         """σ_i: the frames' noise and the model's error at x, ε_B of the backscatter B and ε_A of the
         object's light D + A (whose per-pixel values differ most from a whole frame's, docs/physics.md
         §10.3), fixed while a fit runs (D is exact per pixel: ε_B)."""
         i = min(int(round((x[1] - G_BOUNDS[0]) / G_STEP)), N_NODES - 1)
-        b, d, a = at_node(float(x[0]), G_BOUNDS[0] + i * G_STEP)
-        m = b + d + a
-        k = np.sum(y_all * m / s_noise_all ** 2) / max(np.sum(m * m / s_noise_all ** 2), 1e-300)
-        return np.sqrt(s_noise_all ** 2 + (model_error * k * (b + d)) ** 2 + (OBJECT_ERROR * k * a) ** 2)
+        b, d, a = self.at_node(float(x[0]), G_BOUNDS[0] + i * G_STEP)
+        k = _scale(y, b + d + a, noise)
+        return np.sqrt(noise ** 2 + (model_error * k * (b + d)) ** 2 + (OBJECT_ERROR * k * a) ** 2)
 
-    def scaled(x: np.ndarray):
-        m, dm_dg = model(x)
-        mp, _ = model(np.array([x[0] + LOG_STEP, x[1]]))
-        k = np.sum(y_all * m / s_all ** 2) / max(np.sum(m * m / s_all ** 2), 1e-300)
-        return m, np.stack([(mp - m) / LOG_STEP, dm_dg], axis=1), k
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        m, _ = model(x)
-        k = np.sum(y_all * m / s_all ** 2) / max(np.sum(m * m / s_all ** 2), 1e-300)
-        return (y_all - k * m) / s_all
+class _Residuals:
+    """r(x) = (y − k̂(x) m(x))/σ with the weights σ fixed, and its Jacobian, for scipy's least squares."""
 
-    def jacobian(x: np.ndarray) -> np.ndarray:
+    def __init__(self, model: _FrameModel, y: np.ndarray, sigma: np.ndarray):
+        self.model, self.y, self.sigma = model, y, sigma
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        m, _ = self.model(x)
+        return (self.y - _scale(self.y, m, self.sigma) * m) / self.sigma
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
         # r = (y − k̂(x) m(x))/σ with k̂ the weighted projection: dr = −(k̂ dm + m dk̂)/σ
-        m, dm, k = scaled(x)
-        wm = m / s_all ** 2
+        y, s = self.y, self.sigma
+        m, dm_dg = self.model(x)
+        mp, _ = self.model(np.array([x[0] + LOG_STEP, x[1]]))
+        dm = np.stack([(mp - m) / LOG_STEP, dm_dg], axis=1)
+        k = _scale(y, m, s)
+        wm = m / s ** 2
         den = max(float(np.sum(m * wm)), 1e-300)
-        dk = ((y_all / s_all ** 2) @ dm - 2.0 * k * (wm @ dm)) / den
-        return -(k * dm + m[:, None] * dk[None, :]) / s_all[:, None]
+        dk = ((y / s ** 2) @ dm - 2.0 * k * (wm @ dm)) / den
+        return -(k * dm + m[:, None] * dk[None, :]) / s[:, None]
 
+
+def _least_squares(model: _FrameModel, data: _Samples, model_error: float):
+    """scipy's trust-region fit of (log σ_t, g) from the better of STARTS (noise weights), the weights taken
+    at the start and again at the first result (iteratively reweighted); returns the last result."""
     lo = np.array([math.log(SIGMA_BOUNDS[0]), G_BOUNDS[0]])
     hi = np.array([math.log(SIGMA_BOUNDS[1]), G_BOUNDS[1]])
     starts = [np.array([math.log(s), g]) for s, g in STARTS]
-    s_all = s_noise_all
-    x0 = min(starts, key=lambda x: float(np.sum(residuals(x) ** 2)))
-    for _ in range(2):  # weights from the start, then from the first fit (iteratively reweighted)
-        s_all = weights(x0)
-        res = least_squares(residuals, x0, jac=jacobian, bounds=(lo, hi), x_scale=np.array([0.3, 0.05]),
+    first = _Residuals(model, data.y, data.noise)
+    x0 = min(starts, key=lambda x: float(np.sum(first(x) ** 2)))
+    for _ in range(2):
+        r = _Residuals(model, data.y, model.weights(x0, data.y, data.noise, model_error))
+        res = least_squares(r, x0, jac=r.jacobian, bounds=(lo, hi), x_scale=np.array([0.3, 0.05]),
                             xtol=1e-4, ftol=1e-6, max_nfev=30)
         x0 = res.x
-    dof = max(y_all.size - 3, 1)
+    return res, lo, hi
+
+
+def fit_medium(scene: Scene, frames: ScanFrames, settings: FitSettings = FitSettings()) -> MediumFit:
+    """Fit σ_t, the TTHG mean cosine g and p to a scan's ``frames`` (the module docstring has the method).
+
+    ``scene`` is the rig as known (camera incl. resolution and exposure, projector at the scan's separation,
+    objects, the medium's albedo and DOP model); its σ_t and g are not used. Unusable frames give
+    ``ok = False`` and the reason, never an exception.
+    """
+    cam = scene.camera
+    w, h = cam.resolution
+    try:
+        items, n_stripes = _pick_frames(frames, settings.n_stripes_used, (w, h))
+        grid = (np.unique(np.linspace(1, h - 2, settings.rows or h - 2).round().astype(int)),
+                np.unique(np.linspace(1, w - 2, settings.cols or w - 2).round().astype(int)))
+        data = _sample(items, n_stripes, cam, frames.frames_averaged, grid)
+    except _Refused as exc:
+        return MediumFit(False, reason=str(exc))
+    model = _FrameModel(scene, [tag for tag, _, _ in items], data.pixels, settings.fidelity)
+    res, lo, hi = _least_squares(model, data, settings.model_error)
+    dof = max(data.y.size - 3, 1)
     chi2 = float(np.sum(res.fun ** 2)) / dof
     sigma_t, g = math.exp(res.x[0]), float(res.x[1])
     try:
@@ -282,10 +356,10 @@ def fit_medium(scene: Scene, stripe_frames: dict[str, list[np.ndarray]],
     except np.linalg.LinAlgError:
         std = np.array([math.inf, math.inf])
     s_std, g_std = sigma_t * float(std[0]), float(std[1])
-    p, p_std, p_why = estimate_p(polarized_pair, object_free, dark, full - 0.5)
-    common = dict(chi2_per_dof=chi2, pixels=int(y_all.size), evaluations=evals[0], p=p, p_std=p_std,
-                  extra={"p_reason": p_why, "patterns": [t for t, _ in items]})
-    found = dict(sigma_t_per_m=sigma_t, sigma_t_std=s_std, mean_cosine=g, mean_cosine_std=g_std)
+    p, p_std, p_why = p_of_pair(frames.polarized_pair, frames.object_free, dark_offset_dn(cam),
+                                float(full_scale_dn(cam)) - 0.5)
+    common = dict(chi2_per_dof=chi2, pixels=int(data.y.size), evaluations=model.evaluations, p=p, p_std=p_std,
+                  extra={"p_reason": p_why, "patterns": [t for t, _, _ in items]})
     at_bound = np.isclose(res.x, lo, atol=1e-3) | np.isclose(res.x, hi, atol=1e-3)
     if at_bound.any():
         return MediumFit(False, reason=f"fit ends at the bound of {'σ_t' if at_bound[0] else 'g'} "
@@ -296,7 +370,8 @@ def fit_medium(scene: Scene, stripe_frames: dict[str, list[np.ndarray]],
     if not (s_std <= MAX_REL_SIGMA * sigma_t and g_std <= MAX_G_STD):
         return MediumFit(False, reason=f"too noisy: σ_t {sigma_t:.3g} ± {s_std:.2g} /m, "
                                        f"g {g:.3f} ± {g_std:.2g}", **common)
-    return MediumFit(True, **found, **common)
+    return MediumFit(True, sigma_t_per_m=sigma_t, sigma_t_std=s_std, mean_cosine=g, mean_cosine_std=g_std,
+                     **common)
 
 
 def downsample(scene: Scene, frames: dict[str, list[np.ndarray]], width: int = 64,

@@ -209,19 +209,38 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None, *,
     Raises :class:`LaunchError` (one line) for a file that cannot be read or parsed, an unknown key, a value
     of the wrong type, an unknown arg, a duplicate node name, a missing module or class, or bad params.
     """
-
     path = find_launch_file(path)
+    raw = _read_toml(path)
+    where = path.name
+    args, explicit = _args(raw.get("args", {}), overrides or {}, where)
+    spec, builtins = _launch_spec(path, raw.get("launch", {}), args, explicit, run_dir)
+    nodes = raw.get("node", [])
+    if not isinstance(nodes, list) or not nodes:
+        raise LaunchError(f"{where}: needs at least one [[node]]")
+    seen: set[str] = set()
+    for i, table in enumerate(nodes):
+        node = _node_spec(table, f"{where}: node[{i}]", where, {**spec.args, **builtins}, seen)
+        if node is not None:
+            spec.nodes.append(node)
+    return spec
+
+
+def _read_toml(path: Path) -> dict:
+    """The launch file's tables; only the top-level keys args, launch and node."""
     try:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise LaunchError(f"launch file {path} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise LaunchError(f"{path}: not valid TOML: {exc}") from None
-    where = path.name
     for key in raw:
         if key not in _TOP_KEYS:
-            raise LaunchError(f"{where}: unknown top-level key {key!r} (known: args, launch, node)")
-    args = raw.get("args", {})
+            raise LaunchError(f"{path.name}: unknown top-level key {key!r} (known: args, launch, node)")
+    return raw
+
+
+def _args(args: Any, overrides: dict[str, str], where: str) -> tuple[dict, set[str]]:
+    """The declared ``[args]`` with the command line's ``overrides``, and the names the command line set."""
     if not isinstance(args, dict):
         raise LaunchError(f"{where}: [args] must be a table")
     for k, v in args.items():
@@ -232,13 +251,18 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None, *,
         if k in args:
             raise LaunchError(f"{where}: args.{k}: {k} is given by the launcher (one per run); "
                               "pick another name")
-    explicit = set()
-    for k, v in (overrides or {}).items():
+    for k, v in overrides.items():
         if k not in args:
             raise LaunchError(f"{where}: unknown arg {k!r} on the command line (declared: {_names(args)})")
         args[k] = v
-        explicit.add(k)
-    launch_table = raw.get("launch", {})
+    return args, set(overrides)
+
+
+def _launch_spec(path: Path, launch_table: Any, args: dict, explicit: set[str],
+                 run_dir: Path | None) -> tuple[LaunchSpec, dict[str, str]]:
+    """The ``[launch]`` table checked, the run directory named and the built-in args substituted into the
+    args: the spec (without nodes) and the built-ins."""
+    where = path.name
     name = path.stem
     if isinstance(launch_table, dict) and "name" in launch_table:
         name = _coerce_typed(_substitute(launch_table["name"], args, f"{where}: [launch].name"), str,
@@ -277,36 +301,37 @@ def load_launch(path: str | Path, overrides: dict[str, str] | None = None, *,
         raise LaunchError(f"{where}: launch.transport must be 'ipc' or 'tcp', got {spec.transport!r}")
     if not spec.shutdown_timeout > 0:
         raise LaunchError(f"{where}: launch.shutdown_timeout must be > 0, got {spec.shutdown_timeout}")
-    nodes = raw.get("node", [])
-    if not isinstance(nodes, list) or not nodes:
-        raise LaunchError(f"{where}: needs at least one [[node]]")
-    seen = set()
-    for i, table in enumerate(nodes):
-        nwhere = f"{where}: node[{i}]" + (f" ({table.get('name')!r})" if isinstance(table, dict) else "")
-        t = _check_table(table, _NODE_KEYS, nwhere, {**args, **builtins})
-        for req in ("name", "module"):
-            if req not in t:
-                raise LaunchError(f"{nwhere}: missing key {req!r}")
-        name = t["name"]
-        if not _NAME.match(name):
-            raise LaunchError(
-                f"{nwhere}: name {name!r} must be letters, digits, '_' or '-', starting with a letter"
-            )
-        if name in seen:
-            raise LaunchError(f"{nwhere}: duplicate node name {name!r}")
-        seen.add(name)
-        if not t.pop("enabled", True):
-            continue
-        if t.get("respawn_delay", 0) < 0 or t.get("max_respawns", 0) < 0 or t.get("respawn_max_delay", 0) < 0:
-            raise LaunchError(f"{nwhere}: respawn_delay, respawn_max_delay and max_respawns must be >= 0")
-        try:
-            cls = load_node_class(t["module"])
-        except PolarstripeError as exc:
-            raise LaunchError(f"{nwhere}: {exc}") from None
-        try:
-            params = build_params(cls.Params, t.get("params", {}), node=name).as_dict()
-        except ParamError as exc:
-            raise LaunchError(f"{where}: {exc}") from None
-        t["params"] = {k: v for k, v in params.items() if k in t.get("params", {})}
-        spec.nodes.append(NodeSpec(node_class=cls, **t))
-    return spec
+    return spec, builtins
+
+
+def _node_spec(table: Any, nwhere: str, where: str, subs: dict, seen: set[str]) -> NodeSpec | None:
+    """One ``[[node]]`` table checked (``subs``: the args and built-ins it may name), its class imported and
+    its params built; None when it is not ``enabled``. ``seen``: the names so far (this one is added)."""
+    if isinstance(table, dict):
+        nwhere += f" ({table.get('name')!r})"
+    t = _check_table(table, _NODE_KEYS, nwhere, subs)
+    for req in ("name", "module"):
+        if req not in t:
+            raise LaunchError(f"{nwhere}: missing key {req!r}")
+    name = t["name"]
+    if not _NAME.match(name):
+        raise LaunchError(
+            f"{nwhere}: name {name!r} must be letters, digits, '_' or '-', starting with a letter"
+        )
+    if name in seen:
+        raise LaunchError(f"{nwhere}: duplicate node name {name!r}")
+    seen.add(name)
+    if not t.pop("enabled", True):
+        return None
+    if t.get("respawn_delay", 0) < 0 or t.get("max_respawns", 0) < 0 or t.get("respawn_max_delay", 0) < 0:
+        raise LaunchError(f"{nwhere}: respawn_delay, respawn_max_delay and max_respawns must be >= 0")
+    try:
+        cls = load_node_class(t["module"])
+    except PolarstripeError as exc:
+        raise LaunchError(f"{nwhere}: {exc}") from None
+    try:
+        params = build_params(cls.Params, t.get("params", {}), node=name).as_dict()
+    except ParamError as exc:
+        raise LaunchError(f"{where}: {exc}") from None
+    t["params"] = {k: v for k, v in params.items() if k in t.get("params", {})}
+    return NodeSpec(node_class=cls, **t)

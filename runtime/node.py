@@ -51,6 +51,7 @@ from typing import Any, ClassVar
 
 from polarstripe.msgs import Heartbeat, Message, MessageError
 from polarstripe.runtime.bus import BusTimeout
+from polarstripe.runtime.client import Client
 from polarstripe.runtime.events import Event, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.liveness import PeerLost, Watching
@@ -118,6 +119,7 @@ class Node(Watching):
         self._pubs: dict[str, _CountingPublisher] = {}
         self._timers: dict[str, _Timer] = {}
         self._services: dict[str, Handler] = {}
+        self._clients: dict[tuple, Client] = {}
         self._stop_reason: str | None = None
         self._started = time.monotonic()
         self.ready = False  # set once setup() is done; until then heartbeats say "starting"
@@ -137,9 +139,6 @@ class Node(Watching):
     def resolve(self, name: str) -> str:
         """The full name of topic or service ``name`` as this node sees it (namespace, ``~/`` private)."""
         return resolve(name, self.namespace, self.name)
-
-    def _resolve(self, name: str) -> str:  # the old spelling, kept for code that still uses it
-        return self.resolve(name)
 
     # ---- wiring (call from setup) ------------------------------------------------------------------------
     def setup(self) -> None:
@@ -199,9 +198,20 @@ class Node(Watching):
 
     def client(
         self, service: str, req_type: type[Message], resp_type: type[Message], *, timeout_s: float = 2.0
-    ):
-        """A client of ``service`` (served by some node of the launch): ``.call(request, timeout_s=None)``."""
-        return self._bus.client(self.resolve(service), req_type, resp_type, timeout_s)
+    ) -> Client:
+        """The node's client of ``service`` (served by some node of the launch), made once per service, types
+        and timeout: ``.call(request, timeout_s=None, *, retry_s=0.0)``, ``.wait_for_service(timeout_s)``; a
+        call fails as soon as the serving node is lost (runtime/client.py)."""
+        key = (service, req_type, resp_type, timeout_s)
+        made = self._clients.get(key)
+        if made is None:
+            full = self.resolve(service)
+            server = self.graph.get("services", {}).get(full, {}).get("node")
+            watch = self._bus.server_watch(self.resolve("heartbeat")) if server else None
+            made = self._clients[key] = Client(self._bus.client(full, req_type, resp_type, timeout_s),
+                                               server=server, watch=watch, now=self.now,
+                                               stopping=lambda: self.stopping)
+        return made
 
     def every(
         self, period_s: float, callback: Callable[[], Any] | None = None, *, name: str | None = None

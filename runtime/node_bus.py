@@ -83,8 +83,10 @@ class BusSource(Protocol):
 class BusClient(Protocol):
     """A client of one service (full name): request/reply with a timeout."""
 
-    def call(self, request: Message, timeout_s: float | None = None) -> Message:
-        """The reply; ``ServiceTimeout`` without one in time, ``ServiceError`` if the handler failed."""
+    def call(self, request: Message, timeout_s: float | None = None, *,
+             check: Callable[[], None] | None = None) -> Message:
+        """The reply; ``ServiceTimeout`` without one in time, ``ServiceError`` if the handler failed; what
+        ``check`` (called every few tens of ms while waiting) raises."""
         ...
 
     def close(self) -> None: ...
@@ -112,6 +114,11 @@ class NodeBus(Protocol):
 
     def client(self, service: str, req: type[Message], resp: type[Message], timeout_s: float) -> BusClient:
         """A client of ``service``; ``BusError`` if no node of the launch serves it."""
+        ...
+
+    def server_watch(self, heartbeat_topic: str) -> Any:
+        """The liveness of the launch's nodes for its clients (a ``runtime.client.ServerWatch`` of the beats
+        on ``heartbeat_topic``, one per bus), or None where the bus has none to watch (the harness)."""
         ...
 
     def poll(self, sources: Sequence[BusSource], timeout_s: float) -> list[tuple[BusSource, list[Item]]]:

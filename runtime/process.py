@@ -105,13 +105,13 @@ class GuardedClient:
     def __init__(self, client, guard: StopGuard):
         self._client, self._guard = client, guard
 
-    def call(self, request, timeout_s: float | None = None):
+    def call(self, request, timeout_s: float | None = None, *, check=None):
         if self._guard.node.stopping:
             wait = self._client.timeout_s if timeout_s is None else timeout_s
-            return self._client.call(request, min(wait, CLEANUP_CALL_S))
+            return self._client.call(request, min(wait, CLEANUP_CALL_S), check=check)
         try:
             with self._guard.interruptible(self._client.name):
-                return self._client.call(request, timeout_s)
+                return self._client.call(request, timeout_s, check=check)
         except NodeStopping:
             self._client.close()  # the request may be queued or half answered: a fresh socket next time
             raise

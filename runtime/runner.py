@@ -21,6 +21,7 @@ from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import Heartbeat, Message
 from polarstripe.runtime import bus as zbus
 from polarstripe.runtime.auth import log_refusals_as
+from polarstripe.runtime.client import ServerWatch
 from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir
 from polarstripe.runtime.liveness import HeartbeatThread, incarnation
 from polarstripe.runtime.node import Node, NodeStopping
@@ -39,7 +40,7 @@ from polarstripe.runtime.service import ServiceClient, ServiceServer
 
 
 def load_node_class(spec: str) -> type[Node]:
-    """``"package.module:Class"`` (or ``"package.module"`` whose ``NODE`` names the class) → the class.
+    """``"package.module:Class"`` (or ``"package.module"`` whose ``NODE`` is the class) → the class.
 
     Raises :class:`PolarstripeError` naming the spec if the module or class is missing.
     """
@@ -49,8 +50,6 @@ def load_node_class(spec: str) -> type[Node]:
     except ModuleNotFoundError as exc:
         raise PolarstripeError(f"node {spec!r}: module {exc.name!r} not found") from None
     obj = getattr(module, cls_name or "NODE", None)
-    if isinstance(obj, str):
-        obj = getattr(module, obj, None)
     if not (isinstance(obj, type) and issubclass(obj, Node)):
         what = f"class {cls_name!r}" if cls_name else "NODE attribute naming its Node class"
         raise PolarstripeError(f"node {spec!r}: module {module_name!r} has no {what} (a Node subclass)")
@@ -86,6 +85,7 @@ class ZmqNodeBus:
         self.clients: list[ServiceClient] = []
         self.poller = zmq.Poller()
         self.guard: StopGuard | None = None  # set by run_node: stop signals cut service calls short
+        self.watch: ServerWatch | None = None  # made with the first client that knows its server
 
     now = staticmethod(time.monotonic)
 
@@ -120,6 +120,13 @@ class ZmqNodeBus:
         self.clients.append(c)
         return c if self.guard is None else GuardedClient(c, self.guard)
 
+    def server_watch(self, heartbeat_topic: str) -> ServerWatch | None:
+        if self.watch is None and self.graph.get("nodes"):
+            client_curve = self.curve.client() if self.curve else None
+            self.watch = ServerWatch(pub_endpoints(self.graph, heartbeat_topic), heartbeat_topic,
+                                     curve=client_curve)
+        return self.watch
+
     def poll(self, sources: list[zbus.Subscriber], timeout_s: float) -> list[tuple[zbus.Subscriber, list]]:
         # Round up: rounding down would spin through the last millisecond before every timer.
         ready = dict(self.poller.poll(max(0, math.ceil(timeout_s * 1000))))
@@ -143,6 +150,8 @@ class ZmqNodeBus:
             s.close()
         for c in self.clients:
             c.close()
+        if self.watch is not None:
+            self.watch.close()
         if self.server is not None:
             self.server.close()
         self.pub_socket.close(linger_s=0.25)  # the last heartbeat ("exiting") and log lines get out

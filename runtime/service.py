@@ -155,6 +155,9 @@ class ServiceServer(_SocketOwner):
 
 _request_ids = itertools.count(1)
 
+CHECK_S = 0.05
+"""How often a call given a ``check`` calls it while it waits for the reply [s]."""
+
 
 class ServiceClient:
     """Calls one service at one endpoint. Never wedges: every call has a timeout.
@@ -202,8 +205,10 @@ class ServiceClient:
             self.socket = s
         return self.socket
 
-    def call(self, request: Message, timeout_s: float | None = None) -> Message:
-        """Send ``request`` and wait for the reply.
+    def call(self, request: Message, timeout_s: float | None = None, *,
+             check: Callable[[], None] | None = None) -> Message:
+        """Send ``request`` and wait for the reply; with ``check``, call it every :data:`CHECK_S` while
+        waiting: what it raises ends the call (runtime/client.py: the server was lost).
 
         Raises
         ------
@@ -228,7 +233,15 @@ class ServiceClient:
         deadline = time.monotonic() + timeout_s
         while True:
             left = deadline - time.monotonic()
-            if left <= 0 or not sock.poll(max(1, int(left * 1000))):
+            wait = left if check is None else min(left, CHECK_S)
+            if left <= 0 or not sock.poll(max(1, int(wait * 1000))):
+                if check is not None and left > 0 and time.monotonic() < deadline:  # ask, then wait on
+                    try:
+                        check()
+                    except BaseException:
+                        self._drop()  # the reply must not leak into the next call
+                        raise
+                    continue
                 self.timeouts += 1
                 note = auth.refusal_note(self._monitor, self._curve.public if self._curve else b"")
                 self._drop()  # a late reply or our queued request must not leak into the next call

@@ -97,8 +97,8 @@ class _Client:
         self.timeout_s = timeout_s
         self.requests: list[Message] = []
 
-    def call(self, request: Message, timeout_s: float | None = None) -> Message:
-        request = roundtrip(request, self.name)
+    def call(self, request: Message, timeout_s: float | None = None, *, check=None) -> Message:
+        request = roundtrip(request, self.name)  # (no server watch here: ``check`` is never given)
         self.requests.append(request)
         responder = self.bus.responders.get(self.name)
         if responder is None:
@@ -217,6 +217,9 @@ class MockBus:
             return [source.queue.popleft()]
         self.clock += max(0.0, timeout_s)
         return []
+
+    def server_watch(self, heartbeat_topic: str) -> None:
+        return None  # no processes to watch: a call waits for its responder or its timeout
 
     def service_stats(self) -> tuple[int, int, int]:
         return (0, 0, 0)

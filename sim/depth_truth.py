@@ -15,16 +15,16 @@ Plain arrays only, so :mod:`polarstripe.imaging` (which must not import the mode
 from __future__ import annotations
 
 import numpy as np
-from polarstripe.sim.geometry import Frame, intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.geometry import PinholeFrame, intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.scene import Scene
 
 
-def camera_frame(scene: Scene) -> Frame:
+def camera_frame(scene: Scene) -> PinholeFrame:
     c = scene.camera
     return pinhole_frame(c.position, c.look_at, c.up, c.fov_deg, c.resolution)
 
 
-def projector_frame(scene: Scene) -> Frame:
+def projector_frame(scene: Scene) -> PinholeFrame:
     p = scene.projector
     return pinhole_frame(p.position, p.look_at, p.up, p.fov_deg, p.resolution)
 
@@ -40,12 +40,12 @@ def depth_truth(scene: Scene) -> np.ndarray:
     return z.reshape(cam.h, cam.w)
 
 
-def _intrinsics(frame: Frame) -> np.ndarray:
+def _intrinsics(frame: PinholeFrame) -> np.ndarray:
     f = 1.0 / frame.s
     return np.array([[f, 0.0, frame.w / 2.0 - 0.5], [0.0, f, frame.h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _axes(frame: Frame) -> np.ndarray:
+def _axes(frame: PinholeFrame) -> np.ndarray:
     """Rows: the OpenCV frame's x, y, z axes in world coordinates."""
     return np.stack([frame.r, -frame.u, frame.f])
 

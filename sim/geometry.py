@@ -1,4 +1,5 @@
-"""Geometry: pinhole rays exactly as issue 3 states, box clipping, object hits, projector pixel coordinates.
+"""Geometry: pinhole rays exactly as docs/scene-format.md "Geometry" states, box clipping, object hits,
+projector pixel coordinates.
 
 Conventions (right-handed metres): forward f = normalize(look_at − position), right r = normalize(f × up),
 image up u = r × f. Pixel (row i, column j) of a w×h image looks along
@@ -23,7 +24,7 @@ from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 
 
 @dataclass(frozen=True)
-class Frame:
+class PinholeFrame:
     """A pinhole's pose: position (3,), orthonormal f, r, u (3,), pixel pitch s [1/px] and size (w, h)."""
 
     position: np.ndarray
@@ -40,8 +41,8 @@ class Frame:
                        int(self.h))
 
 
-def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> Frame:
-    """The pinhole frame of a camera or projector (issue 3 convention)."""
+def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> PinholeFrame:
+    """The pinhole frame of a camera or projector (docs/scene-format.md "Geometry")."""
     p = np.asarray(position, dtype=float)
     f = np.asarray(look_at, dtype=float) - p
     f /= np.linalg.norm(f)
@@ -49,15 +50,15 @@ def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> Frame:
     r /= np.linalg.norm(r)
     u = np.cross(r, f)
     w, h = int(resolution[0]), int(resolution[1])
-    return Frame(p, f, r, u, 2.0 * np.tan(np.radians(fov_deg) / 2.0) / w, w, h)
+    return PinholeFrame(p, f, r, u, 2.0 * np.tan(np.radians(fov_deg) / 2.0) / w, w, h)
 
 
-def pixel_rays(frame: Frame, pixels: np.ndarray | None = None) -> np.ndarray:
+def pixel_rays(frame: PinholeFrame, pixels: np.ndarray | None = None) -> np.ndarray:
     """Unit ray directions through pixel centres.
 
     Parameters
     ----------
-    frame : Frame
+    frame : PinholeFrame
     pixels : (n, 2) int array of (row, col), or None for the whole image.
 
     Returns
@@ -171,7 +172,7 @@ def occluded(objects, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return hits.t < dist * (1.0 - 1e-9) - 1e-9
 
 
-def projector_coords(frame: Frame, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def projector_coords(frame: PinholeFrame, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Continuous pattern coordinates (col, row) of 3-D points and the depth along the projector axis.
 
     col ∈ [j, j+1) is pattern column j (row likewise); depth ≤ 0 means behind the projector.

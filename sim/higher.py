@@ -314,10 +314,10 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     """Whole frames at ``preview`` of at least 640×480: everything smooth at half resolution, bilinear up (A's
     per-unit-albedo part within each object), D and the albedo at full resolution: A = ρ·P↑ + H↑. Smaller
     frames stay at full resolution (their half would blur a scan's stripes)."""
-    from polarstripe.sim.geometry import Frame
+    from polarstripe.sim.geometry import PinholeFrame
 
     cam = view.cam
-    half = Frame(cam.position, cam.f, cam.r, cam.u, 2 * cam.s, cam.w // 2, cam.h // 2)
+    half = PinholeFrame(cam.position, cam.f, cam.r, cam.u, 2 * cam.s, cam.w // 2, cam.h // 2)
 
     def geometry():
         dirs, hits = _rays(view.scene, half)

@@ -40,7 +40,7 @@ import warnings
 
 import numpy as np
 from polarstripe.sim.geometry import Hits, pinhole_frame, plane_axes
-from polarstripe.sim.patterns import Pattern, gray_lit, parse_pattern, stripe_columns
+from polarstripe.sim.patterns import PatternSpec, gray_lit, parse_pattern, stripe_columns
 from polarstripe.sim.phase import tthg_parameters
 from polarstripe.sim.scene import BoxObject, PlaneObject, Scene, SceneError, SphereObject
 from polarstripe.sim.surface import surface_info
@@ -104,7 +104,7 @@ def _phase(phase) -> dict:
             "phase_0": {"type": "hg", "g": float(gf)}, "phase_1": {"type": "hg", "g": float(-gb)}}
 
 
-def projector_texture(scene: Scene, pattern: str | Pattern) -> np.ndarray:
+def projector_texture(scene: Scene, pattern: str | PatternSpec) -> np.ndarray:
     """Irradiance texture (H, W) float32 of Mitsuba's ``projector`` for a pinhole projector and a pattern.
 
     Mitsuba's projector sends π·E/cos³θ [W/sr] for a texel E at angle θ from its axis (uv from its perspective
@@ -195,7 +195,7 @@ def _objects(scene: Scene, lo: np.ndarray, hi: np.ndarray, texels: int) -> dict:
     return out
 
 
-def to_mitsuba(scene: Scene, pattern: str | Pattern = "flood", *, max_depth: int = -1, spp: int = 1024,
+def to_mitsuba(scene: Scene, pattern: str | PatternSpec = "flood", *, max_depth: int = -1, spp: int = 1024,
                seed: int = 0, rr_depth: int = 100000, texels: int = TEXELS, native: bool = True) -> dict:
     """The Mitsuba 3 scene dictionary of a polarstripe scene lit by one pattern.
 
@@ -203,7 +203,8 @@ def to_mitsuba(scene: Scene, pattern: str | Pattern = "flood", *, max_depth: int
     ----------
     scene : Scene
         Any polarstripe scene (see ``docs/scene-format.md``); lengths [m], σ_t [1/m], I0 [W/sr].
-    pattern : ``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT`` or a Pattern (``point`` source: flood only).
+    pattern : ``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT`` or a PatternSpec (``point`` source: flood
+        only).
     max_depth : Mitsuba path depth (2 = single scattering, −1 = all orders).
     spp, seed : samples per pixel and seed of the ``independent`` sampler.
     rr_depth : depth at which Russian roulette starts.
@@ -330,7 +331,7 @@ def select_variant(variant: str | None = None) -> str:
     return variant
 
 
-def render_truth(scene: Scene, pattern: str | Pattern = "flood", *, max_depth: int = -1, spp: int = 4096,
+def render_truth(scene: Scene, pattern: str | PatternSpec = "flood", *, max_depth: int = -1, spp: int = 4096,
                  seed: int = 0, variant: str | None = None, pass_spp: int = 2048,
                  rr_depth: int = 100000) -> np.ndarray:
     """Mitsuba's Monte Carlo radiance image of a polarstripe scene (all orders by default).

@@ -1,9 +1,9 @@
 """Projector patterns in the model: the analytic clipping of rays to the lit part of the projector's frustum.
 
 The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
-value are :mod:`polarstripe.msgs.patterns`; ``Pattern``, ``stripe_columns`` and ``gray_lit`` here are those,
-imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit state
-can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1)).
+value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns`` and ``gray_lit`` here are
+those, imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit
+state can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1)).
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
 Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (docs/physics.md §2.3).
 """
@@ -11,18 +11,17 @@ Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear 
 from __future__ import annotations
 
 import numpy as np
-from polarstripe.msgs.patterns import PatternError, gray_lit, parse, stripe_columns
-from polarstripe.msgs.patterns import PatternSpec as Pattern
-from polarstripe.sim.geometry import Frame, projector_coords
+from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, stripe_columns
+from polarstripe.sim.geometry import PinholeFrame, projector_coords
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["Pattern", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "stripe_columns"]
+__all__ = ["PatternSpec", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "stripe_columns"]
 
 _PAR_EPS = 1e-13
 
 
-def parse_pattern(spec: str | Pattern) -> Pattern:
+def parse_pattern(spec: str | PatternSpec) -> PatternSpec:
     """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N), ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) or
     ``gray:BIT:col|row:0|1`` with
     the grammar of :mod:`polarstripe.msgs.patterns`; a bad spec (or ``off``, which lights nothing to model)
@@ -37,7 +36,7 @@ def parse_pattern(spec: str | Pattern) -> Pattern:
     return pattern
 
 
-def _halfspaces(frame: Frame, c0: float, c1: float) -> np.ndarray:
+def _halfspaces(frame: PinholeFrame, c0: float, c1: float) -> np.ndarray:
     """Normals (4, 3) of the pyramid columns [c0, c1) × rows [0, H) through the projector centre."""
     a0, a1 = (c0 - frame.w / 2.0) * frame.s, (c1 - frame.w / 2.0) * frame.s
     b = frame.h / 2.0 * frame.s
@@ -58,14 +57,14 @@ def clip_halfspaces(origin: np.ndarray, dirs: np.ndarray, x0: np.ndarray, x1: np
     return lo, hi
 
 
-def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dirs: np.ndarray,
+def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.ndarray, dirs: np.ndarray,
                   x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-intervals of each ray's [x0, x1] that the pattern lights.
 
     Parameters
     ----------
-    pattern : Pattern
-    frame : projector Frame, or None for the isotropic point source (everything lit).
+    pattern : PatternSpec
+    frame : projector PinholeFrame, or None for the isotropic point source (everything lit).
     origin : (3,) or (n, 3); dirs (n, 3) unit; x0, x1 (n,) the in-medium interval.
 
     Returns
@@ -146,7 +145,7 @@ def lit_intervals(pattern: Pattern, frame: Frame | None, origin: np.ndarray, dir
     return np.concatenate(rays), np.concatenate(los), np.concatenate(his)
 
 
-def pattern_lit(pattern: Pattern | None, frame, points: np.ndarray) -> np.ndarray:
+def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray) -> np.ndarray:
     """Which ``points`` (m, 3) the projector lights: inside its ``frame`` (a pinhole; None: everywhere, a
     point source) and, unless ``pattern`` is None, on a lit pixel of the stripe, checker or Gray pattern."""
     if frame is None:

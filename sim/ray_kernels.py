@@ -16,7 +16,8 @@ _BIG = 1e30
 
 
 class Pinhole(NamedTuple):
-    """A pinhole's pose as the kernels take it (geometry.Frame): position, unit f, r, u, pitch s, w, h."""
+    """A pinhole's pose as the kernels take it (geometry.PinholeFrame): position, unit f, r, u, pitch s, w,
+    h."""
 
     position: np.ndarray
     f: np.ndarray
@@ -38,8 +39,8 @@ class HitArrays(NamedTuple):
 
 @njit(cache=True, nogil=True)
 def pixel_rays_kernel(frame, rows, cols, out):
-    """Unit directions normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u) (issue 3) of a
-    :class:`Pinhole` at pixel coordinates (rows, cols)."""
+    """Unit directions normalize(f + ((j + 0.5) − w/2)·s·r − ((i + 0.5) − h/2)·s·u) (docs/scene-format.md)
+    of a :class:`Pinhole` at pixel coordinates (rows, cols)."""
     f, r, u, s, w, h = frame.f, frame.r, frame.u, frame.s, frame.w, frame.h
     for k in range(rows.size):
         a = ((cols[k] + 0.5) - w / 2.0) * s

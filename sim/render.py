@@ -16,7 +16,7 @@ from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.higher import HigherSettings, higher_components
 from polarstripe.sim.orders import OrdersPlan, plan_orders
-from polarstripe.sim.patterns import Pattern, parse_pattern
+from polarstripe.sim.patterns import PatternSpec, parse_pattern
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.sensor import expose
@@ -104,7 +104,7 @@ class Components:
     Bu: np.ndarray
     surface: SurfaceInfo
     scene: Scene
-    pattern: Pattern
+    pattern: PatternSpec
     fidelity: Fidelity
     pixels: np.ndarray | None = None
     seconds: float = 0.0
@@ -138,7 +138,7 @@ class Components:
                           self.pattern, self.fidelity, self.pixels, self.seconds + other.seconds, self.orders)
 
 
-def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fidelity = "standard",
+def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fidelity = "standard",
                       pixels: np.ndarray | None = None,
                       need: tuple[str, ...] = ("D", "A", "B", "p"), orders: str = "all") -> Components:
     """Radiance components of one pattern (paper eqs. 11–13, physical form; docs/physics.md §0, §10).
@@ -146,7 +146,7 @@ def render_components(scene: Scene, pattern: str | Pattern, fidelity: str | Fide
     Parameters
     ----------
     scene : Scene
-    pattern : ``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT`` or a :class:`Pattern`.
+    pattern : ``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT`` or a :class:`PatternSpec`.
     fidelity : ``preview`` | ``standard`` | ``reference`` | :class:`Fidelity` |
         ``"xi=..,theta=..,phi=..,grid=.."``.
     pixels : optional (n, 2) int array of (row, col): compute only these (cost scales with n; A exact there).
@@ -214,7 +214,7 @@ def _camera_geometry(scene: Scene, cam, pixels):
     return dirs, hits, surface_info(scene.objects, hits)
 
 
-def render_frame(scene: Scene, pattern: str | Pattern, polarizer_deg: float | None = None,
+def render_frame(scene: Scene, pattern: str | PatternSpec, polarizer_deg: float | None = None,
                  fidelity: str | Fidelity = "standard", seed: int | np.random.Generator | None = None,
                  pixels: np.ndarray | None = None, orders: str = "all"):
     """One simulated camera frame: components → analyzer (Malus) → EMVA 1288 sensor.

@@ -120,7 +120,7 @@ class Polarizer(_Part):
 
 @dataclass(frozen=True)
 class Camera(_Part):
-    """Pinhole camera (issue 3 geometry) with an EMVA 1288 sensor and an optional analyzer."""
+    """Pinhole camera (docs/scene-format.md "Geometry") with an EMVA 1288 sensor and an optional analyzer."""
 
     position: Vec3 = (0.0, 0.0, 0.0)
     look_at: Vec3 = (0.0, 0.0, 0.38)
@@ -154,6 +154,12 @@ class Camera(_Part):
             raise SceneError(f"camera.bits must be an integer in [1, 16], got {self.bits!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise SceneError(f"camera.seed must be an integer, got {self.seed!r}")
+
+    def resized(self, resolution: tuple[int, int]) -> Camera:
+        """This camera at ``resolution`` (w, h), the exposure scaled by (w/w₀)² to keep a frame's DN level:
+        at the same field of view a pixel's solid angle, and so the light it collects, goes as 1/w²."""
+        exposure_s = self.exposure_s * (resolution[0] / self.resolution[0]) ** 2
+        return self.replace(resolution=resolution, exposure_s=exposure_s)
 
 
 @dataclass(frozen=True)

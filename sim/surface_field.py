@@ -13,7 +13,7 @@ import numpy as np
 from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays
 from polarstripe.sim.kernel_records import Stokes
 from polarstripe.sim.kernels import camera_stokes
-from polarstripe.sim.patterns import Pattern, lit_intervals, pattern_lit, stripe_columns
+from polarstripe.sim.patterns import PatternSpec, lit_intervals, pattern_lit, stripe_columns
 from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.surface import SurfaceInfo
 from polarstripe.sim.surface_grid import plane_stripe_field
@@ -24,11 +24,11 @@ _CAMERA_GRID = 3      # objects other than planes: an A grid of a_grid × this o
 
 
 class View(NamedTuple):
-    """One render's camera side: scene, pattern, Fidelity, camera Frame, ray directions (n, 3), their Hits,
-    SurfaceInfo, and the requested pixels (None: the whole image)."""
+    """One render's camera side: scene, pattern, Fidelity, camera PinholeFrame, ray directions (n, 3), their
+    Hits, SurfaceInfo, and the requested pixels (None: the whole image)."""
 
     scene: Scene
-    pattern: Pattern
+    pattern: PatternSpec
     fid: object
     cam: object
     dirs: np.ndarray

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 from numba import njit
-from polarstripe.sim.geometry import Frame, projector_coords
+from polarstripe.sim.geometry import PinholeFrame, projector_coords
 from scipy.interpolate import PchipInterpolator
 
 # graded nodes, in stripe widths from each edge: outward (where A falls off fastest), inward, and the uniform
@@ -48,7 +48,7 @@ def kappa_nodes(k_min: float, k_max: float, c0: float, c1: float, n_uniform: int
     return nodes[keep]
 
 
-def plane_stripe_field(frame: Frame, plane, points: np.ndarray, c0: float, c1: float, n_kappa: int,
+def plane_stripe_field(frame: PinholeFrame, plane, points: np.ndarray, c0: float, c1: float, n_kappa: int,
                        n_rho: int, a_at) -> np.ndarray | None:
     """A/ρ at ``points`` (m, 3) on ``plane`` for the stripe of pattern columns [c0, c1), or None when the
     pattern coordinates are not usable (a point behind the projector, the plane seen edge-on from it).

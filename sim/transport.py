@@ -23,8 +23,14 @@ import numpy as np
 from polarstripe.sim import kernel_records as records
 from polarstripe.sim import kernels
 from polarstripe.sim import phase as phase_fn
-from polarstripe.sim.geometry import Frame, box_interval, pinhole_frame, point_in_box, segment_length_in_box
-from polarstripe.sim.patterns import Pattern, lit_intervals
+from polarstripe.sim.geometry import (
+    PinholeFrame,
+    box_interval,
+    pinhole_frame,
+    point_in_box,
+    segment_length_in_box,
+)
+from polarstripe.sim.patterns import PatternSpec, lit_intervals
 from polarstripe.sim.scene import Scene
 from polarstripe.sim.similarity import truncated_code
 
@@ -38,8 +44,8 @@ class Source:
     position: np.ndarray
     intensity: float
     radius: float
-    frame: Frame | None          # None: isotropic point source
-    pattern: Pattern
+    frame: PinholeFrame | None          # None: isotropic point source
+    pattern: PatternSpec
     sigma_t: float
     sigma_s: float
     phase: object
@@ -51,7 +57,7 @@ class Source:
     dop_model: object
 
 
-def make_source(scene: Scene, pattern: Pattern) -> Source:
+def make_source(scene: Scene, pattern: PatternSpec) -> Source:
     pr, m = scene.projector, scene.medium
     frame = None if pr.model == "point" else pinhole_frame(pr.position, pr.look_at, pr.up, pr.fov_deg,
                                                            pr.resolution)

@@ -16,7 +16,7 @@ RECORDER = "polarstripe.nodes.recorder:Recorder"
 
 
 # ---- the command -------------------------------------------------------------------------------------------
-def parse_size(text: str) -> int:
+def parse_bytes(text: str) -> int:
     """``"512M"`` → 536870912; suffixes K, M, G (powers of 1024); a bare number is bytes."""
     t = str(text).strip().upper().removesuffix("B")
     mult = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(t[-1:], 1)
@@ -83,9 +83,9 @@ def main(args: argparse.Namespace) -> int:
         "topics": list(args.topics),
         "graph": str(graph_file),
         "compression": args.compression,
-        "chunk_size": parse_size(args.chunk_size),
+        "chunk_size": parse_bytes(args.chunk_size),
         "chunk_age_s": args.chunk_age,
-        "split_size": parse_size(args.split_size),
+        "split_size": parse_bytes(args.split_size),
         "split_duration_s": args.split_duration,
         "heartbeat_s": 0.0,
     }

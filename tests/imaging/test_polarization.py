@@ -7,6 +7,7 @@ from polarstripe.imaging.polarization import (
     dolp,
     estimate_p,
     least_backscatter_angle,
+    p_bootstrap_std,
     recover_backscatter,
     recover_signal,
     recovered_signal_variance,
@@ -147,3 +148,26 @@ def test_mismatched_shapes_and_dtypes():
 def test_eq6_round_trip_any_p(p, s, b):
     e_b, e_w = _frames_from_model(np.array([s]), np.array([b]), p)
     assert abs(recover_signal(e_b, e_w, p)[0] - s) <= 1e-9 * (1 + s + b / p)
+
+
+def test_estimate_p_unclamped_refuses_instead_and_needs_its_pixels():
+    e = np.full((10, 10), 5.0)
+    with pytest.raises(ImagingError, match=r"outside \(0, 1\]"):
+        estimate_p(e, e, p_min=None)  # unpolarized: p = 0, not published as a number
+    with pytest.raises(ImagingError, match="only 25 unsaturated pixels .*need 30"):
+        estimate_p(e, 2 * e, (0, 5, 0, 5), min_pixels=30)
+    assert estimate_p(e, 3 * e, p_min=None) == pytest.approx(0.5, rel=1e-12)
+
+
+def test_p_bootstrap_std_matches_the_spread_of_independent_frames():
+    """The bootstrap spread over one frame pair against the spread of p̂ over 300 independent noisy pairs
+    of the same region (Monte Carlo): within 30 %."""
+    rng = np.random.default_rng(3)
+    p, b = 0.6, rng.uniform(200, 400, (30, 30))
+
+    def pair():
+        return (rng.poisson(b * (1 - p) / 2).astype(float), rng.poisson(b * (1 + p) / 2).astype(float))
+
+    spread = np.std([estimate_p(*pair(), p_min=None) for _ in range(300)])
+    boot = p_bootstrap_std(*pair(), n_boot=400)
+    assert spread > 0 and boot == pytest.approx(spread, rel=0.3)

@@ -1,5 +1,5 @@
-"""Ctrl-C that stops (issue 12, item 2): SIGINT to the launcher of a small sim launch at seeded random
-moments — the ``[launch] prepare`` step, nodes starting (the planner plans in its setup), the sequencer
+"""Ctrl-C that stops (docs/architecture.md "Shutdown"): SIGINT to the launcher of a small sim launch at seeded
+random moments — the ``[launch] prepare`` step, nodes starting (the planner plans in its setup), the sequencer
 waiting for the plan, the calibration, the scans — and each time: the launcher exits by itself (130), every
 node exited by itself after that first SIGINT (``exits.json``: nobody needed the launcher's SIGTERM or
 SIGKILL, no traceback), no process of the launch is left (its process groups, and any process carrying the

@@ -28,3 +28,9 @@ def test_unknown_method_names_the_choices():
     with pytest.raises(ValueError, match="'laser' is not one of flood, polarized_flood"):
         Method.parse("laser")
     assert Method.parse("stripes") is Method.STRIPES and Method.STRIPES == "stripes"
+
+
+def test_striped_methods_and_lookup():
+    assert [m.striped for m in Method] == [False, False, True, True, False]
+    assert Method.lookup("polarized_stripes") is Method.POLARIZED_STRIPES
+    assert Method.lookup("laser") is None and Method.lookup("") is None

@@ -45,8 +45,8 @@ class Quitter(Node):
 
 def test_node_classes_load_by_class_by_node_name_or_by_node_class():
     assert load_node_class("polarstripe.nodes.demo:Talker") is Talker
-    assert load_node_class("polarstripe.nodes.emitter") is Emitter  # NODE = "Emitter"
-    assert load_node_class("polarstripe.nodes.planner") is Planner  # NODE = Planner
+    assert load_node_class("polarstripe.nodes.emitter") is Emitter  # NODE = Emitter
+    assert load_node_class("polarstripe.nodes.planner") is Planner
     with pytest.raises(PolarstripeError, match="module 'polarstripe.nodes.nope' not found"):
         load_node_class("polarstripe.nodes.nope")
     with pytest.raises(PolarstripeError, match="has no class 'Nope'"):

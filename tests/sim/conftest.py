@@ -1,4 +1,5 @@
-"""Plain, slow reference code for the sim tests: geometry and integrands written straight from issue 3."""
+"""Plain, slow reference code for the sim tests: geometry and integrands written straight from docs/physics.md
+and docs/scene-format.md."""
 
 import numpy as np
 from scipy.optimize import brentq

@@ -1,4 +1,4 @@
-"""The pattern averaged over the glow's patches and the source's beams (docs/physics.md §10.3, issue 10).
+"""The pattern averaged over the glow's patches and the source's beams (docs/physics.md §10.3).
 
 A checker finer than the grid's patches must light each patch by half (its area average), not by the value at
 the patch's centre: point samples alias the checker, and a checker and its complement then give different
@@ -106,8 +106,8 @@ def test_object_light_of_checker_and_complement_agree_at_preview(scene):
 
 
 def test_the_patch_spacing_no_longer_changes_the_split(scene):
-    """Issue 10's symptom: the split between checker and complement went 1.3e-2, 1.7e-3, 4.5e-3 for patch
-    spacings 1.5, 1, 0.5 cells; area-averaged it is the same at every spacing."""
+    """The symptom it guards against: the split between checker and complement went 1.3e-2, 1.7e-3, 4.5e-3
+    for patch spacings 1.5, 1, 0.5 cells; area-averaged it is the same at every spacing."""
     out = []
     for pc in (1.5, 1.0, 0.5):
         fid = dataclasses.replace(FIDELITY["preview"],

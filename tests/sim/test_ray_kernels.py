@@ -1,5 +1,6 @@
 """The compiled ray geometry called directly: pinhole rays, slab test, object hits, pattern coordinates,
-against issue 3's definitions written out plainly (conftest) and hand-computed hits."""
+against the pinhole and hit definitions (docs/scene-format.md, docs/physics.md) written out plainly
+(conftest) and hand-computed hits."""
 
 import math
 

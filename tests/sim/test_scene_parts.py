@@ -2,9 +2,11 @@
 
 import math
 
+import numpy as np
 import pytest
 from polarstripe.sim.scene_checks import SceneError
-from polarstripe.sim.scene_parts import Box, BoxObject, Medium, Phase, PlaneObject, Projector, Scene
+from polarstripe.sim.scene_parts import Box, BoxObject, Camera, Medium, Phase, PlaneObject, Projector, Scene
+from polarstripe.sim.sensor import electrons_per_radiance
 
 
 def test_derived_and_normalised_values():
@@ -44,3 +46,13 @@ def test_a_point_source_on_the_camera_is_refused_with_one_clear_error(tmp_path):
     assert "\n" not in str(err.value) and "move the source or give it a radius" in str(err.value)
     assert Scene(projector=Projector(position=(0.0, 0.0, 0.0))).separation_m() == 0.0  # radius 1 mm
     assert Scene(projector=Projector(position=(0.01, 0.0, 0.0), source_radius_m=0.0)).separation_m() == 0.01
+
+
+def test_a_resized_camera_keeps_the_dn_level():
+    """Half the width at the same field of view: a pixel sees 4× the solid angle, so the exposure is quartered
+    and a pixel at the centre collects the same electrons per unit radiance (sim/sensor.py's pinhole)."""
+    cam = Camera(resolution=(640, 480), exposure_s=0.004)
+    small = cam.resized((320, 240))
+    assert small.resolution == (320, 240) and small.exposure_s == pytest.approx(0.001, rel=1e-12)
+    big, little = electrons_per_radiance(cam), electrons_per_radiance(small)
+    assert np.mean(little[119:121, 159:161]) == pytest.approx(np.mean(big[239:241, 319:321]), rel=1e-4)

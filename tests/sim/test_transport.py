@@ -1,4 +1,4 @@
-"""D, A, B against brute-force quadrature of issue 3's equations, closed forms and linearity laws."""
+"""D, A, B against brute-force quadrature of docs/physics.md's equations, closed forms and linearity laws."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""Projector–camera calibration against the simulator's truth (issue 15, docs/depth.md "Calibration").
+"""Projector–camera calibration against the simulator's truth (docs/depth.md "Calibration").
 
 The truth is the scene's own pinholes (sim/depth_truth.py ``rig_geometry``: f = w/(2·tan(fov/2)), c = w/2 − ½,
 R and T from the poses in the scene), not anything the calibration computes. The renders (8 board poses at
