@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.geometry_cache import cached
-from polarstripe.sim.grid_kernels import ViewArgs, upsample_checked
-from polarstripe.sim.grid_sources import source_field, view_integral
-from polarstripe.sim.multiple import Grid, solve_polarized
+from polarstripe.sim.grid_kernels import upsample_checked
+from polarstripe.sim.grid_sources import source_field
+from polarstripe.sim.multiple import Field, Grid, solve_polarized
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.similarity import pair_retention_of, polarized_extinction
 from polarstripe.sim.surface_field import View, single_parts
@@ -105,26 +105,33 @@ def take(hits: Hits, idx: np.ndarray) -> Hits:
     return Hits(hits.t[idx], hits.index[idx], hits.normal[idx], hits.point[idx])
 
 
-def b_polarized(view: View, src: Source, plan: OrdersPlan, st: HigherSettings, grid: Grid,
-                 x_end: np.ndarray, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """B's camera-frame Stokes (Bq, Bu) with every order (docs/physics.md §10.4): the single wide-angle
-    scattering's (and the cone's) from the integrators with the polarized extinction σ_p, plus the grid's
-    orders ≥ 2 with σ_p and κ per further wide-angle scattering, in the single scattering's orientation."""
-    scene, sc = view.scene, plan.scaled
+def polarized_source(src: Source, plan: OrdersPlan, scene) -> Source:
+    """The scaled source with the polarized extinction σ_p (docs/physics.md §10.4) as its σ_t."""
     ph, dop = scene.medium.phase, scene.medium.dop
-    sigma_p = polarized_extinction(sc, scene.medium.sigma_s, ph.model, float(ph.g), float(dop.depolarization))
-    psrc = dataclasses.replace(scaled_source(src, plan), sigma_t=sigma_p)
-    bp, bq, bu = b_single(view, psrc, ("B", "p"), st.b_div, x_end)
-    cone = b_cone(view, src, plan, ("B", "p"), x0, sigma_p)
-    bp, bq, bu = bp + cone[0], bq + cone[1], bu + cone[2]
+    sigma_p = polarized_extinction(plan.scaled, scene.medium.sigma_s, ph.model, float(ph.g),
+                                   float(dop.depolarization))
+    return dataclasses.replace(scaled_source(src, plan), sigma_t=sigma_p)
+
+
+def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid) -> Field:
+    """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k), from the σ_p source ``psrc``."""
+    ph, dop = scene.medium.phase, scene.medium.dop
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization))
-    field = solve_polarized(grid, source_field(grid, psrc, scene.objects, st.oversample), sigma_p, sc.sigma_s,
-                            sc.g_tilde, kappa=kappa, orders=st.orders)
-    cam = view.cam
-    args = ViewArgs(np.array([sc.sigma_s / (4 * np.pi)]), np.array([sc.g_tilde]), sigma_p,
-                    np.asarray(cam.position, float))
-    coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
-    seen = view_integral(grid, [field], args, cam, view.pixels, x_end, coarse, st.view_steps)[0]
+    return solve_polarized(grid, source_field(grid, psrc, scene.objects, st.oversample), psrc.sigma_t,
+                           plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa, orders=st.orders)
+
+
+def b_polarized(view: View, src: Source, psrc: Source, plan: OrdersPlan, st: HigherSettings,
+                x_end: np.ndarray, x0: np.ndarray, seen: np.ndarray,
+                cone: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """B's camera-frame Stokes (Bq, Bu) with every order (docs/physics.md §10.4): the single wide-angle
+    scattering's (and the cone's) from the integrators with the polarized extinction σ_p (``psrc``), times
+    1 + (the polarized grid field ``seen`` along the view rays with σ_p) ÷ (its B): the orders ≥ 2 in the
+    single scattering's orientation (``cone``: some ray sees the source's forward cone, :func:`b_cone`)."""
+    bp, bq, bu = b_single(view, psrc, ("B", "p"), st.b_div, x_end)
+    if cone:
+        c = b_cone(view, src, plan, ("B", "p"), x0, psrc.sigma_t)
+        bp, bq, bu = bp + c[0], bq + c[1], bu + c[2]
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = 1.0 + np.where(bp > 0, seen / np.where(bp > 0, bp, 1.0), 0.0)
     return bq * gain, bu * gain

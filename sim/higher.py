@@ -29,7 +29,16 @@ import dataclasses
 import cv2
 import numpy as np
 from polarstripe.sim import geometry_cache
-from polarstripe.sim.backscatter import b_cone, b_polarized, b_single, geo, rays, scaled_source
+from polarstripe.sim.backscatter import (
+    b_cone,
+    b_polarized,
+    b_single,
+    geo,
+    polarized_field,
+    polarized_source,
+    rays,
+    scaled_source,
+)
 from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
 from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_within
 from polarstripe.sim.grid_sources import (
@@ -279,12 +288,19 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
                   lambda: box_interval(view.cam.position, view.dirs, grid.lo, grid.hi))
     x_end = np.minimum(t1, view.hits.t)
     fields = [orders.total] if "B" in need else []
+    sigmas = [sc.sigma_t] * len(fields)
+    if pol:           # the polarized part travels with σ_p (docs/physics.md §10.4)
+        psrc = polarized_source(src, plan, view.scene)
+        fields.append(polarized_field(psrc, plan, view.scene, st, grid))
+        sigmas.append(psrc.sigma_t)
     if want_a:
         seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
+        sigmas.append(sc.sigma_t)
     cam = view.cam
     c = np.full(len(fields), sc.sigma_s / (4 * np.pi))
-    args = ViewArgs(c, np.full(len(fields), sc.g_tilde), float(sc.sigma_t), np.asarray(cam.position, float))
+    args = ViewArgs(c, np.full(len(fields), sc.g_tilde), np.array(sigmas, float),
+                    np.asarray(cam.position, float))
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
@@ -292,7 +308,8 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
         cone = b_cone(view, src, plan, need if not pol else ("B",), np.maximum(t0, 0.0))
         B, Bq, Bu = B + cone[0], Bq + cone[1], Bu + cone[2]
         if pol:
-            Bq, Bu = b_polarized(view, src, plan, st, grid, x_end, np.maximum(t0, 0.0))
+            Bq, Bu = b_polarized(view, src, psrc, plan, st, x_end, np.maximum(t0, 0.0), seen_vals[1],
+                                 bool(cone[0].any()))
         B = B + seen_vals[0]
         if "p" in need and dop.model == "constant":
             Bq, Bu = _constant_stokes(view, src, B)

@@ -73,7 +73,7 @@ _REGISTERED: set[str] = set()
 
 
 def register() -> None:
-    """Register the Mueller phase function and the model's polarizer sheet with Mitsuba (polarized variant)."""
+    """Register the Mueller phase function and the model's polarizer sheet (in the polarized variant)."""
     import drjit as dr
     import mitsuba as mi
 
