@@ -45,7 +45,9 @@ def polarized_scene(name: str) -> Scene:
     polarized at 90°, 20 cm beside a 32×32 camera, both 5 cm outside the tank)."""
     sigma, model, g, albedo, _ = SCENES[name]
     s = reference_scene(sigma, False)
-    return s.replace(medium=s.medium.replace(albedo=albedo, phase=Phase(model, g)))
+    pol = s.projector.polarization.replace(dop=1.0, angle_deg=90.0)
+    return s.replace(medium=s.medium.replace(albedo=albedo, phase=Phase(model, g)),
+                     projector=s.projector.replace(polarization=pol))
 
 
 def depth_tag(depth: int) -> str:

@@ -124,13 +124,27 @@ def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, g
 def b_polarized(view: View, src: Source, psrc: Source, plan: OrdersPlan, st: HigherSettings,
                 x_end: np.ndarray, x0: np.ndarray, seen: np.ndarray,
                 cone: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """B's camera-frame Stokes (Bq, Bu) with every order (docs/physics.md §10.4): the single wide-angle
-    scattering's (and the cone's) from the integrators with the polarized extinction σ_p (``psrc``), times
-    1 + (the polarized grid field ``seen`` along the view rays with σ_p) ÷ (its B): the orders ≥ 2 in the
-    single scattering's orientation (``cone``: some ray sees the source's forward cone, :func:`b_cone`)."""
-    bp, bq, bu = b_single(view, psrc, ("B", "p"), st.b_div, x_end)
+    """B's camera-frame Stokes (Bq, Bu) with every order (docs/physics.md §10.4).
+
+    Single wide-angle scattering: the response to the source's polarization (m22, m33, m12 terms) with the
+    polarized extinction σ_p (``psrc``) on both legs; the polarization the scattering makes of any light
+    (m21, the unpolarized source's response) does not depend on what the cone left of the source's, so it
+    has σ̃_t on the source leg and σ_p on the camera leg — taken as their mean on both (exact where the two
+    legs are equally long, as in backscatter beside the camera). The cone toward the camera (``cone``: some
+    ray sees it, :func:`b_cone`) with σ_p. Orders ≥ 2: times 1 + (the polarized grid field ``seen`` along
+    the view rays) ÷ (the single scattering's B with σ_p), in the single scattering's orientation."""
+    keys = ("B", "p")
+    unpolarized = dataclasses.replace(psrc, dop_l=0.0)
+    mid = dataclasses.replace(unpolarized, sigma_t=0.5 * (plan.scaled.sigma_t + psrc.sigma_t))
+    bp, bq, bu = b_single(view, psrc, keys, st.b_div, x_end)
+    if psrc.dop_l > 0:
+        _, q0, u0 = b_single(view, unpolarized, keys, st.b_div, x_end)
+        _, q1, u1 = b_single(view, mid, keys, st.b_div, x_end)
+        bq, bu = bq - q0 + q1, bu - u0 + u1
+    else:
+        _, bq, bu = b_single(view, mid, keys, st.b_div, x_end)
     if cone:
-        c = b_cone(view, src, plan, ("B", "p"), x0, psrc.sigma_t)
+        c = b_cone(view, src, plan, keys, x0, psrc.sigma_t)
         bp, bq, bu = bp + c[0], bq + c[1], bu + c[2]
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = 1.0 + np.where(bp > 0, seen / np.where(bp > 0, bp, 1.0), 0.0)
