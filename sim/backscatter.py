@@ -69,11 +69,10 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     return out[0], out[1], out[2]
 
 
-def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray, sigma_t: float | None = None):
+def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
     """B of light scattered once inside the forward cone toward the camera (a view ray that looks toward
-    the source: its halo), with σ̃_t (or ``sigma_t``) both ways; only rays whose smallest scattering angle (at
-    their entry x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs
-    nothing."""
+    the source: its halo), with σ̃_t both ways; only rays whose smallest scattering angle (at their entry
+    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing."""
     sc = plan.scaled
     lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
     xc = view.dirs @ lv
@@ -85,8 +84,7 @@ def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray, sigm
     n = view.dirs.shape[0]
     if idx.size == 0:
         return np.zeros(n), np.zeros(n), np.zeros(n)
-    cone = dataclasses.replace(src, sigma_t=sc.sigma_t if sigma_t is None else sigma_t,
-                               phase=dataclasses.replace(sc.phase, cone=True))
+    cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
     sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
     out = np.zeros((3, n))
     out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
@@ -106,46 +104,30 @@ def take(hits: Hits, idx: np.ndarray) -> Hits:
 
 
 def polarized_source(src: Source, plan: OrdersPlan, scene) -> Source:
-    """The scaled source with the polarized extinction σ_p (docs/physics.md §10.4) as its σ_t."""
+    """The scaled source whose Stokes sums give the polarized part the extinction σ_p (docs/physics.md
+    §10.4); its intensity keeps σ̃_t."""
     ph, dop = scene.medium.phase, scene.medium.dop
     sigma_p = polarized_extinction(plan.scaled, scene.medium.sigma_s, ph.model, float(ph.g),
                                    float(dop.depolarization))
-    return dataclasses.replace(scaled_source(src, plan), sigma_t=sigma_p)
+    return dataclasses.replace(scaled_source(src, plan), sigma_pol=sigma_p)
 
 
 def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid) -> Field:
-    """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k), from the σ_p source ``psrc``."""
+    """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k): the quasi-direct light deposited and
+    carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4)."""
     ph, dop = scene.medium.phase, scene.medium.dop
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization))
-    return solve_polarized(grid, source_field(grid, psrc, scene.objects, st.oversample), psrc.sigma_t,
-                           plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa, orders=st.orders)
+    deposit = dataclasses.replace(psrc, sigma_t=psrc.sigma_pol)
+    quasi = source_field(grid, deposit, scene.objects, st.oversample)
+    return solve_polarized(grid, quasi, psrc.sigma_pol, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
+                           orders=st.orders)
 
 
-def b_polarized(view: View, src: Source, psrc: Source, plan: OrdersPlan, st: HigherSettings,
-                x_end: np.ndarray, x0: np.ndarray, seen: np.ndarray,
-                cone: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """B's camera-frame Stokes (Bq, Bu) with every order (docs/physics.md §10.4).
-
-    Single wide-angle scattering: the response to the source's polarization (m22, m33, m12 terms) with the
-    polarized extinction σ_p (``psrc``) on both legs; the polarization the scattering makes of any light
-    (m21, the unpolarized source's response) does not depend on what the cone left of the source's, so it
-    has σ̃_t on the source leg and σ_p on the camera leg — taken as their mean on both (exact where the two
-    legs are equally long, as in backscatter beside the camera). The cone toward the camera (``cone``: some
-    ray sees it, :func:`b_cone`) with σ_p. Orders ≥ 2: times 1 + (the polarized grid field ``seen`` along
-    the view rays) ÷ (the single scattering's B with σ_p), in the single scattering's orientation."""
-    keys = ("B", "p")
-    unpolarized = dataclasses.replace(psrc, dop_l=0.0)
-    mid = dataclasses.replace(unpolarized, sigma_t=0.5 * (plan.scaled.sigma_t + psrc.sigma_t))
-    bp, bq, bu = b_single(view, psrc, keys, st.b_div, x_end)
-    if psrc.dop_l > 0:
-        _, q0, u0 = b_single(view, unpolarized, keys, st.b_div, x_end)
-        _, q1, u1 = b_single(view, mid, keys, st.b_div, x_end)
-        bq, bu = bq - q0 + q1, bu - u0 + u1
-    else:
-        _, bq, bu = b_single(view, mid, keys, st.b_div, x_end)
-    if cone:
-        c = b_cone(view, src, plan, keys, x0, psrc.sigma_t)
-        bp, bq, bu = bp + c[0], bq + c[1], bu + c[2]
+def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: float):
+    """B's Stokes plus the orders ≥ 2: the polarized grid field seen along the view rays (``seen``, σ_p on the
+    way) carries κ^(k−1) of once-backscattered light's DOP, ``dop`` = (1 − δ)·DOP_L (κ's reference, docs/
+    physics.md §10.4), in the orientation of the single wide-angle scattering at the pixel."""
+    norm = np.hypot(bq, bu)
     with np.errstate(invalid="ignore", divide="ignore"):
-        gain = 1.0 + np.where(bp > 0, seen / np.where(bp > 0, bp, 1.0), 0.0)
+        gain = 1.0 + np.where(norm > 0, dop * seen / np.where(norm > 0, norm, 1.0), 0.0)
     return bq * gain, bu * gain

@@ -30,8 +30,8 @@ import cv2
 import numpy as np
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.backscatter import (
+    add_polarized_orders,
     b_cone,
-    b_polarized,
     b_single,
     geo,
     polarized_field,
@@ -292,7 +292,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     if pol:           # the polarized part travels with σ_p (docs/physics.md §10.4)
         psrc = polarized_source(src, plan, view.scene)
         fields.append(polarized_field(psrc, plan, view.scene, st, grid))
-        sigmas.append(psrc.sigma_t)
+        sigmas.append(psrc.sigma_pol)
     if want_a:
         seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
@@ -304,12 +304,13 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
-        B, Bq, Bu = b_single(view, ssrc, tuple(k for k in need if not pol or k != "p"), st.b_div, x_end)
-        cone = b_cone(view, src, plan, need if not pol else ("B",), np.maximum(t0, 0.0))
+        B, Bq, Bu = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
+        sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol) if pol else src
+        cone = b_cone(view, sp, plan, need, np.maximum(t0, 0.0))
         B, Bq, Bu = B + cone[0], Bq + cone[1], Bu + cone[2]
         if pol:
-            Bq, Bu = b_polarized(view, src, psrc, plan, st, x_end, np.maximum(t0, 0.0), seen_vals[1],
-                                 bool(cone[0].any()))
+            Bq, Bu = add_polarized_orders(Bq, Bu, seen_vals[1],
+                                          (1.0 - float(dop.depolarization)) * float(src.dop_l))
         B = B + seen_vals[0]
         if "p" in need and dop.model == "constant":
             Bq, Bu = _constant_stokes(view, src, B)
