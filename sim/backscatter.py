@@ -3,10 +3,10 @@ camera, and its polarization through every order (docs/physics.md §10.3, §10.4
 :mod:`polarstripe.sim.higher`.
 
 Polarization: each scattering inside the forward cone keeps r_c of the linear polarization and each further
-wide-angle scattering κ (:mod:`polarstripe.sim.similarity`), so the polarized part of every term travels with
-the extinction σ_p = σ̃_t + (1 − r_c)·f·σ_s: single wide-angle scattering's Stokes come from the same
-integrator with σ_p, orders ≥ 2 from a grid chain with σ_p and κ per order, in the orientation of the single
-wide-angle scattering at the pixel.
+wide-angle scattering κ (:mod:`polarstripe.sim.similarity`), so the polarized part travels with the
+extinction σ_p = σ̃_t + (1 − r_c)·f·σ_s: single wide-angle scattering's Stokes sums take it in the line
+integral (a source with ``sigma_pol``), orders ≥ 2 come from a grid chain with σ_p and κ per order, in the
+orientation of the single wide-angle scattering at the pixel.
 """
 
 from __future__ import annotations

@@ -11,9 +11,9 @@ The terms, in the similarity-scaled medium of :mod:`polarstripe.sim.similarity` 
 * orders ≥ 2 on a grid (:mod:`polarstripe.sim.multiple`): B from the emission of the scattered field along
   the view rays, A from its irradiance on the object.
 * B's polarization (docs/physics.md §10.4): every cone scattering keeps r_c of it and every further
-  wide-angle scattering κ, so the polarized part of each term travels with the extinction σ_p (single
-  wide-angle scattering: its Stokes from the same integrator with σ_p; orders ≥ 2: a grid chain with σ_p,
-  order k weighted by κ^k), in the orientation of the single wide-angle scattering at the pixel.
+  wide-angle scattering κ, so its polarized part travels with the extinction σ_p (single wide-angle
+  scattering: the same line integral's Stokes sums; orders ≥ 2: a grid chain with σ_p, order k weighted
+  by κ^k, in the orientation of the single wide-angle scattering at the pixel).
 * the objects' glow: each object's reflected light (exitance ρE) scattered at wide angles toward the camera
   (and onward, and back onto the objects), from the same grid with the objects as Lambertian sources; in A.
 * the object's radiance blurred on its way to the camera by the forward cone (:mod:`polarstripe.sim.psf`).
