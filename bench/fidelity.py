@@ -10,6 +10,9 @@ frame time, and Mitsuba's time at equal error — in one run.
 * **Single scattering** (``orders="single"``, the paper's model) against Mitsuba's ``max_depth = 2`` (medium
   only, σ_t = 1…8) and, at sampled pixels of the default 640×480 tank, against the converged ``reference``
   level (median / max relative error of D, A, B).
+* **Polarization** against the polarized references (``tests/data/mitsuba_polarized``: Mitsuba with the
+  model's Mueller matrix, every order, a source polarized at 90°): the backscatter's DOP per region (from
+  the Stokes means) and the frames through the analyzer at 0° (E_b) and 90° (E_w) ÷ the truth's, per level.
 * **Time**: CPU seconds of a 640×480 frame of the default tank (stripe 14/30 and flood) per level, with all
   orders and single scattering (best of ``--repeat``; one core: OMP/NUMBA threads are the caller's): a
   scan's frame, whose pattern-independent geometry the previous frame left in
@@ -39,6 +42,7 @@ from polarstripe.sim.validation_scenes import cases, file_stem
 
 LEVELS = ("preview", "standard", "reference")
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "mitsuba"
+DATA_POLARIZED = DATA.parent / "mitsuba_polarized"
 SIGMAS = (1.0, 2.5, 5.0, 8.0)
 SS = 20                    # 32×32 references → 640×640 renders (preview's half-resolution path applies)
 
@@ -47,6 +51,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=2, help="timing repeats (best of)")
     parser.add_argument("--samples", type=int, default=120, help="pixels compared against 'reference'")
     parser.add_argument("--data", type=Path, default=DATA, help="folder of the stored Mitsuba references")
+    parser.add_argument("--data-polarized", type=Path, default=DATA_POLARIZED,
+                        help="folder of the stored polarized Mitsuba references")
     parser.add_argument("--render-references", action="store_true",
                         help="render the own scenes with Mitsuba into --data first (needs mitsuba)")
     parser.add_argument("--quick", action="store_true", help="skip the 'reference' level's frame time")
@@ -114,6 +120,33 @@ def accuracy(data: Path) -> dict:
             single.append({"sigma": sigma, "spread": z["spread"].tolist(), "ratio": {
                 lv: (regions(_model(scene, "flood", lv, "single")) / truth).tolist() for lv in LEVELS}})
     return {"rows": rows, "single_vs_max_depth_2": single}
+
+
+def polarization(data: Path) -> list[dict]:
+    """Per polarized reference (all orders): the truth's DOP per region and, per level, the model's DOP and
+    its E_b, E_w ÷ the truth's (analyzer at 0° and 90°, ideal; the model at 640×640, box-filtered)."""
+    from polarstripe.bench.mitsuba_polarized_references import SCENES, dop, polarized_scene
+    from polarstripe.bench.mitsuba_polarized_references import file_stem as stem
+
+    rows = []
+    for name in SCENES:
+        f = data / f"{stem(name, -1)}.npz"
+        if not f.exists():
+            continue
+        z = np.load(f)
+        t = z["regions"].mean(0)
+        row = {"name": name, "truth_dop": dop(t).tolist(), "spread": z["spread"].tolist()}
+        scene = polarized_scene(name)
+        w, h = scene.camera.resolution
+        big = scene.replace(camera=scene.camera.replace(resolution=(w * SS, h * SS)))
+        for level in ("preview", "standard"):
+            c = render_components(big, "flood", level, need=("B", "p"))
+            st = np.stack([regions(a.reshape(h, SS, w, SS).mean(axis=(1, 3))) for a in (c.B, c.Bq, c.Bu)]
+                          + [np.zeros(3)])
+            row[level] = {"dop": dop(st).tolist(), "e_b": ((st[0] + st[1]) / (t[0] + t[1])).tolist(),
+                          "e_w": ((st[0] - st[1]) / (t[0] - t[1])).tolist()}
+        rows.append(row)
+    return rows
 
 
 def _uncached(scene, pattern: str, level: str):
@@ -189,6 +222,12 @@ def summarize(acc: dict, tim: dict) -> dict:
                                  "frame_s": t, "ratio": float(np.median(ratios)) / t if t else None}
     single = [max(abs(v - 1) for v in r["single"]) for r in rows]
     summ["single_max_err"] = max(single)
+    pol = acc.get("polarization") or []
+    summ["polarization"] = {lv: {"max_dop_err": max(abs(m - t) for r in pol for m, t in
+                                                    zip(r[lv]["dop"], r["truth_dop"], strict=True)),
+                                 "max_frame_err": max(abs(v - 1) for r in pol for k in ("e_b", "e_w")
+                                                      for v in r[lv][k])}
+                            for lv in ("preview", "standard")} if pol else {}
     md2 = acc["single_vs_max_depth_2"]
     summ["single_vs_max_depth_2_max"] = max((max(abs(v - 1) - s for v, s in zip(x["ratio"]["standard"],
                                                                                    x["spread"], strict=True))
@@ -220,6 +259,18 @@ def _table(res: dict) -> str:
     for x in acc["single_vs_max_depth_2"]:
         lines.append(f"single scattering ÷ Mitsuba max_depth=2, σ_t={x['sigma']:g} (medium): "
                      + ", ".join(f"{lv} {_fmt(x['ratio'][lv])}" for lv in LEVELS))
+    if acc.get("polarization"):
+        lines.append("")
+        lines.append("backscatter DOP (left, right, centre) vs the polarized references; E_b, E_w ÷ truth")
+        lines.append(f"{'scene':<16}{'truth':>18}{'preview':>18}{'standard':>18}{'E_b standard':>18}"
+                     f"{'E_w standard':>18}")
+        for r in acc["polarization"]:
+            lines.append(f"{r['name']:<16}{_fmt(r['truth_dop']):>18}{_fmt(r['preview']['dop']):>18}"
+                         f"{_fmt(r['standard']['dop']):>18}{_fmt(r['standard']['e_b']):>18}"
+                         f"{_fmt(r['standard']['e_w']):>18}")
+        lines.append("worst |DOP − truth|: " + ", ".join(
+            f"{lv} {v['max_dop_err']:.3f} (E_b, E_w {100 * v['max_frame_err']:.1f} %)"
+            for lv, v in summ["polarization"].items()))
     lines.append("")
     lines.append(f"{'level':<10}{'max err':>9}{'(σ<8)':>8}{'median':>8}{'frame s':>9}{'fps':>6}"
                  f"{'single s':>10}{'flood s':>9}{'Mitsuba s at equal err':>24}{'ratio':>8}")
@@ -283,6 +334,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.render_references:
         render_references(args.data)
     acc = accuracy(args.data)
+    acc["polarization"] = polarization(getattr(args, "data_polarized", DATA_POLARIZED))
     tim = timing(args.repeat, args.quick, args.samples)
     return {"accuracy": acc, "timing": tim, "summary": summarize(acc, tim)}
 

@@ -9,8 +9,11 @@ The terms, in the similarity-scaled medium of :mod:`polarstripe.sim.similarity` 
   (:mod:`polarstripe.sim.transport`, :mod:`polarstripe.sim.surface_term`), P̃ and σ̃ (Nakajima & Tanaka's
   correction: σ̃_s P̃ = σ_s P at wide angles, so B keeps its exact backscatter phase function and Mueller DOP).
 * orders ≥ 2 on a grid (:mod:`polarstripe.sim.multiple`): B from the emission of the scattered field along
-  the view rays, A from its irradiance on the object; B's second order keeps κ₂ of the single-scatter
-  polarization, later orders none (:mod:`polarstripe.sim.orders`).
+  the view rays, A from its irradiance on the object.
+* B's polarization (docs/physics.md §10.4): every cone scattering keeps r_c of it and every further
+  wide-angle scattering κ, so its polarized part travels with the extinction σ_p (single wide-angle
+  scattering: the same line integral's Stokes sums; orders ≥ 2: a grid chain with σ_p, order k weighted
+  by κ^k, in the orientation of the single wide-angle scattering at the pixel).
 * the objects' glow: each object's reflected light (exitance ρE) scattered at wide angles toward the camera
   (and onward, and back onto the objects), from the same grid with the objects as Lambertian sources; in A.
 * the object's radiance blurred on its way to the camera by the forward cone (:mod:`polarstripe.sim.psf`).
@@ -26,15 +29,18 @@ import dataclasses
 import cv2
 import numpy as np
 from polarstripe.sim import geometry_cache
-from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
-from polarstripe.sim.geometry_cache import cached
-from polarstripe.sim.grid_kernels import (
-    ViewArgs,
-    glow_emission,
-    segment_lengths,
-    upsample_checked,
-    upsample_within,
+from polarstripe.sim.backscatter import (
+    add_polarized_orders,
+    b_cone,
+    b_single,
+    geo,
+    polarized_field,
+    polarized_source,
+    rays,
+    scaled_source,
 )
+from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
+from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_within
 from polarstripe.sim.grid_sources import (
     footprint_lit,
     glow_field,
@@ -51,7 +57,7 @@ from polarstripe.sim.patterns import pattern_lit
 from polarstripe.sim.psf import halo_table, mixture, spread
 from polarstripe.sim.psf_frame import object_radiance
 from polarstripe.sim.psf_stencil import stencil_blur
-from polarstripe.sim.similarity import pair_retention_of, truncated_code
+from polarstripe.sim.similarity import truncated_code
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import View, camera_frame_stokes, single_parts
 from polarstripe.sim.transport import Source, direct
@@ -101,11 +107,6 @@ class HigherSettings:
 HALF_MIN = (640, 480)      # half resolution only where the half frame still resolves stripes (≥ 320×240)
 
 
-def _scaled_source(src: Source, plan: OrdersPlan) -> Source:
-    sc = plan.scaled
-    return dataclasses.replace(src, sigma_t=sc.sigma_t, sigma_s=sc.sigma_s, phase=sc.phase)
-
-
 def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarray, np.ndarray]:
     """D (exact, σ_t) and the quasi-direct object radiance per unit albedo (σ̃_t both ways), per ray.
 
@@ -120,7 +121,7 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
         return d, quasi
     want_d = "D" in need or ("A" in need and view.pixels is not None)       # pixels: A = stencil − D
     if view.pixels is None and geometry_cache.enabled():
-        seen = _geo(view, "seen", lambda: hit[~occluded(scene.objects, src.position, hits.point[hit])])
+        seen = geo(view, "seen", lambda: hit[~occluded(scene.objects, src.position, hits.point[hit])])
         lit = seen[pattern_lit(pat, src.frame, hits.point[seen])]
 
         def every(source, albedo):
@@ -130,9 +131,9 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
             return out
 
         if want_d:
-            d[lit] = _geo(view, "D", lambda: every(src, surf.albedo[seen]))[lit]
+            d[lit] = geo(view, "D", lambda: every(src, surf.albedo[seen]))[lit]
         if "A" in need:
-            quasi[lit] = _geo(view, ("quasi", ssrc.sigma_t), lambda: every(ssrc, np.ones(seen.size)))[lit]
+            quasi[lit] = geo(view, ("quasi", ssrc.sigma_t), lambda: every(ssrc, np.ones(seen.size)))[lit]
         return d, quasi
     lit = hit[pattern_lit(pat, src.frame, hits.point[hit])]
     lit = lit[~occluded(scene.objects, src.position, hits.point[lit])]
@@ -144,14 +145,6 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
         quasi[lit] = direct(ssrc, scene.objects, cam.position, hits.point[lit], hits.normal[lit],
                             np.ones(lit.size), ones)
     return d, quasi
-
-
-def _geo(view: View, name, make):
-    """``make()`` once per scene and frame size for whole frames (:mod:`polarstripe.sim.geometry_cache`),
-    every time for requested pixels."""
-    if view.pixels is not None:
-        return make()
-    return cached(view.scene, (name, view.cam.w, view.cam.h), make)
 
 
 def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings, grid: Grid,
@@ -222,67 +215,6 @@ def _probe(view: View, ssrc: Source):
     return ell[0], ell[1], float(h.t[0])
 
 
-def _b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
-    """B's single wide-angle scattering and its Stokes, every pixel or (``div`` > 1, whole frames) on a grid
-    of every div-th pixel, bilinear in between (B is continuous across the image except at silhouettes:
-    pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or 1 % away from
-    their own are computed exactly)."""
-    keys = tuple(k for k in ("B", "p") if k in need)
-    if div <= 1 or view.pixels is not None:
-        return single_parts(view, ssrc, keys)[2:]
-    cam = view.cam
-    gh, gw = -(-(cam.h - 1) // div) + 1, -(-(cam.w - 1) // div) + 1      # every div-th pixel, past the last
-    gr, gc = np.arange(gh) * div, np.arange(gw) * div                      # (rays of real pixels only)
-    px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
-    dirs, hits = _geo(view, ("coarse", div), lambda: _rays(view.scene, cam, px))
-    coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
-    parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(3, gh, gw)
-    t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
-    out = np.empty((3, cam.h * cam.w))
-    bad = np.empty(cam.h * cam.w, bool)
-    upsample_checked(parts, t_c, np.ascontiguousarray(x_end, float), cam.w, float(div), out, bad)
-    idx = np.nonzero(bad)[0]
-    if idx.size:
-        sub = view._replace(dirs=view.dirs[idx], hits=_take(view.hits, idx),
-                            pixels=np.zeros((idx.size, 2), int))
-        out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
-    return out[0], out[1], out[2]
-
-
-def _b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
-    """B of light scattered once inside the forward cone toward the camera (a view ray that looks toward
-    the source: its halo), with σ̃_t both ways; only rays whose smallest scattering angle (at their entry
-    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing."""
-    sc = plan.scaled
-    lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
-    xc = view.dirs @ lv
-    h2 = np.maximum((lv * lv).sum() - xc * xc, 0.0) + src.radius ** 2
-    u0 = x0 - xc
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos0 = -u0 / np.sqrt(u0 * u0 + h2)
-    idx = np.nonzero(cos0 > sc.phase.cos_c)[0]
-    n = view.dirs.shape[0]
-    if idx.size == 0:
-        return np.zeros(n), np.zeros(n), np.zeros(n)
-    cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
-    sub = view._replace(dirs=view.dirs[idx], hits=_take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
-    out = np.zeros((3, n))
-    out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
-    return out[0], out[1], out[2]
-
-
-def _rays(scene, cam, pixels=None):
-    """Ray directions of ``cam`` (all pixels or ``pixels``) and their hits."""
-    from polarstripe.sim.geometry import intersect, pixel_rays
-
-    dirs = pixel_rays(cam, pixels)
-    return dirs, intersect(scene.objects, cam.position, dirs)
-
-
-def _take(hits: Hits, idx: np.ndarray) -> Hits:
-    return Hits(hits.t[idx], hits.index[idx], hits.normal[idx], hits.point[idx])
-
-
 def _lengths(start, view: View, ssrc: Source) -> np.ndarray:
     """In-medium length [m] from ``start`` to each ray's hit (0 where nothing is hit)."""
     out = np.zeros(view.hits.t.size)
@@ -320,12 +252,12 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     half = PinholeFrame(cam.position, cam.f, cam.r, cam.u, 2 * cam.s, cam.w // 2, cam.h // 2)
 
     def geometry():
-        dirs, hits = _rays(view.scene, half)
+        dirs, hits = rays(view.scene, half)
         return dirs, hits, surface_info(view.scene.objects, hits)
 
-    small = View(view.scene, view.pattern, view.fid, half, *_geo(view, "half", geometry), None)
+    small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
     _, p_half, h_half, b, bq, bu = _components(small, src, plan, need, st, parts=True)
-    d, _ = _direct_pair(view, src, _scaled_source(src, plan), tuple(k for k in need if k == "D"))
+    d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
     size = (cam.w, cam.h)
     up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel()
           for x in (h_half, b, bq, bu)]
@@ -339,7 +271,7 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
 def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings, parts: bool = False):
     """D, A, B, Bq, Bu (or, ``parts``, D, P, H, B, Bq, Bu with A = ρ·P + H) per ray, flat."""
     sc = plan.scaled
-    ssrc = _scaled_source(src, plan)
+    ssrc = scaled_source(src, plan)
     n = view.dirs.shape[0]
     D, quasi = _direct_pair(view, src, ssrc, need if not parts else tuple(k for k in need if k != "D"))
     A, B, Bq, Bu = (np.zeros(n) for _ in range(4))
@@ -350,38 +282,41 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
     pol = "p" in need and "B" in need and dop.model == "rayleigh"
-    ph = view.scene.medium.phase
-    kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization)) if pol else 0.0
     orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
-                          sc.sigma_s, sc.g_tilde, orders=st.orders, kappa=kappa)
-    t0, t1 = _geo(view, ("interval", tuple(grid.lo), tuple(grid.hi)),
+                          sc.sigma_s, sc.g_tilde, orders=st.orders)
+    t0, t1 = geo(view, ("interval", tuple(grid.lo), tuple(grid.hi)),
                   lambda: box_interval(view.cam.position, view.dirs, grid.lo, grid.hi))
     x_end = np.minimum(t1, view.hits.t)
     fields = [orders.total] if "B" in need else []
-    if pol:
-        fields.append(orders.polarized)
+    sigmas = [sc.sigma_t] * len(fields)
+    if pol:           # the polarized part travels with σ_p (docs/physics.md §10.4)
+        psrc = polarized_source(src, plan, view.scene)
+        fields.append(polarized_field(psrc, plan, view.scene, st, grid))
+        sigmas.append(psrc.sigma_pol)
     if want_a:
         seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
+        sigmas.append(sc.sigma_t)
     cam = view.cam
     c = np.full(len(fields), sc.sigma_s / (4 * np.pi))
-    args = ViewArgs(c, np.full(len(fields), sc.g_tilde), float(sc.sigma_t), np.asarray(cam.position, float))
+    args = ViewArgs(c, np.full(len(fields), sc.g_tilde), np.array(sigmas, float),
+                    np.asarray(cam.position, float))
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
-        B, Bq, Bu = _b_single(view, ssrc, need, st.b_div, x_end)
-        cone = _b_cone(view, src, plan, need, np.maximum(t0, 0.0))
+        B, Bq, Bu = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
+        sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol) if pol else src
+        cone = b_cone(view, sp, plan, need, np.maximum(t0, 0.0))
         B, Bq, Bu = B + cone[0], Bq + cone[1], Bu + cone[2]
-        if pol:           # orders ≥ 2 keep κ^(k−1) of the single-scatter polarization, in its orientation
-            with np.errstate(invalid="ignore", divide="ignore"):
-                share = np.where(B > 0, seen_vals[1] / np.where(B > 0, B, 1.0), 0.0)
-            Bq, Bu = Bq * (1 + share), Bu * (1 + share)
+        if pol:
+            Bq, Bu = add_polarized_orders(Bq, Bu, seen_vals[1],
+                                          (1.0 - float(dop.depolarization)) * float(src.dop_l))
         B = B + seen_vals[0]
         if "p" in need and dop.model == "constant":
             Bq, Bu = _constant_stokes(view, src, B)
     if want_a:
         hp, hn = view.hits.point[hit], view.hits.normal[hit]
-        ell_l = _geo(view, "ell_l", lambda: _lengths(ssrc.position, view, ssrc))
+        ell_l = geo(view, "ell_l", lambda: _lengths(ssrc.position, view, ssrc))
         ell_c = np.where(hit & (t1 > t0), x_end - np.maximum(t0, 0.0), 0.0)     # the view ray in the medium
         rest = np.zeros(n)
         if st.a1_exact:

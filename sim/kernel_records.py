@@ -67,7 +67,8 @@ class Polarization(NamedTuple):
     """Whether to accumulate the Stokes sums (``on``); whether the intensity scattered from the polarized
     source takes the Mueller matrix's m12·Q (``mueller``: the Rayleigh-δ model with DOP_L > 0); whether the
     rays run from the source and ``Light`` is the receiver (``reversed``: A's beams); the source's unit
-    E-field (3,), its DOP and the medium's δ (docs/physics.md §5)."""
+    E-field (3,), its DOP and the medium's δ (docs/physics.md §5); ``dsigma`` ≥ 0 the extra extinction of
+    the polarized part of the light in the Stokes sums (σ_p − σ̃_t, docs/physics.md §10.4; else 0)."""
 
     on: bool
     mueller: bool
@@ -75,6 +76,7 @@ class Polarization(NamedTuple):
     e_field: np.ndarray
     dop_l: float
     depol: float
+    dsigma: float = 0.0
 
 
 class Rays(NamedTuple):

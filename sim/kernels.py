@@ -117,7 +117,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
     src_pos, radius, inten, inside, facing = light
     st, ss, box_lo, box_hi = medium
     nodes, gl_t, gl_w, gl_n, sub_all, nsubs, width, split_alphas = quad
-    pol, mueller, reverse, e_field, dop_l, depol = polarization
+    pol, mueller, reverse, e_field, dop_l, depol, dsigma = polarization
     big = (1.0 - depol) / (1.0 + depol / 2.0)
     origin, dirs, view_start = rays
     ray, lo, hi = intervals
@@ -129,6 +129,8 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
     omm_a = np.empty(nmax)
     opm_a = np.empty(nmax)
     wk = np.empty(nmax)
+    leg_l = np.zeros(nmax)       # a node's in-medium distances from the source and to the camera
+    leg_c = np.zeros(nmax)
     edges = np.empty(split_alphas.size + 2)
     per_src = src_pos.shape[0] > 1
     per_org = origin.shape[0] > 1
@@ -255,6 +257,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                             light = segment_in_box(sx, sy, sz, cx + x * dx, cy + x * dy, cz + x * dz, box_lo,
                                                    box_hi)
                         e = st * (light + (x - vs))
+                        leg_l[i], leg_c[i] = light, x - vs
                     else:
                         e = 0.0
                     ang[i] = e
@@ -298,8 +301,12 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                     m33 = big * 1.5 * mu
                     i_out = m11 + m12 * q_in
                     tot += wk[i]
-                    qs += wk[i] * (m12 + m22 * q_in) / i_out
-                    us += wk[i] * m33 * u_in / i_out
+                    # the polarized part loses σ_p − σ̃_t on both legs; the polarization the scattering
+                    # makes (m21 = m12) only on the way to the camera (docs/physics.md §10.4)
+                    a_out = math.exp(-dsigma * leg_c[i]) if dsigma > 0.0 else 1.0
+                    a_both = a_out * math.exp(-dsigma * leg_l[i]) if dsigma > 0.0 else 1.0
+                    qs += wk[i] * (m12 * a_out + m22 * q_in * a_both) / i_out
+                    us += wk[i] * m33 * u_in * a_both / i_out
                 if tot > 0:
                     q_ray += qs / tot * b
                     u_ray += us / tot * b

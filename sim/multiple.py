@@ -90,14 +90,12 @@ def zero_field(grid: Grid) -> Field:
 @dataclass(frozen=True)
 class Orders:
     """The solution: ``first`` the once-scattered field (light scattered once at a wide angle), ``total``
-    the field of all orders ≥ 1, ``count`` the orders summed before the tail, ``ratio`` the tail's ratio,
-    ``polarized`` Σ_k κ^k φ^(k) (each order k weighted by κ^k, the polarization it keeps)."""
+    the field of all orders ≥ 1, ``count`` the orders summed before the tail, ``ratio`` the tail's ratio."""
 
     first: Field
     total: Field
     count: int
     ratio: float
-    polarized: Field | None = None
 
 
 def _fibonacci(n: int) -> np.ndarray:
@@ -202,7 +200,7 @@ def tail_ratio(grid: Grid, sigma_t: float, sigma_s: float, g: float, orders: int
 
 
 def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: float, *,
-                 orders: int = 6, kappa: float = 0.0) -> Orders:
+                 orders: int = 6) -> Orders:
     """All orders ≥ 1 of wide-angle scattering of the quasi-direct field ``quasi`` (φ₀, F₀).
 
     Parameters
@@ -212,7 +210,6 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
     orders : orders computed one by one; the rest is the geometric tail φ_K r/(1 − r) with r from
         :func:`tail_ratio`. A fixed count and ratio keep the map from ``quasi`` to the result linear (the
         stripes of a scan add up to the flood frame).
-    kappa : the fraction of its polarization light keeps per further scattering (the ``polarized`` sum).
 
     Returns
     -------
@@ -222,22 +219,42 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
         raise ValueError(f"solve_orders: orders must be >= 1, got {orders!r}")
     if sigma_s <= 0.0 or not np.any(quasi.phi > 0):
         z = zero_field(grid)
-        return Orders(z, z, 0, 0.0, z)
-    if not 0.0 <= kappa <= 1.0:
-        raise ValueError(f"solve_orders: kappa must be in [0, 1], got {kappa!r}")
+        return Orders(z, z, 0, 0.0)
     s0, s1 = _emission(quasi, sigma_s, g)
     first = propagate(grid, sigma_t, s0, s1)
-    total, last, weight = first, first, kappa
-    pol = Field(kappa * first.phi, kappa * first.flux)
+    total, last = first, first
     for _ in range(int(orders) - 1):
         s0, s1 = _emission(last, sigma_s, g)
         last = propagate(grid, sigma_t, s0, s1)
         total = total + last
-        weight *= kappa
-        pol = Field(pol.phi + weight * last.phi, pol.flux + weight * last.flux)
     ratio = tail_ratio(grid, float(sigma_t), float(sigma_s), float(g), int(orders))
     tail = ratio / (1.0 - ratio)
     total = Field(total.phi + tail * last.phi, total.flux + tail * last.flux)
-    ptail = weight * kappa * ratio / (1.0 - kappa * ratio)
-    pol = Field(pol.phi + ptail * last.phi, pol.flux + ptail * last.flux)
-    return Orders(first, total, int(orders), ratio, pol)
+    return Orders(first, total, int(orders), ratio)
+
+
+def solve_polarized(grid: Grid, quasi: Field, sigma_p: float, sigma_s: float, g: float, *, kappa: float,
+                    orders: int = 6) -> Field:
+    """The polarized part Σ_k κ^k φ_p^(k) of the orders ≥ 1 (docs/physics.md §10.4).
+
+    ``quasi`` is the quasi-direct field's polarized part (deposited with the polarized extinction σ_p),
+    propagated with σ_p between wide-angle scatterings (each cone scattering on the way keeps r_c of the
+    polarization) and each order k weighted by κ^k (the fraction of the polarization a wide-angle scattering
+    keeps). Orders after ``orders`` are the geometric tail with ratio κ·r, r from :func:`tail_ratio` at σ_p.
+    """
+    if int(orders) < 1:
+        raise ValueError(f"solve_polarized: orders must be >= 1, got {orders!r}")
+    if not 0.0 <= kappa <= 1.0:
+        raise ValueError(f"solve_polarized: kappa must be in [0, 1], got {kappa!r}")
+    if sigma_s <= 0.0 or kappa == 0.0 or not np.any(quasi.phi > 0):
+        return zero_field(grid)
+    last, weight = quasi, 1.0
+    pol = zero_field(grid)
+    for _ in range(int(orders)):
+        s0, s1 = _emission(last, sigma_s, g)
+        last = propagate(grid, sigma_p, s0, s1)
+        weight *= kappa
+        pol = Field(pol.phi + weight * last.phi, pol.flux + weight * last.flux)
+    ratio = kappa * tail_ratio(grid, float(sigma_p), float(sigma_s), float(g), int(orders))
+    tail = weight * ratio / (1.0 - ratio)
+    return Field(pol.phi + tail * last.phi, pol.flux + tail * last.flux)

@@ -86,7 +86,8 @@ def least_backscatter_angle(components, mask: np.ndarray | None = None) -> float
 
 def _stokes_scatter(kin, kout, ref, q, u, depolarization):
     """Vectorised: linear Stokes (q, u) of unit-intensity light along kin (reference axis ``ref`` ⊥ kin)
-    after one scattering into kout with the reduced Mueller model; returns (q', u', ref') in kout's frame."""
+    after one scattering into kout with the reduced Mueller model; returns (q', u', ref') in kout's frame and
+    the intensity gain (m11 + m12·q_in)/m11 of the matrix normalised by its m11 (docs/physics.md §5)."""
     mu = (kin * kout).sum(-1)
     n = np.cross(kin, kout)
     nn = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -99,17 +100,18 @@ def _stokes_scatter(kin, kout, ref, q, u, depolarization):
     qi, ui = q * c2 + u * s2, -q * s2 + u * c2
     m11, m12, m22, m33 = rayleigh_mueller(1 - mu, 1 + mu, depolarization)
     i = m11 + m12 * qi
-    return (m12 + m22 * qi) / i, m33 * ui / i, np.cross(e_perp, kout)
+    return (m12 + m22 * qi) / i, m33 * ui / i, np.cross(e_perp, kout), i / m11
 
 
 def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> float:
     """κ: how much of the single-scatter DOP light keeps after one more wide-angle scattering.
 
     Light along +z, polarized along y, is scattered twice back to −z through every intermediate direction ω
-    (a Fibonacci sphere of ``nodes`` points), each scattering with the reduced Mueller model of
-    :func:`rayleigh_mueller` and weighted by the phase function ``phase_value(1 − μ, 1 + μ)`` of both
-    scatterings (the scaled P̃ of docs/physics.md §10); κ = DOP(sum of the twice-scattered Stokes) ÷ DOP of
-    once-backscattered light (1 − δ). The default tank gives κ ≈ 0.58; isotropic scattering 0.33.
+    (a Fibonacci sphere of ``nodes`` points), each scattering with the Mueller matrix P·M_R/m11_R of
+    docs/physics.md §5 (:func:`rayleigh_mueller`; the m12 term included, so a path's intensity depends on the
+    polarization it carries), P the phase function ``phase_value(1 − μ, 1 + μ)`` (the scaled P̃ of
+    docs/physics.md §10); κ = DOP(sum of the twice-scattered Stokes) ÷ DOP of once-backscattered light
+    (1 − δ). The default tank gives κ ≈ 0.65; isotropic scattering 0.54.
     """
     k = np.arange(nodes) + 0.5
     z = 1 - 2 * k / nodes
@@ -121,12 +123,27 @@ def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> flo
     weight = phase_value(1 - w[:, 2], 1 + w[:, 2]) * phase_value(1 + w[:, 2], 1 - w[:, 2])
     if not np.any(weight > 0):
         return 0.0
-    qa, ua, ra = _stokes_scatter(kin, w, np.broadcast_to([0.0, 1.0, 0.0], w.shape), np.ones(nodes),
-                                 np.zeros(nodes), depolarization)
-    qb, ub, rb = _stokes_scatter(w, kout, ra, qa, ua, depolarization)
+    qa, ua, ra, ga = _stokes_scatter(kin, w, np.broadcast_to([0.0, 1.0, 0.0], w.shape), np.ones(nodes),
+                                     np.zeros(nodes), depolarization)
+    qb, ub, rb, gb = _stokes_scatter(w, kout, ra, qa, ua, depolarization)
+    weight = weight * ga * gb
     ref = np.broadcast_to([1.0, 0.0, 0.0], w.shape)
     ang = np.arctan2((np.cross(ref, rb) * kout).sum(-1), (ref * rb).sum(-1))
     q = qb * np.cos(2 * ang) - ub * np.sin(2 * ang)
     u = qb * np.sin(2 * ang) + ub * np.cos(2 * ang)
     dop2 = np.hypot((weight * q).sum(), (weight * u).sum()) / weight.sum()
     return float(dop2 / (1.0 - float(depolarization))) if depolarization < 1 else 0.0
+
+
+def cone_retention(phase_value, cos_c: float, depolarization: float, nodes: int = 4000) -> float:
+    """r_c: the fraction of its linear polarization light keeps in one scattering inside the forward cone.
+
+    Scattering by θ at a uniform azimuth turns linear Stokes (Q, U) about the axis into ½(m22 + m33)/m11 of
+    themselves on average (the m12 and cos 4φ terms average out), so r_c = ∫_cone P·½(m22 + m33)/m11 dω ÷
+    ∫_cone P dω over θ < θ_c (cos θ_c = ``cos_c``), P = ``phase_value(1 − μ, 1 + μ)`` (docs/physics.md
+    §10.4); 1 − δ at θ = 0. Nodes are uniform in log(1 − μ) from 10⁻¹² (a forward peak of HG g → 1).
+    """
+    x = np.geomspace(1e-12, 1.0 - float(cos_c), int(nodes))     # x = 1 − μ
+    m11, _, m22, m33 = rayleigh_mueller(x, 2.0 - x, depolarization)
+    p = phase_value(x, 2.0 - x) * x                               # dμ = x d(log x)
+    return float(np.trapezoid(p * 0.5 * (m22 + m33) / m11, np.log(x)) / np.trapezoid(p, np.log(x)))

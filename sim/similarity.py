@@ -172,3 +172,23 @@ def pair_retention_of(model: str, g: float, depolarization: float) -> float:
 
     ph = scaled_medium(Medium(sigma_t=1.0, albedo=1.0, phase=Phase(model, g))).phase
     return pair_retention(lambda a, b: truncated_value(ph, a, b), depolarization)
+
+
+@lru_cache(maxsize=64)
+def cone_retention_of(model: str, g: float, depolarization: float) -> float:
+    """r_c of :func:`polarstripe.sim.polarization.cone_retention` for a scene phase function's cone."""
+    from polarstripe.sim.phase import evaluate
+    from polarstripe.sim.polarization import cone_retention
+
+    ph = Phase(model, g)
+    return cone_retention(lambda a, b: evaluate(ph, a, b), math.cos(THETA_C), depolarization)
+
+
+def polarized_extinction(scaled: Scaled, sigma_s: float, model: str, g: float,
+                         depolarization: float) -> float:
+    """σ_p = σ̃_t + (1 − r_c)·f·σ_s [1/m]: the extinction of the polarized part of the light (docs/physics.md
+    §10.4). The quasi-direct light is a Poisson sum over cone scatterings (rate f·σ_s),
+    e^{−σ_t ℓ}·Σ_n (fσ_sℓ)ⁿ/n!; each scattering keeps r_c of the polarization, so its polarized part sums
+    to e^{−σ_t ℓ + r_c f σ_s ℓ} = e^{−σ_p ℓ}."""
+    return float(scaled.sigma_t + (1.0 - cone_retention_of(model, float(g), float(depolarization)))
+                 * scaled.f * float(sigma_s))

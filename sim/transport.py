@@ -55,6 +55,7 @@ class Source:
     e_field: np.ndarray          # unit source polarization vector
     dop_l: float
     dop_model: object
+    sigma_pol: float | None = None   # the polarized part's extinction in the Stokes sums (None: sigma_t)
 
 
 def make_source(scene: Scene, pattern: PatternSpec) -> Source:
@@ -132,7 +133,8 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     face = np.zeros((0, 3)) if facing is None else f64(facing, float).reshape(-1, 3)
     kernels.line_integrals(
         _light(src, face), _medium(src), records.PhaseArgs(*_phase_code(src.phase)),
-        _quadrature(int(nodes), src.phase, tuple(splits)), _polarization(src, pol, mueller, facing is not None),
+        _quadrature(int(nodes), src.phase, tuple(splits)),
+        _polarization(src, pol, mueller, facing is not None),
         records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
         records.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
         records.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
@@ -151,7 +153,9 @@ def _medium(src: Source) -> records.Medium:
 
 def _polarization(src: Source, on: bool, mueller: bool, reverse: bool) -> records.Polarization:
     depol = float(src.dop_model.depolarization) if on or mueller else 0.0
-    return records.Polarization(on, mueller, reverse, np.asarray(src.e_field, float), float(src.dop_l), depol)
+    dsigma = 0.0 if src.sigma_pol is None or not on else max(float(src.sigma_pol) - float(src.sigma_t), 0.0)
+    return records.Polarization(on, mueller, reverse, np.asarray(src.e_field, float), float(src.dop_l), depol,
+                                dsigma)
 
 
 def _phase_code(phase) -> tuple:

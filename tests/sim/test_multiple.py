@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from polarstripe.sim.multiple import Field, make_grid, propagate, solve_orders, tail_ratio
+from polarstripe.sim.multiple import Field, make_grid, propagate, solve_orders, solve_polarized, tail_ratio
 from polarstripe.sim.polarization import pair_retention
 from polarstripe.sim.psf import N_LADDER, halo_table, radial_stencil, spread
 from polarstripe.sim.render import render_components
@@ -130,7 +130,7 @@ def test_solve_orders_rejects_bad_settings():
     with pytest.raises(ValueError, match="orders"):
         solve_orders(grid, q, 1.0, 1.0, 0.0, orders=0)
     with pytest.raises(ValueError, match="kappa"):
-        solve_orders(grid, q, 1.0, 1.0, 0.0, kappa=1.5)
+        solve_polarized(grid, q, 1.0, 1.0, 0.0, kappa=1.5)
 
 
 # ------------------------------------------------------------------------------------------ halo, DOP
@@ -165,7 +165,7 @@ def test_polarization_kept_per_wide_scattering():
         return np.exp(-((1 - np.asarray(opm)) ** 2) / 0.02)
 
     k_iso = pair_retention(iso, 0.2)
-    assert 0.2 < k_iso < 0.5
+    assert 0.3 < k_iso < 0.7
     assert pair_retention(iso, 0.0) > k_iso
     assert 0 <= pair_retention(planar, 0.2) <= 1
 

@@ -1,0 +1,133 @@
+"""B of the all-orders model beyond the grid: its single wide-angle scattering, the forward cone toward the
+camera, and its polarization through every order (docs/physics.md §10.3, §10.4); used by
+:mod:`polarstripe.sim.higher`.
+
+Polarization: each scattering inside the forward cone keeps r_c of the linear polarization and each further
+wide-angle scattering κ (:mod:`polarstripe.sim.similarity`), so the polarized part travels with the
+extinction σ_p = σ̃_t + (1 − r_c)·f·σ_s: single wide-angle scattering's Stokes sums take it in the line
+integral (a source with ``sigma_pol``), orders ≥ 2 come from a grid chain with σ_p and κ per order, in the
+orientation of the single wide-angle scattering at the pixel.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+from polarstripe.sim.geometry import Hits, box_interval
+from polarstripe.sim.geometry_cache import cached
+from polarstripe.sim.grid_kernels import upsample_checked
+from polarstripe.sim.grid_sources import source_field
+from polarstripe.sim.multiple import Field, Grid, solve_polarized
+from polarstripe.sim.orders import OrdersPlan
+from polarstripe.sim.similarity import pair_retention_of, polarized_extinction
+from polarstripe.sim.surface_field import View, single_parts
+from polarstripe.sim.transport import Source
+
+if TYPE_CHECKING:
+    from polarstripe.sim.higher import HigherSettings
+
+
+def scaled_source(src: Source, plan: OrdersPlan) -> Source:
+    sc = plan.scaled
+    return dataclasses.replace(src, sigma_t=sc.sigma_t, sigma_s=sc.sigma_s, phase=sc.phase)
+
+
+def geo(view: View, name, make):
+    """``make()`` once per scene and frame size for whole frames (:mod:`polarstripe.sim.geometry_cache`),
+    every time for requested pixels."""
+    if view.pixels is not None:
+        return make()
+    return cached(view.scene, (name, view.cam.w, view.cam.h), make)
+
+
+def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
+    """B's single wide-angle scattering and its Stokes, every pixel or (``div`` > 1, whole frames) on a grid
+    of every div-th pixel, bilinear in between (B is continuous across the image except at silhouettes:
+    pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or 1 % away from
+    their own are computed exactly)."""
+    keys = tuple(k for k in ("B", "p") if k in need)
+    if div <= 1 or view.pixels is not None:
+        return single_parts(view, ssrc, keys)[2:]
+    cam = view.cam
+    gh, gw = -(-(cam.h - 1) // div) + 1, -(-(cam.w - 1) // div) + 1      # every div-th pixel, past the last
+    gr, gc = np.arange(gh) * div, np.arange(gw) * div                      # (rays of real pixels only)
+    px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
+    dirs, hits = geo(view, ("coarse", div), lambda: rays(view.scene, cam, px))
+    coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
+    parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(3, gh, gw)
+    t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
+    out = np.empty((3, cam.h * cam.w))
+    bad = np.empty(cam.h * cam.w, bool)
+    upsample_checked(parts, t_c, np.ascontiguousarray(x_end, float), cam.w, float(div), out, bad)
+    idx = np.nonzero(bad)[0]
+    if idx.size:
+        sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx),
+                            pixels=np.zeros((idx.size, 2), int))
+        out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
+    return out[0], out[1], out[2]
+
+
+def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
+    """B of light scattered once inside the forward cone toward the camera (a view ray that looks toward
+    the source: its halo), with σ̃_t both ways; only rays whose smallest scattering angle (at their entry
+    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing."""
+    sc = plan.scaled
+    lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
+    xc = view.dirs @ lv
+    h2 = np.maximum((lv * lv).sum() - xc * xc, 0.0) + src.radius ** 2
+    u0 = x0 - xc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos0 = -u0 / np.sqrt(u0 * u0 + h2)
+    idx = np.nonzero(cos0 > sc.phase.cos_c)[0]
+    n = view.dirs.shape[0]
+    if idx.size == 0:
+        return np.zeros(n), np.zeros(n), np.zeros(n)
+    cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
+    sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
+    out = np.zeros((3, n))
+    out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
+    return out[0], out[1], out[2]
+
+
+def rays(scene, cam, pixels=None):
+    """Ray directions of ``cam`` (all pixels or ``pixels``) and their hits."""
+    from polarstripe.sim.geometry import intersect, pixel_rays
+
+    dirs = pixel_rays(cam, pixels)
+    return dirs, intersect(scene.objects, cam.position, dirs)
+
+
+def take(hits: Hits, idx: np.ndarray) -> Hits:
+    return Hits(hits.t[idx], hits.index[idx], hits.normal[idx], hits.point[idx])
+
+
+def polarized_source(src: Source, plan: OrdersPlan, scene) -> Source:
+    """The scaled source whose Stokes sums give the polarized part the extinction σ_p (docs/physics.md
+    §10.4); its intensity keeps σ̃_t."""
+    ph, dop = scene.medium.phase, scene.medium.dop
+    sigma_p = polarized_extinction(plan.scaled, scene.medium.sigma_s, ph.model, float(ph.g),
+                                   float(dop.depolarization))
+    return dataclasses.replace(scaled_source(src, plan), sigma_pol=sigma_p)
+
+
+def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid) -> Field:
+    """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k): the quasi-direct light deposited and
+    carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4)."""
+    ph, dop = scene.medium.phase, scene.medium.dop
+    kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization))
+    deposit = dataclasses.replace(psrc, sigma_t=psrc.sigma_pol)
+    quasi = source_field(grid, deposit, scene.objects, st.oversample)
+    return solve_polarized(grid, quasi, psrc.sigma_pol, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
+                           orders=st.orders)
+
+
+def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: float):
+    """B's Stokes plus the orders ≥ 2: the polarized grid field seen along the view rays (``seen``, σ_p on the
+    way) carries κ^(k−1) of once-backscattered light's DOP, ``dop`` = (1 − δ)·DOP_L (κ's reference, docs/
+    physics.md §10.4), in the orientation of the single wide-angle scattering at the pixel."""
+    norm = np.hypot(bq, bu)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gain = 1.0 + np.where(norm > 0, dop * seen / np.where(norm > 0, norm, 1.0), 0.0)
+    return bq * gain, bu * gain
