@@ -136,8 +136,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", metavar="PNG", default=None, help="write the curves to this PNG file")
     parser.add_argument("--measure", choices=("error", "paper"), default="error",
                         help="what is maximised: 'error' (default: 1 − the composite's expected error "
-                             "against the unscattered object, from low-resolution whole frames) or 'paper' (CQM·W, "
-                             "the delineation margin or eq. 9 ·W at three observed points)")
+                             "against the unscattered object, from low-resolution whole frames) or 'paper' "
+                             "(CQM·W, the delineation margin or eq. 9 ·W at three observed points)")
     parser.add_argument("--fidelity", default=None,
                         help="model fidelity: preview, standard, reference (default: preview for the error "
                              "measure, standard for the paper's)")

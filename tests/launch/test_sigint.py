@@ -76,8 +76,8 @@ def sigint_at(tmp: Path, phase: str, delay_s: float) -> dict:
                                  f"out={tmp}/out"], cwd=tmp, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 start_new_session=True)
     try:
-        # the planner plans in its setup, with all orders of scattering: ~15 s CPU at 64x48 (the higher orders'
-        # grid solve per model call), 115 s of wall time at a load average of 13 on the 2-core machine
+        # the planner plans in its setup, with all orders of scattering: ~15 s CPU at 64x48 (the higher
+        # orders' grid solve per model call), 115 s of wall time at a load average of 13 on the 2-core machine
         deadline = time.monotonic() + 180
         run_dir = None
         while time.monotonic() < deadline and proc.poll() is None:

@@ -22,7 +22,8 @@ def test_offset_and_noise_match_the_closed_form(r, b, nu):
     e² = [r²b² + (1 + r²)ν²] / [(1 + r²)((1 + b)² + r² + ν²)] (the gain-fitted error, derived by hand)."""
     t = _chart(r=r)
     got = expected_error(t + b, np.full(t.size, nu * nu), t, np.ones(t.size, bool))
-    want = math.sqrt((r * r * b * b + (1 + r * r) * nu * nu) / ((1 + r * r) * ((1 + b) ** 2 + r * r + nu * nu)))
+    r2 = r * r
+    want = math.sqrt((r2 * b * b + (1 + r2) * nu * nu) / ((1 + r2) * ((1 + b) ** 2 + r2 + nu * nu)))
     assert got == pytest.approx(want, rel=1e-9)
 
 
@@ -30,7 +31,7 @@ def test_error_limits():
     t = _chart()
     valid = np.ones(t.size, bool)
     assert expected_error(3.0 * t, np.zeros(t.size), t, valid) == pytest.approx(0.0, abs=1e-7)   # gain only
-    assert expected_error(t, np.zeros(t.size), t, np.zeros(t.size, bool)) == 1.0                # all saturated
+    assert expected_error(t, np.zeros(t.size), t, np.zeros(t.size, bool)) == 1.0     # all saturated
     big = expected_error(t + 1e9, np.zeros(t.size), t, valid)          # a veil without end: the chart's
     assert big == pytest.approx(0.4 / math.sqrt(1 + 0.16), rel=1e-6)  # angle to a constant, r/√(1 + r²)
 
