@@ -16,10 +16,11 @@
   is kept in the run directory (``state/planner.json``, runtime/liveness.py), so a respawned planner makes
   the same plan.
 
-The plan comes from :func:`polarstripe.planning.planner.plan` on
-:class:`~polarstripe.planning.planner.SceneModel`
-(``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``): modality
-``stripes`` (GQM·W) or ``flood`` (CQM·W), with or without the polarizer. :class:`Plan` carries the best
+The plan comes from :func:`polarstripe.planning.planner.plan` on the model of its ``measure``
+(:func:`~polarstripe.planning.planner.plan_model`: ``error``, the composite's expected error against the
+unscattered object from low-resolution whole frames, or ``paper``, the paper's measures at three observed
+points; ``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``):
+modality ``stripes`` or ``flood``, with or without the polarizer. :class:`Plan` carries the best
 separation of the mean curve, the scan type (``rotate``, ``translate`` or ``both``) and per-location optima
 for stripes, and the curves (``separation_m``, ``objective``, ``objective_noise_free``, ``quality``,
 ``weight``, and ``objective_O1``… per observed location).
@@ -33,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
-from polarstripe.planning.planner import SceneModel, default_separations, plan
+from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
@@ -53,6 +54,7 @@ class Planner(Node):
         resolution: str = ""  # camera "WxH"; "" = the scene's
         fidelity: str = "preview"
         orders: Literal["all", "single"] = "all"  # the model's: as the scene needs (sim/orders.py) | paper's
+        measure: Literal["error", "paper"] = "error"  # expected error vs T | CQM, margin (docs/planning.md)
         modality: Literal["stripes", "flood"] = "stripes"
         polarized: bool = True
         stripes: int = 30
@@ -121,7 +123,8 @@ class Planner(Node):
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
 
         p = self.params
-        model = SceneModel(self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders)
+        model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
+                           orders=p.orders)
         seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
@@ -137,7 +140,9 @@ class Planner(Node):
             self.log.info("the best objective (d_LC = %.3f m) saturates %.0f %% of a flood frame: "
                           "using %.3f m", c.separations_m[order[0]], 100 * saturated[order[0]], best)
         samples = model.stripes(best) if p.modality == "stripes" else model.flood(best)
-        self.p_assumed = float(np.mean(samples.dop))
+        b = np.asarray(samples.backscatter, float)          # the backscatter-weighted DOP the plan assumed
+        self.p_assumed = float(np.sum(b * samples.dop) / np.sum(b)) if np.sum(b) > 0 else float(
+            np.mean(samples.dop))
         self.sigma_assumed = float(self.scene.medium.sigma_t)
         self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
@@ -238,8 +243,9 @@ def warm_kernels() -> None:
     for fidelity in ("preview", "standard"):
         for pattern in ("flood", "stripe:3/8", "checker:8:0"):
             render_frame(scene, pattern, polarizer_deg=0.0, fidelity=fidelity, seed=0)
-    model = SceneModel(scene, fidelity="preview", n_stripes=8)
-    plan(model, default_separations(3, 0.05, 0.4), modalities=("stripes", "flood"))
+    for measure in ("error", "paper"):
+        model = plan_model(scene, measure=measure, fidelity="preview", n_stripes=8)
+        plan(model, default_separations(3, 0.05, 0.4), modalities=("stripes", "flood"))
 
 
 NODE = Planner

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Empty, MediumEstimate
 from polarstripe.nodes.planner import Planner
-from polarstripe.planning.planner import SceneModel, default_separations
+from polarstripe.planning.planner import default_separations, plan_model
 from polarstripe.planning.planner import plan as plan_separations
 from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
@@ -33,7 +33,9 @@ def test_plan_is_served_and_published(harness):
     # the plan is the planner's on the node's scene: in the configured range, and within one grid step of
     # the best separation planning.planner.plan finds for the same scene, modality and polarization
     assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
-    model = SceneModel(h.node.scene, fidelity=FAST["fidelity"], n_stripes=h.node.params.stripes)
+    assert h.node.params.measure == "error"           # the planner's default measure (docs/planning.md §8)
+    model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"],
+                       n_stripes=h.node.params.stripes)
     reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",))
     step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
     best = reference["stripes_polarized"].curve
@@ -93,9 +95,10 @@ def test_small_change_of_p_does_not_replan(harness):
 
 
 def test_changed_p_replans_with_the_measured_medium():
-    # the paper's single-scattering model, where the margin's dependence on p below holds (planning.md §1)
+    # the paper's measure and single-scattering model, where the margin's dependence on p below holds
+    # (planning.md §1)
     h = NodeHarness(Planner, name="planner", namespace="/rig",
-                    params={**FAST, "publish_on_start": False, "orders": "single"})
+                    params={**FAST, "publish_on_start": False, "orders": "single", "measure": "paper"})
     before = h.call("planner/plan", Empty())
     n = len(h.published("planner/plan"))
     h.deliver("medium/estimate", MediumEstimate(p=0.2, scan_id=2))
