@@ -58,6 +58,7 @@ class Planner(Node):
         modality: Literal["stripes", "flood"] = "stripes"
         polarized: bool = True
         stripes: int = 30
+        stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
         separations: int = 24
         d_min_m: float = 0.02
         d_max_m: float = 0.5
@@ -75,6 +76,8 @@ class Planner(Node):
             if self.separations < 2 or not 0 < self.d_min_m < self.d_max_m:
                 raise ValueError(f"need separations >= 2 and 0 < d_min_m < d_max_m, got {self.separations}, "
                                  f"{self.d_min_m}, {self.d_max_m}")
+            if self.stripe_step < 1:
+                raise ValueError(f"stripe_step must be at least 1, got {self.stripe_step}")
             if not 0.0 <= self.max_saturated_fraction <= 1.0:
                 raise ValueError(f"max_saturated_fraction must be in [0, 1], got "
                                  f"{self.max_saturated_fraction}")
@@ -124,7 +127,7 @@ class Planner(Node):
 
         p = self.params
         model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
-                           orders=p.orders)
+                           orders=p.orders, stripe_step=p.stripe_step)
         seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]

@@ -35,7 +35,7 @@ def test_plan_is_served_and_published(harness):
     assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
     assert h.node.params.measure == "error"           # the planner's default measure (docs/planning.md §8)
     model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"],
-                       n_stripes=h.node.params.stripes)
+                       n_stripes=h.node.params.stripes, stripe_step=h.node.params.stripe_step)
     reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",))
     step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
     best = reference["stripes_polarized"].curve
