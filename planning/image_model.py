@@ -42,7 +42,7 @@ class ImageModel:
     fidelity : model fidelity of the renders (``preview`` by default: the measure compares separations,
         and `bench planner --end-to-end` shows what the level costs in regret).
     n_stripes : stripes per scan.
-    width : camera width [px] of the renders (the height keeps the aspect, at least 8).
+    width : camera width [px] of the renders, at least 3 per stripe (the height keeps the aspect, at least 8).
     fractions : where the observed points sit on the centre row (fractions of the width): their stripes
         are the stripe locations.
     orders : ``all`` (as the scene needs) or ``single``.
@@ -61,7 +61,9 @@ class ImageModel:
         if int(width) < 8:
             raise SceneError(f"width must be at least 8 pixels, got {width!r}")
         w0, h0 = scene.camera.resolution
-        w = min(int(width), w0)
+        # a stripe at least 3 pixels wide: narrower, which pixels a stripe lights jumps with the separation
+        # and the stripe curves with it (bench planner --end-to-end: the same pick on every scene at 48 px)
+        w = min(max(int(width), 3 * int(n_stripes)), w0)
         h = max(8, round(w * h0 / w0))
         cam = scene.camera.replace(resolution=(w, h), exposure_s=scene.camera.exposure_s * (w / w0) ** 2)
         self.scene = scene.replace(camera=cam)

@@ -29,10 +29,11 @@ from polarstripe.planning.validate import EXPOSURES, ScanSettings
 from polarstripe.planning.validate_table import default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
 
-HELP = ("find the best camera-source separation and stripe scan (flood CQM*W, stripes margin*W; "
+HELP = ("find the best camera-source separation and stripe scan (default: the least expected error of "
+        "the composite against the unscattered object; --measure paper: flood CQM*W, stripes margin*W; "
         "docs/planning.md)")
 
-MEASURES = {"flood": "CQM*W", "margin": "margin*W", "eq9": "GQM*W"}
+MEASURES = {"flood": "CQM*W", "margin": "margin*W", "eq9": "GQM*W", "error": "1-error"}
 
 
 def _curve_json(c: Curve) -> dict:
@@ -54,7 +55,8 @@ def plan_to_json(plans: dict) -> dict:
     """The plan as plain JSON types (validates against :data:`PLAN_SCHEMA`). Separations in metres."""
     out = {}
     for key, mp in plans.items():
-        measure = MEASURES["flood" if mp.modality == "flood" else mp.edge or "eq9"]
+        measure = MEASURES["error" if mp.measure == "error" else
+                           "flood" if mp.modality == "flood" else mp.edge or "eq9"]
         entry = {"modality": mp.modality, "polarized": mp.polarized, "reading": mp.reading,
                  "measure": measure, "exposure_scale": mp.exposure_scale, **_curve_json(mp.curve)}
         if mp.readings:

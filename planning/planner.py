@@ -99,6 +99,7 @@ class ModalityPlan:
     scan: dict | None = None
     exposure_scale: float = 1.0
     edge: str | None = None
+    measure: str = "paper"
 
 
 def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_stripes: int = 30,
@@ -281,7 +282,8 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
             chosen = rec["reading"] if rec else readings[0]
             mp = ModalityPlan(modality, polarized, curves[chosen], reading=chosen,
                               readings=curves if len(readings) > 1 else {}, recommendation=rec,
-                              exposure_scale=scale, edge=edge if modality == "stripes" else None)
+                              exposure_scale=scale, edge=edge if modality == "stripes" else None,
+                              measure=measure)
             if modality == "stripes":
                 objs, ideal = scored[chosen]
                 pixels = np.asarray(model.observed_pixels())
