@@ -220,8 +220,9 @@ def test_quasi_direct_light_never_exceeds_the_unattenuated_light():
     d = render_components(base, "flood", "preview", need=("D",), orders="single").D
     free = render_components(base.replace(medium=base.medium.replace(sigma_t=0.0)), "flood", "preview",
                              need=("D",)).D
+    from polarstripe.sim.backscatter import scaled_source
     from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
-    from polarstripe.sim.higher import _direct_pair, _scaled_source
+    from polarstripe.sim.higher import _direct_pair
     from polarstripe.sim.orders import plan_orders
     from polarstripe.sim.patterns import parse_pattern
     from polarstripe.sim.render import resolve_fidelity
@@ -236,7 +237,7 @@ def test_quasi_direct_light_never_exceeds_the_unattenuated_light():
     view = View(base, parse_pattern("flood"), resolve_fidelity("preview"), cam, dirs, hits,
                 surface_info(base.objects, hits), None)
     src = make_source(base, parse_pattern("flood"))
-    _, quasi = _direct_pair(view, src, _scaled_source(src, plan_orders(base)), ("A",))
+    _, quasi = _direct_pair(view, src, scaled_source(src, plan_orders(base)), ("A",))
     q = (quasi * view.surf.albedo).reshape(d.shape)
     assert np.all(q >= d * (1 - 1e-12)) and np.all(q <= free * (1 + 1e-12)) and q.sum() > 2 * d.sum()
 
