@@ -1,4 +1,7 @@
-"""The planner's objectives: a quality measure times the SNR weight W (eq. 10) at each observed point.
+"""The planner's objectives: the paper's quality measures times the SNR weight W (eq. 10) at each observed
+point (``measure="paper"``, below), and the default ``error`` measure, 1 − the composite's expected error
+against T from whole low-resolution frames (:func:`error_objective`, planning/predicted_error.py,
+docs/planning.md §8).
 
 What the planner maximises over the camera–source separation d_LC (docs/planning.md):
 
@@ -218,6 +221,8 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: s
         z = σ/1.702).
     p_min : float
         Lower clamp of the p that eq. 6 divides by.
+    measure : {"paper", "error"}
+        ``paper``: the measures above; ``error``: :func:`error_objective` (whole-image samples).
 
     Returns
     -------
