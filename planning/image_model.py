@@ -20,17 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.planning.objectives import Samples, SensorNoise
-from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+from polarstripe.planning.scene_model import part_frame
+from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.sensor import electrons_per_radiance
 from polarstripe.sim.truth import unscattered_object
 
 DEFAULT_WIDTH = 48
-
-
-def _frame(part):
-    return pinhole_frame(part.position, part.look_at, part.up, part.fov_deg, part.resolution)
 
 
 class ImageModel:
@@ -73,7 +70,7 @@ class ImageModel:
         self.stripe_step = int(stripe_step)
         self.shape = (h, w)
         self._e = electrons_per_radiance(cam).reshape(-1)
-        frame = _frame(cam)
+        frame = part_frame(cam)
         self.pixels = np.array([[h // 2, min(w - 1, int(w * f))] for f in fractions], np.int64)
         dirs = pixel_rays(frame, self.pixels)
         hits = intersect(scene.objects, frame.position, dirs)

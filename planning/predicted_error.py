@@ -121,10 +121,10 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
             mean, var, brightest = e_b, v_b, e_b
         else:
             brightest = np.maximum(e_b, e_w)
-            ph = estimate_p_hat(e_b, e_w, t_e <= 0.0, brightest + dark_e < full_well_e, p_min)
+            valid = brightest + dark_e < full_well_e
+            ph = estimate_p_hat(e_b, e_w, t_e <= 0.0, valid, p_min)
             mean = e_b * (1.0 + 1.0 / ph) + e_w * (1.0 - 1.0 / ph)
             var = (1.0 + 1.0 / ph) ** 2 * v_b + (1.0 - 1.0 / ph) ** 2 * v_w
-    valid = brightest + dark_e < full_well_e
-    if not noise:
-        var = np.zeros_like(var)
+    if reading != "S_hat":
+        valid = brightest + dark_e < full_well_e
     return expected_error(mean, var, t_e, valid), float(1.0 - np.mean(valid)) if valid.size else 1.0

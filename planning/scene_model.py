@@ -34,7 +34,8 @@ def fig8_scene(sigma_t: float = 6.0, projector: str = "point", half_width_m: flo
                         objects=(PlaneObject(point=(0.0, 0.0, 0.38), normal=(0.0, 0.0, -1.0), albedo=0.6),))
 
 
-def _frame(part):
+def part_frame(part):
+    """The pinhole frame of a scene's camera or projector."""
     return pinhole_frame(part.position, part.look_at, part.up, part.fov_deg, part.resolution)
 
 
@@ -76,7 +77,7 @@ class SceneModel:
             pixels = [[h // 2, int(w * f)] for f in (0.25, 0.5, 0.75)]
         self.pixels = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
         self.scene, self.fidelity, self.n_stripes, self.edge = scene, fidelity, int(n_stripes), edge
-        self._cam = _frame(cam)
+        self._cam = part_frame(cam)
         self._dirs = pixel_rays(self._cam, self.pixels)
         hits = intersect(scene.objects, self._cam.position, self._dirs)
         if not np.all(np.isfinite(hits.t)):
@@ -138,7 +139,7 @@ class SceneModel:
         for i, point in enumerate(self.points):
             proj = base.replace(look_at=tuple(float(v) for v in point), resolution=(3, rows), fov_deg=fov)
             pix = [self.pixels[i]]
-            sides = self._neighbours(_frame(proj), i) if margin else []
+            sides = self._neighbours(part_frame(proj), i) if margin else []
             pix += [p for _, p in sides]
             c = render_components(sd.replace(projector=proj), "stripe:1/3", self.fidelity, np.array(pix),
                                   orders=self.orders)
@@ -179,7 +180,7 @@ class SceneModel:
         stripe and for stripes that miss the ray."""
         n, big_n = len(self.pixels), self.n_stripes
         out = np.zeros((4, n, big_n))
-        frame = _frame(sd.projector)
+        frame = part_frame(sd.projector)
         edges = (np.arange(big_n + 1) * frame.w) // big_n
         start = self._cam.position + self._t_entry[:, None] * self._dirs
         k0, _, dep0 = projector_coords(frame, start)

@@ -19,7 +19,7 @@ from polarstripe.planning.planner import (
     plan,
     recommend_reading,
 )
-from polarstripe.planning.scene_model import _frame, fig8_scene
+from polarstripe.planning.scene_model import fig8_scene, part_frame
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import SceneError, load_scene, with_separation
 
@@ -270,7 +270,7 @@ def test_neighbours_are_the_nearest_unlit_pixels():
         row = np.stack([np.full(w, h // 2), np.arange(w)], axis=1)
         lit = render_components(sd.replace(projector=proj), "stripe:1/3", "preview", row, need=("D",)).D > 0
         run = np.nonzero(~lit[: w // 2])[0][-1], w // 2 + np.nonzero(~lit[w // 2:])[0][0]
-        sides = dict(model._neighbours(_frame(proj), 0))
+        sides = dict(model._neighbours(part_frame(proj), 0))
         assert sides[0][1] in (run[0], run[0] - 1) and sides[1][1] in (run[1], run[1] + 1)
 
 
