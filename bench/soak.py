@@ -1,5 +1,9 @@
 """``polarstripe bench soak --minutes N [--chaos SECONDS] [--json]``: the simulated rig scanning for N
-minutes, optionally killing a random node every SECONDS; what held and what did not.
+minutes after its warm-up, optionally killing a random node every SECONDS; what held and what did not.
+
+The N minutes start when the warm-up ends (``WARM_SCANS`` completed scans), so a slow start (the planner's
+plan, the calibration, a loaded machine) shortens neither the chaos nor the memory watch; start-up and
+warm-up together must end within ``WARM_TIMEOUT_S`` (300 s), or the soak fails with the launch's last lines.
 
 The launch is the shipped ``launch/sim.toml`` with, for the soak, every node respawned by the launcher
 (``respawn = true``, 0.5 s, no respawn limit) and the sequencer scanning until stopped (``repeat = 0``, its
@@ -61,10 +65,11 @@ KILL_GRACE_S = 5.0  # after a recovery, gaps still count as the kill's
 SAMPLE_S = 5.0  # RSS sampling period
 WARM_SCANS = 15  # three passes over the methods: every code path has run, lazy imports and caches are in
 LAST_KILL_S = 30.0  # no kill this close to the end: the rig gets the time to recover
+WARM_TIMEOUT_S = 300.0  # start-up (plan, calibration) and warm-up must end within this
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minutes", type=float, default=2.0, help="how long to scan (default 2)")
+    parser.add_argument("--minutes", type=float, default=2.0, help="how long to scan after the warm-up (default 2)")
     parser.add_argument("--chaos", type=float, default=0.0, metavar="SECONDS",
                         help="kill a random node every SECONDS (after it recovered from the last; 0: never)")
     parser.add_argument("--resolution", default="64x48", help="camera WxH (default 64x48)")
@@ -132,6 +137,7 @@ class Soak:
         self.rss: dict[tuple[str, int], list[float]] = {}  # (node, pid) -> [first, last, samples]
         self.seen: dict[tuple[str, int], int] = {}  # (node, pid) -> completed scans when first seen
         self.warm = False
+        self.warmup_s: float | None = None  # from the graph up to the warm-up's end
         self.t0 = 0.0
 
     # ---- running ---------------------------------------------------------------------------------------
@@ -182,8 +188,8 @@ class Soak:
         poller = zmq.Poller()
         for sub in subs.values():
             poller.register(sub.socket, zmq.POLLIN)
-        end = time.monotonic() + 60.0 * self.args.minutes
         self.t0 = time.monotonic()
+        end = self.t0 + WARM_TIMEOUT_S  # until the warm-up; then the soak's minutes from it on
         next_sample = next_kill = 0.0
         try:
             while time.monotonic() < end:
@@ -199,6 +205,9 @@ class Soak:
                                 self._on(topic, msg)
                         self._lost(topic, sub.stats.gaps - gaps)
                 now = time.monotonic()
+                if self.warm and self.warmup_s is None:
+                    self.warmup_s = now - self.t0
+                    end = now + 60.0 * self.args.minutes
                 if now >= next_sample:
                     self._sample()
                     next_sample = now + SAMPLE_S
@@ -211,6 +220,11 @@ class Soak:
             for sub in subs.values():
                 sub.close()
         self._sample()
+        if not self.warm:
+            self._stop()
+            raise PolarstripeError(f"soak: the rig did not complete {WARM_SCANS} scans within "
+                                   f"{WARM_TIMEOUT_S:.0f} s of starting ({self.scans['completed']} did): "
+                                   + _tail(self.folder / "console.txt"))
 
     def _on(self, topic: str, msg) -> None:
         now = time.monotonic() - self.t0
@@ -339,7 +353,8 @@ class Soak:
         }
         return {
             "minutes": self.args.minutes, "chaos_s": self.args.chaos, "resolution": self.args.resolution,
-            "stripes": self.args.stripes, "seed": self.args.seed, "scans": self.scans,
+            "stripes": self.args.stripes, "seed": self.args.seed,
+            "warmup_s": round(self.warmup_s, 1) if self.warmup_s is not None else None, "scans": self.scans,
             "faults": self.faults, "frames_lost": {**self.lost, "by_topic": self.lost_by_topic},
             "kills": [{k: sorted(v) if isinstance(v, set) else v for k, v in kill.items()}
                       for kill in self.kills],
@@ -362,6 +377,7 @@ def table(r: dict) -> str:
     lines = [f"soak: {r['minutes']:g} min, {r['resolution']}, {r['stripes']} stripes, "
              + (f"chaos: a node killed every {r['chaos_s']:g} s (seed {r['seed']})" if r["chaos_s"] else
                 "no chaos"),
+             f"warm-up: {_f(r['warmup_s'])} s from start to {WARM_SCANS} scans; then the soak's minutes",
              f"scans: {s['completed']} completed, {s['failed_clear']} failed with a clear fault, "
              f"{s['failed_unclear']} failed without one, {s['unended']} unended at the end",
              f"frames lost on all-mode topics: {r['frames_lost']['outside']} outside kills, "

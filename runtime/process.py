@@ -6,7 +6,8 @@ A stop signal ends the node's loop (:meth:`Node.stop`); the loop's own waits loo
 ``STOP_CHECK_S``. What does not return to the loop by itself is cut short: while ``setup`` runs or a service
 call waits for its reply (:class:`GuardedClient`), the signal raises :class:`NodeStopping` at once. A service
 call made while the node is already stopping (a ``teardown`` putting the rig back) waits at most
-:data:`CLEANUP_CALL_S`, so cleanup never holds a shutdown beyond a short bound."""
+:data:`CLEANUP_CALL_S`, so cleanup never holds a shutdown beyond a short bound. While numba compiles or
+loads a cached kernel (its compiler lock held), a stop signal waits for the lock to be given back."""
 
 from __future__ import annotations
 
@@ -74,6 +75,17 @@ class StopGuard:
     def __init__(self, node: Node):
         self.node = node
         self._waiting: list[str] = []  # what the node is blocked in, innermost last
+        self.compiling = 0  # depth of numba's compiler lock (compiling or loading a cached kernel)
+        self._deferred: int | None = None  # a stop signal that came while compiling
+
+    def compiler_lock(self, held: bool) -> None:
+        """numba's compiler lock taken (``held``) or given back: a stop signal that came while it was held
+        acts now. Cut short inside numba's compiler or cache loader, llvmlite leaves half-built objects
+        whose finalizers print tracebacks at exit; a compile or a cache load takes a few seconds at most."""
+        self.compiling += 1 if held else -1
+        if not self.compiling and self._deferred is not None:
+            signum, self._deferred = self._deferred, None
+            self.on_signal(signum, None)
 
     @contextmanager
     def interruptible(self, what: str) -> Iterator[None]:
@@ -87,6 +99,9 @@ class StopGuard:
             self._waiting.pop()
 
     def on_signal(self, signum, frame) -> None:
+        if self.compiling:
+            self._deferred = signum
+            return
         name = signal.Signals(signum).name
         if self.node.stopping and signum == signal.SIGINT:
             raise KeyboardInterrupt
@@ -121,6 +136,7 @@ class GuardedClient:
 
 
 _GUARD: StopGuard | None = None  # this process's node, once install_signals has run
+_LOCK_LISTENER = None  # the numba event listener telling _GUARD about numba's compiler lock
 
 
 @contextmanager
@@ -172,6 +188,7 @@ def install_signals(node: Node) -> StopGuard:
     _BEFORE.update({s: signal.getsignal(s) for s in _STOP_SIGNALS})
     signal.signal(signal.SIGINT, guard.on_signal)
     signal.signal(signal.SIGTERM, guard.on_signal)
+    _watch_compiler_lock(guard)
     if _EARLY:  # one came during the import and its KeyboardInterrupt was lost: stop as it asked
         node.stop(_EARLY[0])
     # the launcher starts nodes with both blocked (runtime/launch.py): one that came meanwhile arrives now
@@ -182,8 +199,30 @@ def install_signals(node: Node) -> StopGuard:
 def release_signals() -> None:
     """Undo :func:`install_signals` once the node has ended: a node run inside a longer process (a test, a
     script) leaves no guard behind that would cut the next node's computation short."""
-    global _GUARD
+    global _GUARD, _LOCK_LISTENER
     _GUARD = None
+    if _LOCK_LISTENER is not None:
+        sys.modules["numba.core.event"].unregister("numba:compiler_lock", _LOCK_LISTENER)
+        _LOCK_LISTENER = None
     for s, h in _BEFORE.items():
         signal.signal(s, h)
     _BEFORE.clear()
+
+
+def _watch_compiler_lock(guard: StopGuard) -> None:
+    """Tell ``guard`` when numba's compiler lock is taken and given back (:meth:`StopGuard.compiler_lock`),
+    if the node's module imported numba (none that does not pays for importing it)."""
+    global _LOCK_LISTENER
+    ev = sys.modules.get("numba.core.event")
+    if ev is None:
+        return
+
+    class CompilerLockListener(ev.Listener):
+        def on_start(self, event):
+            guard.compiler_lock(True)
+
+        def on_end(self, event):
+            guard.compiler_lock(False)
+
+    _LOCK_LISTENER = CompilerLockListener()
+    ev.register("numba:compiler_lock", _LOCK_LISTENER)

@@ -169,3 +169,43 @@ def test_a_signal_that_an_extensions_import_turns_into_an_import_error_is_still_
         process._EARLY.clear()
         signal.signal(signal.SIGINT, handlers[0])
         signal.signal(signal.SIGTERM, handlers[1])
+
+
+
+def test_a_stop_signal_inside_numbas_compiler_waits_for_the_compile_to_end():
+    """A signal that would cut numba's compiler (or cache loader) short waits until its lock is given back,
+    then acts as it would have: llvmlite's half-built objects print tracebacks at exit otherwise."""
+    import numba
+    import numba.core.event as ev
+    from polarstripe.runtime.node import NodeStopping
+    from polarstripe.runtime.process import interruptible, release_signals
+
+    node, _ = _talker()
+    inside = []  # the guard's depth as a later listener sees it when numba takes its lock
+
+    class Probe(ev.Listener):
+        def on_start(self, event):
+            inside.append(guard.compiling)
+
+        def on_end(self, event):
+            pass
+
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    probe = Probe()
+    try:
+        guard = install_signals(node)
+        ev.register("numba:compiler_lock", probe)
+        assert numba.njit(lambda x: x * 2)(3) == 6  # a real compile: the guard follows numba's lock
+        assert inside and min(inside) >= 1 and guard.compiling == 0
+        guard.compiler_lock(True)  # as numba's lock does: a signal now is held
+        with interruptible("setup"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert not node.stopping
+            with pytest.raises(NodeStopping):
+                guard.compiler_lock(False)  # given back: the held signal stops the node and cuts setup
+        assert node.stopping and node.stop_reason == "SIGTERM" and guard.compiling == 0
+    finally:
+        ev.unregister("numba:compiler_lock", probe)
+        release_signals()
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
