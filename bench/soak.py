@@ -69,7 +69,8 @@ WARM_TIMEOUT_S = 300.0  # start-up (plan, calibration) and warm-up must end with
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minutes", type=float, default=2.0, help="how long to scan after the warm-up (default 2)")
+    parser.add_argument("--minutes", type=float, default=2.0,
+                        help="how long to scan after the warm-up (default 2)")
     parser.add_argument("--chaos", type=float, default=0.0, metavar="SECONDS",
                         help="kill a random node every SECONDS (after it recovered from the last; 0: never)")
     parser.add_argument("--resolution", default="64x48", help="camera WxH (default 64x48)")

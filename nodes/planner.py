@@ -34,15 +34,15 @@ from typing import Literal
 
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
+from polarstripe.planning.image_model import ImageModel
 from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.runtime.process import interruptible
-from polarstripe.sim.render import render_components, render_frame, resolve_fidelity
-from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size, with_separation
+from polarstripe.sim.render import render_frame, resolve_fidelity
+from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size
 from polarstripe.sim.scene_calibration import with_calibration
-from polarstripe.sim.sensor import full_scale_dn, mean_dn
 
 
 class Planner(Node):
@@ -132,7 +132,13 @@ class Planner(Node):
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
-        saturated = np.array([self.saturated_fraction(d) for d in c.separations_m])
+        # a source near the camera can fill the frame beyond full scale where the objective does not look
+        # (the default tank saturates most of a flood frame below d_LC ≈ 0.1 m); every method of a scan
+        # uses the one separation: judged on a flood frame without analyzer, the brightest of any method
+        frames = model if isinstance(model, ImageModel) else ImageModel(
+            self.scene, fidelity=p.fidelity, n_stripes=1, orders=p.orders)
+        saturated = (np.zeros(c.separations_m.size) if p.max_saturated_fraction >= 1.0 else
+                     np.array([frames.saturated_fraction(d) for d in c.separations_m]))
         order = np.argsort(-c.objective, kind="stable")
         usable = [i for i in order if saturated[i] <= p.max_saturated_fraction]
         best = float(c.separations_m[usable[0] if usable else order[0]])
@@ -161,25 +167,6 @@ class Planner(Node):
                       f", scan {result.scan_type}" if result.scan_type else "", self.p_assumed,
                       self.sigma_assumed)
         return result
-
-    def saturated_fraction(self, d_lc_m: float, grid: int = 8) -> float:
-        """Fraction of a grid x grid sample of pixels that saturates in a flood frame without analyzer (the
-        brightest frame of any method) at separation ``d_lc_m``, from the model at those pixels only.
-
-        The planner's objective looks at a few observed points; a source near the camera can still fill the
-        rest of the frame with backscatter beyond full scale (the default tank saturates most of a flood
-        frame below d_LC ≈ 0.1 m), and every method of a scan uses the one separation."""
-
-        if self.params.max_saturated_fraction >= 1.0:
-            return 0.0
-        cam = self.scene.camera
-        w, h = cam.resolution
-        rows, cols = np.meshgrid(np.linspace(0, h - 1, grid).astype(int),
-                                 np.linspace(0, w - 1, grid).astype(int), indexing="ij")
-        pixels = np.stack([rows.ravel(), cols.ravel()], axis=1)
-        scene = with_separation(self.scene, float(d_lc_m))
-        c = render_components(scene, "flood", self.params.fidelity, pixels, need=("D", "A", "B"))
-        return float(np.mean(mean_dn(c.D + c.A + c.B, cam, pixels) >= full_scale_dn(cam)))
 
     def _publish_once(self):
         self.cancel("publish_on_start")

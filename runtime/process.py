@@ -169,6 +169,7 @@ def early_signals() -> Iterator[None]:
     signals are held again (if they were: the launcher's node) until the node's own handlers are in."""
     def on_signal(signum, frame):
         _EARLY.append(signal.Signals(signum).name)
+        sys.unraisablehook = _quiet_after_interrupt  # stays: the process stops, half-built objects die
         raise KeyboardInterrupt
 
     old = {s: signal.signal(s, on_signal) for s in _STOP_SIGNALS}
@@ -179,6 +180,14 @@ def early_signals() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # held again if the launcher had them held
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _quiet_after_interrupt(unraisable) -> None:
+    """``sys.unraisablehook`` once an import was cut short: Python prints, with a traceback, what it cannot
+    raise (our ``KeyboardInterrupt`` swallowed by an import's callback; a finalizer of an object whose
+    constructor was interrupted, e.g. llvmlite's). Here the stop is already remembered: one plain line."""
+    print(f"stopping during the import: {type(unraisable.exc_value).__name__} ignored in "
+          f"{getattr(unraisable.object, '__qualname__', type(unraisable.object).__name__)}", file=sys.stderr)
 
 
 def install_signals(node: Node) -> StopGuard:

@@ -1,9 +1,9 @@
 """``polarstripe bench soak`` in CI (docs/architecture.md "Soak"): one minute of the sim launch scanning
-continuously after its warm-up, with a node killed every 20 s (one or two kills: none in the last 30 s). The soak's own checks
-must all hold — scans completed, no frame lost on the ``all`` topics outside a kill, every kill recovered
-from, no node's memory beyond the bound, and the final SIGINT stopping every node by itself — and its report
-must be consistent with itself. One minute, not two, to keep the suite's budget (docs/architecture.md
-"Soak")."""
+continuously after its warm-up, with a node killed every 20 s (one or two kills: none in the last 30 s).
+The soak's own checks must all hold — scans completed, no frame lost on the ``all`` topics outside a kill,
+every kill recovered from, no node's memory beyond the bound, and the final SIGINT stopping every node by
+itself — and its report must be consistent with itself. One minute, not two, to keep the suite's budget
+(docs/architecture.md "Soak")."""
 
 import json
 import os

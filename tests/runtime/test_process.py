@@ -209,3 +209,30 @@ def test_a_stop_signal_inside_numbas_compiler_waits_for_the_compile_to_end():
         release_signals()
         signal.signal(signal.SIGINT, handlers[0])
         signal.signal(signal.SIGTERM, handlers[1])
+
+
+def test_a_signal_swallowed_by_a_finalizer_during_the_import_is_one_plain_line(capfd):
+    """A stop signal during the import raises KeyboardInterrupt wherever Python is, a finalizer or an
+    import's callback included: Python cannot raise it there and would print it with a traceback. The stop
+    is remembered (the node stops once its handlers are in) and the note is one line."""
+    import sys
+
+    from polarstripe.runtime import process
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(10_000):  # the handler runs here, inside the finalizer
+                pass
+
+    hook = sys.unraisablehook
+    try:
+        with process.early_signals():
+            x = Finalized()
+            del x
+        assert process.early_signal_seen()
+        err = capfd.readouterr().err
+        assert "Traceback" not in err and "KeyboardInterrupt ignored in" in err, err
+    finally:
+        sys.unraisablehook = hook
+        process._EARLY.clear()
