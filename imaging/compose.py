@@ -33,8 +33,12 @@ class Composition:
         The images it was made from or beside: ``e_b`` and ``e_w`` (polarized methods, offset subtracted,
         E_b the crossed one) or ``global`` (``hf_separation``).
     p : float or None
-        The backscatter DOP estimated for eq. 6 (polarized methods), None otherwise or when it could not be
-        estimated (then ``image`` is E_b, unrecovered, and ``note`` says why).
+        The backscatter DOP estimated for eq. 6 (polarized methods; ``estimate_p``'s ``median`` rule), None
+        otherwise or when it could not be estimated (then ``image`` is E_b, unrecovered, and ``note`` says
+        why).
+    p_backscatter : float or None
+        The backscatter's DOP as the medium has it (``estimate_p``'s ``upper`` rule: the blocks with the
+        least object light), published as the medium's p; None where ``p`` is.
     note : str
         Why a step was skipped; "" when none was.
     """
@@ -43,6 +47,7 @@ class Composition:
     layers: dict[str, np.ma.MaskedArray] = field(default_factory=dict)
     p: float | None = None
     note: str = ""
+    p_backscatter: float | None = None
 
     @property
     def saturated_pixels(self) -> int:
@@ -96,11 +101,13 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
 
       so E_b is the angle passing less light over the object-free region (median). With S = 0 there,
       p̂ = median(E_w − E_b) / median(E_w + E_b) (:func:`~.polarization.estimate_p`, clipped to
-      [p_min, 1]), and eq. 6 recovers the signal:
+      [p_min, 1]; with object light there it reads p·B/(S + B), low, and eq. 6 over-subtracts, which in
+      the simulated demo lowers the error against the unscattered object), and eq. 6 recovers the signal:
 
       .. math:: \hat S = E_b (1 + 1/p) + E_w (1 - 1/p).
 
-      Without usable object-free pixels p is not estimated and Ŝ = E_b (``note`` says why).
+      Without usable object-free pixels p is not estimated and Ŝ = E_b (``note`` says why). Beside it,
+      ``p_backscatter`` (the ``upper`` rule) estimates the medium's own DOP.
     * ``hf_separation``: Nayar et al. (2006) with L⁺ = max and L⁻ = min over the complementary checkers,
       α the lit fraction, b the projector's black level (:func:`~.separation.separate_direct_global`):
 
@@ -138,11 +145,12 @@ def _polarized(method, views, dark_offset, saturation, object_free, p_min) -> Co
     e_b, e_w = a.astype(np.float64) - dark_offset, b.astype(np.float64) - dark_offset
     layers = {"e_b": e_b, "e_w": e_w}
     try:
-        p = estimate_p(a.data, b.data, object_free, dark_offset=dark_offset, saturation=saturation,
-                       p_min=p_min)
+        kw = dict(dark_offset=dark_offset, saturation=saturation, p_min=p_min)
+        p = estimate_p(a.data, b.data, object_free, **kw)
+        p_backscatter = estimate_p(a.data, b.data, object_free, rule="upper", **kw)
     except ImagingError as exc:  # no usable object-free pixels: the crossed frame, unrecovered
         return Composition(e_b, layers, None, f"p not estimated ({exc}): the composite is E_b without eq. 6")
-    return Composition(recover_signal(e_b, e_w, p), layers, p)
+    return Composition(recover_signal(e_b, e_w, p), layers, p, p_backscatter=p_backscatter)
 
 
 def score(image, *, bright=None, dark=None, truth=None, region=None, fit_gain: bool = True) -> dict:

@@ -7,6 +7,7 @@ the boundary of :func:`least_backscatter_angle` and :func:`stokes`, radians for 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -206,18 +207,76 @@ def _object_free_pixels(e_b, e_w, roi, dark_offset: float, saturation: float | N
     return ew - eb, ew + eb
 
 
-def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
-               p_min: float | None = 0.05, min_pixels: int = 1) -> float:
-    """Backscatter DOP p from an object-free region (S ≈ 0), robust to noise, offset and saturation.
+BLOCK_PX = 5
+"""Side of the blocks :func:`estimate_p` reads the measured DOP in [pixels]."""
+TOP_FRACTION = 0.2
+"""The fraction of blocks, those of highest measured DOP, whose mean is p̂."""
 
-    p̂ = median(E_w - E_b) / median(E_w + E_b) over the region's valid pixels, clipped to [p_min, 1].
+
+def _block_dops(e_b, e_w, roi, dark_offset: float, saturation: float | None):
+    """The measured DOP Σ(E_w − E_b) / Σ(E_w + E_b) of each ``BLOCK_PX``² block of the region (its pixels
+    below ``saturation`` in both frames, offset subtracted; blocks with at least half the pixels the fullest
+    block has, and light above the offset), each one's standard error, and the number of pixels used; for
+    :func:`estimate_p` and :func:`p_bootstrap_std`."""
+    eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
+    for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
+        if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
+            raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
+    same_shape(e_b=eb_raw, e_w=ew_raw)
+    use = np.zeros(eb_raw.shape, bool)
+    use[roi_slices("roi", roi, eb_raw.shape)] = True
+    off = finite_param("dark_offset", dark_offset)
+    eb, ew = eb_raw.astype(np.float64) - off, ew_raw.astype(np.float64) - off
+    if saturation is not None:
+        sat = finite_param("saturation", saturation) - off
+        use &= (eb < sat) & (ew < sat)
+    h, w = use.shape
+    k = BLOCK_PX
+    pad = ((0, -h % k), (0, -w % k))
+
+    def block_sums(x):
+        x = np.pad(np.where(use, x, 0.0), pad)
+        return x.reshape(x.shape[0] // k, k, x.shape[1] // k, k).sum(axis=(1, 3)).ravel()
+
+    d, t = ew - eb, ew + eb
+    n, diff, total = block_sums(np.ones_like(eb)), block_sums(d), block_sums(t)
+    if not n.any():
+        return np.empty(0), np.empty(0), 0
+    keep = (n >= 0.5 * n.max()) & (total > 0)
+    if not keep.any():
+        raise ImagingError("roi: no backscatter above the dark offset (E_w + E_b <= 0 in every block)")
+    m = diff[keep] / total[keep]
+    # the ratio's standard error from its pixels' residuals: Σ(d − m t)² / (Σt)² (delta method)
+    resid = block_sums(d * d)[keep] - 2 * m * block_sums(d * t)[keep] + m * m * block_sums(t * t)[keep]
+    return m, np.sqrt(np.maximum(resid, 0.0)) / total[keep], int(n.sum())
+
+
+def upper_mean(dops: np.ndarray) -> float:
+    """The mean of the highest ``TOP_FRACTION`` of ``dops`` (at least one): :func:`estimate_p`'s ``upper``
+    p̂ from its block DOPs."""
+    dops = np.asarray(dops, np.float64).ravel()
+    top = max(1, int(np.ceil(TOP_FRACTION * dops.size)))
+    return float(np.mean(np.sort(dops)[-top:]))
+
+
+RULES = ("median", "upper")
+
+
+def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
+               p_min: float | None = 0.05, min_pixels: int = 1, rule: str = "median") -> float:
+    """Backscatter DOP p from a region's analyzer pair, robust to noise, offset and saturation.
+
+    ``median``: p̂ = median(E_w − E_b) / median(E_w + E_b) over the region's valid pixels, for an
+    object-free region (S ≈ 0); ``upper``: the mean of the highest ``TOP_FRACTION`` of the region's block
+    DOPs Σ(E_w − E_b) / Σ(E_w + E_b) (blocks of ``BLOCK_PX``² pixels), for a region with object light.
+    Clipped to [p_min, 1].
 
     Parameters
     ----------
     e_b, e_w : array (h, w)
         Crossed and co-polarized frames (raw DN or radiance).
     roi : (row0, row1, col0, col1) or bool mask (h, w), optional
-        The object-free region; whole frame when None.
+        The region; whole frame when None.
     dark_offset : float
         Black level subtracted from both frames first (an offset left in biases p̂ low).
     saturation : float, optional
@@ -227,6 +286,7 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
         published estimate, planning/medium_fit.py).
     min_pixels : int
         The fewest valid pixels to estimate from.
+    rule : ``median`` or ``upper`` (above).
 
     Returns
     -------
@@ -240,20 +300,35 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
 
     Notes
     -----
-    Where S = 0 eqs. 4-5 give E_w - E_b = p (E_w + E_b) at every pixel, so the ratio of medians is exact
-    without noise even when B varies over the region (scaling preserves the order), and medians ignore
-    outliers.
+    Where S = 0, eqs. 4–5 give E_w − E_b = p (E_w + E_b) at every pixel, so both rules are exact without
+    noise even when B varies over the region; medians ignore outliers. Unpolarized object light S lowers
+    the measured DOP to p·B/(B + S), so the ratio of medians reads low where the region has object light
+    (the simulated tank's wall is lit everywhere by forward-scattered light: 0.32 where the backscatter's
+    DOP is 0.48, docs/physics.md §4.2); the blocks of highest DOP are those with the least, so ``upper``
+    reads closer (0.40), and about one block standard deviation high from noise. Eq. 6 with the lower
+    ``median`` p̂ over-subtracts, which in the simulated demo lowers the error against the unscattered
+    object (the veil of forward-scattered object light goes with it): the compositor keeps ``median`` for
+    eq. 6 and publishes ``upper`` as the medium's p.
     """
+    if rule not in RULES:
+        raise ImagingError(f"rule: {rule!r} is not one of {', '.join(RULES)}")
     pmin = None if p_min is None else finite_param("p_min", p_min, low=0.0, high=1.0, low_open=True)
-    diff, total_px = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
-    if diff.size == 0:
+    if rule == "upper":
+        dops, _, used = _block_dops(e_b, e_w, roi, dark_offset, saturation)
+    else:
+        diff, total_px = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
+        used = diff.size
+    if used == 0:
         raise ImagingError("roi: no unsaturated pixels left to estimate p from")
-    if diff.size < min_pixels:
-        raise ImagingError(f"roi: only {diff.size} unsaturated pixels to estimate p from (need {min_pixels})")
-    total = float(np.median(total_px))
-    if total <= 0.0:
-        raise ImagingError(f"roi: no backscatter above the dark offset (median E_w + E_b = {total:.3g})")
-    p = np.median(diff) / total
+    if used < min_pixels:
+        raise ImagingError(f"roi: only {used} unsaturated pixels to estimate p from (need {min_pixels})")
+    if rule == "upper":
+        p = upper_mean(dops)
+    else:
+        total = float(np.median(total_px))
+        if total <= 0.0:
+            raise ImagingError(f"roi: no backscatter above the dark offset (median E_w + E_b = {total:.3g})")
+        p = np.median(diff) / total
     if pmin is not None:
         return float(np.clip(p, pmin, 1.0))
     if not 0.0 < p <= 1.0:
@@ -262,13 +337,27 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
 
 
 def p_bootstrap_std(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: float | None = None,
-                    n_boot: int = 200, seed: int = 0) -> float:
-    """The spread (standard deviation) of :func:`estimate_p`'s unclamped ratio of medians over ``n_boot``
-    bootstrap resamplings of the same pixels (arguments as there; ``seed`` seeds the resampling)."""
+                    n_boot: int = 200, seed: int = 0, rule: str = "median") -> float:
+    """The spread (standard deviation) of :func:`estimate_p`'s unclamped estimate under the frames' noise
+    (arguments as there; ``seed`` seeds the draws). ``median``: a bootstrap of the region's pixels.
+    ``upper``: a parametric bootstrap: the blocks' DOPs shrunk toward their mean until their spread is
+    what remains after their noise, then each redrawn with its own standard error (from its pixels'
+    residuals); resampling blocks would understate the spread of a mean of the highest ones, and redrawing
+    the noisy DOPs as they are would count the noise twice."""
+    rng = np.random.default_rng(seed)
+    if rule == "upper":
+        dops, err, used = _block_dops(e_b, e_w, roi, dark_offset, saturation)
+        if used == 0:
+            raise ImagingError("roi: no unsaturated pixels left to estimate p from")
+        # the blocks' true spread without their noise (shrunk toward the mean), then their noise redrawn
+        spread = float(np.var(dops))
+        shrink = math.sqrt(max(spread - float(np.mean(err ** 2)), 0.0) / spread) if spread > 0 else 0.0
+        base = dops.mean() + shrink * (dops - dops.mean())
+        draws = base + rng.standard_normal((n_boot, dops.size)) * err
+        return float(np.std([upper_mean(x) for x in draws]))
     diff, total = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
     if diff.size == 0:
         raise ImagingError("roi: no unsaturated pixels left to estimate p from")
-    rng = np.random.default_rng(seed)
     idx = rng.integers(0, total.size, size=(n_boot, total.size))
     return float(np.std(np.median(diff[idx], axis=1) / np.median(total[idx], axis=1)))
 

@@ -395,7 +395,7 @@ class Compositor(Node):
              "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
              "saturated_pixels": made.saturated_pixels}
         if made.p is not None:
-            m["p"] = made.p
+            m["p"], m["p_backscatter"] = made.p, made.p_backscatter
         if scan.fault:
             m["fault"] = scan.fault
         m.update(score(made.image, bright=bright, dark=dim,
@@ -412,8 +412,8 @@ class Compositor(Node):
         images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in made.layers.items()})
         self.composite_pub.publish(Composite(images=images, method=scan.method, scan_id=scan.scan_id,
                                              metrics=m))
-        if made.p is not None:
-            self.estimate_pub.publish(MediumEstimate(p=made.p, scan_id=scan.scan_id))
+        if made.p_backscatter is not None:  # the medium's DOP, not eq. 6's p̂ (imaging/compose.py)
+            self.estimate_pub.publish(MediumEstimate(p=made.p_backscatter, scan_id=scan.scan_id))
         self.results[scan.method], self.metrics[scan.method] = image, m
         self.counters["scans_done"] += 1
         self.log.info("scan %d %s: %d frames, contrast %s, error vs truth %s%s", scan.scan_id, scan.method,

@@ -37,7 +37,8 @@ from concurrent.futures import Future
 
 import numpy as np
 from polarstripe.msgs import Composite, Frame, MediumEstimate, Method, Plan, ScanEvent
-from polarstripe.planning.medium_fit import FitSettings, ScanFrames, downsample, fit_medium, p_of_pair
+from polarstripe.planning.medium_fit import FitSettings, ScanFrames, downsample, fit_medium
+from polarstripe.planning.medium_p import p_of_pair
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.render import resolve_fidelity

@@ -22,8 +22,9 @@ two starting media, the weights taken at the start and again at the first result
 g nodes 0.02 apart and interpolated linearly (every new g costs the model a forward-cone table, §10.3). The
 covariance is (JᵀJ)⁻¹ · max(1, χ²/dof) at the minimum.
 
-p is the ratio of medians of E_w − E_b and E_w + E_b over object-free pixels of an analyzer pair
-(docs/physics.md §4.2), its uncertainty the spread of a bootstrap over those pixels.
+p comes from an analyzer pair of flood frames with the fitted medium's model (:mod:`.medium_p`: the
+model's measured DOP p_m·B/(S + B) scaled to the pair by least squares; the frames alone give a DOP lowered
+by the object's light wherever the wall is lit).
 
 Never a wild value: saturated pixels and pixels at edges (the stripe on the object, texture) are left out; no
 pixel of the stripe frames clearly above the noise (no visible sheet), too few usable pixels, a fit that ends
@@ -37,9 +38,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from polarstripe.imaging.polarization import estimate_p, p_bootstrap_std
-from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs.patterns import PatternError, parse
+from polarstripe.planning.medium_p import MIN_PIXELS, p_of_pair, p_with_model
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn
@@ -57,7 +57,6 @@ MAX_REL_SIGMA = 0.15  # cannot estimate beyond: σ_t uncertain by more than 15 %
 MAX_G_STD = 0.05  # or g by more than 0.05
 MAX_CHI2 = 25.0  # or residuals more than 5× the expected scatter (the model does not describe the frames)
 SNR_VISIBLE = 10.0  # a stripe-frame pixel this many σ above the dark level shows the sheet
-MIN_PIXELS = 12
 
 
 @dataclass(frozen=True)
@@ -145,20 +144,6 @@ def _usable(img: np.ndarray, sat: np.ndarray, sigma: np.ndarray, rows, cols) -> 
             if np.all(np.abs(nb - img[r, c]) <= 0.2 * abs(img[r, c]) + 3.0 * sigma[r, c]):
                 out.append((r, c))
     return np.array(out, dtype=np.int64).reshape(-1, 2)
-
-
-def p_of_pair(pair: tuple[np.ndarray, np.ndarray] | None, object_free: np.ndarray | None, dark: float,
-              saturation: float) -> tuple[float, float, str]:
-    """(p, its bootstrap std, "") from an (E_b, E_w) pair over object-free pixels (docs/physics.md §4.2, by
-    :func:`~polarstripe.imaging.polarization.estimate_p`, unclamped), or (nan, nan, the reason)."""
-    if pair is None:
-        return math.nan, math.nan, "no analyzer pair"
-    kw = dict(roi=object_free, dark_offset=dark, saturation=saturation)
-    try:
-        p = estimate_p(*pair, p_min=None, min_pixels=MIN_PIXELS, **kw)
-        return p, p_bootstrap_std(*pair, **kw), ""
-    except ImagingError as exc:
-        return math.nan, math.nan, f"p: {exc}"
 
 
 def _pick_frames(frames: ScanFrames, n_stripes_used: int, size: tuple[int, int]):
@@ -356,20 +341,21 @@ def fit_medium(scene: Scene, frames: ScanFrames, settings: FitSettings = FitSett
     except np.linalg.LinAlgError:
         std = np.array([math.inf, math.inf])
     s_std, g_std = sigma_t * float(std[0]), float(std[1])
-    p, p_std, p_why = p_of_pair(frames.polarized_pair, frames.object_free, dark_offset_dn(cam),
-                                float(full_scale_dn(cam)) - 0.5)
+    at_bound = np.isclose(res.x, lo, atol=1e-3) | np.isclose(res.x, hi, atol=1e-3)
+    why = (f"fit ends at the bound of {'σ_t' if at_bound[0] else 'g'} (σ_t {sigma_t:.3g} /m, g {g:.3f})"
+           if at_bound.any() else
+           f"the model does not describe the frames (χ²/dof = {chi2:.3g})" if chi2 > MAX_CHI2 else
+           f"too noisy: σ_t {sigma_t:.3g} ± {s_std:.2g} /m, g {g:.3f} ± {g_std:.2g}"
+           if not (s_std <= MAX_REL_SIGMA * sigma_t and g_std <= MAX_G_STD) else "")
+    # p with the fitted medium's model where the fit holds (planning/medium_p.py), else from the frames
+    pair = (frames.polarized_pair, frames.object_free, dark_offset_dn(cam), float(full_scale_dn(cam)) - 0.5)
+    fitted = scene.replace(medium=scene.medium.replace(sigma_t=sigma_t, phase=Phase("tthg", g)))
+    p, p_std, p_why = (p_of_pair(*pair) if why or frames.polarized_pair is None else
+                       p_with_model(*pair, fitted, settings.fidelity))
     common = dict(chi2_per_dof=chi2, pixels=int(data.y.size), evaluations=model.evaluations, p=p, p_std=p_std,
                   extra={"p_reason": p_why, "patterns": [t for t, _, _ in items]})
-    at_bound = np.isclose(res.x, lo, atol=1e-3) | np.isclose(res.x, hi, atol=1e-3)
-    if at_bound.any():
-        return MediumFit(False, reason=f"fit ends at the bound of {'σ_t' if at_bound[0] else 'g'} "
-                                       f"(σ_t {sigma_t:.3g} /m, g {g:.3f})", **common)
-    if chi2 > MAX_CHI2:
-        return MediumFit(False, reason=f"the model does not describe the frames (χ²/dof = {chi2:.3g})",
-                         **common)
-    if not (s_std <= MAX_REL_SIGMA * sigma_t and g_std <= MAX_G_STD):
-        return MediumFit(False, reason=f"too noisy: σ_t {sigma_t:.3g} ± {s_std:.2g} /m, "
-                                       f"g {g:.3f} ± {g_std:.2g}", **common)
+    if why:
+        return MediumFit(False, reason=why, **common)
     return MediumFit(True, sigma_t_per_m=sigma_t, sigma_t_std=s_std, mean_cosine=g, mean_cosine_std=g_std,
                      **common)
 

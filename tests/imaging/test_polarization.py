@@ -171,3 +171,37 @@ def test_p_bootstrap_std_matches_the_spread_of_independent_frames():
     spread = np.std([estimate_p(*pair(), p_min=None) for _ in range(300)])
     boot = p_bootstrap_std(*pair(), n_boot=400)
     assert spread > 0 and boot == pytest.approx(spread, rel=0.3)
+
+
+def test_upper_rule_reads_the_backscatter_dop_through_object_light():
+    """A region with unpolarized object light S varying across it (as the simulated tank's wall, lit by
+    forward-scattered light): the measured DOP is p·B/(B + S). The ratio of medians reads it low; the
+    ``upper`` rule reads the blocks with the least object light. Independent number: p itself."""
+    p, h, w = 0.55, 60, 80
+    b = np.full((h, w), 1000.0)
+    s = np.tile(np.linspace(0.0, 1500.0, w), (h, 1))   # no object light at the left edge, much at the right
+    e_b, e_w = b * (1 - p) / 2 + s / 2, b * (1 + p) / 2 + s / 2
+    median = estimate_p(e_b, e_w)
+    upper = estimate_p(e_b, e_w, rule="upper")
+    assert median < p * 1000 / (1000 + 0.45 * 1500)   # p·B/(B + S) about the median S
+    assert p * 1000 / (1000 + 0.21 * 1500) < upper <= p  # the top fifth of blocks: S ≤ 0.21·1500
+    assert estimate_p(b * (1 - p) / 2, b * (1 + p) / 2, rule="upper") == pytest.approx(p, rel=1e-12)
+    with pytest.raises(ImagingError, match="rule"):
+        estimate_p(e_b, e_w, rule="mean")
+
+
+def test_upper_rule_noise_bias_and_its_spread():
+    """Without object light, under shot noise: the ``upper`` rule sits about one block standard deviation
+    above p (the price of reading the highest blocks), and its parametric bootstrap matches the spread over
+    300 independent pairs within 30 %."""
+    rng = np.random.default_rng(5)
+    p, b = 0.6, rng.uniform(2000, 4000, (40, 40))
+
+    def pair():
+        return (rng.poisson(b * (1 - p) / 2).astype(float), rng.poisson(b * (1 + p) / 2).astype(float))
+
+    runs = [estimate_p(*pair(), p_min=None, rule="upper") for _ in range(300)]
+    block_sd = np.sqrt(1 - p * p) / np.sqrt(3000.0 * 25)  # σ of a 25-pixel block's DOP at 3000 e- a pixel
+    assert 0 < np.mean(runs) - p < 2.5 * block_sd
+    boot = p_bootstrap_std(*pair(), n_boot=400, rule="upper")
+    assert boot == pytest.approx(np.std(runs), rel=0.3)

@@ -79,6 +79,7 @@ def test_polarized_stripes_recover_s_and_p_with_either_angle_order():
     # the co-polarized angle comes first in the scan's list: the node must tell E_b from the light level
     comp = _scan(h, 3, "polarized_stripes", e_w + e_b, stripes=6, analyzer=[120.0, 30.0])
     assert comp.metrics["p"] == pytest.approx(p, abs=1e-3)
+    assert comp.metrics["p_backscatter"] == pytest.approx(p, abs=2e-3)  # no object light there: the same
     # eq. 6: E_b (1 + 1/p) + E_w (1 - 1/p) = S wherever the stripe lit the pixel
     np.testing.assert_allclose(comp.images["composite"], s, atol=2.0)
     np.testing.assert_allclose(comp.images["e_b"], s / 2 + b * (1 - p) / 2, atol=0.5)

@@ -76,10 +76,12 @@ def test_estimate_of_an_unknown_medium_within_bounds_while_the_loop_runs():
     assert not e.reason and e.scan_id == 3
     assert abs(e.sigma_t_per_m / 3.0 - 1) <= 0.10 and abs(e.mean_cosine - 0.7) <= 0.05
     assert 0 < e.sigma_t_std < 0.15 * e.sigma_t_per_m and 0 < e.mean_cosine_std < 0.05
-    # p against an independent number from the components (tests/planning/test_medium_fit.py): off the
-    # object, E_w - E_b = B p and E_w + E_b = D + A + B through an ideal analyzer (docs/physics.md §4.1)
+    # p against an independent number from the components (tests/planning/test_medium_fit.py): the
+    # backscatter's own DOP over the region, which the object's light hides from the frames alone
     free = ~comp.object_mask
-    p_true = float(np.median((comp.B * comp.p)[free]) / np.median((comp.D + comp.A + comp.B)[free]))
+    p_true = float(np.sum((comp.B * comp.p)[free]) / np.sum(comp.B[free]))  # the backscatter's DOP
+    measured = float(np.median((comp.B * comp.p)[free]) / np.median((comp.D + comp.A + comp.B)[free]))
+    assert measured < p_true - 0.05  # what the frames show: the object's light lowers the ratio
     assert abs(e.p - p_true) < 0.05 and 0 < e.p_std < 0.05
     # one fit per source pose: another stripe scan at the same pose is not fitted again
     _scan(h, 4, "polarized_stripes", stripes)
