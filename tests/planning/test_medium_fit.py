@@ -80,7 +80,7 @@ def test_p_from_the_analyzer_pair():
     p_true = float(np.sum((comp.B * comp.p)[free]) / np.sum(comp.B[free]))  # the backscatter's DOP
     measured = float(np.median((comp.B * comp.p)[free]) / np.median((comp.D + comp.A + comp.B)[free]))
     assert measured < p_true - 0.05  # what the frames show: the object's light lowers the ratio
-    assert abs(fit.p - p_true) < 0.05 and 0 < fit.p_std < 0.05
+    assert abs(fit.p - p_true) < 0.02 and 0 < fit.p_std < 0.05  # 0.5984 against 0.5983 when written
 
 
 def test_no_visible_sheet_is_refused():
