@@ -9,11 +9,11 @@ the demo), and every ratio reads p·B/(S + B), low.
 * :func:`p_of_pair`: the frames alone (:func:`~polarstripe.imaging.polarization.estimate_p`: the mean of the
   highest block DOPs, the blocks with the least object light).
 * :func:`p_with_model`: the fitted medium's model predicts each pixel's measured DOP up to the medium's own
-  depolarization, q = p_m·cos 2(χ − χ̄)·B/(S + B) from :func:`~polarstripe.sim.render.render_components`
-  (χ̄ the region's mean backscatter angle, where the calibrated analyzer sits); the scale κ of
-  E_w − E_b = κ·q·(E_w + E_b) is fitted by least squares over the region's unsaturated pixels, and p is κ
-  times the model's backscatter-weighted DOP over the region, Σ p_m B / Σ B: what the planner's constant
-  DOP stands for.
+  depolarization and the analyzer's angle ψ, p_m·cos 2(χ − ψ)·B/(S + B) from
+  :func:`~polarstripe.sim.render.render_components` (p_m, χ the model's DOP and angle per pixel); the scale
+  κ of E_w − E_b = κ·p_m·cos 2(χ − ψ)·B/(S + B)·(E_w + E_b), linear in (κ cos 2ψ, κ sin 2ψ), is fitted by
+  least squares over the region's unsaturated pixels, and p is κ times the model's backscatter-weighted DOP
+  over the region, Σ p_m B / Σ B: what the planner's constant DOP stands for.
 """
 
 from __future__ import annotations
@@ -54,23 +54,28 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
     sc = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
     c = render_components(sc, "flood", fidelity)
     region = np.ones((h, w), bool) if object_free is None else np.asarray(object_free, bool)
-    # the pair's analyzer follows the region's mean backscatter polarization (the calibration's E_b): a pixel
-    # whose own angle χ differs shows p·cos 2(χ − χ̄) of its DOP
-    bp = (c.B * c.p)[region]
-    chi_bar = 0.5 * math.atan2(float(np.sum(bp * np.sin(2 * c.chi_rad[region]))),
-                               float(np.sum(bp * np.cos(2 * c.chi_rad[region]))))
+    # E_w − E_b = κ p_m cos 2(χ − ψ) B/(S + B) · (E_w + E_b), ψ the pair's co-polarized angle in the
+    # model's camera frame: linear in (κ cos 2ψ, κ sin 2ψ), so the analyzer's angle need not be known
     with np.errstate(invalid="ignore", divide="ignore"):
-        q = np.where(c.B > 0, c.p * np.cos(2 * (c.chi_rad - chi_bar)) * c.B / (c.S + c.B), 0.0)
+        q = np.where(c.B > 0, c.p * c.B / (c.S + c.B), 0.0)
     diff, total = ew - eb, ew + eb - 2.0 * dark
     use = region & (eb < saturation) & (ew < saturation) & (total > 0) & (q > 0)
     if use.sum() < MIN_PIXELS or not np.any(c.B[region] > 0):
         return p_of_pair(pair, object_free, dark, saturation)
-    x, y = q[use] * total[use], diff[use]
-    kappa = float(x @ y / (x @ x))
+    two_chi = 2.0 * c.chi_rad[use]
+    x = (q[use] * total[use])[:, None] * np.column_stack([np.cos(two_chi), np.sin(two_chi)])
+    y = diff[use]
+    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
+    kappa = math.hypot(u, v)
     if not kappa > 0:
         return p_of_pair(pair, object_free, dark, saturation)
-    resid = y - kappa * x
-    kappa_std = math.sqrt(float(resid @ resid) / max(x.size - 1, 1) / float(x @ x))
+    resid = y - x @ np.array([u, v])
+    try:
+        cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
+    except np.linalg.LinAlgError:
+        return p_of_pair(pair, object_free, dark, saturation)
+    grad = np.array([u, v]) / kappa
+    kappa_std = math.sqrt(max(float(grad @ cov @ grad), 0.0))
     p_b = float(np.sum((c.B * c.p)[region]) / np.sum(c.B[region]))
     p = kappa * p_b
     if not 0.0 < p <= 1.0:
