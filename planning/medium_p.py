@@ -11,9 +11,10 @@ the demo), and every ratio reads p·B/(S + B), low.
 * :func:`p_with_model`: the fitted medium's model predicts each pixel's measured DOP up to the medium's own
   depolarization and the analyzer's angle ψ, p_m·cos 2(χ − ψ)·B/(S + B) from
   :func:`~polarstripe.sim.render.render_components` (p_m, χ the model's DOP and angle per pixel); the scale
-  κ of E_w − E_b = κ·p_m·cos 2(χ − ψ)·B/(S + B)·(E_w + E_b), linear in (κ cos 2ψ, κ sin 2ψ), is fitted by
-  least squares over the region's unsaturated pixels, and p is κ times the model's backscatter-weighted DOP
-  over the region, Σ p_m B / Σ B: what the planner's constant DOP stands for.
+  κ of (E_w − E_b)/(E_w + E_b) = κ·p_m·cos 2(χ − ψ)·B/(S + B), linear in (κ cos 2ψ, κ sin 2ψ), is fitted
+  by least squares over the region's unsaturated pixels (each pixel alike; a second pass without outliers),
+  and p is κ times the model's backscatter-weighted DOP over the region, Σ p_m B / Σ B: what the planner's
+  constant DOP stands for.
 """
 
 from __future__ import annotations
@@ -62,16 +63,23 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
     use = region & (eb < saturation) & (ew < saturation) & (total > 0) & (q > 0)
     if use.sum() < MIN_PIXELS or not np.any(c.B[region] > 0):
         return p_of_pair(pair, object_free, dark, saturation)
+    # in DOP units, each pixel alike, then once more without the pixels beyond 4 median absolute deviations
+    # (a few bright pixels, an object's edge blurred into the region, would rule a fit in intensity)
     two_chi = 2.0 * c.chi_rad[use]
-    x = (q[use] * total[use])[:, None] * np.column_stack([np.cos(two_chi), np.sin(two_chi)])
-    y = diff[use]
-    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
+    x = q[use][:, None] * np.column_stack([np.cos(two_chi), np.sin(two_chi)])
+    y = diff[use] / total[use]
+    keep = np.ones(y.size, bool)
+    for _ in range(2):
+        (u, v), *_ = np.linalg.lstsq(x[keep], y[keep], rcond=None)
+        resid = y - x @ np.array([u, v])
+        mad = float(np.median(np.abs(resid[keep] - np.median(resid[keep]))))
+        keep = np.abs(resid) <= 4.0 * 1.4826 * mad if mad > 0 else keep
     kappa = math.hypot(u, v)
-    if not kappa > 0:
+    if not kappa > 0 or keep.sum() < MIN_PIXELS:
         return p_of_pair(pair, object_free, dark, saturation)
-    resid = y - x @ np.array([u, v])
+    resid = resid[keep]
     try:
-        cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
+        cov = np.linalg.inv(x[keep].T @ x[keep]) * float(resid @ resid) / max(int(keep.sum()) - 2, 1)
     except np.linalg.LinAlgError:
         return p_of_pair(pair, object_free, dark, saturation)
     grad = np.array([u, v]) / kappa
