@@ -1,10 +1,15 @@
 """``polarstripe plan SCENE.toml``: the best camera–source separation and stripe scan for a scene.
 
-Prints the optimum and the curve per modality (flood: CQM·W, stripes: GQM·W), with and without a polarizer;
-``--json`` prints one object keyed ``flood``, ``flood_polarized``, ``stripes``, ``stripes_polarized``;
-``--plot`` draws curves like the paper's Figs. 9a and 10d (noise-free beside noisy); ``--validate`` judges the
-picks end to end, full scans through the compositor's pipeline on a grid of separations and at each pick
-(:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``).
+Prints the optimum and the curve per modality (default: 1 − the expected error; ``--measure paper``: flood
+CQM·W, stripes margin·W), with and without a polarizer; ``--json`` prints one object keyed ``flood``,
+``flood_polarized``, ``stripes``, ``stripes_polarized``, ``model`` (measure and orders). Unless the plan is
+the paper's own (``--measure paper --orders single``), the same sweep with the paper's measure and single
+scattering is made beside it (the JSON's ``reference``); Fig. 10's question, rotate, translate or both, is
+answered for both (``scans``). ``--plot`` draws the paper's Figs. 9a and 10d with both
+(:mod:`polarstripe.planning.plan_plot`; the JSON's ``figure`` is what is drawn); ``--validate`` judges both
+models' picks end to end, full scans through the compositor's pipeline on a grid of separations and at each
+pick (:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``), drawn on
+the plot's right-hand axis.
 :func:`plan_to_json` and :data:`PLAN_SCHEMA` (JSON Schema 2020-12) define the JSON.
 """
 
@@ -13,9 +18,14 @@ from __future__ import annotations
 import argparse
 import json
 
-import matplotlib
-import matplotlib.pyplot as plt
-import numpy as np
+from polarstripe.planning.plan_plot import (
+    REFERENCE,
+    check_plot_path,
+    draw_figure,
+    figure_data,
+    print_scan_rows,
+    scan_rows,
+)
 from polarstripe.planning.planner import (
     EDGES,
     MODALITIES,
@@ -26,7 +36,7 @@ from polarstripe.planning.planner import (
     plan_model,
 )
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
-from polarstripe.planning.validate_table import default_grid, picks_of, validate
+from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
 
 HELP = ("find the best camera-source separation and stripe scan (default: the least expected error of "
@@ -114,17 +124,30 @@ _STRIPE_ENTRY = {
                                 "separations_m": {"type": "object", "required": list(SCAN_TYPES)}}},
     },
 }
+_PLANS = {"flood": _ENTRY, "flood_polarized": _FLOOD_POL_ENTRY, "stripes": _STRIPE_ENTRY,
+          "stripes_polarized": _STRIPE_ENTRY}
+_MODEL = {"measure": {"enum": ["error", "paper"]}, "orders": {"enum": ["all", "single"]}}
 PLAN_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "polarstripe plan",
     "type": "object",
     "minProperties": 1,
     "additionalProperties": False,
-    "properties": {"flood": _ENTRY, "flood_polarized": _FLOOD_POL_ENTRY, "stripes": _STRIPE_ENTRY,
-                   "stripes_polarized": _STRIPE_ENTRY,
+    "properties": {**_PLANS,
+                   "model": {"type": "object", "required": ["measure", "orders"], "properties": _MODEL},
+                   "reference": {"type": "object", "required": ["measure", "orders", "plans"],
+                                 "properties": {**_MODEL, "plans": {"type": "object", "minProperties": 1,
+                                                                    "additionalProperties": False,
+                                                                    "properties": _PLANS}}},
+                   "scans": {"type": "array", "items": {
+                       "type": "object", "required": ["plan", "model", "label", "winner", "scores"],
+                       "properties": {"plan": {"enum": ["stripes", "stripes_polarized"]},
+                                      "model": {"enum": ["plan", "reference"]},
+                                      "winner": {"enum": list(SCAN_TYPES)}}}},
+                   "figure": {"type": "object", "required": ["panels"]},
                    "validation": {"type": "object", "required": ["grid_m", "rows", "curves"],
                                   "properties": {"rows": {"type": "array", "items": {
-                                      "type": "object", "required": ["method", "image", "pick_m",
+                                      "type": "object", "required": ["plan", "method", "image", "pick_m",
                                                                      "pick_error", "best_m", "regret"]}}}}},
 }
 
@@ -135,7 +158,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--modality", choices=["flood", "stripes"], default=None,
                         help="plan one modality only (default: both)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-    parser.add_argument("--plot", metavar="PNG", default=None, help="write the curves to this PNG file")
+    parser.add_argument("--plot", metavar="PNG", default=None,
+                        help="draw the paper's Figs. 9a and 10d anew into this PNG (or .pdf, .svg) file: "
+                        "the plan's curves beside the paper's measure with single scattering, and with "
+                        "--validate the end-to-end errors (docs/planning.md §9)")
     parser.add_argument("--measure", choices=("error", "paper"), default="error",
                         help="what is maximised: 'error' (default: 1 − the composite's expected error "
                              "against the unscattered object, from low-resolution whole frames) or 'paper' "
@@ -223,83 +249,60 @@ def _print_validation(v: dict) -> None:
     g = v["grid_m"]
     print(f"end to end ({len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm and each pick; error vs "
           "the unscattered object, whole frame, gain fitted; regret = error at the pick / best):")
-    print(f"  {'method':<18} {'image':<9} {'pick cm':>8} {'error':>6} {'best cm':>8} {'error':>6} "
-          f"{'regret':>7}")
+    print(f"  {'plan':<7} {'method':<18} {'image':<9} {'pick cm':>8} {'error':>6} {'best cm':>8} "
+          f"{'error':>6} {'regret':>7}")
 
     def num(x, f):
         return "-" if x is None else format(x, f)
 
     for r in v["rows"]:
-        print(f"  {r['method']:<18} {r['image']:<9} {r['pick_m'] * 100:8.1f} {num(r['pick_error'], '6.3f')} "
+        print(f"  {r['plan']:<7} {r['method']:<18} {r['image']:<9} {r['pick_m'] * 100:8.1f} "
+              f"{num(r['pick_error'], '6.3f')} "
               f"{num(r['best_m'] and r['best_m'] * 100, '7.1f')}{'>' if r['best_at_edge'] else ' '} "
               f"{num(r['best_error'], '6.3f')} {num(r['regret'], '7.3f')}")
 
 
-_STYLE = {"E": "-", "E_b": "--", "S_hat": ":"}
-_LABEL = {"E": "no polarizer", "E_b": "best-polarized E_b", "S_hat": "recovered Ŝ (eq. 6)"}
-
-
-def plot_plan(doc: dict, path: str) -> None:
-    """Curves like the paper's Fig. 9a (flood CQM·W: E, E_b and Ŝ) and Fig. 10d (stripes per location)."""
-
-    matplotlib.use("Agg")
-
-    panels = [m for m in ("flood", "stripes") if m in doc]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.4 * len(panels), 4.6), squeeze=False)
-    for ax, modality in zip(axes[0], panels, strict=True):
-        plain, pol = doc[modality], doc[modality + "_polarized"]
-        if modality == "flood":
-            curves = [("E", plain)] + list(pol.get("readings", {pol["reading"]: pol}).items())
-            for i, (reading, entry) in enumerate(curves):
-                d = np.asarray(entry["separations"]) * 100
-                ax.plot(d, entry["objective"], _STYLE[reading], color=f"C{i}", lw=2,
-                        label=f"{_LABEL[reading]}, with sensor noise")
-                ax.plot(d, entry["objective_noise_free"], _STYLE[reading], color=f"C{i}", lw=1, alpha=0.45,
-                        label=f"{_LABEL[reading]}, zero noise")
-                ax.axvline(entry["best_separation"] * 100, color=f"C{i}", lw=0.8, ls=":")
-            title = f"flood lighting (cf. Fig. 9a); polarized: {pol['reading']} recommended"
-        else:
-            for suffix, style, entry in (("", "-", plain), ("_polarized", "--", pol)):
-                tag = "polarized E_b" if suffix else "unpolarized"
-                d = np.asarray(entry["separations"]) * 100
-                for i, loc in enumerate(entry["locations"]):
-                    ax.plot(d, loc["objective"], style, color=f"C{i}", lw=2 if not suffix else 1.5,
-                            label=f"O{i + 1}, {tag}")
-                    ax.plot(d, loc["objective_noise_free"], style, color=f"C{i}", lw=0.8, alpha=0.4)
-            title = f"light striping (cf. Fig. 10d), {plain['measure']}; scan: {pol['scan']['winner']}"
-        ax.set_xlabel("sensor–source separation d_LC [cm]")
-        ax.set_ylabel(plain["measure"].replace("*", " × "))
-        ax.set_title(title, fontsize=10)
-        ax.set_ylim(0, 1.02)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+def _variant(measure: str, orders: str) -> str:
+    """The name of a planner variant in the validation's rows (validate_table.VARIANTS)."""
+    return next((k for k, v in VARIANTS.items() if v == (measure, orders)), f"{measure}-{orders}")
 
 
 def main(args: argparse.Namespace) -> int:
-
+    if args.plot:
+        check_plot_path(args.plot)
     scene = load_scene(args.scene)
     seps = default_separations(args.separations, args.range[0], args.range[1])
-    model = plan_model(scene, measure=args.measure, fidelity=args.fidelity, n_stripes=args.stripes,
-                       edge=args.edge, orders=args.orders)
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
-    plans = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
-    doc = plan_to_json(plans)
+    plans, doc = {}, {}
+    for role, measure, orders in (("plan", args.measure, args.orders),
+                                  ("reference", REFERENCE["measure"], REFERENCE["orders"])):
+        if role == "reference" and (args.measure, args.orders) == (measure, orders):
+            break  # the plan is the paper's own
+        model = plan_model(scene, measure=measure, fidelity=args.fidelity, n_stripes=args.stripes,
+                           edge=args.edge, orders=orders)
+        plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
+        if role == "plan":
+            doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders}}
+        else:
+            doc["reference"] = {"measure": measure, "orders": orders, "plans": plan_to_json(plans[role])}
+    doc["scans"] = scan_rows(doc)
     if args.validate:
         settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width,
                                 exposure=args.validate_exposure)
-        res = validate(scene, default_grid(args.validate_grid), settings,
-                       picks={args.orders: picks_of(plans)})
+        picks = {_variant(args.measure, args.orders): picks_of(plans["plan"])}
+        if "reference" in plans:
+            picks[_variant(REFERENCE["measure"], REFERENCE["orders"])] = picks_of(plans["reference"])
+        res = validate(scene, default_grid(args.validate_grid), settings, picks=picks)
         doc["validation"] = {"grid_m": res["grid_m"], "settings": vars(settings), "rows": res["rows"],
                              "curves": res["curves"], "extra": res["extra"]}
     if args.plot:
-        plot_plan(doc, args.plot)
+        doc["figure"] = figure_data(doc)
+        draw_figure(doc["figure"], args.plot)
     if args.json:
         print(json.dumps(doc))
     else:
         _print_tables(doc)
+        print_scan_rows(doc["scans"])
         if "validation" in doc:
             _print_validation(doc["validation"])
         if args.plot:
