@@ -1,6 +1,6 @@
 """``polarstripe plan`` (planning/plan_cli.py) on a small real plan (preview fidelity, 4 separations, 2
 stripe locations): the JSON (plain types, each entry's best separation is its objective's argmax, the
-measure per modality, PLAN_SCHEMA's refusals), the printed tables, the plot, and the command's argument
+measure per modality, PLAN_SCHEMA's refusals), the printed tables, the plot's panels, and the command's argument
 errors as one line. (test_planner.py runs the planner itself and the command end to end.)"""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import struct
 import jsonschema
 import numpy as np
 import pytest
-from polarstripe.planning.plan_cli import PLAN_SCHEMA, _print_tables, plan_to_json, plot_plan
+from polarstripe.planning.plan_cli import PLAN_SCHEMA, _print_tables, plan_to_json
+from polarstripe.planning.plan_plot import draw_figure, figure_data
 from polarstripe.planning.planner import SceneModel, default_separations, plan
 from polarstripe.sim.scene import load_scene
 from polarstripe.tools.cli import main
@@ -132,12 +133,12 @@ def _png_size(path) -> tuple[int, int]:
     return struct.unpack(">II", head[16:24])
 
 
-def test_plot_has_one_panel_per_modality(doc, tmp_path):
+def test_plot_has_one_panel_per_figure(doc, tmp_path):
     both, flood = tmp_path / "both.png", tmp_path / "flood.png"
-    plot_plan(doc, str(both))
-    plot_plan({k: doc[k] for k in ("flood", "flood_polarized")}, str(flood))
-    (w2, h2), (w1, h1) = _png_size(both), _png_size(flood)
-    assert h2 == h1 and w2 == pytest.approx(2 * w1, abs=2)  # the figure widens by one panel per modality
+    draw_figure(figure_data(doc), str(both))
+    draw_figure(figure_data({k: doc[k] for k in ("flood", "flood_polarized")}), str(flood))
+    (w3, h3), (w1, h1) = _png_size(both), _png_size(flood)
+    assert h3 == h1 and w3 == pytest.approx(3 * w1, abs=2)  # flood, stripes, polarized stripes
     assert both.stat().st_size > flood.stat().st_size > 10_000
 
 

@@ -200,7 +200,8 @@ def test_plan_command_json_and_plot(tmp_path):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     jsonschema.validate(doc, PLAN_SCHEMA)
-    assert set(doc) == {"flood", "flood_polarized"}
+    assert set(doc) == {"flood", "flood_polarized", "model", "reference", "scans", "figure"}
+    assert set(doc["reference"]["plans"]) == {"flood", "flood_polarized"} and doc["scans"] == []
     assert png.stat().st_size > 10_000
 
 
