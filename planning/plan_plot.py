@@ -86,7 +86,8 @@ def _curve(label: str, role: str, key: str, entry: dict, values, scale: float,
     norm = v / scale if scale > 0 else v
     return {"label": label, "model": role, "plan": key, "location": location,
             "separations_cm": (np.asarray(entry["separations"]) * 100).tolist(), "values": norm.tolist(),
-            "pick_cm": float(entry["separations"][int(np.argmax(v))]) * 100}
+            "pick_cm": float(entry["separations"][int(np.argmax(v))]) * 100,
+            "pick_at_edge": int(np.argmax(v)) in (0, v.size - 1)}
 
 
 def _panel_curves(keys: tuple[str, ...], role: str, plans: dict, orders: str) -> list[dict]:
@@ -119,15 +120,21 @@ def _e2e_points(validation: dict, method: str, image: str, label: str) -> dict |
     if not pts:
         return None
     d, e = (list(x) for x in zip(*pts, strict=True))
+    best = int(np.argmin(e))
     return {"label": label, "method": method, "image": image, "separations_cm": d, "error": e,
-            "best_cm": d[int(np.argmin(e))]}
+            "best_cm": d[best], "best_at_edge": best in (0, len(d) - 1)}
 
 
 def figure_data(doc: dict) -> dict:
-    """The panels to draw (module docstring) from a plan's JSON: {"panels": [{"key", "title", "curves":
-    [{"label", "model", "location", "separations_cm", "values" (normalised), "pick_cm"}], "e2e": [{"label",
-    "method", "image", "separations_cm", "error", "best_cm"}] (only with a ``validation``), "scans":
-    [:func:`scan_rows` of the panel's plan]}]}."""
+    """The panels to draw (module docstring) from a plan's JSON: {"panels": [{"key", "title", "curves",
+    "e2e", "scans"}]} with
+
+    * curves: [{"label", "model", "plan", "location", "separations_cm", "values" (normalised), "pick_cm",
+      "pick_at_edge"}];
+    * e2e (only with a ``validation``): [{"label", "method", "image", "separations_cm", "error", "best_cm",
+      "best_at_edge"}];
+    * scans: the :func:`scan_rows` of the panel's plan.
+    """
     scans = scan_rows(doc)
     panels = []
     for key, (title, keys, e2e) in PANELS.items():
@@ -178,7 +185,7 @@ def draw_figure(data: dict, path: str) -> None:
             wide = c["location"] is None
             colour = _COLOURS.get(c["plan"], "k") if wide else f"C{c['location']}"
             ax.plot(c["separations_cm"], c["values"], _STYLE[c["model"]], color=colour, lw=2 if wide else 1.2,
-                    label=f"{c['label']}: pick {c['pick_cm']:.1f} cm")
+                    label=f"{c['label']}: pick {c['pick_cm']:.1f} cm" + (" (range end)" * c["pick_at_edge"]))
             ax.plot([c["pick_cm"]], [np.interp(c["pick_cm"], c["separations_cm"], c["values"])], "v",
                     color=colour, ms=7 if wide else 5)
         ax.set_xlabel("sensor–source separation d_LC [cm]")
@@ -192,7 +199,8 @@ def draw_figure(data: dict, path: str) -> None:
                 colour = f"C{6 + j}"
                 tw.plot(p["separations_cm"], p["error"], _MARKERS[p["image"]], color=colour, ms=5,
                         mfc=colour if p["image"] == "error" else "none", ls=":", lw=0.8,
-                        label=f"end to end, {p['label']} (right axis): best {p['best_cm']:.1f} cm")
+                        label=f"end to end, {p['label']} (right axis): best {p['best_cm']:.1f} cm"
+                        + (" (grid end)" * p["best_at_edge"]))
                 tw.plot([p["best_cm"]], [min(p["error"])], "*", color=colour, ms=12)
             tw.set_ylabel("end-to-end error vs T (lower is better)")
             h2, l2 = tw.get_legend_handles_labels()

@@ -118,7 +118,9 @@ def test_end_to_end_points_are_the_validations_rows():
     assert set(pts) == {("flood", "error"), ("polarized_flood", "error_e_b")}
     assert pts["flood", "error"]["separations_cm"] == pytest.approx([10, 20, 30])
     assert pts["flood", "error"]["error"] == [0.6, 0.35, 0.4] and pts["flood", "error"]["best_cm"] == 20
-    assert panel["curves"][0]["values"] == [0.5, 1.0] and panel["curves"][0]["pick_cm"] == 20
+    assert not pts["flood", "error"]["best_at_edge"] and pts["polarized_flood", "error_e_b"]["best_at_edge"]
+    curve = panel["curves"][0]
+    assert curve["values"] == [0.5, 1.0] and curve["pick_cm"] == 20 and curve["pick_at_edge"]
     del doc["validation"]
     assert figure_data(doc)["panels"][0]["e2e"] == []
 
