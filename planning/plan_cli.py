@@ -3,9 +3,10 @@
 Prints the optimum and the curve per modality (default: 1 − the expected error; ``--measure paper``: flood
 CQM·W, stripes margin·W), with and without a polarizer; ``--json`` prints one object keyed ``flood``,
 ``flood_polarized``, ``stripes``, ``stripes_polarized``, ``model`` (measure and orders). Unless the plan is
-the paper's own (``--measure paper --orders single``), the same sweep with the paper's measure and single
-scattering is made beside it (the JSON's ``reference``); Fig. 10's question, rotate, translate or both, is
-answered for both (``scans``). ``--plot`` draws the paper's Figs. 9a and 10d with both
+the paper's own (``--measure paper --orders single``), ``--reference``, ``--plot`` and ``--validate`` make the
+same sweep with the paper's measure and single scattering beside it (the JSON's ``reference``; one more
+sweep); Fig. 10's question, rotate, translate or both, is answered for each model made (``scans``).
+``--plot`` draws the paper's Figs. 9a and 10d with both
 (:mod:`polarstripe.planning.plan_plot`; the JSON's ``figure`` is what is drawn); ``--validate`` judges both
 models' picks end to end, full scans through the compositor's pipeline on a grid of separations and at each
 pick (:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``), drawn on
@@ -185,6 +186,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--orders", choices=("all", "single"), default="all",
                         help="orders of scattering of the planner's model: all (default: those the scene "
                         "needs, sim/orders.py, as the simulator renders) or the paper's single scattering")
+    parser.add_argument("--reference", action="store_true",
+                        help="also plan with the paper's measure and single scattering, beside the plan "
+                        "(always with --plot and --validate; one more sweep)")
     parser.add_argument("--validate", action="store_true",
                         help="judge the picks end to end: full scans (all orders, standard) through the "
                         "compositor's pipeline, error vs the unscattered object, regret (planning.md §7)")
@@ -276,8 +280,9 @@ def main(args: argparse.Namespace) -> int:
     plans, doc = {}, {}
     for role, measure, orders in (("plan", args.measure, args.orders),
                                   ("reference", REFERENCE["measure"], REFERENCE["orders"])):
-        if role == "reference" and (args.measure, args.orders) == (measure, orders):
-            break  # the plan is the paper's own
+        if role == "reference" and ((args.measure, args.orders) == (measure, orders) or
+                                    not (args.reference or args.plot or args.validate)):
+            break  # the plan is the paper's own, or nothing asks for the comparison (it costs a sweep)
         model = plan_model(scene, measure=measure, fidelity=args.fidelity, n_stripes=args.stripes,
                            edge=args.edge, orders=orders)
         plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)

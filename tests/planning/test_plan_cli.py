@@ -1,7 +1,7 @@
 """``polarstripe plan`` (planning/plan_cli.py) on a small real plan (preview fidelity, 4 separations, 2
 stripe locations): the JSON (plain types, each entry's best separation is its objective's argmax, the
-measure per modality, PLAN_SCHEMA's refusals), the printed tables, the plot's panels, and the command's argument
-errors as one line. (test_planner.py runs the planner itself and the command end to end.)"""
+measure per modality, PLAN_SCHEMA's refusals), the printed tables, the plot's panels, and the command's
+argument errors as one line. (test_planner.py runs the planner itself and the command end to end.)"""
 
 from __future__ import annotations
 

@@ -151,3 +151,12 @@ def test_a_bad_plot_path_is_one_line_before_any_work(tmp_path, capsys, where, ne
     assert main(["plan", "--plot", where.format(tmp=tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("polarstripe plan: error: --plot: ") and needle in err[0]
+
+
+def test_the_papers_sweep_is_made_only_when_asked():
+    """The comparison costs a second sweep: a plain ``plan`` does not make it, ``--reference`` does."""
+    plain = _run(SMALL)
+    assert "reference" not in plain and {r["model"] for r in plain["scans"]} <= {"plan"}
+    asked = _run([*SMALL, "--reference"])
+    assert asked["reference"]["orders"] == "single" and {r["model"] for r in asked["scans"]} == {
+        "plan", "reference"}
