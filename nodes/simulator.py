@@ -134,6 +134,7 @@ class Simulator(Node):
 
     def setup(self):
         p = self.params
+        self.target = self.drive = self.ell14 = self._pool = None  # teardown after a setup cut short
         try:
             self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
             self.fidelity = resolve_fidelity(p.fidelity)
@@ -158,11 +159,10 @@ class Simulator(Node):
         self.camera_lost, self.frame_delay_s = False, 0.0
         self.stats = {"frames": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0, "sensor_s": 0.0,
                       "resize_s": 0.0, "busy_s": 0.0}
-        self.drive = None
-        if p.can_channel:
+        if p.can_channel:  # kept before it starts: a stop signal mid-start leaves teardown a drive to stop
             self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
-                                        settle_s=p.drive_settle_s).start()
-        self.ell14 = None
+                                        settle_s=p.drive_settle_s)
+            self.drive.start()
         if p.ell14_link:
             self.ell14 = host_ell14(p.ell14_link, self.name, self.log)
         for command in p.faults:

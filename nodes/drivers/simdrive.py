@@ -107,6 +107,15 @@ class SimCia402Drive:
     # -- life cycle ----------------------------------------------------------------------------------------
     def start(self) -> SimCia402Drive:
         inner = can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs)
+        try:
+            self._start(inner)
+        except BaseException:  # a stop signal mid-start: leave the bus (and the hub it may host)
+            self.stop()
+            inner.shutdown()
+            raise
+        return self
+
+    def _start(self, inner) -> None:
         self._gate = GatedBus(inner)
         self.network = canopen.Network(self._gate)
         self.network.NOTIFIER_CYCLE = 0.05
@@ -126,7 +135,6 @@ class SimCia402Drive:
             self._reset(application=True)  # power on
         self._thread = threading.Thread(target=self._run, name=f"simdrive {self.node_id}", daemon=True)
         self._thread.start()
-        return self
 
     def stop(self) -> None:
         """Stop the drive and leave the bus; idempotent."""

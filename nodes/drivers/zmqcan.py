@@ -118,10 +118,19 @@ class ZmqCanHub:
             self._lock_fd = None
 
     def start(self) -> ZmqCanHub:
-        self._claim()
-        self._thread = threading.Thread(target=self._run, name=f"zmqcan-hub {self.channel}", daemon=True)
-        self._thread.start()
-        self._ready.wait(5.0)
+        try:
+            self._claim()
+            self._thread = threading.Thread(target=self._run, name=f"zmqcan-hub {self.channel}",
+                                            daemon=True)
+            self._thread.start()
+            self._ready.wait(5.0)
+        except BaseException:  # a stop signal mid-start (NodeStopping, KeyboardInterrupt): leave no file
+            if self._thread is None:
+                self._unlink_files()
+            else:
+                self._ready.wait(5.0)
+                self.stop()
+            raise
         if self._error is not None:
             self._thread.join(1.0)
             self._thread = None
@@ -167,10 +176,15 @@ class ZmqCanHub:
         self._thread.join(5.0)
         ctl.close()
         self._thread = None
+        self._unlink_files()
+
+    def _unlink_files(self) -> None:
+        """Remove the ipc socket files and the lock file (the lock while still holding it), then release the
+        lock: libzmq's own unlink may come late, and a start cut short leaves the lock file alone."""
         front = self.endpoints[0]
-        if front.startswith("ipc://"):  # leave no socket or lock file behind (libzmq's unlink may come late)
+        if front.startswith("ipc://") and self._lock_fd is not None:
             base = front[len("ipc://") : -len(".in")]
-            for path in (base + ".in", base + ".out", base + ".lock"):  # the lock while still holding it
+            for path in (base + ".in", base + ".out", base + ".lock"):
                 try:
                     os.unlink(path)
                 except OSError:

@@ -130,3 +130,61 @@ def test_hub_endpoints(channel, expected):
 def test_bad_channels_are_refused(bad):
     with pytest.raises(ValueError, match="CAN channel"):
         hub_endpoints(bad)
+
+
+class _Interrupted(Exception):
+    """Stands for NodeStopping or KeyboardInterrupt raised by a stop signal."""
+
+
+@pytest.mark.parametrize("where", ["claimed", "started"])
+def test_a_hub_start_cut_short_leaves_no_file_and_frees_the_channel(tmp_path, monkeypatch, where):
+    """A stop signal while the hub starts (the simulator's setup, Ctrl-C seconds into a launch) raises out of
+    ``start``: its socket and lock files are gone and the next hub can claim the channel."""
+    import polarstripe.nodes.drivers.zmqcan as zmqcan
+
+    channel = f"ipc://{tmp_path}/seg"
+    hub = ZmqCanHub(channel)
+    if where == "claimed":  # the lock file made, the forwarding thread not yet
+        def interrupted(*args, **kwargs):
+            raise _Interrupted
+
+        monkeypatch.setattr(zmqcan.threading, "Thread", interrupted)
+    else:  # the thread has bound its sockets: the signal lands in the wait for it
+        ready = hub._ready
+
+        class FirstWaitInterrupted:
+            calls = 0
+
+            def wait(self, timeout=None):
+                self.calls += 1
+                ready.wait(timeout)
+                if self.calls == 1:
+                    raise _Interrupted
+                return True
+
+            def set(self):
+                ready.set()
+
+        monkeypatch.setattr(hub, "_ready", FirstWaitInterrupted())
+    with pytest.raises(_Interrupted):
+        hub.start()
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    with ZmqCanHub(channel):  # the channel is free again
+        assert {p.name for p in tmp_path.iterdir()} >= {"seg.in", "seg.out", "seg.lock"}
+
+
+def test_a_simulated_drive_cut_short_while_starting_leaves_its_bus_and_hub(tmp_path, monkeypatch):
+    """The simulator's drive hosts the segment's hub through its bus: a stop signal while it joins the CANopen
+    network (the simulator's setup) leaves no hub files behind, so the launch ends with no socket left."""
+    import canopen
+    from polarstripe.nodes.drivers.simdrive import SimCia402Drive
+
+    def interrupted(self, *args, **kwargs):
+        raise _Interrupted
+
+    monkeypatch.setattr(canopen.Network, "connect", interrupted)
+    channel = f"ipc://{tmp_path}/seg"
+    with pytest.raises(_Interrupted):
+        SimCia402Drive(channel, 5).start()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
