@@ -126,6 +126,12 @@ def default_separations(n: int = 60, d_min_m: float = 0.01, d_max_m: float = 0.6
 
 
 def _curve(seps: np.ndarray, objs: list[Objective], noise_free: list[Objective], cols=None) -> Curve:
+    if cols is None and objs and objs[0].frame_quality is not None:  # the error measure: the whole image
+        def whole(o):
+            return 0.0 if o.frame_saturated else o.frame_quality
+        return Curve(seps, np.array([whole(o) for o in objs]), np.array([whole(o) for o in noise_free]),
+                     np.array([o.frame_quality for o in objs]), np.ones(len(objs)),
+                     np.array([o.frame_saturated for o in objs]), None)
     pick = (lambda x: x) if cols is None else (lambda x: x[cols])
     limited = None
     if cols is not None and len(cols) == 1 and all(o.limited_by for o in objs):
