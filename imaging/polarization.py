@@ -188,23 +188,27 @@ def aolp(s1, s2) -> np.ndarray:
     return 0.5 * np.arctan2(s2, s1)
 
 
-def _object_free_pixels(e_b, e_w, roi, dark_offset: float, saturation: float | None):
-    """(E_w − E_b, E_w + E_b) at the region's pixels below ``saturation`` in both frames, offset subtracted
-    (1-D, row-major), for :func:`estimate_p` and :func:`p_bootstrap_std`."""
+def _usable(e_b, e_w, roi, dark_offset: float, saturation: float | None):
+    """(E_b, E_w) offset subtracted (float, whole frames) and the mask of the region's pixels below
+    ``saturation`` in both raw frames, for :func:`estimate_p` and :func:`p_bootstrap_std`."""
     eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
     for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
         if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
             raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
     same_shape(e_b=eb_raw, e_w=ew_raw)
-    index = roi_slices("roi", roi, eb_raw.shape)
+    use = np.zeros(eb_raw.shape, bool)
+    use[roi_slices("roi", roi, eb_raw.shape)] = True
     off = finite_param("dark_offset", dark_offset)
-    eb, ew = eb_raw[index].astype(np.float64), ew_raw[index].astype(np.float64)
-    valid = np.ones(eb.shape, bool)
     if saturation is not None:
         sat = finite_param("saturation", saturation)
-        valid &= (eb < sat) & (ew < sat)
-    eb, ew = eb[valid] - off, ew[valid] - off
-    return ew - eb, ew + eb
+        use &= (eb_raw < sat) & (ew_raw < sat)
+    return eb_raw.astype(np.float64) - off, ew_raw.astype(np.float64) - off, use
+
+
+def _object_free_pixels(e_b, e_w, roi, dark_offset: float, saturation: float | None):
+    """(E_w − E_b, E_w + E_b) at the region's usable pixels (1-D, row-major): the ``median`` rule's."""
+    eb, ew, use = _usable(e_b, e_w, roi, dark_offset, saturation)
+    return (ew - eb)[use], (ew + eb)[use]
 
 
 BLOCK_PX = 5
@@ -218,18 +222,7 @@ def _block_dops(e_b, e_w, roi, dark_offset: float, saturation: float | None):
     below ``saturation`` in both frames, offset subtracted; blocks with at least half the pixels the fullest
     block has, and light above the offset), each one's standard error, and the number of pixels used; for
     :func:`estimate_p` and :func:`p_bootstrap_std`."""
-    eb_raw, ew_raw = np.asarray(e_b), np.asarray(e_w)
-    for name, e in (("e_b", eb_raw), ("e_w", ew_raw)):
-        if e.dtype.kind not in "uif" or e.ndim != 2 or e.size == 0:
-            raise ImagingError(f"{name}: expected a non-empty 2-D numeric frame, got {e.dtype} {e.shape}")
-    same_shape(e_b=eb_raw, e_w=ew_raw)
-    use = np.zeros(eb_raw.shape, bool)
-    use[roi_slices("roi", roi, eb_raw.shape)] = True
-    off = finite_param("dark_offset", dark_offset)
-    eb, ew = eb_raw.astype(np.float64) - off, ew_raw.astype(np.float64) - off
-    if saturation is not None:
-        sat = finite_param("saturation", saturation) - off
-        use &= (eb < sat) & (ew < sat)
+    eb, ew, use = _usable(e_b, e_w, roi, dark_offset, saturation)
     h, w = use.shape
     k = BLOCK_PX
     pad = ((0, -h % k), (0, -w % k))

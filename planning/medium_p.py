@@ -68,18 +68,20 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
     two_chi = 2.0 * c.chi_rad[use]
     x = q[use][:, None] * np.column_stack([np.cos(two_chi), np.sin(two_chi)])
     y = diff[use] / total[use]
-    keep = np.ones(y.size, bool)
-    for _ in range(2):
-        (u, v), *_ = np.linalg.lstsq(x[keep], y[keep], rcond=None)
-        resid = y - x @ np.array([u, v])
-        mad = float(np.median(np.abs(resid[keep] - np.median(resid[keep]))))
-        keep = np.abs(resid) <= 4.0 * 1.4826 * mad if mad > 0 else keep
-    kappa = math.hypot(u, v)
-    if not kappa > 0 or keep.sum() < MIN_PIXELS:
+    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
+    resid = y - x @ np.array([u, v])
+    mad = float(np.median(np.abs(resid - np.median(resid))))
+    keep = np.abs(resid) <= 4.0 * 1.4826 * mad if mad > 0 else np.ones(y.size, bool)
+    if keep.sum() < MIN_PIXELS:
         return p_of_pair(pair, object_free, dark, saturation)
-    resid = resid[keep]
+    x, y = x[keep], y[keep]
+    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
+    kappa = math.hypot(u, v)
+    if not kappa > 0:
+        return p_of_pair(pair, object_free, dark, saturation)
+    resid = y - x @ np.array([u, v])
     try:
-        cov = np.linalg.inv(x[keep].T @ x[keep]) * float(resid @ resid) / max(int(keep.sum()) - 2, 1)
+        cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
     except np.linalg.LinAlgError:
         return p_of_pair(pair, object_free, dark, saturation)
     grad = np.array([u, v]) / kappa
