@@ -244,7 +244,7 @@ def _block_dops(e_b, e_w, roi, dark_offset: float, saturation: float | None):
     return m, np.sqrt(np.maximum(resid, 0.0)) / total[keep], int(n.sum())
 
 
-def upper_mean(dops: np.ndarray) -> float:
+def _upper_mean(dops: np.ndarray) -> float:
     """The mean of the highest ``TOP_FRACTION`` of ``dops`` (at least one): :func:`estimate_p`'s ``upper``
     p̂ from its block DOPs."""
     dops = np.asarray(dops, np.float64).ravel()
@@ -316,7 +316,7 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
     if used < min_pixels:
         raise ImagingError(f"roi: only {used} unsaturated pixels to estimate p from (need {min_pixels})")
     if rule == "upper":
-        p = upper_mean(dops)
+        p = _upper_mean(dops)
     else:
         total = float(np.median(total_px))
         if total <= 0.0:
@@ -347,7 +347,7 @@ def p_bootstrap_std(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation:
         shrink = math.sqrt(max(spread - float(np.mean(err ** 2)), 0.0) / spread) if spread > 0 else 0.0
         base = dops.mean() + shrink * (dops - dops.mean())
         draws = base + rng.standard_normal((n_boot, dops.size)) * err
-        return float(np.std([upper_mean(x) for x in draws]))
+        return float(np.std([_upper_mean(x) for x in draws]))
     diff, total = _object_free_pixels(e_b, e_w, roi, dark_offset, saturation)
     if diff.size == 0:
         raise ImagingError("roi: no unsaturated pixels left to estimate p from")

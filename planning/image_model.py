@@ -24,7 +24,7 @@ from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Scene, SceneError, with_separation
-from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, full_scale_dn
+from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_dn
 from polarstripe.sim.truth import unscattered_object
 
 DEFAULT_WIDTH = 48
@@ -63,7 +63,7 @@ class ImageModel:
         w = min(max(int(width), 3 * int(n_stripes)), w0)
         h = max(8, round(w * h0 / w0))
         cam = scene.camera.replace(resolution=(w, h), exposure_s=scene.camera.exposure_s * (w / w0) ** 2)
-        self.scene, self.camera = scene.replace(camera=cam), scene.camera
+        self.scene = scene.replace(camera=cam)
         if isinstance(stripe_step, bool) or int(stripe_step) != stripe_step or not 1 <= stripe_step:
             raise SceneError(f"stripe_step must be a positive integer, got {stripe_step!r}")
         self.fidelity, self.n_stripes, self.orders = fidelity, int(n_stripes), orders
@@ -111,13 +111,11 @@ class ImageModel:
 
     def saturated_fraction(self, d_lc_m: float) -> float:
         """The fraction of a flood frame without analyzer (the brightest frame of any method) at or beyond
-        full scale at separation ``d_lc_m``: DN = min(e, full well)/gain + dark offset of the scene's camera,
-        e its electrons (the low-resolution pixels collect as many as the scene camera's)."""
+        full scale at separation ``d_lc_m`` (:func:`~polarstripe.sim.sensor.mean_dn` of the low-resolution
+        camera, whose pixels collect as many electrons as the scene camera's)."""
         sd = with_separation(self.scene, d_lc_m, aim=True)
         c = render_components(sd, "flood", self.fidelity, need=("D", "A", "B"), orders=self.orders)
-        cam = self.camera
-        e = np.minimum((c.D + c.A + c.B).reshape(-1) * self._e, cam.full_well_e)
-        return float(np.mean(e / cam.gain_e_per_dn + dark_offset_dn(cam) >= full_scale_dn(cam)))
+        return float(np.mean(mean_dn(c.D + c.A + c.B, sd.camera) >= full_scale_dn(sd.camera)))
 
     def stripes(self, d_lc_m: float) -> Samples:
         """Every ``stripe_step``-th stripe's frame of the scan, (F, n): the objective composes them by eq. 7
