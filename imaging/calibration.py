@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.msgs.patterns import gray_code
+from polarstripe.sim.filestorage import read_storage
 
 MIN_POSES = 3
 HALF = 1.0   # decoding window: ± HALF squares around a corner (0.5 to 1 gave alike accuracy in simulation)
@@ -265,6 +266,7 @@ def coverage_image(poses: list[PoseResult], proj_size: tuple[int, int], *, width
 
 FILE_KEYS = ("K_cam", "dist_cam", "K_proj", "dist_proj", "R", "T", "cam_size", "proj_size")
 _COLUMNS = ("T", "dist_cam", "dist_proj", "cam_size", "proj_size")
+_SIZES = {"K_cam": 9, "K_proj": 9, "R": 9, "T": 3, "cam_size": 2, "proj_size": 2}  # numbers per key
 
 
 def save(path: str, geom: dict, extra: dict | None = None) -> None:
@@ -292,29 +294,16 @@ def load(path: str, *, cam_size=None, proj_size=None) -> dict:
     ([w, h]) a file of another rig size is an error (a camera binned by an integer factor is the same rig).
 
     :raises CalibrationError: no such file, not a FileStorage file, a key missing, another rig size."""
-    if not os.path.isfile(path):
-        raise CalibrationError(f"calibration {path!r}: no such file")
     try:
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise CalibrationError(f"calibration {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
-    try:
-        if not fs.isOpened():
-            raise CalibrationError(f"calibration {path!r}: not an OpenCV FileStorage file")
-        out = {}
-        for key in FILE_KEYS:
-            node = fs.getNode(key)
-            if node.empty():
-                if key.startswith("dist_"):
-                    out[key] = np.zeros(5)
-                    continue
-                raise CalibrationError(f"calibration {path!r}: {key} is missing")
-            value = node.mat()
-            out[key] = node.real() if value is None else value
-    except cv2.error as exc:
-        raise CalibrationError(f"calibration {path!r}: {exc.err}") from None
-    finally:
-        fs.release()
+        out = read_storage(path, FILE_KEYS, optional=("dist_cam", "dist_proj"))
+    except ValueError as exc:
+        raise CalibrationError(f"calibration {path!r}: {exc}") from None
+    for key, value in out.items():
+        if value is None:  # no distortion
+            out[key] = np.zeros(5)
+        elif key in _SIZES and (value.size != _SIZES[key] or not np.all(np.isfinite(value))):
+            raise CalibrationError(f"calibration {path!r}: {key} must be {_SIZES[key]} finite numbers, "
+                                   f"got {value.size}{'' if np.all(np.isfinite(value)) else ' (NaN or inf)'}")
     check_rig_size(out, path, cam_size=cam_size, proj_size=proj_size)
     return out
 

@@ -19,10 +19,8 @@ A file of another rig size than the scene states is one error.
 
 from __future__ import annotations
 
-import os
-
-import cv2
 import numpy as np
+from polarstripe.sim.filestorage import read_storage
 from polarstripe.sim.scene_checks import SceneError
 from polarstripe.sim.scene_parts import Scene
 
@@ -33,26 +31,13 @@ KEYS = ("K_cam", "K_proj", "R", "T", "cam_size", "proj_size")
 
 def read_rig(path: str) -> dict:
     """The rig of a calibration file: ``K_cam``, ``K_proj`` (3, 3), ``R`` (3, 3), ``T`` (3,),
-    ``cam_size``, ``proj_size`` ((w, h) ints). SceneError naming the file and the missing key."""
-    if not os.path.isfile(path):
-        raise SceneError(f"calibration {path!r}: no such file")
+    ``cam_size``, ``proj_size`` ((w, h) ints). SceneError naming the file and what is wrong with it (a file
+    OpenCV cannot parse, a missing key: sim/filestorage.py)."""
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise SceneError(f"calibration {path!r}: not an OpenCV FileStorage file ({exc.err})") from None
-    try:
-        if not fs.isOpened():
-            raise SceneError(f"calibration {path!r}: not an OpenCV FileStorage file")
-        out = {}
-        for key in KEYS:
-            node = fs.getNode(key)
-            value = None if node.empty() else node.mat()
-            if value is None:
-                raise SceneError(f"calibration {path!r}: key {key} is missing (written by polarstripe "
-                                 "calibrate?)")
-            out[key] = np.asarray(value, float)
-    finally:
-        fs.release()
+        out = read_storage(path, KEYS)
+    except ValueError as exc:
+        hint = " (written by polarstripe calibrate?)" if "missing" in str(exc) else ""
+        raise SceneError(f"calibration {path!r}: {exc}{hint}") from None
     shapes = {"K_cam": (3, 3), "K_proj": (3, 3), "R": (3, 3), "T": (3,), "cam_size": (2,), "proj_size": (2,)}
     for key, shape in shapes.items():
         if out[key].size != int(np.prod(shape)) or not np.all(np.isfinite(out[key])):

@@ -294,6 +294,31 @@ def test_3_bit5_clear_finishes_the_current_setpoint_first(peer, immediately):
         assert abs(farthest - (p0 + 2 * STEP)) <= TOLERANCE  # went all the way first
 
 
+@pytest.mark.parametrize("moved", [False, True], ids=["after_power_on", "after_a_move"])
+@pytest.mark.parametrize("timer_ms", [10, 0], ids=["event_timer", "on_change_only"])
+def test_3_a_setpoint_at_the_present_position_is_acknowledged(peer, moved, timer_ms):
+    """A set-point equal to the position actual value is a set-point like any other: bit 12 while bit 4 is
+    high, seen in a TPDO (the way BaseNode402 reads its statusword), then bit 10 without any motion; also
+    with TPDO1 sent only on a change (event timer 0), where a drive that sees "nothing to do" sends none."""
+    p0 = peer.enable_pp()
+    if moved:
+        peer.setpoint(p0 + STEP)
+        p0 = peer.wait_reached()
+    peer.write(0x1800, 5, timer_ms)
+    time.sleep(0.05)
+    mark = time.time()
+    peer.node.rpdo_pointers[0x607A].raw = p0
+    peer.node.controlword = cia.CW_ENABLE_OPERATION | cia.CW_NEW_SETPOINT | cia.CW_CHANGE_SET_IMMEDIATELY
+    deadline = time.monotonic() + 1.0
+    while not peer.node.statusword & cia.SW_SETPOINT_ACK:  # the newest TPDO1's statusword
+        assert time.monotonic() < deadline, f"set-point at {p0} not acknowledged (TPDO statusword " \
+                                            f"0x{peer.node.statusword:04X})"
+        peer.node.check_statusword(timeout=0.3)
+    peer.node.controlword = cia.CW_ENABLE_OPERATION
+    assert peer.wait_reached() == p0
+    assert set(peer.positions(mark)) == {p0}  # nothing moved
+
+
 # -- 4: homing on the current position (CiA 402-2 homing methods 35 and 37) --------------------------------
 @pytest.mark.parametrize("method", [35, 37])
 def test_4_homing_on_the_current_position_does_not_move(peer, method):
