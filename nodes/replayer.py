@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from polarstripe.msgs import Heartbeat
+from polarstripe.msgs import CALIBRATION_SCAN_ID, Composite, Heartbeat, ScanEvent
 from polarstripe.runtime.bag import BagError
 from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.node import Node
@@ -38,6 +38,7 @@ class Replayer(Node):
         delay_s: float = 1.0  # wait before the first message, for subscribers to connect [s]
         wait_for: list[str] = []  # also wait for a heartbeat of each of these nodes
         linger_s: float = 1.0  # after the last message, stay this long before stopping [s]
+        until_composed: bool = False  # stop once every replayed scan's composite is out (linger_s at most)
         exit_when_done: bool = True
         progress: bool = False  # a tqdm progress bar on stderr
 
@@ -69,6 +70,9 @@ class Replayer(Node):
         self._seen: set[str] = set()
         if p.wait_for:
             self.subscribe("heartbeat", self._on_heartbeat, msg_type=Heartbeat, mode="all")
+        self._uncomposed: set[int] = set()  # scans replayed to their end whose composite has not come
+        if p.until_composed:
+            self.subscribe("compositor/composite", self._on_composite, msg_type=Composite, mode="all")
         self._ready_at = self.now() + p.delay_s  # the node's clock: monotonic [s], virtual in the harness
         self._t0: float | None = None
         self._done_at: float | None = None
@@ -78,6 +82,9 @@ class Replayer(Node):
 
     def _on_heartbeat(self, hb: Heartbeat) -> None:
         self._seen.add(hb.node)
+
+    def _on_composite(self, c: Composite) -> None:
+        self._uncomposed.discard(c.scan_id)
 
     def _begin(self) -> None:
         start_ns = self.bag.start_ns + int(self.params.start_s * 1e9)
@@ -94,7 +101,12 @@ class Replayer(Node):
     def _pump(self) -> None:
         now = self.now()
         if self._done_at is not None:
-            if self.params.exit_when_done and now - self._done_at >= self.params.linger_s:
+            waited = now - self._done_at
+            if self.params.exit_when_done and (waited >= self.params.linger_s or (
+                    self.params.until_composed and not self._uncomposed)):
+                if self._uncomposed:
+                    self.log.warning("no composite of scan(s) %s after %.1f s", sorted(self._uncomposed),
+                                     waited)
                 self.stop(f"replayed {self.sent} messages")
             return
         if self._t0 is None:
@@ -122,6 +134,8 @@ class Replayer(Node):
             if self._t0 + (log_ns - self._b0) / 1e9 / rate > now:
                 return
             self.pubs[topic].publish(msg)
+            if isinstance(msg, ScanEvent) and msg.event == "done" and msg.scan_id < CALIBRATION_SCAN_ID:
+                self._uncomposed.add(msg.scan_id)
             self._next = None
             self.sent += 1
             if self._bar is not None:
