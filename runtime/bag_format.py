@@ -68,6 +68,34 @@ def _bin_header(n: int) -> bytes:
     )
 
 
+def _emit(kind, v, bufs: list, out: list, cur: bytearray) -> bytearray:
+    """Append wire value ``v`` of ``kind`` (array descriptors ``[buf, dtype, shape]`` index ``bufs``) in the
+    pack() form: small bytes go into ``cur``, array data over ``_SMALL`` become their own entries of ``out``
+    (views, no copy); returns the running ``cur``. A plain function, not a closure: a recursive closure is a
+    reference cycle, which would keep every message's arrays (the received frames) alive until the garbage
+    collector runs, so the receive buffers could never be reused."""
+    if v is not None and isinstance(kind, OptionalKind):
+        kind = kind.inner
+    if v is not None and isinstance(kind, ArrayKind):
+        data = memoryview(np.ascontiguousarray(bufs[v[0]]).reshape(-1).view(np.uint8))
+        cur += b"\x83" + _packb("dtype") + _packb(v[1]) + _packb("shape") + _packb(list(v[2]))
+        cur += _packb("data") + _bin_header(data.nbytes)
+        if data.nbytes < _SMALL:
+            cur += data
+        else:
+            out.append(bytes(cur))
+            out.append(data)
+            cur = bytearray()
+    elif v is not None and isinstance(kind, DictKind):
+        cur += _map_header(len(v))
+        for k, x in v.items():
+            cur += _packb(k)
+            cur = _emit(kind.inner, x, bufs, out, cur)
+    else:
+        cur += _packb(v)
+    return cur
+
+
 def payload(msg: Message, *, topic: str = "") -> list:
     """The bytes of ``pack(msg)`` as a list of buffers, array data as views (no copy of the pixels).
 
@@ -75,37 +103,14 @@ def payload(msg: Message, *, topic: str = "") -> list:
     :func:`~polarstripe.msgs.encode`.
     """
     (head, fields), bufs = packed_fields(msg, topic=topic)
-    out, cur = [], bytearray()
-
-    def emit(kind, v) -> None:  # v: a wire value of kind (array descriptors [buf, dtype, shape])
-        nonlocal cur
-        if v is not None and isinstance(kind, OptionalKind):
-            kind = kind.inner
-        if v is not None and isinstance(kind, ArrayKind):
-            data = memoryview(np.ascontiguousarray(bufs[v[0]]).reshape(-1).view(np.uint8))
-            cur += b"\x83" + _packb("dtype") + _packb(v[1]) + _packb("shape") + _packb(list(v[2]))
-            cur += _packb("data") + _bin_header(data.nbytes)
-            if data.nbytes < _SMALL:
-                cur += data
-            else:
-                out.append(bytes(cur))
-                out.append(data)
-                cur = bytearray()
-        elif v is not None and isinstance(kind, DictKind):
-            cur += _map_header(len(v))
-            for k, x in v.items():
-                cur += _packb(k)
-                emit(kind.inner, x)
-        else:
-            cur += _packb(v)
-
-    cur += _map_header(len(HEADER_ITEMS) + 1)
+    out: list = []
+    cur = bytearray(_map_header(len(HEADER_ITEMS) + 1))
     for key, value in zip(HEADER_ITEMS, head, strict=True):
         cur += _packb(key) + _packb(value)
     cur += _packb("fields") + _map_header(len(fields))
     for name, kind, value in fields:
         cur += _packb(name)
-        emit(kind, value)
+        cur = _emit(kind, value, bufs, out, cur)
     if cur:
         out.append(bytes(cur))
     return out

@@ -106,6 +106,26 @@ def test_payload_of_unusual_arrays_is_pack(arr):
     assert got.images["a"].dtype == arr.dtype and np.array_equal(got.images["a"], arr)
 
 
+def test_written_messages_are_freed_at_once(tmp_path):
+    """Once a chunk is written, nothing of the writer keeps a message's arrays (the recorder's received
+    frames) alive: without a reference cycle they are freed by reference counting, not at the next garbage
+    collection, so the receive buffers are reused instead of faulting in fresh pages for every frame."""
+    import gc
+    import weakref
+
+    gc.disable()
+    try:
+        images = [_frame(i, shape=(512, 640)).image for i in range(2)]
+        alive = [weakref.ref(a) for a in images]
+        with BagWriter(tmp_path / "a.mcap", chunk_size=1) as w:  # every message closes its chunk
+            w.add_message("/c", Composite(images={"a": images[0]}, method="m"))  # an array in a dict
+            w.add_message("/f", Frame(image=images[1], exposure_s=0.01))
+            del images
+            assert [r() for r in alive] == [None, None]
+    finally:
+        gc.enable()
+
+
 def test_large_frame_payload_is_a_view_of_the_array():
     f = _frame(1, shape=(512, 640))
     parts = payload(f)
