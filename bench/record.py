@@ -7,9 +7,10 @@ Measured in one run, on the file system of ``--dir`` (default: the system temp d
 * **BagWriter** — :class:`~polarstripe.runtime.bag.BagWriter` in this process (no bus), uncompressed
   and zstd, beside the peer, ``mcap.Writer`` with the same payloads (it copies each payload three times);
 * **recorder over the bus** — ``polarstripe record`` in its own process, subscribed (``mode="all"``) to a
-  publisher in this process over ipc: frames sent as fast as the publisher can (the recorder's sustained
-  rate is the count over its first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no
-  gap, every frame written, and how far behind the recorder ran);
+  publisher in this process over ipc (an XPUB socket: nothing is sent before the subscription has arrived):
+  frames sent as fast as the publisher can (the recorder's sustained rate is the count over its
+  first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no gap, every frame written,
+  and how far behind the recorder ran);
 * **export** — ``polarstripe bag export`` of a recording of the frames (a simulator launch's metadata, so
   camera info and tf go along) to a ROS 2 bag and to a Foxglove MCAP, in frames per second and as a ratio
   to reading the same bag alone (``BagReader.messages``, every frame decoded); warm, the median of
@@ -25,6 +26,13 @@ writing and deleting a scratch file twice the payload's size (:func:`_warm`; ove
 does it just before it sends), **cold** rows after ``--cold-pause`` seconds of idle (what a recorder meets
 when a burst of frames follows a quiet spell). On bare metal the two agree.
 
+Every row also gives the **CPU** it cost per frame (user + system; in this process the writing thread's,
+over the bus the recorder process's threads and the sender's ZeroMQ I/O thread, from /proc) and the
+**minor page faults** per frame (over the bus: the recorder's, i.e. receive buffers in fresh pages). On a
+busy machine the frame rates follow the scheduler; the CPU per frame says what each path costs. Neither row
+counts the final ``fsync`` (reported apart for the in-process rows; the recorder's comes after its last
+message).
+
 The frames are 12-bit noise with a stripe (so zstd sees realistic entropy). Numbers vary with what else runs
 on the machine; compare rows of one run.
 """
@@ -34,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -42,6 +51,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zmq
 from mcap.writer import CompressionType, Writer
 from polarstripe.msgs import Frame, decode, encode, json_schema, pack
 from polarstripe.runtime.bag import BagWriter
@@ -96,35 +106,85 @@ def _warm(directory: Path, nbytes: int) -> None:
         path.unlink()
 
 
+class _WatchedPub(PubSocket):
+    """The bench's publisher socket, an XPUB: it sees the recorder's subscription arrive, so no frame is
+    sent before (ZeroMQ drops those) however long the recorder takes to start."""
+
+    def __init__(self, endpoint: str):  # PubSocket's, with XPUB for PUB
+        self.socket = zmq.Context.instance().socket(zmq.XPUB)
+        self.socket.linger = 0
+        self.socket.sndhwm = 100_000
+        self.socket.bind(endpoint)
+        self.endpoint, self._topics = endpoint, {}
+
+    def wait_subscribed(self, topic: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and proc.poll() is None:
+            if self.socket.poll(100) and self.socket.recv() == b"\x01" + topic.encode():
+                return
+        raise RuntimeError(f"the recorder did not subscribe to {topic} (exit code {proc.poll()})")
+
+
+def _cpu(pid: int | None = None, prefix: str = "") -> tuple[float, int]:
+    """(user + system CPU seconds, minor page faults) so far of process ``pid`` (all threads), or of this
+    process's threads whose name starts with ``prefix`` (``ZMQbg``: the sender's I/O thread); from /proc
+    (Linux; (nan, 0) elsewhere)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats = (
+        [f"/proc/{pid}/stat"]
+        if pid is not None
+        else [f"/proc/self/task/{t}/stat" for t in os.listdir("/proc/self/task")]
+        if os.path.isdir("/proc/self/task")
+        else []
+    )
+    cpu, faults, seen = 0.0, 0, False
+    for path in stats:
+        try:
+            text = Path(path).read_text()
+        except OSError:  # a thread that just ended
+            continue
+        name, f = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :].split()
+        if name.startswith(prefix):
+            cpu, faults, seen = cpu + (int(f[11]) + int(f[12])) / tick, faults + int(f[7]), True
+    return (cpu, faults) if seen else (float("nan"), 0)
+
+
+def _thread_cpu(since: dict | None = None) -> dict:
+    """CPU seconds and minor page faults of the calling thread so far, or since the reading ``since``."""
+    r = resource.getrusage(getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF))
+    now = {"cpu_s": r.ru_utime + r.ru_stime, "faults": r.ru_minflt}
+    return now if since is None else {k: now[k] - since[k] for k in now}
+
+
 def _plain(path: Path, blobs: list[bytes]) -> dict:
-    t0 = time.perf_counter()
+    c0, t0 = _thread_cpu(), time.perf_counter()
     with open(path, "wb") as f:
         for b in blobs:
             f.write(b)
         f.flush()
-        t1 = time.perf_counter()
+        t1, cpu = time.perf_counter(), _thread_cpu(c0)
         os.fsync(f.fileno())
     t2 = time.perf_counter()
-    return {"s": t1 - t0, "fsync_s": t2 - t1, "bytes": os.path.getsize(path)}
+    return {"s": t1 - t0, "fsync_s": t2 - t1, "bytes": os.path.getsize(path), **cpu}
 
 
 def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
 
-    t0 = time.perf_counter()
+    c0, t0 = _thread_cpu(), time.perf_counter()
     w = BagWriter(path, compression=compression).start()
     for f in frames:
         w.add_message("/rig/camera/frame", f)
     w.finish(fsync=False)
-    t1 = time.perf_counter()
+    t1, cpu = time.perf_counter(), _thread_cpu(c0)
     fd = os.open(path, os.O_RDONLY)
     os.fsync(fd)
     os.close(fd)
-    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path)}
+    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path), **cpu}
 
 
 def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
 
-    t0 = time.perf_counter()
+    c0, t0 = _thread_cpu(), time.perf_counter()
     with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.NONE, chunk_size=1 << 20)
         w.start()
@@ -134,17 +194,22 @@ def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
             w.add_message(cid, time.time_ns(), b, f.header.stamp_ns)
         w.finish()
         fh.flush()
-        t1 = time.perf_counter()
+        t1, cpu = time.perf_counter(), _thread_cpu(c0)
         os.fsync(fh.fileno())
-    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path)}
+    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path), **cpu}
 
 
 def _over_bus(
-    tmp: Path, frames: list[Frame], compression: str, rate: float | None, warm_bytes: int = 0
+    tmp: Path,
+    frames: list[Frame],
+    compression: str,
+    rate: float | None,
+    warm_bytes: int = 0,
+    cold_pause_s: float = 3.0,
 ) -> dict:
-    """``polarstripe record`` in its own process; this process publishes ``frames`` (paced at ``rate``),
-    right after :func:`_warm` of ``warm_bytes`` if given (else memory has been idle for the recorder's
-    start-up, 2 s, and is cold)."""
+    """``polarstripe record`` in its own process; once it has subscribed, this process publishes ``frames``
+    (paced at ``rate``) right after :func:`_warm` of ``warm_bytes`` if given, else after ``cold_pause_s``
+    of idle (memory cold)."""
 
     ep = f"ipc://{tmp}/bench-cam.pub"
     graph = {
@@ -158,7 +223,7 @@ def _over_bus(
     (tmp / "graph.json").write_text(json.dumps(graph))
     bag = tmp / f"bus-{compression}.mcap"
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs")}
-    with PubSocket(ep, hwm=100_000) as ps:
+    with _WatchedPub(ep) as ps:
         pub = ps.publisher("/rig/camera/frame", Frame)
         proc = subprocess.Popen(
             [
@@ -178,9 +243,11 @@ def _over_bus(
             stderr=subprocess.PIPE,
             text=True,
         )
-        time.sleep(2.0)  # the recorder starts and subscribes (ZeroMQ drops what is sent before)
+        ps.wait_subscribed("/rig/camera/frame", proc)
+        time.sleep(0.5 if warm_bytes else cold_pause_s)  # the recorder's start-up is over; cold: idle
         if warm_bytes:
             _warm(tmp, warm_bytes)
+        (rec0, flt0), (io0, _) = _cpu(proc.pid), _cpu(prefix="ZMQbg")
         t0 = time.perf_counter()
         for k, f in enumerate(frames):
             if rate:
@@ -193,6 +260,7 @@ def _over_bus(
         while (size := bag.stat().st_size if bag.exists() else 0) != last:  # until the recorder has caught up
             last = size
             time.sleep(1.0)
+        (rec1, flt1), (io1, _) = _cpu(proc.pid), _cpu(prefix="ZMQbg")
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=300)
     if proc.returncode:
@@ -213,6 +281,9 @@ def _over_bus(
         "lag_p99_s": float(np.percentile(lags, 99)),
         "lag_max_s": float(max(lags)),
         "bytes": size,
+        "cpu_s": rec1 - rec0 + io1 - io0,  # the recorder's threads and the sender's I/O thread
+        "cpu_recorder_s": rec1 - rec0,
+        "faults": flt1 - flt0,
     }
 
 
@@ -305,14 +376,17 @@ def run(
             ):
                 memory = "warm" if warm_bytes else "cold"
                 rows[f"{name} ({memory})"] = {
-                    **_over_bus(tmp, frames, comp, pace, warm_bytes),
+                    **_over_bus(tmp, frames, comp, pace, warm_bytes, cold_pause_s),
                     "memory": memory,
                 }
     rows = out["rows"]
     plain = {"warm": rows["plain write (warm)"]["fps"], "cold": rows["plain write (cold)"]["fps"]}
+    plain_cpu = {m: rows[f"plain write ({m})"]["cpu_s"] for m in ("warm", "cold")}
     for r in rows.values():
         r["MB_s"] = r["fps"] * len(blobs[0]) / 1e6
         r["vs_plain"] = r["fps"] / plain[r["memory"]]
+        r["cpu_ms_per_frame"] = 1e3 * r["cpu_s"] / n
+        r["cpu_vs_plain"] = r["cpu_s"] / plain_cpu[r["memory"]] if plain_cpu[r["memory"]] > 0 else float("nan")
     out["payload_MB"] = total / 1e6
     if bus:
         warm_r, cold_r = (
@@ -350,7 +424,10 @@ def main(args: argparse.Namespace) -> int:
         f"recording {res['frames']} frames {res['width']}×{res['height']} uint16 "
         f"({res['frame_bytes'] / 1e6:.2f} MB each, {res['payload_MB']:.0f} MB)"
     )
-    print(f"{'writer (memory)':<41} {'frames/s':>9} {'MB/s':>8} {'vs plain':>9} {'size/raw':>9}  notes")
+    print(
+        f"{'writer (memory)':<41} {'frames/s':>9} {'MB/s':>8} {'vs plain':>9} {'size/raw':>9} "
+        f"{'CPU ms/fr':>9} {'faults/fr':>9}  notes"
+    )
     raw = res["payload_MB"] * 1e6
     for name, r in res["rows"].items():
         notes = (
@@ -361,9 +438,16 @@ def main(args: argparse.Namespace) -> int:
                 + (f", lag p99 {r['lag_p99_s'] * 1e3:.0f} ms" if "max" not in name else "")
             )
         )
-        cells = f"{r['fps']:>9.0f} {r['MB_s']:>8.0f} {r['vs_plain']:>8.0%} {r['bytes'] / raw:>9.2f}"
+        cells = (
+            f"{r['fps']:>9.0f} {r['MB_s']:>8.0f} {r['vs_plain']:>8.0%} {r['bytes'] / raw:>9.2f} "
+            f"{r['cpu_ms_per_frame']:>9.2f} {r['faults'] / res['frames']:>9.0f}"
+        )
         print(f"{name:<41} {cells}  {notes}")
-    print("vs plain: against the plain write with memory in the same state (warm or cold: module docstring)")
+    print(
+        "vs plain: against the plain write with memory in the same state (warm or cold: module docstring); "
+        "CPU: the writing thread, or over the bus the recorder's threads and the sender's I/O thread; "
+        "faults: minor page faults (the recorder's, over the bus)"
+    )
     if "export" in res:
         e = res["export"]
         w = res["rows"]["BagWriter none (warm)"]["fps"]
