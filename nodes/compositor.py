@@ -32,15 +32,13 @@ the scan).
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
-from polarstripe.imaging.compose import compose, score
+from polarstripe.imaging.compose import compose
 from polarstripe.imaging.composite import RunningComposite
 from polarstripe.msgs import (
     CALIBRATION_SCAN_ID,
@@ -54,6 +52,7 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.compositor_depth import DepthStage
 from polarstripe.nodes.compositor_output import PublishedDepth, fmt, write_comparison, write_method
+from polarstripe.nodes.compositor_scan import Scan, roi, scan_metrics
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -61,36 +60,6 @@ _DROPS = ("frames_unexpected", "frames_mismatched", "frames_bad", "frames_duplic
           "frames_bad_angle")
 FRAMES_DEADLINE, TRUTH_DEADLINE = "frames_deadline", "truth_deadline"  # the node's two one-shot timers
 TRUTHS_KEPT = 8  # truth messages of scans not finished yet
-
-
-def _roi(values: list[int]):
-    return tuple(values) if values else None
-
-
-@dataclass
-class _Scan:
-    scan_id: int
-    method: str
-    stripes: int
-    analyzer_deg: list[float]
-    steps: set[int] = field(default_factory=set)
-    frames: int = 0  # folded in
-    dropped: int = 0  # of this scan, dropped
-    bit_depth: int = 12
-    done: bool = False  # its "done" event came
-    waiting_truth: bool = False  # complete, held for its simulator/truth message
-    fault: str = ""
-
-    @property
-    def expected(self) -> int | None:
-        """Frames the scan takes: its method's patterns at each analyzer angle; None when unknown (a
-        stripe scan announced without its stripe count)."""
-        n = len(Method(self.method).patterns(self.stripes, 1)) * max(1, len(self.analyzer_deg))
-        return n or None
-
-    @property
-    def complete(self) -> bool:
-        return self.expected is not None and self.frames + self.dropped >= self.expected
 
 
 class Compositor(Node):
@@ -133,7 +102,7 @@ class Compositor(Node):
     SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
 
     def setup(self):
-        self.scan: _Scan | None = None
+        self.scan: Scan | None = None
         self.running = None  # RunningComposite, reused across scans of one shape and dtype
         self.results: dict[str, np.ma.MaskedArray] = {}  # the last composite of each method
         self.metrics: dict[str, dict] = {}
@@ -185,7 +154,7 @@ class Compositor(Node):
                              frame.step, why.removeprefix("frames_").replace("_", " "),
                              f": {detail}" if detail else "", n)
 
-    def _fold(self, scan: _Scan, frame: Frame) -> None:
+    def _fold(self, scan: Scan, frame: Frame) -> None:
         """Check a frame of ``scan`` and fold it into the running reductions, or drop it."""
         image = frame.image
         if image.ndim != 2 or image.dtype.kind not in "uif" or image.size == 0:
@@ -194,7 +163,7 @@ class Compositor(Node):
             return self._drop("frames_duplicate", frame)
         if not Method(scan.method).accepts(frame.pattern):
             return self._drop("frames_bad_pattern", frame, f"{frame.pattern!r} in a {scan.method} scan")
-        key = self._angle_key(frame.polarizer_deg, scan)
+        key = scan.angle_key(frame.polarizer_deg, self.params.angle_tolerance_deg)
         if key is False:
             return self._drop("frames_bad_angle", frame, f"{frame.polarizer_deg} not in {scan.analyzer_deg}")
         rc = self.running
@@ -209,16 +178,6 @@ class Compositor(Node):
         self.depth.add(image, frame.pattern, key)
         scan.steps.add(frame.step)
         scan.frames, scan.bit_depth = scan.frames + 1, frame.bit_depth
-
-    def _angle_key(self, angle: float | None, scan: _Scan):
-        """The scan's nominal analyzer angle nearest ``angle`` (modulo 180), None without one, or False."""
-        if not scan.analyzer_deg:
-            return None
-        if angle is None or not math.isfinite(angle):
-            return False
-        dist = [abs((angle - a + 90.0) % 180.0 - 90.0) for a in scan.analyzer_deg]
-        i = int(np.argmin(dist))
-        return scan.analyzer_deg[i] if dist[i] <= self.params.angle_tolerance_deg else False
 
     # ---- scans -----------------------------------------------------------------------------------------
     def on_scan(self, ev: ScanEvent) -> None:
@@ -249,7 +208,7 @@ class Compositor(Node):
             self.log.error("scan %d: unknown method %r (known: %s)", ev.scan_id, ev.method,
                            ", ".join(METHOD_NAMES))
             return
-        scan = self.scan = _Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
+        scan = self.scan = Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
         self.depth.start(ev.method, ev.stripes)
         if self.running is not None:
             self.running.reset()
@@ -262,7 +221,7 @@ class Compositor(Node):
             else:
                 self.early.append(frame)
 
-    def _advance(self, scan: _Scan) -> None:
+    def _advance(self, scan: Scan) -> None:
         """After a frame or the "done" event: finish the scan once it is done and complete, else (re)arm the
         deadline for the frames still in flight."""
         if not scan.done or scan.waiting_truth:
@@ -280,13 +239,13 @@ class Compositor(Node):
             self._short(scan)
             self._settle(scan)
 
-    def _short(self, scan: _Scan) -> None:
+    def _short(self, scan: Scan) -> None:
         """Note a scan that ends with frames missing."""
         if scan.expected is not None and not scan.complete:
             scan.fault = f"{scan.frames} of {scan.expected} frames"
             self.log.warning("scan %d: %s", scan.scan_id, scan.fault)
 
-    def _settle(self, scan: _Scan) -> None:
+    def _settle(self, scan: Scan) -> None:
         """The frames are in: finish now, or hold the scan for its truth message."""
         if self.params.use_truth and scan.scan_id not in self.truths and not self._truth_silent:
             scan.waiting_truth = True
@@ -323,7 +282,7 @@ class Compositor(Node):
         self.cancel(TRUTH_DEADLINE)
         self.scan = None
 
-    def _end_scan(self, scan: _Scan) -> None:
+    def _end_scan(self, scan: Scan) -> None:
         """Close the scan and publish its composite, or (nothing to composite) a Composite with
         ``metrics["error"]``."""
         self._close()
@@ -337,7 +296,7 @@ class Compositor(Node):
                                                  metrics=m))
 
     # ---- the composite ---------------------------------------------------------------------------------
-    def _truth_of(self, scan: _Scan, shape) -> Composite | None:
+    def _truth_of(self, scan: Scan, shape) -> Composite | None:
         """The scan's ``simulator/truth`` message if it came and fits frames of ``shape``, else None."""
         if not self.params.use_truth:
             return None
@@ -352,7 +311,7 @@ class Compositor(Node):
             truth = None
         return truth
 
-    def _composite(self, scan: _Scan) -> None:
+    def _composite(self, scan: Scan) -> None:
         """Compose and score the scan, publish it (and p) and write its files; PolarstripeError when there
         is nothing to composite."""
         if scan.frames == 0:
@@ -364,7 +323,7 @@ class Compositor(Node):
         dark = p.dark_offset_dn
         if dark is None:
             dark = float(truth.metrics.get("dark_offset_dn", 0.0)) if truth is not None else 0.0
-        free = _roi(p.object_free_roi)
+        free = roi(p.object_free_roi)
         if free is None and truth is not None and np.any(truth.images["S"] <= 1e-9):
             free = truth.images["S"] <= 1e-9
         made = compose(scan.method, {a: rc.result(a) for a in rc.angles}, dark_offset=dark,
@@ -382,29 +341,16 @@ class Compositor(Node):
                 write_comparison(os.path.join(p.out, "comparison.png"), self.results, self.metrics,
                                  METHOD_NAMES, getattr(self, "truth_s", None), self.depth.publisher.maps)
 
-    def _metrics(self, scan: _Scan, made, truth: Composite | None, dark: float) -> dict:
-        """The scan's numbers: its frames and settings, p, and the scores of the composite (the chart's
-        bars from the params or the truth, the error against the truth)."""
+    def _metrics(self, scan: Scan, made, truth: Composite | None, dark: float) -> dict:
+        """The scan's numbers (:func:`~polarstripe.nodes.compositor_scan.scan_metrics`), the chart's bars from
+        the params, else from the truth."""
         p = self.params
-        bright, dim = _roi(p.chart_bright_roi), _roi(p.chart_dark_roi)
-        if bright is None and truth is not None:
-            band, high = truth.images["chart_band"], truth.images["chart_high"]
-            if np.any((band >= 0) & high) and np.any((band >= 0) & ~high):
-                bright, dim = (band >= 0) & high, (band >= 0) & ~high
-        m = {"scan_id": scan.scan_id, "frames": scan.frames, "frames_dropped": scan.dropped,
-             "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
-             "saturated_pixels": made.saturated_pixels}
-        if made.p is not None:
-            m["p"], m["p_backscatter"] = made.p, made.p_backscatter
-        if scan.fault:
-            m["fault"] = scan.fault
-        m.update(score(made.image, bright=bright, dark=dim,
-                       truth=None if truth is None else truth.images["S"]))
+        m = scan_metrics(scan, made, truth, dark, roi(p.chart_bright_roi), roi(p.chart_dark_roi))
         if "metrics_error" in m:  # e.g. every bar pixel saturated: no number rather than a wrong one
             self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, m["metrics_error"])
         return m
 
-    def _publish(self, scan: _Scan, made, m: dict) -> None:
+    def _publish(self, scan: Scan, made, m: dict) -> None:
         """``compositor/composite`` (and ``compositor/medium_p`` with p), kept for the comparison."""
         image = made.image
         images = {"composite": np.ma.filled(image, 0.0).astype(np.float32),
