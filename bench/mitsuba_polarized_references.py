@@ -29,7 +29,8 @@ import numpy as np
 from polarstripe.bench.mitsuba_references import REGIONS, reference_scene, regions, scene_toml
 from polarstripe.sim.scene import Phase, Scene
 
-# name: (σ_t [1/m], phase model, g, albedo, depths rendered)
+# name: (σ_t [1/m], phase model, g, albedo, depths rendered); the circular scenes ("circ_"): the same with a
+# quarter-wave plate after the source's polarizer, its fast axis at 45° (V = +1, docs/physics.md §5.1)
 SCENES = {
     "tthg08_s2": (2.0, "tthg", 0.8, 1.0, (2, -1)),
     "tthg08_s5": (5.0, "tthg", 0.8, 1.0, (2, 3, 4, 5, 6, -1)),
@@ -37,7 +38,12 @@ SCENES = {
     "hg05_a08_s5": (5.0, "hg", 0.5, 0.8, (2, 3, -1)),
     "hg095_a08_s5": (5.0, "hg", 0.95, 0.8, (2, 3, -1)),
     "iso_a08_s5": (5.0, "isotropic", 0.0, 0.8, (2, 3, -1)),
+    "circ_tthg08_s5": (5.0, "tthg", 0.8, 1.0, (2, 3, -1)),
+    "circ_tthg08_s2": (2.0, "tthg", 0.8, 1.0, (2, -1)),
+    "circ_hg095_a08_s5": (5.0, "hg", 0.95, 0.8, (2, -1)),
+    "circ_iso_a08_s5": (5.0, "isotropic", 0.0, 0.8, (2, -1)),
 }
+QUARTER_WAVE_DEG = 45.0
 
 
 def polarized_scene(name: str) -> Scene:
@@ -45,7 +51,8 @@ def polarized_scene(name: str) -> Scene:
     polarized at 90°, 20 cm beside a 32×32 camera, both 5 cm outside the tank)."""
     sigma, model, g, albedo, _ = SCENES[name]
     s = reference_scene(sigma, False)
-    pol = s.projector.polarization.replace(dop=1.0, angle_deg=90.0)
+    pol = s.projector.polarization.replace(dop=1.0, angle_deg=90.0, quarter_wave_deg=(
+        QUARTER_WAVE_DEG if name.startswith("circ_") else None))
     return s.replace(medium=s.medium.replace(albedo=albedo, phase=Phase(model, g)),
                      projector=s.projector.replace(polarization=pol))
 
@@ -64,6 +71,12 @@ def dop(stokes_regions: np.ndarray) -> np.ndarray:
     return np.hypot(s[..., 1, :], s[..., 2, :]) / s[..., 0, :]
 
 
+def circular(stokes_regions: np.ndarray) -> np.ndarray:
+    """Signed circular polarization S3/S0 of Stokes region means (…, 4, regions) → (…, regions)."""
+    s = np.asarray(stokes_regions, float)
+    return s[..., 3, :] / s[..., 0, :]
+
+
 def render_case(name: str, depth: int, spp: int, seeds: tuple[int, ...], pass_spp: int) -> dict:
     """Render one reference with every seed; returns the arrays stored in its npz."""
     import mitsuba as mi
@@ -77,8 +90,8 @@ def render_case(name: str, depth: int, spp: int, seeds: tuple[int, ...], pass_sp
         seconds.append(time.perf_counter() - t0)
     images = np.stack(images)
     reg = np.stack([[regions(c) for c in im] for im in images])            # seeds × 4 × 3
-    s0, d = reg[:, 0], dop(reg)
-    spread = np.stack([(s0.max(0) - s0.min(0)) / s0.mean(0), d.max(0) - d.min(0)])
+    s0, d, v = reg[:, 0], dop(reg), circular(reg)
+    spread = np.stack([(s0.max(0) - s0.min(0)) / s0.mean(0), d.max(0) - d.min(0), v.max(0) - v.min(0)])
     return {"stokes": images.astype(np.float32), "seeds": np.array(seeds), "spp": np.array(spp),
             "seconds": np.array(seconds), "max_depth": np.array(depth),
             "scene_toml": np.array(scene_toml(scene)),

@@ -43,7 +43,7 @@ def geo(view: View, name, make):
 
 
 def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
-    """B's single wide-angle scattering and its Stokes, every pixel or (``div`` > 1, whole frames) on a grid
+    """B's single wide-angle scattering and its Stokes (B, Bq, Bu, Bv), every pixel or (``div`` > 1, whole frames) on a grid
     of every div-th pixel, bilinear in between (B is continuous across the image except at silhouettes:
     pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or 1 % away from
     their own are computed exactly)."""
@@ -56,9 +56,9 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
     dirs, hits = geo(view, ("coarse", div), lambda: rays(view.scene, cam, px))
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
-    parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(3, gh, gw)
+    parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(4, gh, gw)
     t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
-    out = np.empty((3, cam.h * cam.w))
+    out = np.empty((4, cam.h * cam.w))
     bad = np.empty(cam.h * cam.w, bool)
     upsample_checked(parts, t_c, np.ascontiguousarray(x_end, float), cam.w, float(div), out, bad)
     idx = np.nonzero(bad)[0]
@@ -66,7 +66,7 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
         sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx),
                             pixels=np.zeros((idx.size, 2), int))
         out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
-    return out[0], out[1], out[2]
+    return out[0], out[1], out[2], out[3]
 
 
 def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
@@ -83,12 +83,12 @@ def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
     idx = np.nonzero(cos0 > sc.phase.cos_c)[0]
     n = view.dirs.shape[0]
     if idx.size == 0:
-        return np.zeros(n), np.zeros(n), np.zeros(n)
+        return np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
     sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
-    out = np.zeros((3, n))
+    out = np.zeros((4, n))
     out[:, idx] = np.stack(single_parts(sub, cone, tuple(k for k in ("B", "p") if k in need))[2:])
-    return out[0], out[1], out[2]
+    return out[0], out[1], out[2], out[3]
 
 
 def rays(scene, cam, pixels=None):
@@ -104,22 +104,25 @@ def take(hits: Hits, idx: np.ndarray) -> Hits:
 
 
 def polarized_source(src: Source, plan: OrdersPlan, scene) -> Source:
-    """The scaled source whose Stokes sums give the polarized part the extinction σ_p (docs/physics.md
-    §10.4); its intensity keeps σ̃_t."""
+    """The scaled source whose Stokes sums give the polarized part the extinction σ_p, the circular part
+    σ_pV (docs/physics.md §10.4, §5.1); its intensity keeps σ̃_t."""
     ph, dop = scene.medium.phase, scene.medium.dop
-    sigma_p = polarized_extinction(plan.scaled, scene.medium.sigma_s, ph.model, float(ph.g),
-                                   float(dop.depolarization))
-    return dataclasses.replace(scaled_source(src, plan), sigma_pol=sigma_p)
+    args = (plan.scaled, scene.medium.sigma_s, ph.model, float(ph.g), float(dop.depolarization))
+    return dataclasses.replace(scaled_source(src, plan), sigma_pol=polarized_extinction(*args),
+                               sigma_pol_v=polarized_extinction(*args, circular=True))
 
 
-def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid) -> Field:
+def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid,
+                    circular: bool = False) -> Field:
     """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k): the quasi-direct light deposited and
-    carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4)."""
+    carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4); ``circular``: the circular part,
+    with σ_pV and κ_V (§5.1)."""
     ph, dop = scene.medium.phase, scene.medium.dop
-    kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization))
-    deposit = dataclasses.replace(psrc, sigma_t=psrc.sigma_pol)
+    kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization), circular)
+    sigma = psrc.sigma_pol_v if circular else psrc.sigma_pol
+    deposit = dataclasses.replace(psrc, sigma_t=sigma)
     quasi = source_field(grid, deposit, scene.objects, st.oversample)
-    return solve_polarized(grid, quasi, psrc.sigma_pol, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
+    return solve_polarized(grid, quasi, sigma, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
                            orders=st.orders)
 
 
@@ -131,3 +134,11 @@ def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: 
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = 1.0 + np.where(norm > 0, dop * seen / np.where(norm > 0, norm, 1.0), 0.0)
     return bq * gain, bu * gain
+
+
+def add_circular_orders(bv: np.ndarray, seen: np.ndarray, v_back: float) -> np.ndarray:
+    """B's V plus the orders ≥ 2: the circular grid field seen along the view rays (σ_pV on the way) carries
+    κ_V^(k−1) of once-backscattered light's V, ``v_back`` = m44/m11(π)·V_L = −(1 − 2δ)·V_L (κ_V's
+    reference, docs/physics.md §5.1); every twice-backscattered path flips the helicity as once-
+    backscattered light does, so the sign is v_back's."""
+    return bv + v_back * seen

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.backscatter import (
+    add_circular_orders,
     add_polarized_orders,
     b_cone,
     b_single,
@@ -227,13 +228,14 @@ def _lengths(start, view: View, ssrc: Source) -> np.ndarray:
 
 
 def _constant_stokes(view: View, src: Source, b: np.ndarray):
-    """``dop.model = "constant"``: every order carries the stated p·DOP_L (a measured backscatter DOP)."""
+    """``dop.model = "constant"``: every order carries the stated p times the source's state (a measured
+    backscatter DOP; :func:`~polarstripe.sim.surface_field.camera_frame_stokes`)."""
     return camera_frame_stokes(src, view.scene, view.cam, view.dirs, b, None, None)
 
 
 def higher_components(view: View, src: Source, plan: OrdersPlan, need,
                       settings: HigherSettings | None = None):
-    """D, A, B, Bq, Bu per ray (flat) with all orders of scattering (module docstring)."""
+    """D, A, B, Bq, Bu, Bv per ray (flat) with all orders of scattering (module docstring)."""
     st = settings or HigherSettings()
     cam = view.cam
     if st.half_res and view.pixels is None and cam.w >= HALF_MIN[0] and cam.h >= HALF_MIN[1] and \
@@ -256,29 +258,29 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
         return dirs, hits, surface_info(view.scene.objects, hits)
 
     small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
-    _, p_half, h_half, b, bq, bu = _components(small, src, plan, need, st, parts=True)
+    _, p_half, h_half, b, bq, bu, bv = _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
     size = (cam.w, cam.h)
     up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel()
-          for x in (h_half, b, bq, bu)]
+          for x in (h_half, b, bq, bu, bv)]
     p_full = np.zeros(cam.w * cam.h)
     upsample_within(p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
                     view.surf.object_id.reshape(cam.h, cam.w), p_full)
     a = view.surf.albedo * p_full + up[0] if "A" in need else np.zeros(p_full.size)
-    return d, a, up[1], up[2], up[3]
+    return d, a, up[1], up[2], up[3], up[4]
 
 
 def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings, parts: bool = False):
-    """D, A, B, Bq, Bu (or, ``parts``, D, P, H, B, Bq, Bu with A = ρ·P + H) per ray, flat."""
+    """D, A, B, Bq, Bu, Bv (or, ``parts``, D, P, H, B, Bq, Bu, Bv with A = ρ·P + H) per ray, flat."""
     sc = plan.scaled
     ssrc = scaled_source(src, plan)
     n = view.dirs.shape[0]
     D, quasi = _direct_pair(view, src, ssrc, need if not parts else tuple(k for k in need if k != "D"))
-    A, B, Bq, Bu = (np.zeros(n) for _ in range(4))
+    A, B, Bq, Bu, Bv = (np.zeros(n) for _ in range(5))
     hit = view.surf.object_id >= 0
     want_a = "A" in need and bool(hit.any())
     if not (want_a or "B" in need) or sc.sigma_s <= 0:
-        return (D, np.zeros(n), A, B, Bq, Bu) if parts else (D, A, B, Bq, Bu)
+        return (D, np.zeros(n), A, B, Bq, Bu, Bv) if parts else (D, A, B, Bq, Bu, Bv)
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
     pol = "p" in need and "B" in need and dop.model == "rayleigh"
@@ -289,10 +291,15 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     x_end = np.minimum(t1, view.hits.t)
     fields = [orders.total] if "B" in need else []
     sigmas = [sc.sigma_t] * len(fields)
-    if pol:           # the polarized part travels with σ_p (docs/physics.md §10.4)
+    lin, circ = src.linear_circular
+    if pol:           # the polarized part travels with σ_p, the circular part with σ_pV (docs/physics.md §10.4)
         psrc = polarized_source(src, plan, view.scene)
-        fields.append(polarized_field(psrc, plan, view.scene, st, grid))
-        sigmas.append(psrc.sigma_pol)
+        if lin != 0.0:
+            fields.append(polarized_field(psrc, plan, view.scene, st, grid))
+            sigmas.append(psrc.sigma_pol)
+        if circ != 0.0:
+            fields.append(polarized_field(psrc, plan, view.scene, st, grid, circular=True))
+            sigmas.append(psrc.sigma_pol_v)
     if want_a:
         seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
@@ -304,16 +311,21 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
-        B, Bq, Bu = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
-        sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol) if pol else src
+        B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
+        sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol, sigma_pol_v=psrc.sigma_pol_v) if pol else src
         cone = b_cone(view, sp, plan, need, np.maximum(t0, 0.0))
-        B, Bq, Bu = B + cone[0], Bq + cone[1], Bu + cone[2]
+        B, Bq, Bu, Bv = B + cone[0], Bq + cone[1], Bu + cone[2], Bv + cone[3]
         if pol:
-            Bq, Bu = add_polarized_orders(Bq, Bu, seen_vals[1],
-                                          (1.0 - float(dop.depolarization)) * float(src.dop_l))
+            delta = float(dop.depolarization)
+            k = 1
+            if lin != 0.0:
+                Bq, Bu = add_polarized_orders(Bq, Bu, seen_vals[k], (1.0 - delta) * abs(lin))
+                k += 1
+            if circ != 0.0:
+                Bv = add_circular_orders(Bv, seen_vals[k], -(1.0 - 2.0 * delta) * circ)
         B = B + seen_vals[0]
         if "p" in need and dop.model == "constant":
-            Bq, Bu = _constant_stokes(view, src, B)
+            Bq, Bu, Bv = _constant_stokes(view, src, B)
     if want_a:
         hp, hn = view.hits.point[hit], view.hits.normal[hit]
         ell_l = geo(view, "ell_l", lambda: _lengths(ssrc.position, view, ssrc))
@@ -328,11 +340,11 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
         rest[hit] += e2 * np.exp(-sc.sigma_t * ell_c[hit]) / np.pi
         light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
         if parts:
-            return D, light[0], light[1] + seen_vals[-1], B, Bq, Bu
+            return D, light[0], light[1] + seen_vals[-1], B, Bq, Bu, Bv
         if view.pixels is None:
             A = view.surf.albedo * light[0] + light[1] + seen_vals[-1]
         else:
             A = np.maximum(light - D, 0.0) + seen_vals[-1]
     if parts:
-        return D, np.zeros(n), A, B, Bq, Bu
-    return (D if "D" in need else np.zeros(n)), A, B, Bq, Bu
+        return D, np.zeros(n), A, B, Bq, Bu, Bv
+    return (D if "D" in need else np.zeros(n)), A, B, Bq, Bu, Bv

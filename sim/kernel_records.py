@@ -68,7 +68,9 @@ class Polarization(NamedTuple):
     source takes the Mueller matrix's m12·Q (``mueller``: the Rayleigh-δ model with DOP_L > 0); whether the
     rays run from the source and ``Light`` is the receiver (``reversed``: A's beams); the source's unit
     E-field (3,), its DOP and the medium's δ (docs/physics.md §5); ``dsigma`` ≥ 0 the extra extinction of
-    the polarized part of the light in the Stokes sums (σ_p − σ̃_t, docs/physics.md §10.4; else 0)."""
+    the polarized part of the light in the Stokes sums (σ_p − σ̃_t, docs/physics.md §10.4; else 0); the
+    fast axis (3,) of a quarter-wave plate after the source's polarizer (zeros: none; docs/physics.md §5.1)
+    and ``dsigma_v``, the circular part's extra extinction (σ_pV − σ̃_t)."""
 
     on: bool
     mueller: bool
@@ -77,6 +79,8 @@ class Polarization(NamedTuple):
     dop_l: float
     depol: float
     dsigma: float = 0.0
+    fast_axis: np.ndarray = np.zeros(3)
+    dsigma_v: float = 0.0
 
 
 class Rays(NamedTuple):
@@ -96,11 +100,12 @@ class Intervals(NamedTuple):
 
 
 class Stokes(NamedTuple):
-    """Per-ray radiance b and its B-weighted linear Stokes sums q, u (each (n,))."""
+    """Per-ray radiance b and its B-weighted Stokes sums q, u (linear) and v (circular), each (n,)."""
 
     b: np.ndarray
     q: np.ndarray
     u: np.ndarray
+    v: np.ndarray
 
 
 class SurfacePoints(NamedTuple):

@@ -100,10 +100,24 @@ def _m12_over_m11(omm, opm, big):
 
 
 @njit(cache=True, nogil=True)
-def _cos2psi(aa, bb):
-    """cos 2ψ of a field with components aa in the scattering plane and bb normal to it (0 if none)."""
+def _source_state(aa, bb, af, bf, qwp):
+    """Unit Stokes (q, u, v) of the source light in the scattering-plane frame (docs/physics.md §5.1): a
+    linear polarizer whose E-field has components aa in the plane and bb normal to it (ψ_E = atan2(bb, aa)),
+    then, with ``qwp``, a quarter-wave plate whose fast axis has components (af, bf) (ψ_F): linear
+    cos 2(ψ_E − ψ_F) along the fast axis and v = sin 2(ψ_F − ψ_E) (Mitsuba's retarder convention). Zeros
+    where the field has no component ⊥ the light."""
     nrm = aa * aa + bb * bb
-    return (aa * aa - bb * bb) / nrm if nrm > 0 else 0.0
+    if nrm <= 0:
+        return 0.0, 0.0, 0.0
+    if not qwp:
+        return (aa * aa - bb * bb) / nrm, 2.0 * aa * bb / nrm, 0.0
+    nf = af * af + bf * bf
+    if nf <= 0:
+        return 0.0, 0.0, 0.0
+    c, s = aa * af + bb * bf, bb * af - aa * bf          # ∝ cos, sin of ψ_E − ψ_F
+    cs = c * c + s * s
+    c2d, s2d = (c * c - s * s) / cs, 2.0 * c * s / cs
+    return c2d * (af * af - bf * bf) / nf, c2d * 2.0 * af * bf / nf, -s2d
 
 
 @njit(cache=True, nogil=True)
@@ -117,11 +131,14 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
     src_pos, radius, inten, inside, facing = light
     st, ss, box_lo, box_hi = medium
     nodes, gl_t, gl_w, gl_n, sub_all, nsubs, width, split_alphas = quad
-    pol, mueller, reverse, e_field, dop_l, depol, dsigma = polarization
+    pol, mueller, reverse, e_field, dop_l, depol, dsigma, fast_axis, dsigma_v = polarization
     big = (1.0 - depol) / (1.0 + depol / 2.0)
+    big44 = big * (1.0 - 2.0 * depol) / (1.0 - depol) if depol < 1.0 else 0.0    # Hansen & Travis: ΔΔ'
+    fx, fy, fz = fast_axis[0], fast_axis[1], fast_axis[2]
+    qwp = fx * fx + fy * fy + fz * fz > 0.0
     origin, dirs, view_start = rays
     ray, lo, hi = intervals
-    b_out, q_out, u_out = out
+    b_out, q_out, u_out, v_out = out
     nmax = gl_t.shape[1]
     ang = np.empty(nmax)
     uu = np.empty(nmax)
@@ -159,14 +176,19 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
             kf = r if per_face else 0
             nfx, nfy, nfz = facing[kf, 0], facing[kf, 1], facing[kf, 2]
         a0, a1 = lo[j], hi[j]
-        bb = hw = dw = 0.0
+        bb = hw = dw = bf = hwf = dwf = 0.0
         if pol or mueller:
             # scattering-plane frame of the ray: e_perp = normalize(hvec × d) (any ⊥ when L is on the ray);
-            # the incident E-field's components: bb normal to the plane, aa in it (per node, or dw reversed)
+            # the incident E-field's components: bb normal to the plane, aa in it (per node, or dw reversed);
+            # the same for the quarter-wave plate's fast axis (bf, af)
             px, py, pz = unit_normal(hx, hy, hz, dx, dy, dz, 1e-12 * math.sqrt(h2))
             bb = px * ex + py * ey + pz * ez
             wx, wy, wz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px         # E × e_perp
             hw, dw = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
+            if qwp:
+                bf = px * fx + py * fy + pz * fz
+                wx, wy, wz = fy * pz - fz * py, fz * px - fx * pz, fx * py - fy * px
+                hwf, dwf = hx * wx + hy * wy + hz * wz, dx * wx + dy * wy + dz * wz
         # split where the scattering angle crosses multiples of the forward-lobe width
         ne = 0
         edges[ne] = a0
@@ -180,7 +202,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
         ne += 1
         if ne > 3:
             edges[1:ne - 1].sort()
-        b_ray = q_ray = u_ray = 0.0
+        b_ray = q_ray = u_ray = v_ray = 0.0
         vs = view_start[r]
         for p in range(ne - 1):
             x0, x1 = edges[p], edges[p + 1]
@@ -267,8 +289,10 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 for i in range(gl_n[rule]):
                     v = gl_w[rule, i] * phase_value(phase, omm_a[i], opm_a[i]) * math.exp(-(ang[i] - m))
                     if mueller:     # I = P·(1 + m12/m11·Q_in): the matrix normalised by its m11 is P
-                        v *= 1.0 + _m12_over_m11(omm_a[i], opm_a[i], big) * dop_l * _cos2psi(
-                            dw if reverse else (-hw + uu[i] * dw) / max(dly[i], 1e-300), bb)
+                        dn = 1.0 if reverse else 1.0 / max(dly[i], 1e-300)
+                        qn = _source_state(dw if reverse else (-hw + uu[i] * dw) * dn, bb,
+                                           dwf if reverse else (-hwf + uu[i] * dwf) * dn, bf, qwp)[0]
+                        v *= 1.0 + _m12_over_m11(omm_a[i], opm_a[i], big) * dop_l * qn
                     if use_facing:
                         cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
                                  ) / max(dly[i], 1e-300)
@@ -286,12 +310,13 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 tot = 0.0
                 qs = 0.0
                 us = 0.0
-                for jj in range(nsubs[rule]):
-                    i = sub_all[rule, jj]
-                    aa = (-hw + uu[i] * dw) / max(dly[i], 1e-300)
-                    nrm = aa * aa + bb * bb
-                    c2 = (aa * aa - bb * bb) / nrm if nrm > 0 else 0.0
-                    s2 = 2.0 * aa * bb / nrm if nrm > 0 else 0.0
+                vs = 0.0
+                # a subset of the nodes, or with a plate every node: m44 ∝ μ changes sign at 90° along rays
+                # that pass the source, which the subset does not resolve
+                for jj in range(gl_n[rule] if qwp else nsubs[rule]):
+                    i = jj if qwp else sub_all[rule, jj]
+                    dn = 1.0 / max(dly[i], 1e-300)
+                    c2, s2, v2 = _source_state((-hw + uu[i] * dw) * dn, bb, (-hwf + uu[i] * dwf) * dn, bf, qwp)
                     q_in, u_in = dop_l * c2, dop_l * s2
                     omm, opm = omm_a[i], opm_a[i]
                     mu = 0.5 * (opm - omm)
@@ -307,20 +332,25 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                     a_both = a_out * math.exp(-dsigma * leg_l[i]) if dsigma > 0.0 else 1.0
                     qs += wk[i] * (m12 * a_out + m22 * q_in * a_both) / i_out
                     us += wk[i] * m33 * u_in * a_both / i_out
+                    if qwp:     # V' = m44·V (m34 = 0); the circular part loses σ_pV − σ̃_t on both legs
+                        a_v = math.exp(-dsigma_v * (leg_c[i] + leg_l[i])) if dsigma_v > 0.0 else 1.0
+                        vs += wk[i] * big44 * 1.5 * mu * dop_l * v2 * a_v / i_out
                 if tot > 0:
                     q_ray += qs / tot * b
                     u_ray += us / tot * b
+                    v_ray += vs / tot * b
         b_out[r] += b_ray
         if pol:
             q_out[r] += q_ray
             u_out[r] += u_ray
+            v_out[r] += v_ray
 
 
 @njit(cache=True, nogil=True)
 def camera_stokes(src, origin, dirs, cr, cu, sums, q_out, u_out):
     """Rotate per-ray (q, u) of ``sums`` (a ``Stokes`` record) from the scattering-plane frame (e_par_out =
     e_perp × (−d)) into the camera's (r, u) axes ``cr``, ``cu`` (render._camera_stokes)."""
-    b, q, u = sums
+    b, q, u = sums.b, sums.q, sums.u
     lx, ly, lz = src[0] - origin[0], src[1] - origin[1], src[2] - origin[2]
     scale = math.sqrt(lx * lx + ly * ly + lz * lz)
     for i in range(dirs.shape[0]):

@@ -42,7 +42,8 @@ from polarstripe.sim.scene import Scene, SceneError
 VARIANT = "llvm_ad_mono_polarized"
 PHASE = "polarstripe_mueller"
 POLARIZER = "polarstripe_polarizer"
-SHEET_DISTANCE_M = 1e-3           # the polarizer sheet this far in front of the point source
+SHEET_DISTANCE_M = 1e-3           # the polarizer sheet this far in front of the point source (the quarter-
+                                  # wave plate, if any, twice as far)
 _STOKES_CHANNELS = (1, 4, 7, 10)  # S0.R, S1.R, S2.R, S3.R after the film's luminance channel
 
 
@@ -136,20 +137,22 @@ def register() -> None:
 
     class ModelPolarizer(mi.BSDF):
         """Ideal linear polarizer passing the projection of the local axis ``axis`` on the plane ⊥ the
-        light's direction (the model's source polarization, docs/physics.md §0.2)."""
+        light's direction (the model's source polarization, docs/physics.md §0.2); with ``retarder`` set,
+        an ideal quarter-wave plate whose fast axis is that projection instead (docs/physics.md §5.1)."""
 
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             a = np.radians(props.get("angle_deg", 90.0))
             self.axis = (float(np.cos(a)), float(np.sin(a)))
+            self.element = (mi.mueller.linear_retarder(0.5 * dr.pi) if props.get("retarder", False)
+                            else mi.mueller.linear_polarizer(1.0))
             self.m_flags = mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.Null
             self.m_components = [self.m_flags]
 
         def _m(self, fwd):
             e = mi.Vector3f(self.axis[0], self.axis[1], 0.0)
             t = dr.normalize(e - dr.dot(e, fwd) * fwd)
-            return mi.mueller.rotate_mueller_basis_collinear(mi.mueller.linear_polarizer(1.0), fwd, t,
-                                                             mi.mueller.stokes_basis(fwd))
+            return mi.mueller.rotate_mueller_basis_collinear(self.element, fwd, t, mi.mueller.stokes_basis(fwd))
 
         def sample(self, ctx, si, sample1, sample2, active=True):
             bs = mi.BSDFSample3f()
@@ -175,9 +178,10 @@ def register() -> None:
     _REGISTERED.add(mi.variant())
 
 
-def _sheet(scene: Scene) -> dict:
-    """The polarizer sheet: a rectangle ⊥ the source's axis, SHEET_DISTANCE_M ahead, local x/y = projector
-    right/up, large enough that every ray from the source into the medium box crosses it."""
+def _sheet(scene: Scene, distance: float = SHEET_DISTANCE_M, retarder: bool = False) -> dict:
+    """The polarizer sheet (``retarder``: the quarter-wave plate, its fast axis at
+    ``polarization.quarter_wave_deg``): a rectangle ⊥ the source's axis, ``distance`` ahead, local x/y =
+    projector right/up, large enough that every ray from the source into the medium box crosses it."""
     pr, ext = scene.projector, scene.medium.extent
     fr = pinhole_frame(pr.position, pr.look_at, pr.up, 60.0, (2, 2))
     lo, hi = np.asarray(ext.min, float), np.asarray(ext.max, float)
@@ -186,14 +190,17 @@ def _sheet(scene: Scene) -> dict:
     depth = v @ fr.f
     if np.any(depth <= 0):
         raise SceneError("projector: the polarized truth needs the whole medium box in front of the source")
-    d = SHEET_DISTANCE_M
+    d = float(distance)
     half_r = 1.05 * d * float(np.max(np.abs(v @ fr.r) / depth))
     half_u = 1.05 * d * float(np.max(np.abs(v @ fr.u) / depth))
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2] = half_r * fr.r, half_u * fr.u, fr.f
+    m[:3, 0], m[:3, 1], m[:3, 2] = half_r * fr.r, half_u * fr.u, np.cross(fr.r, fr.u)   # proper: r × u = −f
     m[:3, 3] = np.asarray(pr.position, float) + d * fr.f
-    return {"type": "rectangle", "to_world": m,
-            "bsdf": {"type": POLARIZER, "angle_deg": float(pr.polarization.angle_deg)}}
+    pol = pr.polarization
+    bsdf = {"type": POLARIZER, "angle_deg": float(pol.quarter_wave_deg if retarder else pol.angle_deg)}
+    if retarder:
+        bsdf["retarder"] = True
+    return {"type": "rectangle", "to_world": m, "bsdf": bsdf}
 
 
 def to_mitsuba_polarized(scene: Scene, *, max_depth: int = -1, spp: int = 1024, seed: int = 0,
@@ -221,6 +228,8 @@ def to_mitsuba_polarized(scene: Scene, *, max_depth: int = -1, spp: int = 1024, 
     if pr.polarization.dop == 1.0:
         out["light"]["intensity"]["value"] = 2.0 * float(pr.intensity_w_sr)   # the sheet passes half
         out["polarizer"] = _sheet(scene)
+        if pr.polarization.quarter_wave_deg is not None:          # after the polarizer on the light's way
+            out["retarder"] = _sheet(scene, 2.0 * SHEET_DISTANCE_M, retarder=True)
     if not native:
         return out
     select_variant(VARIANT)

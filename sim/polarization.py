@@ -4,7 +4,7 @@ Mueller model (paper appendix eq. 15; docs/physics.md §5): Hansen & Travis' dep
 matrix with depolarization factor δ, in the scattering-plane frame with Q = I_∥ − I_⊥ (Bohren–Huffman).
 The medium's Mueller matrix is the phase function times this matrix normalised by its m11, so light
 scattered from a polarized source has intensity P·(1 + m12/m11·Q_in) (docs/physics.md §5). δ = 0.2 gives
-DOP_B = 0.8 at backscatter.
+DOP_B = 0.8 at backscatter. Circular light: m44, the quarter-wave plates and V (docs/physics.md §5.1).
 """
 
 from __future__ import annotations
@@ -25,6 +25,17 @@ def rayleigh_mueller(one_minus_mu, one_plus_mu, depolarization: float):
     sin2 = omm * opm
     m22 = big * 0.75 * (1.0 + mu * mu)
     return m22 + (1.0 - big), -big * 0.75 * sin2, m22, big * 1.5 * mu
+
+
+def rayleigh_m44(one_minus_mu, one_plus_mu, depolarization: float):
+    """m44 of the depolarized-Rayleigh reduced matrix (Hansen & Travis 1974; m34 = 0), in the units of
+    :func:`rayleigh_mueller`: m44 = Δ·Δ'·(3/2)·μ, Δ' = (1 − 2δ)/(1 − δ), so Δ·Δ' = (1 − 2δ)/(1 + δ/2).
+    m44/m11 = ±(1 − 2δ) at θ = 0 and π (0.6 for δ = 0.2, against m22/m11 = 1 − δ = 0.8), negative
+    backwards: the helicity flips (the identity m44(π) = m11(π) − 2·m22(π) of randomly oriented
+    mirror-symmetric particles holds)."""
+    d = float(depolarization)
+    mu = 0.5 * (np.asarray(one_plus_mu, float) - np.asarray(one_minus_mu, float))
+    return (1.0 - 2.0 * d) / (1.0 + d / 2.0) * 1.5 * mu
 
 
 def dop_backscatter(theta_s_rad, dop_l: float = 1.0, psi_rad: float = np.pi / 2, depolarization: float = 0.2):
@@ -58,7 +69,10 @@ def analyzer(components, angle_deg: float | None, extinction_ratio: float | None
 
     I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ): object light unpolarized, backscatter with
     DOP p and angle χ (``components.p``, ``components.chi_rad``, camera frame: from image right toward
-    image up). ``angle_deg=None`` means no analyzer: D + A + B. The extinction ratio defaults to the scene's.
+    image up). With a quarter-wave plate at α in front of the analyzer (``camera.polarizer.quarter_wave_deg``)
+    p and χ are the effective ones, √(Q_α² + V²)/B and α + ½ atan2(V, Q_α), and this is the Mueller product
+    of the plate and the polarizer (docs/physics.md §5.1). ``angle_deg=None`` means no analyzer (nor plate):
+    D + A + B. The extinction ratio defaults to the scene's.
     """
     total = components.D + components.A + components.B
     if angle_deg is None:
@@ -84,10 +98,11 @@ def least_backscatter_angle(components, mask: np.ndarray | None = None) -> float
     return float((np.degrees(0.5 * np.arctan2(s2, s1)) + 90.0) % 180.0)
 
 
-def _stokes_scatter(kin, kout, ref, q, u, depolarization):
-    """Vectorised: linear Stokes (q, u) of unit-intensity light along kin (reference axis ``ref`` ⊥ kin)
-    after one scattering into kout with the reduced Mueller model; returns (q', u', ref') in kout's frame and
-    the intensity gain (m11 + m12·q_in)/m11 of the matrix normalised by its m11 (docs/physics.md §5)."""
+def _stokes_scatter(kin, kout, ref, q, u, depolarization, v=0.0):
+    """Vectorised: Stokes (q, u, v) of unit-intensity light along kin (reference axis ``ref`` ⊥ kin)
+    after one scattering into kout with the reduced Mueller model; returns (q', u', ref', gain, v') in kout's
+    frame, gain the intensity (m11 + m12·q_in)/m11 of the matrix normalised by its m11 (docs/physics.md §5)
+    and v' = m44·v/(m11 + m12·q_in)."""
     mu = (kin * kout).sum(-1)
     n = np.cross(kin, kout)
     nn = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -100,10 +115,11 @@ def _stokes_scatter(kin, kout, ref, q, u, depolarization):
     qi, ui = q * c2 + u * s2, -q * s2 + u * c2
     m11, m12, m22, m33 = rayleigh_mueller(1 - mu, 1 + mu, depolarization)
     i = m11 + m12 * qi
-    return (m12 + m22 * qi) / i, m33 * ui / i, np.cross(e_perp, kout), i / m11
+    v_out = rayleigh_m44(1 - mu, 1 + mu, depolarization) * v / i
+    return (m12 + m22 * qi) / i, m33 * ui / i, np.cross(e_perp, kout), i / m11, v_out
 
 
-def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> float:
+def pair_retention(phase_value, depolarization: float, nodes: int = 6000, circular: bool = False) -> float:
     """κ: how much of the single-scatter DOP light keeps after one more wide-angle scattering.
 
     Light along +z, polarized along y, is scattered twice back to −z through every intermediate direction ω
@@ -112,6 +128,9 @@ def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> flo
     polarization it carries), P the phase function ``phase_value(1 − μ, 1 + μ)`` (the scaled P̃ of
     docs/physics.md §10); κ = DOP(sum of the twice-scattered Stokes) ÷ DOP of once-backscattered light
     (1 − δ). The default tank gives κ ≈ 0.65; isotropic scattering 0.54.
+
+    ``circular``: the same for light circularly polarized (V = 1): κ_V = V of the twice-scattered sum ÷ V of
+    once-backscattered light (m44/m11 at π, < 0: both flip the helicity, so κ_V > 0; docs/physics.md §5.1).
     """
     k = np.arange(nodes) + 0.5
     z = 1 - 2 * k / nodes
@@ -123,10 +142,14 @@ def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> flo
     weight = phase_value(1 - w[:, 2], 1 + w[:, 2]) * phase_value(1 + w[:, 2], 1 - w[:, 2])
     if not np.any(weight > 0):
         return 0.0
-    qa, ua, ra, ga = _stokes_scatter(kin, w, np.broadcast_to([0.0, 1.0, 0.0], w.shape), np.ones(nodes),
-                                     np.zeros(nodes), depolarization)
-    qb, ub, rb, gb = _stokes_scatter(w, kout, ra, qa, ua, depolarization)
+    q0, v0 = (np.zeros(nodes), np.ones(nodes)) if circular else (np.ones(nodes), np.zeros(nodes))
+    qa, ua, ra, ga, va = _stokes_scatter(kin, w, np.broadcast_to([0.0, 1.0, 0.0], w.shape), q0,
+                                         np.zeros(nodes), depolarization, v0)
+    qb, ub, rb, gb, vb = _stokes_scatter(w, kout, ra, qa, ua, depolarization, va)
     weight = weight * ga * gb
+    if circular:
+        once = rayleigh_m44(2.0, 0.0, depolarization) / rayleigh_mueller(2.0, 0.0, depolarization)[0]
+        return float((weight * vb).sum() / weight.sum() / once) if once != 0 else 0.0
     ref = np.broadcast_to([1.0, 0.0, 0.0], w.shape)
     ang = np.arctan2((np.cross(ref, rb) * kout).sum(-1), (ref * rb).sum(-1))
     q = qb * np.cos(2 * ang) - ub * np.sin(2 * ang)
@@ -135,15 +158,19 @@ def pair_retention(phase_value, depolarization: float, nodes: int = 6000) -> flo
     return float(dop2 / (1.0 - float(depolarization))) if depolarization < 1 else 0.0
 
 
-def cone_retention(phase_value, cos_c: float, depolarization: float, nodes: int = 4000) -> float:
+def cone_retention(phase_value, cos_c: float, depolarization: float, nodes: int = 4000,
+                   circular: bool = False) -> float:
     """r_c: the fraction of its linear polarization light keeps in one scattering inside the forward cone.
 
     Scattering by θ at a uniform azimuth turns linear Stokes (Q, U) about the axis into ½(m22 + m33)/m11 of
     themselves on average (the m12 and cos 4φ terms average out), so r_c = ∫_cone P·½(m22 + m33)/m11 dω ÷
     ∫_cone P dω over θ < θ_c (cos θ_c = ``cos_c``), P = ``phase_value(1 − μ, 1 + μ)`` (docs/physics.md
     §10.4); 1 − δ at θ = 0. Nodes are uniform in log(1 − μ) from 10⁻¹² (a forward peak of HG g → 1).
+    ``circular``: r_cV = ∫_cone P·m44/m11 dω ÷ ∫_cone P dω (V is the same in every frame about the axis;
+    1 − 2δ at θ = 0: 0.6 for δ = 0.2, below linear light's 1 − δ = 0.8, docs/physics.md §5.1).
     """
     x = np.geomspace(1e-12, 1.0 - float(cos_c), int(nodes))     # x = 1 − μ
     m11, _, m22, m33 = rayleigh_mueller(x, 2.0 - x, depolarization)
+    keep = rayleigh_m44(x, 2.0 - x, depolarization) if circular else 0.5 * (m22 + m33)
     p = phase_value(x, 2.0 - x) * x                               # dμ = x d(log x)
-    return float(np.trapezoid(p * 0.5 * (m22 + m33) / m11, np.log(x)) / np.trapezoid(p, np.log(x)))
+    return float(np.trapezoid(p * keep / m11, np.log(x)) / np.trapezoid(p, np.log(x)))

@@ -93,8 +93,9 @@ class Components:
     """Radiance components [W sr⁻¹ m⁻²] before the analyzer, each (h, w), or (n,) for requested pixels.
 
     D direct (eq. 11), A surface-scattered (eq. 12), B backscatter (eq. 13), Bq/Bu the backscatter's
-    B-weighted linear Stokes in the camera frame (angles from image right toward image up), so p and χ
-    follow; ``surface`` says which pixels see which object and the chart's bars.
+    B-weighted linear Stokes in the camera frame (angles from image right toward image up) and Bv its
+    circular Stokes (docs/physics.md §5.1), so p and χ follow; ``surface`` says which pixels see which
+    object and the chart's bars.
     """
 
     D: np.ndarray
@@ -109,22 +110,54 @@ class Components:
     pixels: np.ndarray | None = None
     seconds: float = 0.0
     orders: OrdersPlan | None = None
+    Bv: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.Bv is None:
+            self.Bv = np.zeros_like(self.B)
 
     @property
     def S(self) -> np.ndarray:
         """Object signal S = D + A."""
         return self.D + self.A
 
+    def _seen(self) -> tuple[np.ndarray, np.ndarray]:
+        """The backscatter's Stokes on the analyzer's circle (docs/physics.md §5.1): (Bq, Bu) without a
+        quarter-wave plate; with one at α, (Q_α cos 2α − V sin 2α, Q_α sin 2α + V cos 2α) with
+        Q_α = Bq cos 2α + Bu sin 2α, so that Malus's law in p and χ holds for the rotating analyzer."""
+        qw = self.scene.camera.polarizer.quarter_wave_deg
+        if qw is None:
+            return self.Bq, self.Bu
+        a2 = 2.0 * np.radians(qw)
+        q_a = self.Bq * np.cos(a2) + self.Bu * np.sin(a2)
+        return q_a * np.cos(a2) - self.Bv * np.sin(a2), q_a * np.sin(a2) + self.Bv * np.cos(a2)
+
     @property
     def p(self) -> np.ndarray:
-        """Per-pixel backscatter DOP (B-weighted over the ray; 0 where B = 0)."""
+        """Per-pixel backscatter DOP as the scene's analyzer sees it (B-weighted over the ray; 0 where
+        B = 0): the linear DOP, or with a quarter-wave plate at α √(Q_α² + V²)/B (docs/physics.md §5.1)."""
+        q, u = self._seen()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.B > 0, np.clip(np.hypot(q, u) / self.B, 0.0, 1.0), 0.0)
+
+    @property
+    def chi_rad(self) -> np.ndarray:
+        """Per-pixel analyzer angle [rad, camera frame] that passes the most backscatter: the angle of its
+        linear polarization, or with a plate at α, α + ½ atan2(V, Q_α)."""
+        q, u = self._seen()
+        return 0.5 * np.arctan2(u, q)
+
+    @property
+    def dolp(self) -> np.ndarray:
+        """Per-pixel linear DOP √(Bq² + Bu²)/B of the backscatter (0 where B = 0)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(self.B > 0, np.clip(np.hypot(self.Bq, self.Bu) / self.B, 0.0, 1.0), 0.0)
 
     @property
-    def chi_rad(self) -> np.ndarray:
-        """Per-pixel angle of the backscatter polarization in the camera frame [rad]."""
-        return 0.5 * np.arctan2(self.Bu, self.Bq)
+    def v(self) -> np.ndarray:
+        """Per-pixel circular polarization V/B of the backscatter, signed (0 where B = 0)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.B > 0, np.clip(self.Bv / self.B, -1.0, 1.0), 0.0)
 
     @property
     def object_mask(self) -> np.ndarray:
@@ -135,7 +168,8 @@ class Components:
         """Linear combination a·self + b·other of the radiance fields (same pixels)."""
         return Components(a * self.D + b * other.D, a * self.A + b * other.A, a * self.B + b * other.B,
                           a * self.Bq + b * other.Bq, a * self.Bu + b * other.Bu, self.surface, self.scene,
-                          self.pattern, self.fidelity, self.pixels, self.seconds + other.seconds, self.orders)
+                          self.pattern, self.fidelity, self.pixels, self.seconds + other.seconds, self.orders,
+                          a * self.Bv + b * other.Bv)
 
 
 def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fidelity = "standard",
@@ -197,14 +231,14 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
     n = dirs.shape[0]
     view = View(scene, pat, fid, cam, dirs, hits, surf, pixels)
     if plan.modelled:
-        D, A, B, Bq, Bu = higher_components(view, src, plan, need, fid.higher)
+        D, A, B, Bq, Bu, Bv = higher_components(view, src, plan, need, fid.higher)
     else:
-        D, A, B, Bq, Bu = single_parts(view, src, need)
+        D, A, B, Bq, Bu, Bv = single_parts(view, src, need)
     shape = (cam.h, cam.w) if pixels is None else (n,)
     surf = SurfaceInfo(*(a.reshape(shape) for a in (surf.object_id, surf.albedo, surf.chart_band,
                                                      surf.chart_high)))
-    D, A, B, Bq, Bu = (a.reshape(shape) for a in (D, A, B, Bq, Bu))
-    return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan)
+    D, A, B, Bq, Bu, Bv = (a.reshape(shape) for a in (D, A, B, Bq, Bu, Bv))
+    return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan, Bv)
 
 
 def _camera_geometry(scene: Scene, cam, pixels):

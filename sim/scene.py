@@ -120,11 +120,13 @@ def _pinhole(section: str, t: dict, nested: str, nested_cls: type, nested_keys: 
 
 
 def _camera(t: dict) -> Camera:
-    return Camera(**_pinhole("camera", t, "polarizer", Polarizer, {"angle_deg", "extinction_ratio"}))
+    return Camera(**_pinhole("camera", t, "polarizer", Polarizer,
+                               {"angle_deg", "extinction_ratio", "quarter_wave_deg"}))
 
 
 def _projector(t: dict) -> Projector:
-    return Projector(**_pinhole("projector", t, "polarization", SourcePolarization, {"dop", "angle_deg"}))
+    return Projector(**_pinhole("projector", t, "polarization", SourcePolarization,
+                                  {"dop", "angle_deg", "quarter_wave_deg"}))
 
 
 def _object(i: int, t: dict, base: Path | None) -> SceneObject:

@@ -104,14 +104,20 @@ class Medium(_Part):
 
 @dataclass(frozen=True)
 class Polarizer(_Part):
-    """Analyzer in front of the camera: angle [deg] from the image right axis toward image up."""
+    """Analyzer in front of the camera: angle [deg] from the image right axis toward image up; an optional
+    quarter-wave plate in front of it, its fast axis at ``quarter_wave_deg`` in the same sense (the plate at
+    angle_deg ∓ 45° makes a circular analyzer; docs/physics.md §5.1)."""
 
     angle_deg: float | None = None
     extinction_ratio: float = 1000.0
+    quarter_wave_deg: float | None = None
 
     def __post_init__(self):
         if self.angle_deg is not None:
             object.__setattr__(self, "angle_deg", finite("camera.polarizer.angle_deg", self.angle_deg))
+        if self.quarter_wave_deg is not None:
+            object.__setattr__(self, "quarter_wave_deg",
+                               finite("camera.polarizer.quarter_wave_deg", self.quarter_wave_deg))
         er = finite("camera.polarizer.extinction_ratio", self.extinction_ratio)
         if er < 1:
             raise SceneError(f"camera.polarizer.extinction_ratio must be >= 1, got {self.extinction_ratio!r}")
@@ -164,14 +170,20 @@ class Camera(_Part):
 
 @dataclass(frozen=True)
 class SourcePolarization(_Part):
-    """Source polarization: degree ``dop`` and angle [deg] from the projector's right axis toward its up."""
+    """Source polarization: degree ``dop`` and angle [deg] from the projector's right axis toward its up;
+    an optional quarter-wave plate after the polarizer, its fast axis at ``quarter_wave_deg`` in the same
+    sense (angle_deg ± 45°: circular light; docs/physics.md §5.1)."""
 
     dop: float = 1.0
     angle_deg: float = 90.0
+    quarter_wave_deg: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "dop", unit_interval("projector.polarization.dop", self.dop))
         object.__setattr__(self, "angle_deg", finite("projector.polarization.angle_deg", self.angle_deg))
+        if self.quarter_wave_deg is not None:
+            object.__setattr__(self, "quarter_wave_deg",
+                               finite("projector.polarization.quarter_wave_deg", self.quarter_wave_deg))
 
 
 @dataclass(frozen=True)

@@ -166,29 +166,32 @@ def truncated_value(phase: TruncatedPhase, one_minus_mu, one_plus_mu) -> np.ndar
 
 
 @lru_cache(maxsize=64)
-def pair_retention_of(model: str, g: float, depolarization: float) -> float:
-    """κ of :func:`polarstripe.sim.polarization.pair_retention` for the scaled P̃ of a scene phase function."""
+def pair_retention_of(model: str, g: float, depolarization: float, circular: bool = False) -> float:
+    """κ (``circular``: κ_V) of :func:`polarstripe.sim.polarization.pair_retention` for the scaled P̃ of a
+    scene phase function."""
     from polarstripe.sim.polarization import pair_retention
 
     ph = scaled_medium(Medium(sigma_t=1.0, albedo=1.0, phase=Phase(model, g))).phase
-    return pair_retention(lambda a, b: truncated_value(ph, a, b), depolarization)
+    return pair_retention(lambda a, b: truncated_value(ph, a, b), depolarization, circular=circular)
 
 
 @lru_cache(maxsize=64)
-def cone_retention_of(model: str, g: float, depolarization: float) -> float:
-    """r_c of :func:`polarstripe.sim.polarization.cone_retention` for a scene phase function's cone."""
+def cone_retention_of(model: str, g: float, depolarization: float, circular: bool = False) -> float:
+    """r_c (``circular``: r_cV) of :func:`polarstripe.sim.polarization.cone_retention` for a scene phase
+    function's cone."""
     from polarstripe.sim.phase import evaluate
     from polarstripe.sim.polarization import cone_retention
 
     ph = Phase(model, g)
-    return cone_retention(lambda a, b: evaluate(ph, a, b), math.cos(THETA_C), depolarization)
+    return cone_retention(lambda a, b: evaluate(ph, a, b), math.cos(THETA_C), depolarization,
+                          circular=circular)
 
 
 def polarized_extinction(scaled: Scaled, sigma_s: float, model: str, g: float,
-                         depolarization: float) -> float:
+                         depolarization: float, circular: bool = False) -> float:
     """σ_p = σ̃_t + (1 − r_c)·f·σ_s [1/m]: the extinction of the polarized part of the light (docs/physics.md
     §10.4). The quasi-direct light is a Poisson sum over cone scatterings (rate f·σ_s),
     e^{−σ_t ℓ}·Σ_n (fσ_sℓ)ⁿ/n!; each scattering keeps r_c of the polarization, so its polarized part sums
-    to e^{−σ_t ℓ + r_c f σ_s ℓ} = e^{−σ_p ℓ}."""
-    return float(scaled.sigma_t + (1.0 - cone_retention_of(model, float(g), float(depolarization)))
-                 * scaled.f * float(sigma_s))
+    to e^{−σ_t ℓ + r_c f σ_s ℓ} = e^{−σ_p ℓ}. ``circular``: σ_pV with r_cV (docs/physics.md §5.1)."""
+    r_c = cone_retention_of(model, float(g), float(depolarization), bool(circular))
+    return float(scaled.sigma_t + (1.0 - r_c) * scaled.f * float(sigma_s))

@@ -38,10 +38,11 @@ class View(NamedTuple):
 
 
 def single_parts(view: View, src: Source, need) -> tuple[np.ndarray, ...]:
-    """Single scattering (paper eqs. 11–13, physical form) of ``src``: flat (n,) D, A, B, Bq, Bu per ray."""
+    """Single scattering (paper eqs. 11–13, physical form) of ``src``: flat (n,) D, A, B, Bq, Bu, Bv per
+    ray."""
     scene, pat, fid, cam, dirs, hits, surf, pixels = view
     n = dirs.shape[0]
-    D, A, B, Bq, Bu = (np.zeros(n) for _ in range(5))
+    D, A, B, Bq, Bu, Bv = (np.zeros(n) for _ in range(6))
     hit = np.nonzero(surf.object_id >= 0)[0]
     if "D" in need and hit.size:
         lit_idx = hit[pattern_lit(pat, src.frame, hits.point[hit])]          # shadow rays only where lit
@@ -57,10 +58,10 @@ def single_parts(view: View, src: Source, need) -> tuple[np.ndarray, ...]:
         lit = lit_intervals(pat, src.frame, cam.position, dirs, t0, t1)
         pol = "p" in need and scene.medium.dop.model == "rayleigh"
         res = line_radiance(src, cam.position, dirs, t0, lit, fid.xi_nodes, polarization=pol)
-        B, q, u = res if pol else (res, None, None)
+        B, q, u, v = res if pol else (res, None, None, None)
         if "p" in need:
-            Bq, Bu = camera_frame_stokes(src, scene, cam, dirs, B, q, u)
-    return D, A, B, Bq, Bu
+            Bq, Bu, Bv = camera_frame_stokes(src, scene, cam, dirs, B, q, u, v)
+    return D, A, B, Bq, Bu, Bv
 
 
 def a_field(src: Source, scene: Scene, fid, cam, hits, surf: SurfaceInfo, pixels) -> np.ndarray:
@@ -174,15 +175,20 @@ def extend_planes(scene: Scene, cam, gdirs, gval, gobj, a_at) -> dict:
     return out
 
 
-def camera_frame_stokes(src: Source, scene: Scene, cam, dirs, B, q, u):
-    """Rotate the per-ray (q, u) sums from the scattering-plane frame into the camera frame (r, u axes)."""
+def camera_frame_stokes(src: Source, scene: Scene, cam, dirs, B, q, u, v=None):
+    """Rotate the per-ray (q, u) sums from the scattering-plane frame into the camera frame (r, u axes); v
+    (circular) needs no rotation: (e_par, e_perp, k) and (r, u, −f) are both right-handed about the light's
+    direction (docs/physics.md §5.1). ``dop.model = "constant"``: p times the source's state along its
+    axis, the helicity flipped (a mirror-like backscatter)."""
     dop = scene.medium.dop
     if dop.model == "constant":
-        chi = np.arctan2(src.e_field @ cam.u, src.e_field @ cam.r)
-        return B * dop.p * src.dop_l * np.cos(2 * chi), B * dop.p * src.dop_l * np.sin(2 * chi)
+        axis = src.fast_axis if np.any(src.fast_axis) else src.e_field
+        chi = np.arctan2(axis @ cam.u, axis @ cam.r)
+        lin, circ = src.linear_circular
+        return B * dop.p * lin * np.cos(2 * chi), B * dop.p * lin * np.sin(2 * chi), -B * dop.p * circ
     qc, uc = np.empty_like(B), np.empty_like(B)
     camera_stokes(np.asarray(src.position, float), np.asarray(cam.position, float),
-                  np.ascontiguousarray(dirs), cam.r, cam.u, Stokes(B, q, u), qc, uc)
-    return qc, uc
+                  np.ascontiguousarray(dirs), cam.r, cam.u, Stokes(B, q, u, np.zeros(1)), qc, uc)
+    return qc, uc, (np.zeros_like(B) if v is None else v)
 
 

@@ -56,6 +56,29 @@ class Source:
     dop_l: float
     dop_model: object
     sigma_pol: float | None = None   # the polarized part's extinction in the Stokes sums (None: sigma_t)
+    fast_axis: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # quarter-wave plate
+    sigma_pol_v: float | None = None  # the circular part's extinction in the Stokes sums (None: sigma_t)
+    forward: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))   # the source frame's f
+
+    @property
+    def linear_circular(self) -> tuple[float, float]:
+        """(L, V) of the source light on its axis (docs/physics.md §5.1): without a plate (DOP_L, 0), linear
+        along the E-field; with one, L = DOP_L·cos 2θ linear along the fast axis (θ between the axes) and
+        V = DOP_L·sin 2(ψ_F − ψ_E) (:attr:`circular_sign`)."""
+        if not np.any(self.fast_axis):
+            return float(self.dop_l), 0.0
+        c = float(np.clip(self.e_field @ self.fast_axis, -1.0, 1.0))
+        s = float(np.linalg.norm(np.cross(self.e_field, self.fast_axis)))
+        return float(self.dop_l) * (c * c - s * s), float(self.dop_l) * self.circular_sign * 2.0 * c * s
+
+    @property
+    def circular_sign(self) -> float:
+        """The sign of V: + where (E × F)·f > 0, i.e. the fast axis F is turned from the E-field clockwise
+        as the projector sees it (right → up is counter-clockwise from behind it, clockwise for the
+        receiver: a plate at angle_deg + 45° gives V = −DOP_L); 0 without a plate."""
+        if not np.any(self.fast_axis):
+            return 0.0
+        return 1.0 if float(np.cross(self.e_field, self.fast_axis) @ self.forward) > 0.0 else -1.0
 
 
 def make_source(scene: Scene, pattern: PatternSpec) -> Source:
@@ -69,9 +92,11 @@ def make_source(scene: Scene, pattern: PatternSpec) -> Source:
     a = np.radians(pr.polarization.angle_deg)
     lo, hi = np.array(m.extent.min), np.array(m.extent.max)
     pos = np.array(pr.position, float)
+    qw = pr.polarization.quarter_wave_deg
+    fast = np.zeros(3) if qw is None else np.cos(np.radians(qw)) * fr.r + np.sin(np.radians(qw)) * fr.u
     return Source(pos, pr.intensity_w_sr, pr.source_radius_m, frame, pattern, m.sigma_t, m.sigma_s, m.phase,
                   lo, hi, bool(point_in_box(pos, lo, hi, tol=1e-12)), np.cos(a) * fr.r + np.sin(a) * fr.u,
-                  pr.polarization.dop, m.dop)
+                  pr.polarization.dop, m.dop, fast_axis=fast, forward=fr.f)
 
 
 @lru_cache(maxsize=64)
@@ -106,7 +131,7 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     intervals : (ray, lo, hi), each (m,): interval → ray index and interval ends (as
         :func:`patterns.lit_intervals` returns them).
     nodes : Gauss–Legendre nodes per interval.
-    polarization : also return the B-weighted Stokes (q, u) per ray in the scattering-plane frame.
+    polarization : also return the B-weighted Stokes (q, u, v) per ray in the scattering-plane frame.
     facing : optional (n, 3) unit normals at the source point: multiplies the integrand by
         max(0, n·(Y − L))/d_LY (the Lambertian cosine when the "source" is a surface point, for A).
         ``src.position`` may then be (n, 3), one point per ray (inside the medium), and the rays are the
@@ -118,15 +143,15 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
 
     Returns
     -------
-    B : (n,) radiance [W sr⁻¹ m⁻²]; with ``polarization`` also q, u : (n,) B-weighted sums (divide by B).
+    B : (n,) radiance [W sr⁻¹ m⁻²]; with ``polarization`` also q, u, v : (n,) B-weighted sums (divide by
+    B; v is 0 without a quarter-wave plate on the source).
     """
     n = dirs.shape[0]
     ray, lo, hi = intervals
     b_out = np.zeros(n)
-    q_out = np.zeros(n) if polarization else None
-    u_out = np.zeros(n) if polarization else None
+    q_out, u_out, v_out = (np.zeros(n), np.zeros(n), np.zeros(n)) if polarization else (None, None, None)
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or ray.size == 0:
-        return (b_out, q_out, u_out) if polarization else b_out
+        return (b_out, q_out, u_out, v_out) if polarization else b_out
     pol = bool(polarization) and src.dop_model.model == "rayleigh"
     mueller = src.dop_model.model == "rayleigh" and src.dop_l > 0.0
     f64 = np.ascontiguousarray
@@ -137,8 +162,8 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
         _polarization(src, pol, mueller, facing is not None),
         records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
         records.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
-        records.Stokes(b_out, q_out if pol else np.zeros(1), u_out if pol else np.zeros(1)))
-    return (b_out, q_out, u_out) if polarization else b_out
+        records.Stokes(b_out, *((q_out, u_out, v_out) if pol else (np.zeros(1),) * 3)))
+    return (b_out, q_out, u_out, v_out) if polarization else b_out
 
 
 def _light(src: Source, facing: np.ndarray) -> records.Light:
@@ -154,8 +179,10 @@ def _medium(src: Source) -> records.Medium:
 def _polarization(src: Source, on: bool, mueller: bool, reverse: bool) -> records.Polarization:
     depol = float(src.dop_model.depolarization) if on or mueller else 0.0
     dsigma = 0.0 if src.sigma_pol is None or not on else max(float(src.sigma_pol) - float(src.sigma_t), 0.0)
+    dsigma_v = 0.0 if src.sigma_pol_v is None or not on else max(float(src.sigma_pol_v) - float(src.sigma_t),
+                                                                  0.0)
     return records.Polarization(on, mueller, reverse, np.asarray(src.e_field, float), float(src.dop_l), depol,
-                                dsigma)
+                                dsigma, np.asarray(src.fast_axis, float), dsigma_v)
 
 
 def _phase_code(phase) -> tuple:

@@ -33,7 +33,7 @@ def _quadrature(nodes, width=math.pi, splits=()):
 
 
 def _line(light, medium, phase, origin, d, x0, x1, nodes=64, width=math.pi, splits=()):
-    out = Stokes(np.zeros(1), np.zeros(1), np.zeros(1))
+    out = Stokes(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
     kernels.line_integrals(light, medium, phase, _quadrature(nodes, width, splits),
                            Polarization(False, False, False, np.array([0.0, 1.0, 0.0]), 1.0, 0.0),
                            Rays(np.asarray(origin, float).reshape(1, 3), np.asarray(d, float).reshape(1, 3),
@@ -135,7 +135,7 @@ def test_camera_stokes_rotates_by_twice_the_scattering_plane_angle(src, sign):
     dirs = np.array([[0.0, 0.0, 1.0]])
     q_out, u_out = np.zeros(1), np.zeros(1)
     kernels.camera_stokes(np.array(src), np.zeros(3), dirs, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
-                          Stokes(np.ones(1), np.array([0.3]), np.array([0.2])), q_out, u_out)
+                          Stokes(np.ones(1), np.array([0.3]), np.array([0.2]), np.zeros(1)), q_out, u_out)
     assert (q_out[0], u_out[0]) == pytest.approx((sign * 0.3, sign * 0.2), abs=1e-15)
 
 
