@@ -23,6 +23,7 @@ BENCHES: dict[str, str] = {
     "record": "recorder sustained frame rate vs a plain file write",
     "depth": "triangulation time per stripe scan (and --accuracy: depth error vs truth)",
     "soak": "the sim rig scanning for N minutes, a node killed every M s: losses, memory, recovery",
+    "light": "linear against circular light end to end over σ_t and g, and the planner's pick",
 }
 
 

@@ -41,7 +41,7 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.runtime.process import interruptible
 from polarstripe.sim.render import render_frame, resolve_fidelity
-from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size
+from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size, with_light
 from polarstripe.sim.scene_calibration import with_calibration
 
 
@@ -57,6 +57,7 @@ class Planner(Node):
         measure: Literal["error", "paper"] = "error"  # expected error vs T | CQM, margin (docs/planning.md)
         modality: Literal["stripes", "flood"] = "stripes"
         polarized: bool = True
+        light: Literal["scene", "linear", "circular"] = "scene"  # the polarization optics (sim with_light)
         stripes: int = 30
         stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
         separations: int = 24
@@ -104,7 +105,7 @@ class Planner(Node):
                 raise SceneError(f"node {self.name!r}: param 'calibration': {exc}") from None
         if self.params.resolution:  # as the simulator does: exposure scaled to keep the DN level
             scene = scene.replace(camera=scene.camera.resized(parse_size(self.params.resolution)))
-        self.scene = scene
+        self.scene = scene if self.params.light == "scene" else with_light(scene, self.params.light)
         self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
         if "medium_p" in self.run_state:
             state = self.run_state

@@ -49,6 +49,7 @@ import os
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
+from typing import Literal
 
 import numpy as np
 from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
@@ -75,7 +76,7 @@ from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
-from polarstripe.sim.scene import Scene, SceneError, with_separation
+from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
 from polarstripe.sim.truth import unscattered_object
 
@@ -94,6 +95,7 @@ class Simulator(Node):
         exposure_s: float | None = None  # None: the scene's, scaled by (w/w_scene)^2 to keep the DN level
         medium_sigma_t: float | None = None  # override the scene medium's σ_t [1/m] (the estimator's truth)
         medium_g: float | None = None  # … and its phase function: TTHG of this mean cosine
+        light: Literal["scene", "linear", "circular"] = "scene"  # quarter-wave plates (sim with_light)
         auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
@@ -137,6 +139,7 @@ class Simulator(Node):
         self.target = self.drive = self.ell14 = self._pool = None  # teardown after a setup cut short
         try:
             self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
+            self.base = self.base if p.light == "scene" else with_light(self.base, p.light)
             self.fidelity = resolve_fidelity(p.fidelity)
             self.target = Target.of(p, self.base, self.fidelity)
             self.base = self.base if self.target is None else self.target.place(self.base, 0)

@@ -10,7 +10,9 @@ sweep); Fig. 10's question, rotate, translate or both, is answered for each mode
 (:mod:`polarstripe.planning.plan_plot`; the JSON's ``figure`` is what is drawn); ``--validate`` judges both
 models' picks end to end, full scans through the compositor's pipeline on a grid of separations and at each
 pick (:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``), drawn on
-the plot's right-hand axis.
+the plot's right-hand axis. ``--light linear|circular`` plans the rig with that light (quarter-wave plates,
+docs/physics.md §5.1); ``--light both`` also plans the polarized modalities with each and recommends one
+(:mod:`polarstripe.planning.light`; the JSON's ``light``).
 :func:`plan_to_json` and :data:`PLAN_SCHEMA` (JSON Schema 2020-12) define the JSON.
 """
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from polarstripe.planning.light import compare_lights
 from polarstripe.planning.plan_plot import (
     REFERENCE,
     check_plot_path,
@@ -38,7 +41,7 @@ from polarstripe.planning.planner import (
 )
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
-from polarstripe.sim.scene import load_scene
+from polarstripe.sim.scene import LIGHTS, load_scene, with_light
 
 HELP = ("find the best camera-source separation and stripe scan (default: the least expected error of "
         "the composite against the unscattered object; --measure paper: flood CQM*W, stripes margin*W; "
@@ -146,6 +149,8 @@ PLAN_SCHEMA = {
                                       "model": {"enum": ["plan", "reference"]},
                                       "winner": {"enum": list(SCAN_TYPES)}}}},
                    "figure": {"type": "object", "required": ["panels"]},
+                   "light": {"type": "object", "required": ["recommended", "lights", "tie"], "properties": {
+                       "recommended": {"type": "object", "additionalProperties": {"enum": list(LIGHTS)}}}},
                    "validation": {"type": "object", "required": ["grid_m", "rows", "curves"],
                                   "properties": {"rows": {"type": "array", "items": {
                                       "type": "object", "required": ["plan", "method", "image", "pick_m",
@@ -198,6 +203,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="camera width of --validate's scans (default 160)")
     parser.add_argument("--validate-exposure", choices=EXPOSURES, default="rig",
                         help="exposure of --validate's scans (default rig: see bench planner --help)")
+    parser.add_argument("--light", choices=("scene", *LIGHTS, "both"), default="scene",
+                        help="the polarization optics: the scene's (default), linear or circular light "
+                             "(quarter-wave plates on source and analyzer), or both: plan the polarized "
+                             "modalities with each and recommend one (docs/physics.md §5.1)")
     parser.add_argument("--k-detect", type=float, default=3.0,
                         help="detection threshold in noise std for the SNR weight W (default 3)")
 
@@ -249,6 +258,13 @@ def _print_tables(doc: dict) -> None:
             print(f"  {d * 100:9.1f}{row}{sat}")
 
 
+def _print_light(light: dict) -> None:
+    for key, pick in light["recommended"].items():
+        parts = ", ".join(f"{lt} {e[key]['expected_error']:.3f} at {e[key]['separation_m'] * 100:.1f} cm "
+                          f"(p {e[key]['p']:.2f})" for lt, e in light["lights"].items())
+        print(f"light for {key}: {pick} (expected error {parts})")
+
+
 def _print_validation(v: dict) -> None:
     g = v["grid_m"]
     print(f"end to end ({len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm and each pick; error vs "
@@ -275,6 +291,8 @@ def main(args: argparse.Namespace) -> int:
     if args.plot:
         check_plot_path(args.plot)
     scene = load_scene(args.scene)
+    if args.light in LIGHTS:
+        scene = with_light(scene, args.light)
     seps = default_separations(args.separations, args.range[0], args.range[1])
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans, doc = {}, {}
@@ -291,6 +309,9 @@ def main(args: argparse.Namespace) -> int:
         else:
             doc["reference"] = {"measure": measure, "orders": orders, "plans": plan_to_json(plans[role])}
     doc["scans"] = scan_rows(doc)
+    if args.light == "both":
+        doc["light"] = compare_lights(scene, seps, modalities=modalities, fidelity=args.fidelity,
+                                      n_stripes=args.stripes, orders=args.orders)
     if args.validate:
         settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width,
                                 exposure=args.validate_exposure)
@@ -308,6 +329,8 @@ def main(args: argparse.Namespace) -> int:
     else:
         _print_tables(doc)
         print_scan_rows(doc["scans"])
+        if "light" in doc:
+            _print_light(doc["light"])
         if "validation" in doc:
             _print_validation(doc["validation"])
         if args.plot:

@@ -41,9 +41,29 @@ from polarstripe.sim.scene_parts import (
 
 __all__ = [
     "DEFAULT_CHART", "Box", "BoxObject", "Camera", "DopModel", "Medium", "Phase", "PlaneObject", "Polarizer",
-    "Projector", "Scene", "SceneError", "SceneObject", "SourcePolarization", "SphereObject", "Vec3",
+    "Projector", "Scene", "SceneError", "SceneObject", "SourcePolarization", "SphereObject", "Vec3", "LIGHTS",
+    "with_light",
     "load_scene", "parse_size", "scene_from_dict", "scene_to_dict", "with_separation",
 ]
+
+
+LIGHTS = ("linear", "circular")
+
+
+def with_light(scene: Scene, light: str) -> Scene:
+    """The rig with linear or circular light (docs/physics.md §5.1): ``linear`` takes the quarter-wave plates
+    out; ``circular`` puts one after the source's polarizer at angle_deg − 45° (V_L = +DOP_L) and one at 45°
+    before the analyzer, whose rotation then reaches both circular analyzers (0° and 90°) and the linear
+    states between."""
+    if light not in LIGHTS:
+        raise SceneError(f"light must be one of {', '.join(LIGHTS)}, got {light!r}")
+    pol, an = scene.projector.polarization, scene.camera.polarizer
+    if light == "linear":
+        pol, an = pol.replace(quarter_wave_deg=None), an.replace(quarter_wave_deg=None)
+    else:
+        pol, an = pol.replace(quarter_wave_deg=pol.angle_deg - 45.0), an.replace(quarter_wave_deg=45.0)
+    return scene.replace(projector=scene.projector.replace(polarization=pol),
+                         camera=scene.camera.replace(polarizer=an))
 
 
 def with_separation(scene: Scene, d_lc_m: float, aim: bool = True) -> Scene:
