@@ -26,3 +26,21 @@ def test_simulator_node_takes_the_override_and_refuses_bad_values():
         NodeHarness(Simulator, name="simulator", params={"medium_g": "1.2"})
     with pytest.raises(ParamError, match="medium_sigma_t must be >= 0"):
         NodeHarness(Simulator, name="simulator", params={"medium_sigma_t": "-1"})
+
+
+def test_simulator_and_planner_take_the_light():
+    """Param light: circular mounts the quarter-wave plates on the simulator's and the planner's scene
+    (sim.scene.with_light); a light that is neither is a param error."""
+    from polarstripe.nodes.planner import Planner
+
+    h = NodeHarness(Simulator, name="simulator", params={"resolution": "32x24", "light": "circular"})
+    assert h.node.scene.projector.polarization.quarter_wave_deg == 45.0
+    assert h.node.scene.camera.polarizer.quarter_wave_deg == 45.0
+    h.stop()
+    h = NodeHarness(Planner, name="planner", params={"resolution": "32x24", "light": "circular",
+                                                     "publish_on_start": False, "separations": 2,
+                                                     "modality": "flood"})
+    assert h.node.scene.camera.polarizer.quarter_wave_deg == 45.0
+    h.stop()
+    with pytest.raises(ParamError, match="light"):
+        NodeHarness(Simulator, name="simulator", params={"light": "elliptic"})
