@@ -12,15 +12,16 @@ from polarstripe.msgs.patterns import PatternSpec
 from polarstripe.msgs.patterns import parse as parse_pattern
 
 
-@message("frame")
+@message("frame", version=2, older={1: 8})
 class Frame(Message):
     """One camera image and how it was taken.
 
     ``image`` is (h, w) or (h, w, c), usually uint16 DN with ``bit_depth`` significant bits. ``pattern``
-    is the
-    emitter's tag of what was lit (e.g. ``"flood"``, ``"stripe:3/30"``); ``polarizer_deg`` is the
-    analyzer angle
-    [deg] or None without a polarizer; ``scan_id``/``step`` match the frame to the emitter's request.
+    is the emitter's tag of what was lit (e.g. ``"flood"``, ``"stripe:3/30"``); ``polarizer_deg`` is the
+    analyzer angle [deg] or None without a polarizer; ``scan_id``/``step`` match the frame to the emitter's
+    request. ``mosaic_deg``: a polarization camera's frame, the raw 2×2 micro-polarizer mosaic, gives its
+    4 angles [deg] row-major from the top-left pixel (Sony: 90, 45, 135, 0); empty for any other frame.
+    Version 2 added ``mosaic_deg`` (version 1 reads with it empty).
     """
 
     image: np.ndarray
@@ -31,6 +32,7 @@ class Frame(Message):
     polarizer_deg: float | None = None
     scan_id: int = 0
     step: int = 0
+    mosaic_deg: list[float] = field(default_factory=list)
 
 
 @message("pattern", version=2, older={1: 7})

@@ -101,7 +101,7 @@ def _broken(**changes):
     "doc",
     [
         _broken(type="log"),
-        _broken(version=2),
+        _broken(version=3),
         _broken(seq=None),
         _broken(extra=1),
         _broken(f_gain=None),

@@ -30,6 +30,16 @@ def test_a_version_1_medium_estimate_has_no_mean_cosine_and_no_reason():
     assert msg.mean_cosine is None and msg.p_std is None and msg.reason == ""
 
 
+def test_a_version_1_frame_reads_as_no_mosaic():
+    import numpy as np
+    from polarstripe.msgs import Frame, encode
+    frames = encode(Frame(image=np.zeros((2, 2), np.uint16), exposure_s=0.01, step=3))
+    head = msgpack.unpackb(frames[0])
+    head[1] = 1
+    msg = decode([msgpack.packb(head[:-1]), *frames[1:]])     # version 1: no mosaic_deg
+    assert isinstance(msg, Frame) and Frame.VERSION == 2 and msg.step == 3 and msg.mosaic_deg == []
+
+
 def test_an_older_version_with_another_field_count_or_an_unknown_version_is_refused():
     with pytest.raises(MessageError, match="unknown schema version 1"):
         decode(_v1_frames("pattern", "stripe", 3, 30))  # version 1 had 7 fields: not a version 1 header
