@@ -18,6 +18,10 @@ makes the method's composite, scores it and writes it out.
 * publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, ``saturated`` uint8,
   ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``compositor/medium_p`` (p only);
   writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``;
+* a polarization camera's frame (``Frame.mosaic_deg``, a 2×2 micro-polarizer mosaic; the ``mosaic_*``
+  params are the camera's calibration and the rule of the crossed angle, docs/physics.md §4.4) is folded as
+  E_b and E_w of that one frame (polarized methods) or as its intensity a0·S0
+  (:mod:`polarstripe.nodes.compositor_mosaic`); metrics ``mosaic`` say so;
 * after a stripe scan, its depth (light-stripe triangulation with the ``geometry`` param's rig,
   :mod:`polarstripe.nodes.compositor_depth`): ``compositor/depth`` (``DepthMap``), ``depth_<method>.npy``
   and ``.ply``, ``metrics[method]["depth"]``.
@@ -40,6 +44,7 @@ import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.compose import compose
 from polarstripe.imaging.composite import RunningComposite
+from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs import (
     CALIBRATION_SCAN_ID,
     METHOD_NAMES,
@@ -51,6 +56,7 @@ from polarstripe.msgs import (
     ScanEvent,
 )
 from polarstripe.nodes.compositor_depth import DepthStage
+from polarstripe.nodes.compositor_mosaic import MosaicViews
 from polarstripe.nodes.compositor_output import PublishedDepth, fmt, write_comparison, write_method
 from polarstripe.nodes.compositor_scan import Scan, roi, scan_metrics
 from polarstripe.runtime.node import Node
@@ -86,6 +92,10 @@ class Compositor(Node):
         depth_k_sigma: float = 4.0  # a stripe is delineated where its margins exceed this many noise sigma
         depth_min_contrast: float = 0.15  # and its edges this fraction of the signal
         depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
+        mosaic_rule: Literal["local", "global", "pixel"] = "local"  # a polarization camera's E_b/E_w angle
+        mosaic_angle_sigma_px: float = 6.0  # the local rule's smoothing of the light's angle [px]
+        mosaic_extinction_ratio: float = 300.0  # the camera's calibration: micro-polarizer ER
+        mosaic_crosstalk: list[float] = [0.001, 0.0002]  # … and crosstalk to each edge, diagonal neighbour
 
         def validate(self):
             super().validate()
@@ -96,6 +106,9 @@ class Compositor(Node):
                 raise ValueError("give both chart_bright_roi and chart_dark_roi, or neither")
             if not (self.truth_wait_s > 0 and self.done_grace_s > 0 and self.early_frames >= 0):
                 raise ValueError("truth_wait_s and done_grace_s must be > 0 s, early_frames >= 0")
+            if len(self.mosaic_crosstalk) != 2:
+                raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {self.mosaic_crosstalk}")
+            MosaicViews(self)  # ImagingError (a ValueError) names a bad number
 
     PUBLISHES = {"compositor/composite": Composite, "compositor/medium_p": MediumEstimate,
                  "compositor/depth": DepthMap}
@@ -114,6 +127,7 @@ class Compositor(Node):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("compositor/medium_p")
+        self.mosaic = MosaicViews(self.params)
         self.depth = DepthStage.of(self.params, PublishedDepth(self.publisher("compositor/depth")), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
@@ -163,19 +177,33 @@ class Compositor(Node):
             return self._drop("frames_duplicate", frame)
         if not Method(scan.method).accepts(frame.pattern):
             return self._drop("frames_bad_pattern", frame, f"{frame.pattern!r} in a {scan.method} scan")
-        key = scan.angle_key(frame.polarizer_deg, self.params.angle_tolerance_deg)
-        if key is False:
-            return self._drop("frames_bad_angle", frame, f"{frame.polarizer_deg} not in {scan.analyzer_deg}")
+        sat = self.params.saturation_dn
+        sat = float((1 << frame.bit_depth) - 1) if sat is None and image.dtype.kind in "ui" else sat
+        if frame.mosaic_deg:  # a polarization camera's raw mosaic: E_b and E_w (or S0) from this one frame
+            if scan.analyzer_deg:
+                return self._drop("frames_bad_angle", frame,
+                                  f"a mosaic frame in a scan at {scan.analyzer_deg}")
+            try:
+                views = self.mosaic.views(frame, Method(scan.method).polarized, sat)
+            except ImagingError as exc:
+                return self._drop("frames_bad", frame, str(exc))
+            sat, scan.mosaic = self.mosaic.saturation, list(frame.mosaic_deg)
+        else:
+            key = scan.angle_key(frame.polarizer_deg, self.params.angle_tolerance_deg)
+            if key is False:
+                return self._drop("frames_bad_angle", frame,
+                                  f"{frame.polarizer_deg} not in {scan.analyzer_deg}")
+            views = {key: image}
+        image = next(iter(views.values()))
         rc = self.running
         if scan.frames == 0 and (rc is None or rc.shape != image.shape or rc.dtype != image.dtype):
-            sat = self.params.saturation_dn
-            sat = float((1 << frame.bit_depth) - 1) if sat is None and image.dtype.kind in "ui" else sat
             rc = self.running = RunningComposite(image.shape, image.dtype, saturation=sat)
         elif rc.shape != image.shape or rc.dtype != image.dtype:
             return self._drop("frames_bad", frame,
                               f"{image.dtype} {image.shape}, scan has {rc.dtype} {rc.shape}")
-        rc.add(image, key)
-        self.depth.add(image, frame.pattern, key)
+        for key, view in views.items():
+            rc.add(view, key)
+            self.depth.add(view, frame.pattern, key)
         scan.steps.add(frame.step)
         scan.frames, scan.bit_depth = scan.frames + 1, frame.bit_depth
 
@@ -346,6 +374,8 @@ class Compositor(Node):
         the params, else from the truth."""
         p = self.params
         m = scan_metrics(scan, made, truth, dark, roi(p.chart_bright_roi), roi(p.chart_dark_roi))
+        if scan.mosaic:
+            m["mosaic"] = {"layout_deg": scan.mosaic, "rule": p.mosaic_rule}
         if "metrics_error" in m:  # e.g. every bar pixel saturated: no number rather than a wrong one
             self.log.warning("scan %d (%s): %s", scan.scan_id, scan.method, m["metrics_error"])
         return m

@@ -29,6 +29,7 @@ class Scan:
     done: bool = False  # its "done" event came
     waiting_truth: bool = False  # complete, held for its simulator/truth message
     fault: str = ""
+    mosaic: list[float] = field(default_factory=list)  # a polarization camera's layout (its frames')
 
     @property
     def expected(self) -> int | None:

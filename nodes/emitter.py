@@ -26,7 +26,10 @@ Methods (:class:`~polarstripe.msgs.Method`): ``flood``, ``polarized_flood`` (flo
 complementary checkers, Nayar et al.'s high-frequency separation). Polarized methods take the analyzer
 angles of the request: two angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg``
 param. Unpolarized methods with angles are taken at those angles; without, with no analyzer (frames carry
-``polarizer_deg`` None).
+``polarizer_deg`` None). With ``analyzer = "mosaic"`` (a polarization camera, ``camera = "sim_polarization"``
+in the grabber) every method is one pass of its patterns with no analyzer command and no
+``camera/analyzer`` call, its ``emitter/scan`` events give no angles, and each frame holds E_b and E_w
+(the compositor demosaics it): a polarized stripe scan takes N frames instead of 2N and no stage move.
 
 Scan ids count from 1 and never repeat within a launch: the next id is kept in the run directory
 (``state/emitter.json``, runtime/liveness.py), so a respawned emitter goes on from where the last one stopped.
@@ -45,7 +48,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from polarstripe.msgs import (
     Ack,
@@ -83,10 +86,12 @@ class ScanPlan:
 
 
 def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_size: int,
-              default_analyzer_deg: list[float]) -> ScanPlan:
-    """Check ``req`` and spell out the scan; raises ``ValueError`` naming the field and the value."""
+              default_analyzer_deg: list[float], mosaic: bool = False) -> ScanPlan:
+    """Check ``req`` and spell out the scan; raises ``ValueError`` naming the field and the value. With a
+    polarization camera (``mosaic``) every method is one pass with no analyzer angle: each frame holds E_b
+    and E_w."""
     method = Method.parse(req.method)
-    polarized, family = method.polarized, method.family
+    polarized, family = method.polarized and not mosaic, method.family
     stripes = req.stripes or default_stripes
     if family == "stripe" and not 1 <= stripes <= 4096:
         raise ValueError(f"stripes={req.stripes} must be 1..4096")
@@ -100,7 +105,7 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
         if len(angles) != 2:
             raise ValueError(f"method {req.method!r} needs analyzer_deg [E_b, E_w] (or one angle, "
                              f"E_w = E_b + 90), got {req.analyzer_deg}")
-    resolved: tuple[float | None, ...] = tuple(angles) if angles else (None,)
+    resolved: tuple[float | None, ...] = tuple(angles) if angles and not mosaic else (None,)
     patterns = tuple(str(p) for p in method.patterns(stripes, checker_size))
     return ScanPlan(scan_id, req.method, patterns, resolved, stripes if family == "stripe" else 0)
 
@@ -144,6 +149,8 @@ class Emitter(Node):
         frame_timeout_s: float = 5.0  # the frame must arrive within this after the trigger's reply
         settle_tolerance_deg: float = 0.05
         max_queued: int = 8
+        analyzer: Literal["stage", "mosaic"] = "stage"  # stage: a rotating analyzer; mosaic: a polarization
+        # camera's micro-polarizers (no analyzer moves or mounts, one pass per scan)
 
         def validate(self):
             super().validate()
@@ -202,7 +209,7 @@ class Emitter(Node):
                              detail=f"emitter/start_scan: {len(self.queue)} scans already queued")
         try:
             plan = plan_scan(req, self.next_id, default_stripes=p.stripes, checker_size=p.checker_size,
-                             default_analyzer_deg=p.analyzer_deg)
+                             default_analyzer_deg=p.analyzer_deg, mosaic=p.analyzer == "mosaic")
         except ValueError as exc:
             return ScanEvent(scan_id=0, event="fault", method=req.method, detail=f"emitter/start_scan: {exc}")
         self.next_id += 1
@@ -270,7 +277,7 @@ class Emitter(Node):
         self.log.info("scan %d (%s): %d patterns x %d analyzer angles", plan.scan_id, plan.method,
                       len(plan.patterns), len(plan.angles))
         self.current = _Run(plan, requested_s, self.now())
-        if self.current.unpolarized:
+        if self.current.unpolarized and self.params.analyzer == "stage":
             try:
                 self._mount(False)
             except ScanFault as exc:
@@ -349,7 +356,7 @@ class Emitter(Node):
             self.display.blank()
         except DriverError as exc:
             self.log.error("display: %s", exc)
-        if run.unpolarized:
+        if run.unpolarized and self.params.analyzer == "stage":
             try:
                 self._mount(True)
             except ScanFault as exc:

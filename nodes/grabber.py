@@ -8,7 +8,9 @@ the camera role. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, st
 camera delivered it, with the exposure, gain and bit depth it was taken with) tagged with the pattern, the
 scan and step, and the analyzer angle. The angle is decided here and only here, where the stage's state is
 known: the newest ``polarizer/state`` when the frame is taken; None while the analyzer is out of the path (see
-``camera/analyzer``) or before any state came (no polarizer node). The reply is sent after the frame is
+``camera/analyzer``), before any state came (no polarizer node), or for a polarization camera's frame: a camera
+whose frame metadata names a 2×2 micro-polarizer mosaic (``mosaic_deg``, e.g. ``sim_polarization``) has its
+frames published with those angles in ``Frame.mosaic_deg``. The reply is sent after the frame is
 published, so a caller that then waits for the frame cannot miss it.
 
 Faults are published, never painted over: a grab that times out, a camera that disappears or a frame of the
@@ -41,7 +43,7 @@ class Grabber(Node):
     """Grabs a frame per trigger from a camera backend (see the module docstring)."""
 
     class Params(NodeParams):
-        camera: str = "sim"  # camera backend: sim | v4l2 | file, or an entry point's
+        camera: str = "sim"  # camera backend: sim | sim_polarization | v4l2 | file, or an entry point's
         camera_options: dict[str, Any] = {}  # the backend's own options (its Options)
         exposure_s: float | None = None  # None: the backend's (the simulator's scene)
         gain: float | None = None  # None: the backend's
@@ -163,9 +165,11 @@ class Grabber(Node):
         meta = shot.metadata
         if "scan_id" in meta and (meta["scan_id"], meta["step"]) != (req.scan_id, req.step):
             return self._fault(req, f"camera delivered scan {meta['scan_id']} step {meta['step']}")
+        mosaic = [float(a) for a in meta.get("mosaic_deg", ())]  # a polarization camera's raw mosaic
         self.frames.publish(Frame(image=shot.image, exposure_s=shot.exposure_s, gain=shot.gain,
                                   bit_depth=shot.bit_depth, pattern=req.pattern,
-                                  polarizer_deg=self.analyzer_deg(), scan_id=req.scan_id, step=req.step),
+                                  polarizer_deg=None if mosaic else self.analyzer_deg(), scan_id=req.scan_id,
+                                  step=req.step, mosaic_deg=mosaic),
                             stamp_ns=shot.stamp_ns)
         return Ack(ok=True, detail=f"{w}x{h} in {time.monotonic() - t0:.3f} s")
 

@@ -7,7 +7,9 @@
 1. Optionally ask the planner for a plan (``planner/plan``, Empty → Plan) and have the simulator move its
    source there (``simulator/move_source``, Plan → Ack; its reply comes after the move); optionally measure
    E_b, the analyzer angle of least backscatter (``polarizer/calibrate``), else take the ``eb_deg`` param.
-2. Before polarized scans, wait until ``polarizer/state`` shows no fault (the stage may still be connecting).
+2. Before polarized scans, wait until ``polarizer/state`` shows no fault (the stage may still be connecting);
+   with ``analyzer = "mosaic"`` (a polarization camera) there is no stage: no wait, no calibration, and
+   polarized scans ask for no angles.
    For each method of the ``methods`` param: call ``emitter/start_scan``, wait for that scan's ``done`` or
    ``fault`` on ``emitter/scan`` and, if ``wait_composite``, for the compositor's ``compositor/composite`` of
    that scan.
@@ -32,6 +34,7 @@ happened.
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 from polarstripe.msgs import (
     METHOD_NAMES,
@@ -78,6 +81,8 @@ class Sequencer(Node):
         max_rescans: int = 1
         estimator: str = "estimator"  # the node whose medium/estimate a pass waits for, if in the graph
         estimate_timeout_s: float = 300.0  # for the estimate and the plan answering it (fit + re-plan)
+        analyzer: Literal["stage", "mosaic"] = "stage"  # mosaic: a polarization camera (no stage to wait for,
+        # calibrate or turn; polarized scans ask for no angles)
 
         def validate(self):
             super().validate()
@@ -181,9 +186,10 @@ class Sequencer(Node):
                 if not ack.ok:
                     raise SequenceError(f"simulator/move_source: {ack.detail}")
         self.eb_deg = p.eb_deg
-        if p.calibrate or any(Method(m).polarized for m in p.methods):
+        stage = p.analyzer == "stage"
+        if stage and (p.calibrate or any(Method(m).polarized for m in p.methods)):
             self.wait_stage_ready()
-        if p.calibrate:
+        if p.calibrate and stage:
 
             cal = self.call("polarizer/calibrate", CalibrateRequest, Calibration, CalibrateRequest(),
                             timeout_s=60.0)
@@ -253,7 +259,8 @@ class Sequencer(Node):
     def scan_peers(self, method: str) -> list[str]:
         """The nodes of the launch graph that the waits of a ``method`` scan depend on."""
         p, nodes = self.params, self.graph.get("nodes", {})
-        names = [*p.scan_peers, *(p.polarized_peers if Method(method).polarized else [])]
+        polarized = Method(method).polarized and p.analyzer == "stage"
+        names = [*p.scan_peers, *(p.polarized_peers if polarized else [])]
         return [n for n in names if n in nodes and n != self.name
                 and (p.wait_composite or n != "compositor")]
 
@@ -310,7 +317,7 @@ class Sequencer(Node):
     def scan_once(self, method: str) -> bool:
         p = self.params
         peers = self.scan_peers(method)
-        polarized = Method(method).polarized
+        polarized = Method(method).polarized and p.analyzer == "stage"
         req = ScanRequest(method=method, stripes=p.stripes if Method(method).striped else 0,
                           analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
         t0 = time.monotonic()

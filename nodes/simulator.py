@@ -14,6 +14,11 @@ Services (relative to the namespace):
 * ``simulator/render`` (:class:`RenderRequest` → :class:`~polarstripe.msgs.Frame`) — one frame; its
   ``polarizer_deg`` is the angle it was rendered at (the frame's analyzer angle on ``camera/frame`` is the
   grabber's, from ``polarizer/state``).
+* ``simulator/render_mosaic`` (:class:`RenderRequest` → ``Frame``) — the raw frame of a polarization
+  camera (the ``sim_polarization`` camera backend): each pixel through its own micro-polarizer of a 2×2
+  mosaic (sim/mosaic.py; ``mosaic_extinction_ratio`` 300 as Sony gives the IMX250MZR at 525 nm, its spread
+  over the pixels ``mosaic_extinction_spread``, ``mosaic_crosstalk`` into each edge and diagonal neighbour,
+  ``mosaic_layout``), then the same sensor noise; ``mosaic_deg`` gives the layout, ``polarizer_deg`` is None.
 * ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
@@ -74,6 +79,8 @@ from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
+from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT, MicroPolarizerArray, linear_stokes, \
+    mosaic_radiance
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
@@ -112,6 +119,10 @@ class Simulator(Node):
         target_square_m: float = 0.015  # its squares [m]
         target_poses: int = 8  # its seeded poses (simulator/target steps through them)
         target_seed: int = 0
+        mosaic_extinction_ratio: float = SONY_EXTINCTION_RATIO  # simulator/render_mosaic's micro-polarizers
+        mosaic_extinction_spread: float = 0.1  # σ of log ER over the pixels (fixed per sensor)
+        mosaic_crosstalk: list[float] = [0.001, 0.0002]  # to each edge and diagonal neighbour
+        mosaic_layout: list[float] = list(SONY_LAYOUT)  # 2x2 angles [deg], row-major from the top left
 
         def validate(self):
             super().validate()
@@ -124,11 +135,21 @@ class Simulator(Node):
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
                 raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
             check_medium(self.medium_sigma_t, self.medium_g)
+            self.mosaic()
+
+        def mosaic(self) -> MicroPolarizerArray:
+            """The micro-polarizer array of ``simulator/render_mosaic``; ValueError names a bad param."""
+            if len(self.mosaic_crosstalk) != 2:
+                raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {self.mosaic_crosstalk}")
+            return MicroPolarizerArray(tuple(self.mosaic_layout), self.mosaic_extinction_ratio,
+                                       self.mosaic_extinction_spread, *self.mosaic_crosstalk,
+                                       seed=0 if self.seed is None else self.seed)
 
     PUBLISHES = {"simulator/truth": Composite}
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
     SERVES = {
         "simulator/render": (RenderRequest, Frame),
+        "simulator/render_mosaic": (RenderRequest, Frame),
         "simulator/move_source": (Plan, Ack),
         "simulator/fault": (SimFault, Ack),
         "simulator/target": (Empty, Ack),
@@ -181,6 +202,8 @@ class Simulator(Node):
         self.subscribe("planner/plan", self.on_plan, mode="latest")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         self.serve("simulator/render", self.render)
+        self.serve("simulator/render_mosaic", self.render_mosaic)
+        self.mosaic = p.mosaic()
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.serve("simulator/target", self.move_target)
@@ -324,6 +347,15 @@ class Simulator(Node):
         return Ack(ok=True, detail=f"separation_m={plan.separation_m:.6g} projector=({pos})")
 
     def render(self, req: RenderRequest) -> Frame:
+        """``simulator/render``: a frame through the analyzer at the drive's angle, or without one."""
+        return self._frame(req, mosaic=False)
+
+    def render_mosaic(self, req: RenderRequest) -> Frame:
+        """``simulator/render_mosaic``: the raw frame of a polarization camera, each pixel through its own
+        micro-polarizer (sim/mosaic.py, the ``mosaic_*`` params); ``mosaic_deg`` gives the layout."""
+        return self._frame(req, mosaic=True)
+
+    def _frame(self, req: RenderRequest, *, mosaic: bool) -> Frame:
         t_start = time.perf_counter()
         if self.frame_delay_s > 0:
             time.sleep(self.frame_delay_s)
@@ -337,15 +369,19 @@ class Simulator(Node):
         pattern = req.pattern.strip().lower()
         if pattern == "off":  # nothing lit: a dark frame
             radiance = np.zeros((cam.resolution[1], cam.resolution[0]))
-            angle = self.analyzer_angle() if req.analyzer else None
+            angle = self.analyzer_angle() if req.analyzer and not mosaic else None
         else:
             try:
                 comp = self.components(pattern)
             except SceneError as exc:
                 raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
-            angle = self.analyzer_angle() if req.analyzer else None
+            angle = self.analyzer_angle() if req.analyzer and not mosaic else None
             t0 = time.perf_counter()
-            radiance = to_camera(analyzer(comp, angle), cam.resolution)
+            if mosaic:
+                radiance = mosaic_radiance(*(to_camera(x, cam.resolution) for x in linear_stokes(comp)),
+                                           self.mosaic)
+            else:
+                radiance = to_camera(analyzer(comp, angle), cam.resolution)
             self.stats["resize_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         seed = self.params.seed if self.params.seed is not None else cam.seed
@@ -360,7 +396,8 @@ class Simulator(Node):
         self.log.debug("frame scan %d step %d %s: %.4f s (sensor %.4f s)", req.scan_id, req.step, pattern,
                        t_end - t_start, t_end - t0)
         return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
-                     polarizer_deg=angle, scan_id=req.scan_id, step=req.step)
+                     polarizer_deg=angle, scan_id=req.scan_id, step=req.step,
+                     mosaic_deg=list(self.mosaic.layout) if mosaic else [])
 
     def truth(self) -> Composite:
         """The ground truth at the current source pose and exposure (cached; ``scan_id`` 0)."""

@@ -54,6 +54,7 @@ BACKENDS: dict[str, dict[str, str]] = {
         "v4l2": f"{_PKG}.v4l2_camera:V4l2Camera",
         "file": f"{_PKG}.file_camera:FileCamera",
         "sim": f"{_PKG}.sim_camera:SimCamera",
+        "sim_polarization": f"{_PKG}.sim_polarization_camera:SimPolarizationCamera",
     },
 }
 

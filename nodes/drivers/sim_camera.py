@@ -72,4 +72,8 @@ class SimCamera(Camera):
         except Exception as exc:  # an error reply: the simulated camera is gone
             raise DeviceLost(f"{self.name}: {exc}") from None
         self._bit_depth, self._exposure_s = frame.bit_depth, frame.exposure_s  # what it was taken with
-        return frame.image, {"pattern": frame.pattern, "scan_id": frame.scan_id, "step": frame.step}
+        return frame.image, self._metadata(frame)
+
+    def _metadata(self, frame: Frame) -> dict:
+        """The grabbed frame's metadata: what it shows and which scan step it is."""
+        return {"pattern": frame.pattern, "scan_id": frame.scan_id, "step": frame.step}
