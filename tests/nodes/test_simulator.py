@@ -242,3 +242,22 @@ def test_the_analyzer_follows_the_hosted_ell14_through_its_link(tmp_path):
     finally:
         h.stop()
     assert not link.exists()  # removed on the way out
+
+
+def test_a_mosaic_frame_is_malus_per_pixel_its_0_and_90_deg_pixels_add_up_to_no_analyzer():
+    """simulator/render_mosaic: each pixel through its own micro-polarizer (90, 45 / 135, 0 deg); a 0 and a
+    90 deg pixel of one 2x2 cell add up to (1 + 1/ER) times the frame without analyzer there (Malus), and
+    so do the 45 and 135 deg ones; crosstalk moves light between them, not out."""
+    h = sim(resolution="48x36")
+    dark = truth(h).metrics["dark_offset_dn"]
+    f = h.call("simulator/render_mosaic", RenderRequest(pattern="flood"))
+    assert f.mosaic_deg == [90.0, 45.0, 135.0, 0.0] and f.polarizer_deg is None
+    _, none = dn(h, analyzer=False)
+    raw = f.image.astype(float) - dark
+    cells = (none - dark).reshape(18, 2, 24, 2).mean(axis=(1, 3))
+    pair_0_90 = raw[0::2, 0::2] + raw[1::2, 1::2]
+    pair_45_135 = raw[0::2, 1::2] + raw[1::2, 0::2]
+    for pair in (pair_0_90, pair_45_135):
+        assert pair.mean() / cells.mean() == pytest.approx(1 + 1 / 300, rel=0.01)
+    # the source is polarized near 90 deg after backscatter: the 0 deg pixels (crossed) are the darker
+    assert raw[1::2, 1::2].mean() < 0.8 * raw[0::2, 0::2].mean()

@@ -275,3 +275,25 @@ def test_sim_camera_faults(exc, kind):
 
     with SimCamera(render) as cam, pytest.raises(kind, match="sim camera"):
         cam.grab(timeout=2.0)
+
+
+def test_sim_polarization_camera_frame_names_its_mosaic_and_a_frame_without_one_is_a_fault():
+    from polarstripe.msgs import Frame
+    from polarstripe.nodes.drivers.sim_polarization_camera import SimPolarizationCamera
+
+    requests = []
+
+    def render(req, mosaic=(90.0, 45.0, 135.0, 0.0)):
+        requests.append(req)
+        return Frame(image=np.full((4, 4), 9, np.uint16), exposure_s=0.004, bit_depth=12, pattern=req.pattern,
+                     scan_id=req.scan_id, step=req.step, mosaic_deg=list(mosaic))
+
+    with SimPolarizationCamera(render) as cam:
+        cam.request("stripe:1/4", analyzer=False, scan_id=2, step=1)   # no analyzer to take out
+        frame = cam.grab(timeout=2.0)
+        assert frame.metadata == {"pattern": "stripe:1/4", "scan_id": 2, "step": 1,
+                                  "mosaic_deg": [90.0, 45.0, 135.0, 0.0], "pixel_format": "PolarizeMono12"}
+        assert requests[-1].analyzer
+    with SimPolarizationCamera(lambda req: render(req, mosaic=())) as cam, \
+            pytest.raises(DeviceLost, match="no 2x2 mosaic"):
+        cam.grab(timeout=2.0)
