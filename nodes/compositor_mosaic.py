@@ -1,5 +1,5 @@
-"""The compositor's view of a polarization camera's frame: the raw 2×2 micro-polarizer mosaic (``Frame.mosaic_deg``)
-turned into what the running reductions fold (imaging/mosaic.py; docs/physics.md §4.4).
+"""The compositor's view of a polarization camera's frame: the raw 2×2 micro-polarizer mosaic
+(``Frame.mosaic_deg``) turned into what the running reductions fold (imaging/mosaic.py; docs/physics.md §4.4).
 
 A polarized method's frame gives two views, E_b and E_w, keyed by the analyzer angle relative to the light's
 polarization (90: crossed, 0: along it), so that :func:`polarstripe.imaging.compose.compose` takes them as it
@@ -32,7 +32,8 @@ class MosaicViews:
                                              crosstalk_edge=params.mosaic_crosstalk[0],
                                              crosstalk_diagonal=params.mosaic_crosstalk[1])
 
-    def views(self, frame: Frame, polarized: bool, saturation: float | None) -> dict[float | None, np.ndarray]:
+    def views(self, frame: Frame, polarized: bool,
+              saturation: float | None) -> dict[float | None, np.ndarray]:
         """{E_B_KEY: E_b, E_W_KEY: E_w} (``polarized``) or {None: a0·S0}; ImagingError for a frame that is
         no mosaic this can read (odd size, float image, a layout without the four angles)."""
         cal = dataclasses.replace(self.calibration, layout=tuple(frame.mosaic_deg))

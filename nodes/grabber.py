@@ -8,9 +8,9 @@ the camera role. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, st
 camera delivered it, with the exposure, gain and bit depth it was taken with) tagged with the pattern, the
 scan and step, and the analyzer angle. The angle is decided here and only here, where the stage's state is
 known: the newest ``polarizer/state`` when the frame is taken; None while the analyzer is out of the path (see
-``camera/analyzer``), before any state came (no polarizer node), or for a polarization camera's frame: a camera
-whose frame metadata names a 2×2 micro-polarizer mosaic (``mosaic_deg``, e.g. ``sim_polarization``) has its
-frames published with those angles in ``Frame.mosaic_deg``. The reply is sent after the frame is
+``camera/analyzer``), before any state came (no polarizer node), or for a polarization camera's frame: a
+camera whose frame metadata names a 2×2 micro-polarizer mosaic (``mosaic_deg``, e.g. ``sim_polarization``)
+has its frames published with those angles in ``Frame.mosaic_deg``. The reply is sent after the frame is
 published, so a caller that then waits for the frame cannot miss it.
 
 Faults are published, never painted over: a grab that times out, a camera that disappears or a frame of the

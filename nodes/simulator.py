@@ -79,8 +79,13 @@ from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
-from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT, MicroPolarizerArray, linear_stokes, \
-    mosaic_radiance
+from polarstripe.sim.mosaic import (
+    SONY_EXTINCTION_RATIO,
+    SONY_LAYOUT,
+    MicroPolarizerArray,
+    linear_stokes,
+    mosaic_radiance,
+)
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation

@@ -29,7 +29,7 @@ import numpy as np
 
 #: the IMX250MZR's micro-polarizer angles [deg] over a 2x2 cell, row-major from the top-left pixel
 SONY_LAYOUT: tuple[float, float, float, float] = (90.0, 45.0, 135.0, 0.0)
-#: Sony's extinction ratio of the IMX250MZR at 525 nm (flyer IMX250_264_253MZR_MYR, 300:1; 425:1 at 430 nm)
+#: Sony's extinction ratio of the IMX250MZR at 525 nm (its flyer: 300:1; 425:1 at 430 nm)
 SONY_EXTINCTION_RATIO = 300.0
 
 
@@ -40,7 +40,8 @@ def check_layout(layout) -> tuple[float, float, float, float]:
     except (TypeError, ValueError):
         raise ValueError(f"mosaic layout {layout!r}: need 4 angles in degrees") from None
     if len(angles) != 4 or sorted(round(a % 180.0, 6) for a in angles) != [0.0, 45.0, 90.0, 135.0]:
-        raise ValueError(f"mosaic layout {layout!r}: need the angles 0, 45, 90, 135 once each (2x2, row-major)")
+        raise ValueError(f"mosaic layout {layout!r}: need the angles 0, 45, 90, 135 once each "
+                         "(2x2, row-major)")
     return angles  # type: ignore[return-value]
 
 
@@ -73,7 +74,8 @@ class MicroPolarizerArray:
             raise ValueError(f"extinction_spread={self.extinction_spread} must be >= 0")
         ce, cd = self.crosstalk_edge, self.crosstalk_diagonal
         if not (0.0 <= ce and 0.0 <= cd and 4.0 * (ce + cd) < 1.0):
-            raise ValueError(f"crosstalk_edge={ce}, crosstalk_diagonal={cd}: need >= 0 and 4(edge + diagonal) < 1")
+            raise ValueError(f"crosstalk_edge={ce}, crosstalk_diagonal={cd}: "
+                             "need >= 0 and 4(edge + diagonal) < 1")
 
     def angles_deg(self, shape: tuple[int, int]) -> np.ndarray:
         """Each pixel's analyzer angle [deg], shape (h, w): the 2×2 layout tiled from the top-left pixel."""

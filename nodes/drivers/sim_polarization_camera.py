@@ -1,7 +1,8 @@
-"""The simulator's polarization camera: a division-of-focal-plane sensor (Sony IMX250MZR-like: micro-polarizers
-at 0°, 45°, 90°, 135° over 2×2 pixels; sim/mosaic.py). Each grab asks the simulator node for a raw mosaic
-frame (``simulator/render_mosaic``); the frame's metadata carries the mosaic's angles (``mosaic_deg``) and the
-GenICam pixel format a real camera would name (``PolarizeMono12``), so the grabber publishes it as a mosaic.
+"""The simulator's polarization camera: a division-of-focal-plane sensor (Sony IMX250MZR-like:
+micro-polarizers at 0°, 45°, 90°, 135° over 2×2 pixels; sim/mosaic.py). Each grab asks the simulator node
+for a raw mosaic frame (``simulator/render_mosaic``); the frame's metadata carries the mosaic's angles
+(``mosaic_deg``) and the GenICam pixel format a real camera would name (``PolarizeMono12``), so the grabber
+publishes it as a mosaic.
 
 Like :class:`~polarstripe.nodes.drivers.sim_camera.SimCamera`, which it extends, it models no free-running
 stream. It has no analyzer to put in or out: the micro-polarizers are always in the path, so the analyzer
@@ -16,7 +17,6 @@ flag of :meth:`request` is ignored.
 
 from __future__ import annotations
 
-import numpy as np
 from polarstripe.msgs import Frame, RenderRequest
 from polarstripe.nodes.drivers.backend import BackendContext, BackendOptions
 from polarstripe.nodes.drivers.errors import DeviceLost, DriverError
@@ -45,6 +45,7 @@ class SimPolarizationCamera(SimCamera):
     def _metadata(self, frame: Frame) -> dict:
         """Also the mosaic's angles and the pixel format; a frame that is no 2×2 mosaic is a fault."""
         if len(frame.mosaic_deg) != 4:
-            raise DeviceLost(f"{self.name}: the simulator's frame is no 2x2 mosaic (mosaic_deg={frame.mosaic_deg})")
+            raise DeviceLost(f"{self.name}: the simulator's frame is no 2x2 mosaic "
+                             f"(mosaic_deg={frame.mosaic_deg})")
         return {**super()._metadata(frame), "mosaic_deg": [float(a) for a in frame.mosaic_deg],
                 "pixel_format": f"PolarizeMono{frame.bit_depth}"}

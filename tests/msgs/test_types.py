@@ -66,7 +66,8 @@ def test_every_type_is_registered_once_and_exported():
     for cls in ALL_TYPES:
         assert REGISTRY[cls.TYPE] is cls
         assert getattr(msgs, cls.__name__) is cls and cls.__name__ in msgs.__all__
-        assert cls.VERSION == (2 if cls.TYPE in ("medium_estimate", "pattern", "frame") else 1)  # v2 appended fields
+        v2 = ("medium_estimate", "pattern", "frame")  # v2 appended fields
+        assert cls.VERSION == (2 if cls.TYPE in v2 else 1)
 
 
 def test_container_defaults_are_not_shared():

@@ -1,6 +1,6 @@
-"""The compositor fed a polarization camera's raw mosaic frames (Frame.mosaic_deg), one per stripe: E_b and E_w
-come from each frame, eq. 6 gives S back; the same scene as tests/nodes/test_compositor.py's, written through
-Malus's law per pixel (sim/mosaic.py's model, not its code)."""
+"""The compositor fed a polarization camera's raw mosaic frames (Frame.mosaic_deg), one per stripe: E_b and
+E_w come from each frame, eq. 6 gives S back; the same scene as tests/nodes/test_compositor.py's, written
+through Malus's law per pixel (sim/mosaic.py's model, not its code)."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def test_polarized_stripes_from_one_mosaic_frame_per_stripe_recover_s_and_p(rule
     a0 = 0.5 * (1 + 1 / ER)
     assert comp.metrics["frames"] == n and comp.metrics["mosaic"] == {"layout_deg": LAYOUT, "rule": rule}
     assert comp.metrics["p"] == pytest.approx(p, abs=3e-3)
-    # eq. 6 on E_b = a0 (S + B(1 - p)), E_w = a0 (S + B(1 + p)): 2 a0 S (S itself, as with a rotating analyzer)
+    # eq. 6 on E_b = a0 (S + B(1 - p)), E_w = a0 (S + B(1 + p)): 2 a0 S (S, as with a rotating analyzer)
     np.testing.assert_allclose(_inside(comp.images["composite"]), _inside(2 * a0 * s), atol=4.0)
     np.testing.assert_allclose(_inside(comp.images["e_b"]), _inside(a0 * (s + b * (1 - p))), atol=1.5)
     assert h.node.counters["frames_bad"] == 0

@@ -19,7 +19,8 @@ def _field(shape, s0, dop, chi_deg):
 
 
 def _malus(s0, dop, chi_deg, phi_deg, er):
-    """A real polarizer at phi on light of DOP dop at chi: (1 + 1/er)/2 S0 + (1 - 1/er)/2 S0 dop cos 2(phi - chi)."""
+    """A real polarizer at phi on light of DOP dop at chi:
+    (1 + 1/er)/2 S0 + (1 - 1/er)/2 S0 dop cos 2(phi - chi)."""
     return 0.5 * (1 + 1 / er) * s0 + 0.5 * (1 - 1 / er) * s0 * dop * np.cos(2 * np.radians(phi_deg - chi_deg))
 
 
