@@ -72,6 +72,16 @@ def test_unpolarized_scan_takes_the_analyzer_out_and_puts_it_back():
     assert [r.pattern for r in triggers(h)] == ["flood"]
 
 
+@pytest.mark.parametrize("method", ["polarized_stripes", "stripes"])
+def test_with_a_polarization_camera_a_scan_is_one_pass_without_analyzer_moves_or_mounts(method):
+    h = make({"analyzer": "mosaic"})
+    reply, events = run(h, ScanRequest(method=method, analyzer_deg=[10.0]))
+    assert reply.event == "start" and reply.analyzer_deg == []
+    assert [e.event for e in events] == ["start", "done"]   # and N frames, not 2N:
+    assert [(r.step, r.pattern) for r in triggers(h)] == [(k, f"stripe:{k}/4") for k in range(4)]
+    assert h.published("polarizer/cmd") == [] and h.mounts == []
+
+
 def test_hf_separation_checkers_are_complementary():
     h = make({"checker_size": 8})
     _, events = run(h, ScanRequest(method="hf_separation"))

@@ -82,6 +82,13 @@ def test_stage_never_ready_stops_before_polarized_scans():
     assert any("not ready within 2 s (last fault: no heartbeat)" in t for _, t in h.logs)
 
 
+def test_with_a_polarization_camera_there_is_no_stage_to_wait_for_calibrate_or_turn():
+    h = rig({"startup_timeout_s": 2.0, "analyzer": "mosaic", "calibrate": True}, stage_ok=False)
+    h.node.run()
+    assert h.node.exit_code == 0
+    assert h.calls == ["plan", "move 0.3", "scan flood 0 []", "scan polarized_stripes 5 []"]
+
+
 def test_without_plan_or_composites():
     h = rig({"plan": False, "wait_composite": False, "methods": ["stripes"]}, composite=False)
     h.node.run()
