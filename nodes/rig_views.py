@@ -1,6 +1,6 @@
 """What a recorded or live message looks like to the robotics tools: one message becomes a few *views*
 (an image, a camera calibration, transforms, a log line, a joint, a record of plottable numbers), and each
-exporter maps the views to its own types (:mod:`polarstripe.tools.export_ros2` to ROS 2 messages,
+exporter maps the views to its own types (:mod:`polarstripe.nodes.ros2_schemas` to ROS 2 messages,
 :mod:`polarstripe.nodes.foxglove_schemas` to Foxglove schemas). One mapping, so the ROS 2 bag, the Foxglove
 MCAP and the live Foxglove bridge show the same topics.
 
@@ -65,7 +65,9 @@ RECORDS: dict[str, tuple[tuple[str, str], ...]] = {
     "CompositeMetrics": (("method", "string"), ("scan_id", "uint32"), ("contrast", "float64"),
                          ("error_vs_truth", "float64"), ("p", "float64"), ("dark_offset_dn", "float64"),
                          ("names", "string[]"), ("values", "float64[]")),
-    "MediumEstimate": (("p", "float64"), ("sigma_t_per_m", "float64"), ("scan_id", "uint32")),
+    "MediumEstimate": (("p", "float64"), ("sigma_t_per_m", "float64"), ("scan_id", "uint32"),
+                       ("mean_cosine", "float64"), ("p_std", "float64"), ("sigma_t_std", "float64"),
+                       ("mean_cosine_std", "float64"), ("reason", "string")),
     "Curve": (("name", "string"), ("values", "float64[]")),
     "Plan": (("modality", "string"), ("separation_m", "float64"), ("scan_type", "string"),
              ("stripe_optima", "float64[]"), ("curves", "Curve[]")),
@@ -261,7 +263,9 @@ class RigViews:
             out.append(Record(topic, stamp_ns, "PolarizerCommand", {"target_deg": msg.target_deg}))
         elif isinstance(msg, MediumEstimate):
             out.append(Record(topic, stamp_ns, "MediumEstimate", {
-                "p": msg.p, "sigma_t_per_m": _f(msg.sigma_t_per_m), "scan_id": _u32(msg.scan_id)}))
+                "p": msg.p, "sigma_t_per_m": _f(msg.sigma_t_per_m), "scan_id": _u32(msg.scan_id),
+                **{k: _f(getattr(msg, k)) for k in ("mean_cosine", "p_std", "sigma_t_std", "mean_cosine_std")},
+                "reason": msg.reason}))
         elif isinstance(msg, Plan):
             out.append(Record(topic, stamp_ns, "Plan", {
                 "modality": msg.modality, "separation_m": msg.separation_m, "scan_type": msg.scan_type,

@@ -50,7 +50,7 @@ from polarstripe.msgs import (
     unpack,
 )
 from polarstripe.runtime.bag import BagError, BagWriter
-from polarstripe.tools.export_ros2 import PACKAGE, ROSOUT, require, typestore
+from polarstripe.nodes.ros2_schemas import PACKAGE, ROSOUT, require, typestore
 
 _DTYPES = {"mono8": ("u1", 1), "8UC1": ("u1", 1), "mono16": ("u2", 1), "16UC1": ("u2", 1), "8SC1": ("i1", 1),
            "16SC1": ("i2", 1), "32SC1": ("i4", 1), "32FC1": ("f4", 1), "64FC1": ("f8", 1), "rgb8": ("u1", 3),
@@ -108,7 +108,9 @@ def _record(kind: str, m, stamp_ns: int):
         return PolarizerCommand(header=h, target_deg=float(m.target_deg))
     if kind == "MediumEstimate":
         return MediumEstimate(header=h, p=float(m.p), sigma_t_per_m=_opt(m.sigma_t_per_m),
-                              scan_id=int(m.scan_id))
+                              scan_id=int(m.scan_id), mean_cosine=_opt(m.mean_cosine), p_std=_opt(m.p_std),
+                              sigma_t_std=_opt(m.sigma_t_std), mean_cosine_std=_opt(m.mean_cosine_std),
+                              reason=m.reason)
     if kind == "Plan":
         return Plan(header=h, modality=m.modality, separation_m=float(m.separation_m), scan_type=m.scan_type,
                     stripe_optima=[float(x) for x in m.stripe_optima],

@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
     "calibrate": ("polarstripe.tools.calibrate_cli", "calibrate projector and camera (Gray code)"),
     "keys": ("polarstripe.tools.keys_cli", "make a host's CURVE certificates, print a key's fingerprint"),
+    "ros2": ("polarstripe.tools.ros2_cli", "write the ROS 2 interface package polarstripe_msgs"),
     "docs": ("polarstripe.tools.node_docs", "write the node reference (params, topics, services)"),
 }
 

@@ -10,10 +10,13 @@ belong to this directory: ``python -m pytest tests/nodes/drivers --hardware can0
 
 from __future__ import annotations
 
+import json
 import shutil
+import socket
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
 
 import pytest
 from polarstripe.nodes.drivers.zmqcan import ZmqCanHub
@@ -103,3 +106,40 @@ def spawn_drive():
     yield spawn
     for drive in started:
         drive.close()
+
+
+# ---- the ROS 2 tests (tests/nodes/test_ros2_*.py) -----------------------------------------------------------
+ROS2_PACKAGE = Path(__file__).resolve().parents[2] / "ros2" / "polarstripe_msgs"
+
+
+@pytest.fixture
+def ros2_msgs_dir(tmp_path) -> Path:
+    """The message folder the third-party client (zenoh-ros2-sdk) reads: the standard definitions of
+    tests/data/ros2_msgs plus the shipped polarstripe_msgs (msg and srv)."""
+    out = tmp_path / "msgs"
+    shutil.copytree(ROS2_PACKAGE.parents[1] / "tests" / "data" / "ros2_msgs", out)
+    for kind in ("msg", "srv"):
+        shutil.copytree(ROS2_PACKAGE / kind, out / "polarstripe_msgs" / kind)
+    return out
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def zenoh_router():
+    """A Zenoh router (the role of ``rmw_zenohd``) on tcp/127.0.0.1:PORT only, no scouting of any kind;
+    yields the port."""
+    import zenoh
+
+    port = _free_port()
+    c = zenoh.Config()
+    for k, v in {"mode": "router", "listen/endpoints": [f"tcp/127.0.0.1:{port}"], "connect/endpoints": [],
+                 "scouting/multicast/enabled": False, "scouting/gossip/enabled": False}.items():
+        c.insert_json5(k, json.dumps(v))
+    session = zenoh.open(c)
+    yield port
+    session.close()

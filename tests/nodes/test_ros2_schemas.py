@@ -1,0 +1,106 @@
+"""The ROS 2 types the bag export and the live bridge send: RIHS01 hashes against values published by ROS 2
+(rmw_zenoh's design document, a ROS 2 log), against ros2-pyterfaces' own computation, and against the
+third-party client's computation from the shipped ``ros2/polarstripe_msgs`` files; the package equal to what
+``polarstripe ros2 msgs`` generates; its records equal to the messages of ``msgs/``."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from polarstripe import __version__
+from polarstripe.msgs import REGISTRY, ScanRequest
+from polarstripe.nodes.rig_views import RECORDS
+from polarstripe.nodes.ros2_schemas import SERVICES, interface_package, make_typestore, type_hash
+
+
+# Published hashes: std_msgs/String and example_interfaces/AddTwoInts in rmw_zenoh's docs/design.md (key
+# expression examples); sensor_msgs/Image in a ROS 2 Jazzy rmw_zenoh publisher's log.
+KNOWN = {
+    "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
+    "sensor_msgs/msg/Image": "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47",
+}
+PACKAGE_DIR = Path(__file__).resolve().parents[2] / "ros2" / "polarstripe_msgs"
+ADD_TWO_INTS = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+
+
+def test_hashes_equal_published_values():
+    for typename, known in KNOWN.items():
+        assert type_hash(typename) == known, typename
+    store = make_typestore({"example_interfaces/srv/AddTwoInts": ("int64 a\nint64 b\n", "int64 sum\n")})
+    assert store.hash_rihs01("example_interfaces/srv/AddTwoInts") == ADD_TWO_INTS
+
+
+def test_standard_hashes_equal_ros2_pyterfaces():
+    from ros2_pyterfaces.core import hash_rihs01
+    from ros2_pyterfaces.core.geometry_msgs import msg as geometry
+    from ros2_pyterfaces.core.rcl_interfaces import msg as rcl
+    from ros2_pyterfaces.core.sensor_msgs import msg as sensor
+    from ros2_pyterfaces.core.service_msgs import msg as service
+
+    for typename, schema in {"sensor_msgs/msg/Image": sensor.Image, "sensor_msgs/msg/CameraInfo": sensor.CameraInfo,
+                             "sensor_msgs/msg/JointState": sensor.JointState, "rcl_interfaces/msg/Log": rcl.Log,
+                             "geometry_msgs/msg/TransformStamped": geometry.TransformStamped,
+                             "service_msgs/msg/ServiceEventInfo": service.ServiceEventInfo}.items():
+        assert type_hash(typename) == hash_rihs01(schema), typename
+
+
+def test_package_hashes_equal_the_third_party_clients(ros2_msgs_dir):
+    """zenoh-ros2-sdk hashes the shipped .msg/.srv files with its own code; the bridge's keys must agree."""
+    from zenoh_ros2_sdk.message_registry import MessageRegistry
+    from zenoh_ros2_sdk.utils import compute_service_type_hash, get_type_hash, load_dependencies_recursive
+
+    folder = ros2_msgs_dir
+    registry = MessageRegistry(str(folder))
+    for kind in RECORDS:
+        t = f"polarstripe_msgs/msg/{kind}"
+        text = (folder / "polarstripe_msgs" / "msg" / f"{kind}.msg").read_text()
+        assert get_type_hash(t, text, load_dependencies_recursive(t, text, registry)) == type_hash(t), t
+    for name in SERVICES:
+        t = f"polarstripe_msgs/srv/{name}"
+        request, response = (folder / "polarstripe_msgs" / "srv" / f"{name}.srv").read_text().split("---\n")
+        deps = {**load_dependencies_recursive(t + "_Request", request, registry),
+                **load_dependencies_recursive(t + "_Response", response, registry)}
+        assert compute_service_type_hash(t, request, response, deps) == type_hash(t), t
+
+
+def test_shipped_package_is_the_generated_one():
+    shipped = {str(p.relative_to(PACKAGE_DIR)): p.read_text() for p in PACKAGE_DIR.rglob("*") if p.is_file()}
+    assert shipped == interface_package(__version__), "run: polarstripe ros2 msgs -o ros2/polarstripe_msgs"
+
+
+def test_records_carry_every_field_of_their_message():
+    """A record named like a message of msgs/ has each of its fields (Heartbeat's counters as two arrays)."""
+    spelled = {("Heartbeat", "counters"): ("counter_names", "counter_values")}
+    checked = 0
+    for cls in REGISTRY.values():
+        if cls.__name__ not in RECORDS:
+            continue
+        record = {name for name, _ in RECORDS[cls.__name__]}
+        for f in dataclasses.fields(cls):
+            if f.name != "header":
+                assert set(spelled.get((cls.__name__, f.name), (f.name,))) <= record, (cls.__name__, f.name)
+        checked += 1
+    assert checked == 6
+    request = SERVICES["StartScan"][0].split()
+    assert request[1::2] == [f.name for f in dataclasses.fields(ScanRequest) if f.name != "header"]
+
+
+def test_cli_writes_the_package_and_refuses_a_foreign_folder(tmp_path):
+    out = tmp_path / "polarstripe_msgs"
+    run = [sys.executable, "-m", "polarstripe", "ros2", "msgs", "-o", str(out)]
+    (out / "msg").mkdir(parents=True)
+    (out / "msg" / "Gone.msg").write_text("int32 x\n")
+    assert subprocess.run(run, capture_output=True, text=True).returncode == 0
+    assert {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} == set(interface_package(__version__))
+    (out / "notes.txt").write_text("mine")
+    r = subprocess.run(run, capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not polarstripe_msgs'" in r.stderr
+
+
+@pytest.mark.parametrize("typename", ["sensor_msgs/msg/Image", "polarstripe_msgs/srv/StartScan"])
+def test_hash_is_stable_text(typename):
+    assert type_hash(typename).startswith("RIHS01_") and len(type_hash(typename)) == 7 + 64
