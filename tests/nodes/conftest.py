@@ -131,14 +131,15 @@ def _free_port() -> int:
 
 @pytest.fixture
 def zenoh_router():
-    """A Zenoh router (the role of ``rmw_zenohd``) on tcp/127.0.0.1:PORT only, no scouting of any kind;
-    yields the port."""
+    """A Zenoh router (the role of ``rmw_zenohd``, with its readable admin space) on tcp/127.0.0.1:PORT only,
+    no scouting of any kind; yields the port."""
     import zenoh
 
     port = _free_port()
     c = zenoh.Config()
     for k, v in {"mode": "router", "listen/endpoints": [f"tcp/127.0.0.1:{port}"], "connect/endpoints": [],
-                 "scouting/multicast/enabled": False, "scouting/gossip/enabled": False}.items():
+                 "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
+                 "adminspace/enabled": True, "adminspace/permissions/read": True}.items():
         c.insert_json5(k, json.dumps(v))
     session = zenoh.open(c)
     yield port
