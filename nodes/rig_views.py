@@ -264,7 +264,8 @@ class RigViews:
         elif isinstance(msg, MediumEstimate):
             out.append(Record(topic, stamp_ns, "MediumEstimate", {
                 "p": msg.p, "sigma_t_per_m": _f(msg.sigma_t_per_m), "scan_id": _u32(msg.scan_id),
-                **{k: _f(getattr(msg, k)) for k in ("mean_cosine", "p_std", "sigma_t_std", "mean_cosine_std")},
+                **{k: _f(getattr(msg, k))
+                   for k in ("mean_cosine", "p_std", "sigma_t_std", "mean_cosine_std")},
                 "reason": msg.reason}))
         elif isinstance(msg, Plan):
             out.append(Record(topic, stamp_ns, "Plan", {

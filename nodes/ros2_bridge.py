@@ -30,7 +30,17 @@ import time
 from dataclasses import dataclass
 from importlib import metadata
 
-from polarstripe.msgs import REGISTRY, Empty, Frame, Message, MessageError, Pattern, Plan, ScanEvent, ScanRequest
+from polarstripe.msgs import (
+    REGISTRY,
+    Empty,
+    Frame,
+    Message,
+    MessageError,
+    Pattern,
+    Plan,
+    ScanEvent,
+    ScanRequest,
+)
 from polarstripe.nodes.rig_geometry import geometry_from_metadata
 from polarstripe.nodes.rig_views import RECORDS, TF_STATIC, Image, Record, RigViews, Transforms
 from polarstripe.nodes.ros2_schemas import PACKAGE, Ros2Encoder, type_hash
@@ -105,7 +115,8 @@ class Ros2Bridge(Node):
                 zconf.insert_json5(key, value)
             self.session = zenoh.open(zconf)
         except (Ros2FormatError, zenoh.ZError) as exc:
-            raise NodeError(f"node {self.name!r}: ROS 2 router {p.endpoint}: {str(exc).split(' at /')[0]}") from None
+            why = str(exc).split(" at /")[0]  # zenoh appends its source location
+            raise NodeError(f"node {self.name!r}: ROS 2 router {p.endpoint}: {why}") from None
         self._check_version()
         zid = str(self.session.info.zid())
         try:
@@ -209,7 +220,8 @@ class Ros2Bridge(Node):
     def _declare_service(self, service: str, ros_type: str, req_type, resp_type, timeout_s: float) -> None:
         srv, name = f"{PACKAGE}/srv/{ros_type}", self.resolve(service)
         h, eid = type_hash(srv), self._entity_id()
-        token = self.session.liveliness().declare_token(self.entity.token(SERVICE, eid, name, srv, h, qos_key()))
+        token = self.session.liveliness().declare_token(
+            self.entity.token(SERVICE, eid, name, srv, h, qos_key()))
         queryable = self.session.declare_queryable(data_key(self.params.domain, name, srv, h), complete=True)
         client = self.client(service, req_type, resp_type, timeout_s=timeout_s)
         self.queryables.append((srv, queryable, token, client))
@@ -241,7 +253,8 @@ class Ros2Bridge(Node):
                 reply = client.call(rig_request)
             except (BusError, MessageError) as exc:
                 detail = str(exc)
-        response = ts.types[f"{srv}_Response"](ok=reply is not None, detail=detail, **self._rig_reply(srv, reply))
+        response = ts.types[f"{srv}_Response"](ok=reply is not None, detail=detail,
+                                               **self._rig_reply(srv, reply))
         payload = self.encoder.cdr(response, f"{srv}_Response")
         query.reply(query.key_expr, payload, attachment=attachment(sequence, time.time_ns(), gid))
 

@@ -22,8 +22,8 @@ The ``polarstripe_msgs`` interface package is generated from :data:`~polarstripe
 (:func:`msg_text`) and :data:`SERVICES` (:func:`srv_text`); ``polarstripe ros2 msgs -o DIR`` writes it and
 ``ros2/polarstripe_msgs/`` ships it. Type hashes (:func:`type_hash`) are REP-2016's RIHS01, computed by
 ``rosbags`` over the Jazzy definitions plus ours; a service's is that of its ``request_message``,
-``response_message`` and ``event_message`` (``<Srv>_Event``: a ``service_msgs/ServiceEventInfo`` and at most one
-request and one response), as ``rosidl`` computes it. ``ServiceEventInfo.client_gid`` is registered as
+``response_message`` and ``event_message`` (``<Srv>_Event``: a ``service_msgs/ServiceEventInfo`` and at most
+one request and one response), as ``rosidl`` computes it. ``ServiceEventInfo.client_gid`` is registered as
 ``uint8[16]``: ``rosidl`` maps the ``.msg`` type ``char`` to ``uint8`` before hashing, ``rosbags`` does not.
 """
 
@@ -118,7 +118,8 @@ def service_fielddefs(srv: str, request: str, response: str) -> dict:
 
 def make_typestore(services: dict[str, tuple[str, str]] | None = None):
     """A typestore of ROS 2 Jazzy's message types, ``polarstripe_msgs/msg/*`` (every record kind) and the
-    services ``{pkg/srv/Name: (request, response)}`` (default: ``polarstripe_msgs/srv/*`` of :data:`SERVICES`)."""
+    services ``{pkg/srv/Name: (request, response)}`` (default: ``polarstripe_msgs/srv/*`` of
+    :data:`SERVICES`)."""
     require()
     jazzy = get_typestore(Stores.ROS2_JAZZY)
     store = get_typestore(Stores.EMPTY)
@@ -143,7 +144,8 @@ def typestore():
 
 
 def type_hash(typename: str) -> str:
-    """The RIHS01 hash of a message or service type (``sensor_msgs/msg/Image``, ``polarstripe_msgs/srv/…``)."""
+    """The RIHS01 hash of a message or service type (``sensor_msgs/msg/Image``,
+    ``polarstripe_msgs/srv/…``)."""
     return typestore().hash_rihs01(typename)
 
 
@@ -154,7 +156,8 @@ def interface_package(version: str) -> dict[str, str]:
     """The ROS 2 interface package ``polarstripe_msgs`` as {relative path: text}: ``msg/<Kind>.msg`` per
     record kind, ``srv/<Name>.srv`` per service, ``package.xml`` and ``CMakeLists.txt`` (``colcon build``
     it in a ROS 2 workspace; ``version``: the package's version, polarstripe's)."""
-    files = {f"msg/{k}.msg": _GENERATED.format(what="nodes/rig_views.py RECORDS") + msg_text(k) for k in RECORDS}
+    files = {f"msg/{k}.msg": _GENERATED.format(what="nodes/rig_views.py RECORDS") + msg_text(k)
+             for k in RECORDS}
     files.update({f"srv/{n}.srv": _GENERATED.format(what="nodes/ros2_schemas.py SERVICES") + srv_text(n)
                   for n in SERVICES})
     interfaces = "\n".join(f'  "{path}"' for path in sorted(files))

@@ -11,8 +11,8 @@ node (:mod:`polarstripe.nodes.ros2_bridge`) uses them with ``eclipse-zenoh``.
   <name>/<DDS type name>/<hash>/<qos>`` for its publishers, subscriptions, services and clients; names
   mangled (``/`` → ``%``), an unset enclave or the root namespace ``%``.
 * attachment of every sample, request and reply (33 bytes): the sequence number (int64 LE), the source
-  time [ns since the epoch] (int64 LE), the GID's length (one byte, 16) and the GID (16 bytes); a reply carries
-  the request's sequence number and client GID.
+  time [ns since the epoch] (int64 LE), the GID's length (one byte, 16) and the GID (16 bytes); a reply
+  carries the request's sequence number and client GID.
 """
 
 from __future__ import annotations
@@ -92,8 +92,8 @@ class Entity:
 
     def node_token(self) -> str:
         """The node's liveliness token (``NN``)."""
-        return (f"{ADMIN_SPACE}/{check_domain(self.domain)}/{self.zid}/{self.node_id}/{self.node_id}/{NODE}/%/"
-                f"{mangle(self.namespace)}/{self.node}")
+        return (f"{ADMIN_SPACE}/{check_domain(self.domain)}/{self.zid}/{self.node_id}/{self.node_id}/{NODE}"
+                f"/%/{mangle(self.namespace)}/{self.node}")
 
     def token(self, kind: str, entity_id: int, name: str, typename: str, type_hash: str, qos: str) -> str:
         """The liveliness token of a publisher, subscription, service or client of this node."""
@@ -119,13 +119,16 @@ def parse_attachment(data: bytes | None) -> tuple[int, int, bytes]:
     """(sequence number, source time [ns], GID) of an attachment; :class:`Ros2FormatError` if malformed."""
     if data is None or len(data) != ATTACHMENT_BYTES or data[16] != GID_BYTES:
         got = "none" if data is None else f"{len(data)} bytes"
-        raise Ros2FormatError(f"an rmw_zenoh attachment has {ATTACHMENT_BYTES} bytes (GID length 16), got {got}")
+        raise Ros2FormatError(
+            f"an rmw_zenoh attachment has {ATTACHMENT_BYTES} bytes (GID length 16), got {got}")
     sequence, stamp_ns = struct.unpack_from("<qq", data)
     return sequence, stamp_ns, bytes(data[17:])
 
 
-def session_config(endpoint: str, *, tls_ca: str = "", tls_cert: str = "", tls_key: str = "") -> dict[str, str]:
-    """The bridge's Zenoh session configuration as (path, JSON5 value) pairs for ``zenoh.Config.insert_json5``:
+def session_config(endpoint: str, *, tls_ca: str = "", tls_cert: str = "",
+                   tls_key: str = "") -> dict[str, str]:
+    """The bridge's Zenoh session configuration as (path, JSON5 value) pairs for
+    ``zenoh.Config.insert_json5``:
     a Zenoh *client* of the router at ``endpoint`` (``rmw_zenohd``): every sample, query and token goes over
     that one link, which the router routes to the ROS 2 peers (no multicast or gossip scouting, no listening
     port, no peer-to-peer links); ``tls/HOST:PORT`` with mutual TLS (``tls_ca`` the only CA trusted,

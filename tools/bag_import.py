@@ -49,8 +49,8 @@ from polarstripe.msgs import (
     ScanEvent,
     unpack,
 )
-from polarstripe.runtime.bag import BagError, BagWriter
 from polarstripe.nodes.ros2_schemas import PACKAGE, ROSOUT, require, typestore
+from polarstripe.runtime.bag import BagError, BagWriter
 
 _DTYPES = {"mono8": ("u1", 1), "8UC1": ("u1", 1), "mono16": ("u2", 1), "16UC1": ("u2", 1), "8SC1": ("i1", 1),
            "16SC1": ("i2", 1), "32SC1": ("i4", 1), "32FC1": ("f4", 1), "64FC1": ("f8", 1), "rgb8": ("u1", 3),

@@ -2,13 +2,15 @@
 
 ::
 
-    polarstripe ros2 msgs -o ~/ros2_ws/src/polarstripe_msgs    # then: colcon build --packages-select polarstripe_msgs
+    polarstripe ros2 msgs -o ~/ros2_ws/src/polarstripe_msgs
+    cd ~/ros2_ws && colcon build --packages-select polarstripe_msgs
 
-``msgs`` writes the ROS 2 interface package ``polarstripe_msgs`` (``msg/*.msg``, ``srv/*.srv``, ``package.xml``,
-``CMakeLists.txt``) generated from the records and services of :mod:`polarstripe.nodes.ros2_schemas`, the
-types the bag export and the live bridge send. ``ros2/polarstripe_msgs/`` in the repository is its output,
-kept equal by a test. Into an existing package folder it rewrites the files and removes ``.msg``/``.srv`` files
-the package no longer has; a folder that holds anything else is refused.
+``msgs`` writes the ROS 2 interface package ``polarstripe_msgs`` (``msg/*.msg``, ``srv/*.srv``,
+``package.xml``, ``CMakeLists.txt``) generated from the records and services of
+:mod:`polarstripe.nodes.ros2_schemas`, the types the bag export and the live bridge send.
+``ros2/polarstripe_msgs/`` in the repository is its output, kept equal by a test. Into an existing package
+folder it rewrites the files and removes ``.msg``/``.srv`` files the package no longer has; a folder that
+holds anything else is refused.
 """
 
 from __future__ import annotations

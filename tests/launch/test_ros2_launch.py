@@ -1,7 +1,7 @@
-"""``polarstripe launch launch/sim.toml ros2=true`` against a Zenoh router on loopback: the launch's ``ros2`` node
-is wired from the launch args (default run, a dry run), and, with ``--long``, a whole small demo seen from a
-Zenoh client as ROS 2 sees it: the node's liveliness tokens and a composite image decoded by rosbags from its
-rmw_zenoh key."""
+"""``polarstripe launch launch/sim.toml ros2=true`` against a Zenoh router on loopback: the launch's ``ros2``
+node is wired from the launch args (default run, a dry run), and, with ``--long``, a whole small demo seen
+from a Zenoh client as ROS 2 sees it: the node's liveliness tokens and a composite image decoded by rosbags
+from its rmw_zenoh key."""
 
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_ros2_args_wire_the_bridge(tmp_path):
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
-    r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--dry-run",
-                        "ros2=true", "ros2_endpoint=tcp/10.0.0.2:7448", "ros2_domain=7"],
+    r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"),
+                        "--dry-run", "ros2=true", "ros2_endpoint=tcp/10.0.0.2:7448", "ros2_domain=7"],
                        capture_output=True, text=True, env=env, timeout=60)
     assert r.returncode == 0, r.stderr
     node = json.loads(r.stdout)["nodes"]["ros2"]

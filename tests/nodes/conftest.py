@@ -108,7 +108,7 @@ def spawn_drive():
         drive.close()
 
 
-# ---- the ROS 2 tests (tests/nodes/test_ros2_*.py) -----------------------------------------------------------
+# ---- the ROS 2 tests (tests/nodes/test_ros2_*.py) ----------------------------------------------------------
 ROS2_PACKAGE = Path(__file__).resolve().parents[2] / "ros2" / "polarstripe_msgs"
 
 

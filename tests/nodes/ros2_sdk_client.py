@@ -1,15 +1,16 @@
-"""A ROS 2 program we did not write: zenoh-ros2-sdk (a Python ROS 2-over-Zenoh client implementing rmw_zenoh's
-formats), run by tests/nodes/test_ros2_bridge.py as ``python ros2_sdk_client.py PORT MSGS_DIR``. It connects to
-the router at tcp/127.0.0.1:PORT, subscribes to the camera frame's image, camera info and info, looks at the
-graph through the liveliness tokens, calls /rig/emitter/start_scan, and prints one JSON line per finding."""
+"""A ROS 2 program we did not write: zenoh-ros2-sdk (a Python ROS 2-over-Zenoh client implementing
+rmw_zenoh's formats), run by tests/nodes/test_ros2_bridge.py as ``python ros2_sdk_client.py PORT MSGS_DIR``.
+It connects to the router at tcp/127.0.0.1:PORT, subscribes to the camera frame's image, camera info and
+info, looks at the graph through the liveliness tokens, calls /rig/emitter/start_scan, and prints one JSON
+line per finding."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import threading
-import os
 import time
 
 import numpy as np
@@ -49,9 +50,11 @@ def on(topic):
                           "bigendian": int(m.is_bigendian), "stamp_ns": stamp, "frame_id": m.header.frame_id,
                           "sha256": hashlib.sha256(bytes(m.data)).hexdigest()}
         elif topic.endswith("/camera_info"):
-            got[topic] = {"width": m.width, "height": m.height, "k": [float(x) for x in m.k], "stamp_ns": stamp}
+            got[topic] = {"width": m.width, "height": m.height, "k": [float(x) for x in m.k],
+                          "stamp_ns": stamp}
         else:
-            got[topic] = {"pattern": m.pattern, "polarizer_deg": m.polarizer_deg, "seq": m.seq, "stamp_ns": stamp}
+            got[topic] = {"pattern": m.pattern, "polarizer_deg": m.polarizer_deg, "seq": m.seq,
+                          "stamp_ns": stamp}
         if len(got) == len(TOPICS):
             done.set()
     return cb
@@ -66,7 +69,8 @@ for topic, fields in got.items():
     say(topic=topic, **fields)
 
 time.sleep(0.2)
-nodes = sorted(str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/0/*/*/*/NN/**", timeout=1.0) if r.ok)
+nodes = sorted(str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/0/*/*/*/NN/**", timeout=1.0)
+               if r.ok)
 say(nodes=nodes)
 say(topics=get_topic_names_and_types(router_port=port, timeout=1.0))
 info = get_topic_info("/rig/camera/frame/image", router_port=port, timeout=1.0, verbose=True)

@@ -1,10 +1,10 @@
 """The live ROS 2 bridge over loopback tcp only: a Zenoh router (the role of ``rmw_zenohd``), the bridge node
-over the mock bus, and a ROS 2 client we did not write (zenoh-ros2-sdk, in its own process: ros2_sdk_client.py)
-that decodes a camera frame bit for bit, its camera info and info record, sees the node, its topics and its
-service through the liveliness tokens, and calls the start-scan service. Also: the raw samples on the key
-and with the attachment rmw_zenoh's design document gives, a router of another Zenoh release refused in one
-line, an absent router in one line, and the TLS tether: mutual TLS where the rig's CA is the allow-list on both
-ends (certificates made with the openssl command line)."""
+over the mock bus, and a ROS 2 client we did not write (zenoh-ros2-sdk, in its own process:
+ros2_sdk_client.py) that decodes a camera frame bit for bit, its camera info and info record, sees the node,
+its topics and its service through the liveliness tokens, and calls the start-scan service. Also: the raw
+samples on the key and with the attachment rmw_zenoh's design document gives, a router of another Zenoh
+release refused in one line, an absent router in one line, and the TLS tether: mutual TLS where the rig's CA
+is the allow-list on both ends (certificates made with the openssl command line)."""
 
 from __future__ import annotations
 
@@ -19,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from polarstripe.msgs import Frame, Header, Log, ScanEvent, ScanRequest
-from polarstripe.runtime.node import NodeError
-from polarstripe.runtime.testing import MockBus
-
 import zenoh  # the test extra: a missing package fails here, it is not skipped
+from polarstripe.msgs import Frame, Header, Log, ScanEvent, ScanRequest
 from polarstripe.nodes.ros2_bridge import Ros2Bridge
 from polarstripe.nodes.ros2_zenoh import parse_attachment
+from polarstripe.runtime.node import NodeError
+from polarstripe.runtime.testing import MockBus
 
 CLIENT = Path(__file__).with_name("ros2_sdk_client.py")
 IMAGE_KEY = ("0/rig/camera/frame/image/sensor_msgs::msg::dds_::Image_/"
@@ -92,7 +91,8 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
             if proc.poll() is not None:
                 break
             node.forward("/rig/camera/frame", frame)
-            node.forward("/rig/log", Log(level="ERROR", node="grabber", text="lost", header=Header(stamp_ns=5)))
+            node.forward("/rig/log", Log(level="ERROR", node="grabber", text="lost",
+                                         header=Header(stamp_ns=5)))
             node.answer_requests()
             time.sleep(0.05)
         proc.wait(10)
@@ -114,14 +114,17 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
     info = topics["/rig/camera/frame/camera_info"]
     assert (info["width"], info["height"]) == (32, 24) and info["k"][8] == 1.0 and info["k"][0] > 0
     assert topics["/rig/camera/frame/info"]["pattern"] == "stripe:1/4"
-    assert topics["/rig/camera/frame/info"]["polarizer_deg"] == 90.0 and topics["/rig/camera/frame/info"]["seq"] == 4
+    frame_info = topics["/rig/camera/frame/info"]
+    assert (frame_info["polarizer_deg"], frame_info["seq"]) == (90.0, 4)
 
     assert any(n.endswith("/NN/%/%rig/polarstripe") for n in out["nodes"]), out["nodes"]
     names = dict((t, tuple(types)) for t, types in out["topics"])
     assert names["/rig/camera/frame/image"] == ("sensor_msgs/msg/Image",)
     assert names["/rig/camera/frame/info"] == ("polarstripe_msgs/msg/FrameInfo",)
-    assert names["/tf_static"] == ("tf2_msgs/msg/TFMessage",) and names["/rosout"] == ("rcl_interfaces/msg/Log",)
-    assert out["image_publishers"] == [["/rig", "polarstripe", "sensor_msgs/msg/Image", IMAGE_KEY.rsplit("/", 1)[1]]]
+    assert names["/tf_static"] == ("tf2_msgs/msg/TFMessage",)
+    assert names["/rosout"] == ("rcl_interfaces/msg/Log",)
+    image_hash = IMAGE_KEY.rsplit("/", 1)[1]
+    assert out["image_publishers"] == [["/rig", "polarstripe", "sensor_msgs/msg/Image", image_hash]]
     assert ["/rig/emitter/start_scan", ["polarstripe_msgs/srv/StartScan"]] in out["services"]
 
     assert out["start_scan"] == {"ok": True, "detail": "", "scan_id": 7, "event": "start", "method": "flood",
@@ -175,10 +178,10 @@ def _certificates(folder: Path) -> None:
             f"{ca}.key", "-out", f"{ca}.pem", "-days", "2", "-subj", f"/CN={ca}")
     (folder / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
     for name, ca in (("router", "rigca"), ("vehicle", "rigca"), ("stranger", "otherca"), ("fake", "otherca")):
-        run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", f"{name}.key",
-            "-out", f"{name}.csr", "-subj", f"/CN={name}")
-        run("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key", "-CAcreateserial",
-            "-out", f"{name}.pem", "-days", "2", "-extfile", "san.ext")
+        run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
+            f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key",
+            "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", "san.ext")
 
 
 def _tls_router(folder: Path, port: int, name: str, ca: str):
@@ -199,8 +202,9 @@ def test_tls_tether_admits_the_rigs_certificates_only(tmp_path):
     router = _tls_router(tmp_path, port, "router", "rigca")
     try:
         def tls_bridge(name):
-            return bridge(0, endpoint=f"tls/localhost:{port}", connect_timeout_s=0.5, tls_ca=str(tmp_path / "rigca.pem"),
-                          tls_cert=str(tmp_path / f"{name}.pem"), tls_key=str(tmp_path / f"{name}.key"))
+            return bridge(0, endpoint=f"tls/localhost:{port}", connect_timeout_s=0.5,
+                          tls_ca=str(tmp_path / "rigca.pem"), tls_cert=str(tmp_path / f"{name}.pem"),
+                          tls_key=str(tmp_path / f"{name}.key"))
 
         node = tls_bridge("vehicle")
         node.setup()  # the rig's certificate: admitted, and the router's is the rig CA's

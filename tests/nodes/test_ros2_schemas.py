@@ -16,7 +16,6 @@ from polarstripe.msgs import REGISTRY, ScanRequest
 from polarstripe.nodes.rig_views import RECORDS
 from polarstripe.nodes.ros2_schemas import SERVICES, interface_package, make_typestore, type_hash
 
-
 # Published hashes: std_msgs/String and example_interfaces/AddTwoInts in rmw_zenoh's docs/design.md (key
 # expression examples); sensor_msgs/Image in a ROS 2 Jazzy rmw_zenoh publisher's log.
 KNOWN = {
@@ -41,8 +40,10 @@ def test_standard_hashes_equal_ros2_pyterfaces():
     from ros2_pyterfaces.core.sensor_msgs import msg as sensor
     from ros2_pyterfaces.core.service_msgs import msg as service
 
-    for typename, schema in {"sensor_msgs/msg/Image": sensor.Image, "sensor_msgs/msg/CameraInfo": sensor.CameraInfo,
-                             "sensor_msgs/msg/JointState": sensor.JointState, "rcl_interfaces/msg/Log": rcl.Log,
+    for typename, schema in {"sensor_msgs/msg/Image": sensor.Image,
+                             "sensor_msgs/msg/CameraInfo": sensor.CameraInfo,
+                             "sensor_msgs/msg/JointState": sensor.JointState,
+                             "rcl_interfaces/msg/Log": rcl.Log,
                              "geometry_msgs/msg/TransformStamped": geometry.TransformStamped,
                              "service_msgs/msg/ServiceEventInfo": service.ServiceEventInfo}.items():
         assert type_hash(typename) == hash_rihs01(schema), typename
@@ -95,7 +96,8 @@ def test_cli_writes_the_package_and_refuses_a_foreign_folder(tmp_path):
     (out / "msg").mkdir(parents=True)
     (out / "msg" / "Gone.msg").write_text("int32 x\n")
     assert subprocess.run(run, capture_output=True, text=True).returncode == 0
-    assert {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} == set(interface_package(__version__))
+    written = {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()}
+    assert written == set(interface_package(__version__))
     (out / "notes.txt").write_text("mine")
     r = subprocess.run(run, capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not polarstripe_msgs'" in r.stderr

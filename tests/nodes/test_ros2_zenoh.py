@@ -1,5 +1,6 @@
 """rmw_zenoh's wire formats (nodes/ros2_zenoh.py) against the examples of its design document (docs/design.md
-in ros2/rmw_zenoh, copied here verbatim) and against the third-party client's (zenoh-ros2-sdk) own encoders."""
+in ros2/rmw_zenoh, copied here verbatim) and against the third-party client's (zenoh-ros2-sdk) own
+encoders."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import json
 import pytest
 from polarstripe.nodes.ros2_zenoh import (
     ATTACHMENT_BYTES,
+    PUBLISHER,
     SERVICE,
     SUBSCRIPTION,
-    PUBLISHER,
     TRANSIENT_LOCAL,
     Entity,
     Ros2FormatError,
@@ -109,7 +110,8 @@ def test_bad_names_domains_and_types_are_refused():
 def test_session_config_is_a_client_of_one_router_without_scouting():
     c = {k: json.loads(v) for k, v in session_config("tcp/127.0.0.1:7447").items()}
     assert c["mode"] == "client" and c["connect/endpoints"] == ["tcp/127.0.0.1:7447"]
-    assert c["listen/endpoints"] == [] and not c["scouting/multicast/enabled"] and not c["scouting/gossip/enabled"]
+    assert c["listen/endpoints"] == []
+    assert not c["scouting/multicast/enabled"] and not c["scouting/gossip/enabled"]
     tls = {k: json.loads(v) for k, v in session_config("tls/rov:7447", tls_ca="ca.pem", tls_cert="c.pem",
                                                         tls_key="k.pem").items()}
     assert tls["transport/link/tls/enable_mtls"] and tls["transport/link/tls/root_ca_certificate"] == "ca.pem"
