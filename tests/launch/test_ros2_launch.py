@@ -23,14 +23,20 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_ros2_args_wire_the_bridge(tmp_path):
-    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
-    r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"),
-                        "--dry-run", "ros2=true", "ros2_endpoint=tcp/10.0.0.2:7448", "ros2_domain=7"],
-                       capture_output=True, text=True, env=env, timeout=60)
-    assert r.returncode == 0, r.stderr
-    node = json.loads(r.stdout)["nodes"]["ros2"]
-    assert node["module"] == "polarstripe.nodes.ros2_bridge:Ros2Bridge"
-    assert node["params"] == {"endpoint": "tcp/10.0.0.2:7448", "domain": 7}
+    from polarstripe.runtime.launch_file import load_launch
+
+    off = load_launch(ROOT / "launch" / "sim.toml", run_dir=tmp_path / "a")
+    assert "ros2" not in {n.name for n in off.nodes}
+    on = load_launch(ROOT / "launch" / "sim.toml", {"ros2": "true", "ros2_endpoint": "tcp/10.0.0.2:7448",
+                                                   "ros2_domain": "7"}, run_dir=tmp_path / "b")
+    node = next(n for n in on.nodes if n.name == "ros2")
+    assert node.module == "polarstripe.nodes.ros2_bridge:Ros2Bridge"
+    assert node.params == {"endpoint": "tcp/10.0.0.2:7448", "domain": 7}
+    rov = load_launch(ROOT / "launch" / "rov.toml", {"ros2": "true", "keys_dir": "/k"},
+                      run_dir=tmp_path / "c")
+    params = next(n for n in rov.nodes if n.name == "ros2").params
+    assert params["endpoint"].startswith("tls/") and params["tls_ca"] == "/k/tls/ca.pem"
+    assert (params["tls_cert"], params["tls_key"]) == ("/k/tls/vehicle.pem", "/k/tls/vehicle.key")
 
 
 def _router(port: int):
