@@ -16,12 +16,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from polarstripe.sim.geometry import Hits, box_interval
+from polarstripe.sim.frame_kernels import polarized_gain
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.grid_kernels import upsample_checked
 from polarstripe.sim.grid_sources import source_field
 from polarstripe.sim.multiple import Field, Grid, solve_polarized
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.similarity import pair_retention_of, polarized_extinction
+from polarstripe.sim.threads import in_bands
 from polarstripe.sim.surface_field import View, single_parts
 from polarstripe.sim.transport import Source
 
@@ -60,7 +62,8 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
     out = np.empty((4, cam.h * cam.w))
     bad = np.empty(cam.h * cam.w, bool)
-    upsample_checked(parts, t_c, np.ascontiguousarray(x_end, float), cam.w, float(div), out, bad)
+    x_end = np.ascontiguousarray(x_end, float)
+    in_bands(x_end.size, lambda a, b: upsample_checked(parts, t_c, x_end, cam.w, float(div), out, bad, a, b))
     idx = np.nonzero(bad)[0]
     if idx.size:
         sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx),
@@ -72,18 +75,23 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
 def b_cone(view: View, src: Source, plan: OrdersPlan, need, x0: np.ndarray):
     """B of light scattered once inside the forward cone toward the camera (a view ray that looks toward
     the source: its halo), with σ̃_t both ways; only rays whose smallest scattering angle (at their entry
-    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing."""
+    x0: θ_s grows along a ray) is below θ_c, so the paper's rig (source beside the camera) costs nothing
+    (None: no ray is in the cone; which rays are is the same for every pattern, kept per scene)."""
     sc = plan.scaled
-    lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
-    xc = view.dirs @ lv
-    h2 = np.maximum((lv * lv).sum() - xc * xc, 0.0) + src.radius ** 2
-    u0 = x0 - xc
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos0 = -u0 / np.sqrt(u0 * u0 + h2)
-    idx = np.nonzero(cos0 > sc.phase.cos_c)[0]
+
+    def in_cone():
+        lv = np.asarray(src.position, float) - np.asarray(view.cam.position, float)
+        xc = view.dirs @ lv
+        h2 = np.maximum((lv * lv).sum() - xc * xc, 0.0) + src.radius ** 2
+        u0 = x0 - xc
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos0 = -u0 / np.sqrt(u0 * u0 + h2)
+        return np.nonzero(cos0 > sc.phase.cos_c)[0]
+
+    idx = geo(view, ("cone", float(sc.phase.cos_c)), in_cone)
     n = view.dirs.shape[0]
     if idx.size == 0:
-        return np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+        return None
     cone = dataclasses.replace(src, sigma_t=sc.sigma_t, phase=dataclasses.replace(sc.phase, cone=True))
     sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx), pixels=np.zeros((idx.size, 2), int))
     out = np.zeros((4, n))
@@ -129,11 +137,10 @@ def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, g
 def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: float):
     """B's Stokes plus the orders ≥ 2: the polarized grid field seen along the view rays (``seen``, σ_p on the
     way) carries κ^(k−1) of once-backscattered light's DOP, ``dop`` = (1 − δ)·DOP_L (κ's reference, docs/
-    physics.md §10.4), in the orientation of the single wide-angle scattering at the pixel."""
-    norm = np.hypot(bq, bu)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gain = 1.0 + np.where(norm > 0, dop * seen / np.where(norm > 0, norm, 1.0), 0.0)
-    return bq * gain, bu * gain
+    physics.md §10.4), in the orientation of the single wide-angle scattering at the pixel. ``bq``, ``bu``
+    are updated in place and returned."""
+    polarized_gain(bq, bu, np.ascontiguousarray(seen, float), float(dop))
+    return bq, bu
 
 
 def add_circular_orders(bv: np.ndarray, seen: np.ndarray, v_back: float) -> np.ndarray:

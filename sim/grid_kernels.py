@@ -192,11 +192,13 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
 
 
 @njit(cache=True, nogil=True)
-def view_lookup(shape, t0, t1, cum, x_end, out):
+def view_lookup(shape, t0, t1, cum, x_end, out, rows=(0, -1)):
     """Per pixel of a (h, w) image (``shape`` = (h, w, gh, gw)): out[f, m] the coarse rays' cumulative
     in-scatter of field f at the pixel's own depth x_end[m], bilinear between the four coarse rays around it
     (coarse ray (a, b) sits at pixel row a·(h − 1)/(gh − 1), column b·(w − 1)/(gw − 1)); on each coarse ray
-    linear between its evenly spaced depths, clamped to its ends."""
+    linear between its evenly spaced depths, clamped to its ends. ``rows`` = (first, end) limits the work to
+    those image rows (end −1: to the last; each pixel is computed on its own, so bands are bit-identical to
+    the whole)."""
     h, w, gh, gw = shape
     nf = cum.shape[0]
     nk = cum.shape[2] - 1
@@ -206,36 +208,45 @@ def view_lookup(shape, t0, t1, cum, x_end, out):
     for r in range(t0.size):
         length = t1[r] - t0[r]
         scale[r] = nk / length if length > 0.0 else 0.0
+    col0 = np.empty(w, np.int64)
+    col1 = np.empty(w, np.int64)
+    tcs = np.empty(w)
+    for j in range(w):
+        fc = j * cols_scale
+        c0 = min(int(fc), max(gw - 2, 0))
+        col0[j], col1[j], tcs[j] = c0, min(c0 + 1, gw - 1), fc - c0
     rays = np.empty(4, np.int64)
     wts = np.empty(4)
-    for m in range(x_end.size):
-        fr = (m // w) * rows_scale
-        fc = (m % w) * cols_scale
+    end = h if rows[1] < 0 else rows[1]
+    for i in range(rows[0], end):
+        fr = i * rows_scale
         r0 = min(int(fr), max(gh - 2, 0))
-        c0 = min(int(fc), max(gw - 2, 0))
-        tr, tc = fr - r0, fc - c0
-        r1, c1 = min(r0 + 1, gh - 1), min(c0 + 1, gw - 1)
-        rays[0], rays[1], rays[2], rays[3] = r0 * gw + c0, r0 * gw + c1, r1 * gw + c0, r1 * gw + c1
-        wts[0], wts[1], wts[2], wts[3] = (1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc
-        for f in range(nf):
-            out[f, m] = 0.0
-        x = x_end[m]
-        for q in range(4):
-            r = rays[q]
-            wq = wts[q]
-            if wq == 0.0 or scale[r] == 0.0:
-                continue
-            u = (x - t0[r]) * scale[r]
-            if u <= 0.0:
-                continue
-            if u >= nk:
-                for f in range(nf):
-                    out[f, m] += wq * cum[f, r, nk]
-                continue
-            j = int(u)
-            a = u - j
+        tr = fr - r0
+        r1 = min(r0 + 1, gh - 1)
+        for j in range(w):
+            m = i * w + j
+            c0, c1, tc = col0[j], col1[j], tcs[j]
+            rays[0], rays[1], rays[2], rays[3] = r0 * gw + c0, r0 * gw + c1, r1 * gw + c0, r1 * gw + c1
+            wts[0], wts[1], wts[2], wts[3] = (1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc
             for f in range(nf):
-                out[f, m] += wq * ((1.0 - a) * cum[f, r, j] + a * cum[f, r, j + 1])
+                out[f, m] = 0.0
+            x = x_end[m]
+            for q in range(4):
+                r = rays[q]
+                wq = wts[q]
+                if wq == 0.0 or scale[r] == 0.0:
+                    continue
+                u = (x - t0[r]) * scale[r]
+                if u <= 0.0:
+                    continue
+                if u >= nk:
+                    for f in range(nf):
+                        out[f, m] += wq * cum[f, r, nk]
+                    continue
+                k = int(u)
+                a = u - k
+                for f in range(nf):
+                    out[f, m] += wq * ((1.0 - a) * cum[f, r, k] + a * cum[f, r, k + 1])
 
 
 @njit(cache=True, nogil=True)
@@ -276,15 +287,15 @@ def segment_lengths(a, points, lo, hi, out):
 
 
 @njit(cache=True, nogil=True)
-def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
+def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad, first=0, end=-1):
     """Bilinear upsampling of coarse (k, gh, gw) fields sampled at every ``step``-th pixel row and column
     (row a·step, column b·step) to the (h, w) image (flat, ``width`` = w) into out (k, h·w); bad[m] marks
     pixels whose four coarse neighbours end their rays (t_coarse) more than max(1 cm, 1 %) from their own
-    (t_own), i.e. silhouettes, to be computed exactly."""
+    (t_own), i.e. silhouettes, to be computed exactly. Pixels [first, end) only (end −1: to the last)."""
     k, gh, gw = coarse.shape
-    n = t_own.size
+    n = t_own.size if end < 0 else end
     rs = cs = 1.0 / step
-    for m in range(n):
+    for m in range(first, n):
         fr = (m // width) * rs
         fc = (m % width) * cs
         r0 = min(int(fr), max(gh - 2, 0))
@@ -305,13 +316,14 @@ def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad):
 
 
 @njit(cache=True, nogil=True)
-def upsample_within(small, ids_small, ids, out):
+def upsample_within(small, ids_small, ids, out, first=0, end=-1):
     """Twice-finer bilinear upsampling of ``small`` (h/2, w/2) to out (h·w flat), each pixel weighing only
     the coarse neighbours that see its own object (ids; pixel j sits at coarse coordinate j/2 − ¼, as
-    cv2.resize has it), the nearest of them when none do, 0 where it sees none."""
+    cv2.resize has it), the nearest of them when none do, 0 where it sees none. Rows [first, end) only (end
+    −1: to the last)."""
     h, w = ids.shape
     hs, ws = small.shape
-    for i in range(h):
+    for i in range(first, h if end < 0 else end):
         fy = min(max(i / 2.0 - 0.25, 0.0), hs - 1.0)
         y0 = min(int(fy), max(hs - 2, 0))
         ty = fy - y0

@@ -32,6 +32,7 @@ from polarstripe.sim.grid_kernels import (
 from polarstripe.sim.multiple import Field, Grid
 from polarstripe.sim.patterns import gray_lit, pattern_lit, stripe_columns
 from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
+from polarstripe.sim.threads import in_bands
 from polarstripe.sim.transport import Source
 
 _MAX_BEAMS = 60000
@@ -192,7 +193,7 @@ def _sphere_patches(o: SphereObject, spacing: float):
     area = 4 * math.pi * r * r / n
     helper = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     e1 = np.cross(d, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e1 /= np.sqrt([v.dot(v) for v in e1])[:, None]        # as np.linalg.norm of each row, bit for bit
     side = math.sqrt(area)
     return np.asarray(o.center) + r * d, d, np.full(n, area), e1 * side, np.cross(d, e1) * side
 
@@ -287,20 +288,17 @@ def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float,
     u = (np.arange(side) + 0.5) / side
     U, V = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
     rng = np.random.default_rng(12345)
-    out_d, out_p, out_o = [], [], []
-    for i in keep:
-        n = patches.normal[i]
-        helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-        e1 = np.cross(n, helper)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        rot = rng.uniform(0, 2 * math.pi)                 # a rotated stratification per patch: no ray stripes
-        r, a = np.sqrt(U), 2 * math.pi * V + rot
-        d = (r * np.cos(a))[:, None] * e1 + (r * np.sin(a))[:, None] * e2 + np.sqrt(1 - U)[:, None] * n
-        out_d.append(d)
-        out_p.append(np.full(k, exitance[i] * patches.area[i] / k))
-        out_o.append(np.repeat(patches.point[i][None, :] + 1e-7 * n, k, axis=0))
-    dirs, power, orig = np.concatenate(out_d), np.concatenate(out_p), np.concatenate(out_o)
+    nrm = patches.normal[keep]
+    helper = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(nrm, helper)
+    e1 /= np.sqrt([v.dot(v) for v in e1])[:, None]        # as np.linalg.norm of each row, bit for bit
+    e2 = np.cross(nrm, e1)
+    rot = rng.uniform(0, 2 * math.pi, keep.size)      # a rotated stratification per patch: no ray stripes
+    r, a = np.sqrt(U)[None, :], 2 * math.pi * V[None, :] + rot[:, None]
+    dirs = ((r * np.cos(a))[..., None] * e1[:, None, :] + (r * np.sin(a))[..., None] * e2[:, None, :]
+            + np.sqrt(1 - U)[None, :, None] * nrm[:, None, :]).reshape(-1, 3)
+    power = np.repeat(exitance[keep] * patches.area[keep] / k, k)
+    orig = np.repeat(patches.point[keep] + 1e-7 * nrm, k, axis=0)
     t0, t1 = box_interval(orig, dirs, grid.lo, grid.hi)
     if len(objects):
         t1 = np.minimum(t1, intersect(objects, orig, dirs).t)
@@ -329,7 +327,9 @@ def view_integral(grid: Grid, fields: list[Field], view_args: ViewArgs, cam, pix
     view_cumulative(grid.args(), phi, flux, view_args, np.ascontiguousarray(rays), t0, t1, cum)
     out = np.zeros((len(fields), x_end.size))
     if pixels is None:
-        view_lookup((cam.h, cam.w, gh, gw), t0, t1, cum, np.ascontiguousarray(x_end, float), out)
+        x_end = np.ascontiguousarray(x_end, float)
+        in_bands(cam.h, lambda a, b: view_lookup((cam.h, cam.w, gh, gw), t0, t1, cum, x_end, out, (a, b)),
+                 min_size=16)
     else:
         n = rays.shape[0]
         view_lookup((n, 1, n, 1), t0, t1, cum, np.ascontiguousarray(x_end, float), out)

@@ -25,6 +25,7 @@ object signal and B the veiling light, so the analyzer model of docs/physics.md 
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -40,7 +41,8 @@ from polarstripe.sim.backscatter import (
     rays,
     scaled_source,
 )
-from polarstripe.sim.geometry import Hits, box_interval, occluded, segment_length_in_box
+from polarstripe.sim.frame_kernels import field_irradiance
+from polarstripe.sim.geometry import Hits, box_interval, occluded, projector_coords, segment_length_in_box
 from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_within
 from polarstripe.sim.grid_sources import (
     footprint_lit,
@@ -61,6 +63,7 @@ from polarstripe.sim.psf_stencil import stencil_blur
 from polarstripe.sim.similarity import truncated_code
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import View, camera_frame_stokes, single_parts
+from polarstripe.sim.threads import in_bands
 from polarstripe.sim.transport import Source, direct
 
 
@@ -123,7 +126,11 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
     want_d = "D" in need or ("A" in need and view.pixels is not None)       # pixels: A = stencil − D
     if view.pixels is None and geometry_cache.enabled():
         seen = geo(view, "seen", lambda: hit[~occluded(scene.objects, src.position, hits.point[hit])])
-        lit = seen[pattern_lit(pat, src.frame, hits.point[seen])]
+        if src.frame is None:
+            lit = seen
+        else:
+            coords = geo(view, "seen_coords", lambda: projector_coords(src.frame, hits.point[seen]))
+            lit = seen[pattern_lit(pat, src.frame, None, coords)]
 
         def every(source, albedo):
             out = np.zeros(n)
@@ -168,8 +175,10 @@ def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings,
     packed = np.ascontiguousarray(np.column_stack([patches.point, patches.normal, patches.area,
                                                    exitance / np.pi]))
     j1 = np.empty(int(np.prod(grid.n)))
-    glow_emission(grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float), packed,
-                  PhaseArgs(*truncated_code(sc.phase)), float(sc.sigma_t), float(sc.sigma_s), j1)
+    cells, eye, phase = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float), \
+        PhaseArgs(*truncated_code(sc.phase))
+    in_bands(j1.size, lambda a, b: glow_emission(cells[a:b], eye, packed, phase, float(sc.sigma_t),
+                                                 float(sc.sigma_s), j1[a:b]), min_size=256)
     first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)
     more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.glow_orders)
     c = sc.sigma_s / (4 * np.pi)
@@ -264,10 +273,45 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel()
           for x in (h_half, b, bq, bu, bv)]
     p_full = np.zeros(cam.w * cam.h)
-    upsample_within(p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
-                    view.surf.object_id.reshape(cam.h, cam.w), p_full)
+    args = (p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
+            view.surf.object_id.reshape(cam.h, cam.w), p_full)
+    in_bands(cam.h, lambda a, b: upsample_within(*args, a, b), min_size=16)
     a = view.surf.albedo * p_full + up[0] if "A" in need else np.zeros(p_full.size)
     return d, a, up[1], up[2], up[3], up[4]
+
+
+class RayGeometry(NamedTuple):
+    """Per camera ray, the same for every pattern (kept per scene for whole frames): the medium grid's
+    interval [t0, t1], the view path's end x_end = min(t1, hit) and start x0 = max(t0, 0), the in-medium
+    length ℓ_C of rays that hit an object (0 elsewhere) and the hit points and normals (contiguous)."""
+
+    t0: np.ndarray
+    t1: np.ndarray
+    x_end: np.ndarray
+    x0: np.ndarray
+    ell_c: np.ndarray
+    hit_points: np.ndarray
+    hit_normals: np.ndarray
+
+
+def _ray_geometry(view: View, grid: Grid) -> RayGeometry:
+    def make():
+        t0, t1 = box_interval(view.cam.position, view.dirs, grid.lo, grid.hi)
+        x_end, x0 = np.minimum(t1, view.hits.t), np.maximum(t0, 0.0)
+        hit = view.surf.object_id >= 0
+        ell_c = np.where(hit & (t1 > t0), x_end - x0, 0.0)     # the view ray in the medium
+        return RayGeometry(t0, t1, x_end, x0, ell_c, np.ascontiguousarray(view.hits.point[hit]),
+                           np.ascontiguousarray(view.hits.normal[hit]))
+
+    return geo(view, ("rays", tuple(grid.lo), tuple(grid.hi)), make)
+
+
+def _irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The P1 irradiance max(0, φ/4 − F·n/2) of ``field`` at surface points (one compiled pass)."""
+    out, args = np.empty(points.shape[0]), grid.args()
+    in_bands(out.size, lambda a, b: field_irradiance(args, field.phi, field.flux, points[a:b], normals[a:b],
+                                                     out[a:b]))
+    return out
 
 
 def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings, parts: bool = False):
@@ -286,9 +330,8 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     pol = "p" in need and "B" in need and dop.model == "rayleigh"
     orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
                           sc.sigma_s, sc.g_tilde, orders=st.orders)
-    t0, t1 = geo(view, ("interval", tuple(grid.lo), tuple(grid.hi)),
-                  lambda: box_interval(view.cam.position, view.dirs, grid.lo, grid.hi))
-    x_end = np.minimum(t1, view.hits.t)
+    rg = _ray_geometry(view, grid)
+    x_end = rg.x_end
     fields = [orders.total] if "B" in need else []
     sigmas = [sc.sigma_t] * len(fields)
     lin, circ = src.linear_circular
@@ -313,8 +356,12 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     if "B" in need:
         B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
         sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol, sigma_pol_v=psrc.sigma_pol_v) if pol else src
-        cone = b_cone(view, sp, plan, need, np.maximum(t0, 0.0))
-        B, Bq, Bu, Bv = B + cone[0], Bq + cone[1], Bu + cone[2], Bv + cone[3]
+        cone = b_cone(view, sp, plan, need, rg.x0)
+        if cone is not None:
+            B += cone[0]
+            Bq += cone[1]
+            Bu += cone[2]
+            Bv += cone[3]
         if pol:
             delta = float(dop.depolarization)
             k = 1
@@ -323,21 +370,21 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
                 k += 1
             if circ != 0.0:
                 Bv = add_circular_orders(Bv, seen_vals[k], -(1.0 - 2.0 * delta) * circ)
-        B = B + seen_vals[0]
+        B += seen_vals[0]
         if "p" in need and dop.model == "constant":
             Bq, Bu, Bv = _constant_stokes(view, src, B)
     if want_a:
-        hp, hn = view.hits.point[hit], view.hits.normal[hit]
+        hp, hn, ell_c = rg.hit_points, rg.hit_normals, rg.ell_c
         ell_l = geo(view, "ell_l", lambda: _lengths(ssrc.position, view, ssrc))
-        ell_c = np.where(hit & (t1 > t0), x_end - np.maximum(t0, 0.0), 0.0)     # the view ray in the medium
         rest = np.zeros(n)
         if st.a1_exact:
             unit = view._replace(surf=dataclasses.replace(view.surf, albedo=np.ones(n)))
             rest = single_parts(unit, ssrc, ("A",))[1]                   # per unit albedo
-            e2 = surface_irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
+            e2 = _irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
         else:
-            e2 = surface_irradiance(grid, orders.total + glow_scattered, hp, hn)
-        rest[hit] += e2 * np.exp(-sc.sigma_t * ell_c[hit]) / np.pi
+            e2 = _irradiance(grid, orders.total + glow_scattered, hp, hn)
+        att = geo(view, ("att_c", sc.sigma_t), lambda: np.exp(-sc.sigma_t * ell_c[hit]))
+        rest[hit] += e2 * att / np.pi
         light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
         if parts:
             return D, light[0], light[1] + seen_vals[-1], B, Bq, Bu, Bv

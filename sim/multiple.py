@@ -31,6 +31,7 @@ from functools import lru_cache
 
 import numpy as np
 from polarstripe.sim.grid_kernels import GridArgs
+from polarstripe.sim.threads import fft_workers
 from scipy import fft as sfft
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -161,16 +162,25 @@ def _transforms(n: tuple[int, int, int], h: tuple[float, float, float], sigma: f
 
 
 def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field:
-    """The field (φ, F) of the emission (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹] of every cell, with extinction σ."""
+    """The field (φ, F) of the emission (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹] of every cell, with extinction σ.
+
+    In Fourier space φ̂ = K̂₀ŝ₀ + 3 K̂₁·ŝ₁ and F̂_a = K̂₁ₐŝ₀ + 3 Σ_b K̂₂ₐᵦŝ₁ᵦ: the four inputs go through one
+    batched transform each way (:func:`polarstripe.sim.threads.fft_workers` threads)."""
     n = tuple(int(m) for m in grid.n)
     shape, f0, f1, f2 = _transforms(n, tuple(float(x) for x in grid.h), float(sigma))
-    sl = tuple(slice(m - 1, 2 * m - 1) for m in n)
-    t0 = sfft.rfftn(s0, shape)
-    t1 = [sfft.rfftn(s1[..., a], shape) for a in range(3)]
-    phi = sfft.irfftn(f0 * t0 + 3 * (f1[0] * t1[0] + f1[1] * t1[1] + f1[2] * t1[2]), shape)[sl]
-    flux = np.stack([sfft.irfftn(f1[a] * t0 + 3 * (f2[a][0] * t1[0] + f2[a][1] * t1[1] + f2[a][2] * t1[2]),
-                                 shape)[sl] for a in range(3)], -1)
-    return Field(np.maximum(phi, 0.0), flux)
+    sl = (slice(None),) + tuple(slice(m - 1, 2 * m - 1) for m in n)
+    src = np.empty((4,) + n)
+    src[0] = s0
+    src[1:] = np.moveaxis(s1, -1, 0)
+    axes, workers = (1, 2, 3), fft_workers()
+    t = sfft.rfftn(src, shape, axes=axes, workers=workers)
+    t0, t1 = t[0], t[1:]
+    out = np.empty_like(t)
+    out[0] = f0 * t0 + 3 * (f1[0] * t1[0] + f1[1] * t1[1] + f1[2] * t1[2])
+    for a in range(3):
+        out[1 + a] = f1[a] * t0 + 3 * (f2[a][0] * t1[0] + f2[a][1] * t1[1] + f2[a][2] * t1[2])
+    res = sfft.irfftn(out, shape, axes=axes, workers=workers)[sl]
+    return Field(np.maximum(res[0], 0.0), np.moveaxis(res[1:], 0, -1))
 
 
 def _emission(field: Field, sigma_s: float, g: float) -> tuple[np.ndarray, np.ndarray]:

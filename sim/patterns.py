@@ -145,15 +145,26 @@ def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.n
     return np.concatenate(rays), np.concatenate(los), np.concatenate(his)
 
 
-def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray) -> np.ndarray:
+def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray, coords=None) -> np.ndarray:
     """Which ``points`` (m, 3) the projector lights: inside its ``frame`` (a pinhole; None: everywhere, a
-    point source) and, unless ``pattern`` is None, on a lit pixel of the stripe, checker or Gray pattern."""
+    point source) and, unless ``pattern`` is None, on a lit pixel of the stripe, checker or Gray pattern.
+    ``coords``: the points' :func:`~polarstripe.sim.geometry.projector_coords` when already known (a scan's
+    frames share them)."""
     if frame is None:
         return np.ones(points.shape[0], bool)
-    col, row, depth = projector_coords(frame, points)
+    col, row, depth = projector_coords(frame, points) if coords is None else coords
     ok = (depth > 0) & (row >= 0) & (row < frame.h) & (col >= 0) & (col < frame.w)
     if pattern is None:
         return ok
+    if pattern.kind == "stripe":
+        c0, c1 = stripe_columns(pattern, frame.w)
+        ok &= (col >= c0) & (col < c1)
+    elif pattern.kind == "checker":
+        shift = pattern.shift % (2 * pattern.size)
+        ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0
+    elif pattern.kind == "gray":
+        ok &= gray_lit(pattern, col, row)
+    return ok
     if pattern.kind == "stripe":
         c0, c1 = stripe_columns(pattern, frame.w)
         ok &= (col >= c0) & (col < c1)

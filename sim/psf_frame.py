@@ -14,7 +14,9 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, mixture
+from polarstripe.sim.threads import in_bands
 
 _LOG_LADDER = np.log(N_LADDER)
 
@@ -77,6 +79,12 @@ def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
         keep_out[i] = (1.0 - w) * value[i]
 
 
+def _legs(hit, value, ell, footprint, f_sigma_s, ladder, out: LegOut) -> None:
+    """:func:`leg_inputs` over bands of pixels (:func:`polarstripe.sim.threads.in_bands`)."""
+    in_bands(hit.size, lambda a, b: leg_inputs(hit[a:b], value[a:b], ell[a:b], footprint[a:b], f_sigma_s,
+                                               ladder, LegOut(*(x[a:b] for x in out))))
+
+
 def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray, rest_unit: np.ndarray,
                     ells: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The object light beyond D, per pixel (flat (h·w,)), after both blurs (module docstring): A = ρ·P + H.
@@ -97,11 +105,15 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
     cam, dirs, hits, surf = view.cam, view.dirs, view.hits, view.surf
     hit = surf.object_id >= 0
     shape, npx = (cam.h, cam.w), cam.h * cam.w
-    footprint = np.empty(npx)
-    footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), footprint)
+    def footprint_of():
+        out = np.empty(npx)
+        footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), out)
+        return out
+
+    footprint = cached(view.scene, ("footprint", cam.w, cam.h), footprint_of)    # the same every pattern
     ladder = Ladder(_LOG_LADDER, np.ascontiguousarray(table.rms, float))
     spread_l, rms_l, keep_l = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    leg_inputs(hit, quasi, ells[0], footprint, f_sigma_s, ladder, LegOut(spread_l, rms_l, keep_l))
+    _legs(hit, quasi, ells[0], footprint, f_sigma_s, ladder, LegOut(spread_l, rms_l, keep_l))
     halo_l = np.zeros(npx)
     ids = surf.object_id
     for k in range(len(view.scene.objects)):
@@ -115,9 +127,10 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
     extra = np.where(hit, halo_l + rest_unit, 0.0)
     rad = surf.albedo * (keep_l + extra)
     spread_c, rms_c, keep_c = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    leg_inputs(hit, rad, ells[1], footprint, f_sigma_s, ladder, LegOut(spread_c, rms_c, keep_c))
+    _legs(hit, rad, ells[1], footprint, f_sigma_s, ladder, LegOut(spread_c, rms_c, keep_c))
     if hit.any():
         rms_c[~hit] = float(np.median(rms_c[hit][::7]))                # pixels beside the object receive too
     n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
     halo = blur_image(spread_c.reshape(shape), rms_c.reshape(shape), mixture(table, n_med))
-    return np.exp(-f_sigma_s * ells[1]) * extra, halo.ravel().astype(float)
+    keep = cached(view.scene, ("keep_c", cam.w, cam.h, f_sigma_s), lambda: np.exp(-f_sigma_s * ells[1]))
+    return keep * extra, halo.ravel().astype(float)

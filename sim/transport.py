@@ -33,6 +33,7 @@ from polarstripe.sim.geometry import (
 from polarstripe.sim.patterns import PatternSpec, lit_intervals
 from polarstripe.sim.scene import Scene
 from polarstripe.sim.similarity import truncated_code
+from polarstripe.sim.threads import in_bands
 
 _POL_NODES = 5
 
@@ -156,13 +157,20 @@ def line_radiance(src: Source, origin: np.ndarray, dirs: np.ndarray, view_start:
     mueller = src.dop_model.model == "rayleigh" and src.dop_l > 0.0
     f64 = np.ascontiguousarray
     face = np.zeros((0, 3)) if facing is None else f64(facing, float).reshape(-1, 3)
-    kernels.line_integrals(
-        _light(src, face), _medium(src), records.PhaseArgs(*_phase_code(src.phase)),
-        _quadrature(int(nodes), src.phase, tuple(splits)),
-        _polarization(src, pol, mueller, facing is not None),
-        records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)),
-        records.Intervals(f64(ray, np.int64), f64(lo, float), f64(hi, float)),
-        records.Stokes(b_out, *((q_out, u_out, v_out) if pol else (np.zeros(1),) * 3)))
+    args = (_light(src, face), _medium(src), records.PhaseArgs(*_phase_code(src.phase)),
+            _quadrature(int(nodes), src.phase, tuple(splits)),
+            _polarization(src, pol, mueller, facing is not None),
+            records.Rays(f64(origin, float).reshape(-1, 3), f64(dirs, float), f64(view_start, float)))
+    ray, lo, hi = f64(ray, np.int64), f64(lo, float), f64(hi, float)
+    sums = records.Stokes(b_out, *((q_out, u_out, v_out) if pol else (np.zeros(1),) * 3))
+
+    def band(a, b):
+        kernels.line_integrals(*args, records.Intervals(ray[a:b], lo[a:b], hi[a:b]), sums)
+
+    if ray.size > 1 and np.all(ray[1:] >= ray[:-1]):     # a ray's intervals in one band, in their order
+        in_bands(ray.size, band, min_size=1024, starts=np.flatnonzero(np.diff(ray)) + 1)
+    else:
+        band(0, ray.size)
     return (b_out, q_out, u_out, v_out) if polarization else b_out
 
 

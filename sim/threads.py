@@ -1,0 +1,90 @@
+"""How many threads the model uses (the ``threads`` of ``polarstripe render`` and the simulator node).
+
+Default: the cores this process may run on (its CPU affinity). :func:`set_threads` changes it for the
+process; every parallel part splits work whose pieces are computed independently, so a frame is
+bit-identical whatever the count (``tests/sim/test_threads.py``):
+
+* the higher orders' FFTs (:func:`fft_workers`: scipy's pocketfft splits its batches of 1-D transforms);
+* the per-pixel compiled kernels (:func:`in_bands`: bands of pixels, rows or a ray's intervals, each in a
+  thread of a shared pool; the kernels release the GIL);
+* OpenCV's blurs and resizes (``cv2.setNumThreads``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+
+_state = {"threads": None, "pool": None}
+_lock = threading.Lock()
+
+
+def available() -> int:
+    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where there is none)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def threads() -> int:
+    """The model's thread count (default :func:`available`)."""
+    if _state["threads"] is None:
+        set_threads(None)
+    return _state["threads"]
+
+
+def set_threads(count: int | None) -> int:
+    """Use ``count`` threads (None or 0: :func:`available`); returns the count in effect.
+
+    Raises
+    ------
+    ValueError
+        ``count`` negative or not an integer.
+    """
+    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 0):
+        raise ValueError(f"threads must be a non-negative integer (0: the CPU affinity), got {count!r}")
+    n = available() if not count else int(count)
+    with _lock:
+        if _state["threads"] != n:
+            _state["threads"] = n
+            cv2.setNumThreads(n if n > 1 else 0)   # 0: OpenCV runs its loops in the calling thread
+            old, _state["pool"] = _state["pool"], None
+            if old is not None:
+                old.shutdown(wait=False)
+    return n
+
+
+def fft_workers() -> int:
+    """Workers for scipy.fft."""
+    return threads()
+
+
+def _pool() -> ThreadPoolExecutor:
+    with _lock:
+        if _state["pool"] is None:
+            _state["pool"] = ThreadPoolExecutor(_state["threads"], thread_name_prefix="model")
+        return _state["pool"]
+
+
+def in_bands(count: int, run, min_size: int = 4096, starts: np.ndarray | None = None) -> None:
+    """Call ``run(first, end)`` over bands of ``range(count)`` (pixels, image rows, intervals), in parallel
+    with more than one thread (bands of at least ``min_size``); ``run`` must compute each item on its own and
+    write only its own items. ``starts`` (sorted item indices): bands begin only there (the intervals of
+    one ray stay in one band)."""
+    n = min(threads(), max(1, count // max(min_size, 1)))
+    if n <= 1:
+        run(0, count)
+        return
+    edges = [count * k // n for k in range(n + 1)]
+    if starts is not None:                      # move each inner edge to the next allowed start
+        at = np.searchsorted(starts, edges[1:-1])
+        edges = sorted({0, count, *(int(starts[i]) if i < starts.size else count for i in at)})
+    futures = [_pool().submit(run, a, b) for a, b in zip(edges[1:-1], edges[2:], strict=True)]
+    run(edges[0], edges[1])
+    for f in futures:
+        f.result()

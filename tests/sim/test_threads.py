@@ -1,0 +1,51 @@
+"""The model's threads: a frame is bit-identical whatever the thread count (sim/threads.py)."""
+
+import numpy as np
+import pytest
+from polarstripe.sim import threads
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import load_scene
+
+
+@pytest.fixture
+def restore_threads():
+    before = threads.threads()
+    yield
+    threads.set_threads(before)
+
+
+@pytest.mark.parametrize("pattern,fidelity,size", [("stripe:5/12", "standard", (160, 120)),
+                                                   ("checker:16:3", "standard", (96, 72)),
+                                                   ("flood", "preview", (640, 480))])
+def test_frames_identical_for_any_thread_count(restore_threads, pattern, fidelity, size):
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.resized(size))
+    frames = []
+    for n in (1, 2, 3):
+        threads.set_threads(n)
+        c = render_components(scene, pattern, fidelity)
+        frames.append(np.stack([c.D, c.A, c.B, c.Bq, c.Bu]))
+    assert np.all(frames[0][2] > 0)
+    for other in frames[1:]:
+        assert np.array_equal(frames[0], other)
+
+
+def test_bands_cover_every_item_once_and_respect_starts(restore_threads):
+    threads.set_threads(3)
+    seen = np.zeros(10_000, int)
+    bands = []
+
+    def run(a, b):
+        seen[a:b] += 1
+        bands.append((a, b))
+
+    starts = np.array([0, 10, 4000, 4001, 9000])
+    threads.in_bands(seen.size, run, min_size=1000, starts=starts)
+    assert np.all(seen == 1)
+    assert len(bands) > 1 and all(a in starts for a, _ in bands)
+
+
+def test_bad_thread_count_is_refused(restore_threads):
+    with pytest.raises(ValueError, match="threads must be"):
+        threads.set_threads(-1)
+    assert threads.set_threads(0) == threads.available()
