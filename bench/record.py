@@ -386,7 +386,8 @@ def run(
         r["MB_s"] = r["fps"] * len(blobs[0]) / 1e6
         r["vs_plain"] = r["fps"] / plain[r["memory"]]
         r["cpu_ms_per_frame"] = 1e3 * r["cpu_s"] / n
-        r["cpu_vs_plain"] = r["cpu_s"] / plain_cpu[r["memory"]] if plain_cpu[r["memory"]] > 0 else float("nan")
+        base = plain_cpu[r["memory"]]
+        r["cpu_vs_plain"] = r["cpu_s"] / base if base > 0 else float("nan")
     out["payload_MB"] = total / 1e6
     if bus:
         warm_r, cold_r = (
