@@ -120,6 +120,7 @@ def _saturated(raw: np.ndarray, saturation: float | None) -> np.ndarray | None:
 
 def crossed_pair(raw, calibration: MosaicCalibration = MosaicCalibration(), *,
                  rule: Literal["local", "global", "pixel"] = "local", angle_sigma_px: float = 6.0,
+                 polarized_sigma_px: float = 0.0,
                  saturation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     r"""E_b and E_w from one mosaic frame: the frames through an ideal analyzer crossed to and along the
     light's polarization, with the sensor's own transmission a0 = ½(1 + 1/ER).
@@ -138,6 +139,9 @@ def crossed_pair(raw, calibration: MosaicCalibration = MosaicCalibration(), *,
           (biased low under noise: √(S1² + S2²) is Rician).
 
     angle_sigma_px : the ``local`` rule's smoothing [px].
+    polarized_sigma_px : smooth the polarized part S1 cos 2ψ + S2 sin 2ψ by a Gaussian of this σ [px] before
+        it is added and subtracted (0: not): the object's light is unpolarized, so the polarized part is the
+        backscatter's, smooth, while the demosaicing's false polarization at edges and the noise are not.
     saturation : raw level [DN] at which a pixel is saturated; derived pixels reading one are
         :data:`SATURATED`.
 
@@ -155,7 +159,7 @@ def crossed_pair(raw, calibration: MosaicCalibration = MosaicCalibration(), *,
     variable); ``local`` and ``global`` are unbiased.
     """
     e_b, e_w = crossed_from_stokes(mosaic_stokes(raw, calibration), calibration.a0, rule=rule,
-                                   angle_sigma_px=angle_sigma_px)
+                                   angle_sigma_px=angle_sigma_px, polarized_sigma_px=polarized_sigma_px)
     hit = _saturated(np.asarray(raw), saturation)
     if hit is not None:
         e_b[hit] = e_w[hit] = SATURATED
@@ -163,12 +167,14 @@ def crossed_pair(raw, calibration: MosaicCalibration = MosaicCalibration(), *,
 
 
 def crossed_from_stokes(stokes, a0: float = 0.5, *, rule: Literal["local", "global", "pixel"] = "local",
-                        angle_sigma_px: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+                        angle_sigma_px: float = 6.0,
+                        polarized_sigma_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """E_b, E_w = a0·(S0 ∓ (S1 cos 2ψ + S2 sin 2ψ)) from (h, w, 3) Stokes, ψ chosen by ``rule``
     (:func:`crossed_pair`)."""
     if rule not in RULES:
         raise ImagingError(f"rule: {rule!r} is not one of {', '.join(RULES)}")
     finite_param("angle_sigma_px", angle_sigma_px, low=0.0, low_open=True)
+    finite_param("polarized_sigma_px", polarized_sigma_px, low=0.0)
     stokes = np.asarray(stokes, float)
     if stokes.ndim != 3 or stokes.shape[-1] != 3:
         raise ImagingError(f"stokes: expected (h, w, 3), got {stokes.shape}")
@@ -179,23 +185,23 @@ def crossed_from_stokes(stokes, a0: float = 0.5, *, rule: Literal["local", "glob
         if rule == "global":
             two_psi = np.arctan2(s2.sum(), s1.sum())
         else:
-            kernel = _surround_kernel(float(angle_sigma_px))
-            two_psi = np.arctan2(cv2.filter2D(s2, -1, kernel, borderType=cv2.BORDER_REFLECT),
-                                 cv2.filter2D(s1, -1, kernel, borderType=cv2.BORDER_REFLECT))
+            two_psi = np.arctan2(_surround(s2, float(angle_sigma_px)), _surround(s1, float(angle_sigma_px)))
         proj = s1 * np.cos(two_psi) + s2 * np.sin(two_psi)
+    if polarized_sigma_px > 0:
+        proj = cv2.GaussianBlur(proj, (0, 0), float(polarized_sigma_px), borderType=cv2.BORDER_REFLECT)
     return a0 * (s0 - proj), a0 * (s0 + proj)
 
 
-def _surround_kernel(sigma_px: float) -> np.ndarray:
-    """A Gaussian of ``sigma_px`` (to 3σ) with its central 5×5 zeroed: the pixels whose demosaiced Stokes
-    share raw pixels with the centre's (bilinear reads ±1 raw pixel) are left out, so the angle holds none
-    of the centre's own noise and the projection on it stays unbiased."""
+def _surround(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` smoothed by a Gaussian of ``sigma_px`` with its central 5×5 left out (unnormalised: only the
+    angle of the result is used). Those are the pixels whose demosaiced Stokes share raw pixels with the
+    centre's (bilinear reads ±1 raw pixel), so the angle holds none of the centre's own noise and the
+    projection on it stays unbiased. The full Gaussian is separable (fast); its central 5×5 is taken off."""
     r = max(3, int(np.ceil(3.0 * sigma_px)))
-    x = np.arange(-r, r + 1, dtype=float)
-    g = np.exp(-0.5 * (x / sigma_px) ** 2)
-    kernel = np.outer(g, g)
-    kernel[r - 2:r + 3, r - 2:r + 3] = 0.0
-    return kernel / kernel.sum()
+    g = cv2.getGaussianKernel(2 * r + 1, sigma_px)
+    full = cv2.sepFilter2D(image, -1, g, g, borderType=cv2.BORDER_REFLECT)
+    core = g[r - 2:r + 3]
+    return full - cv2.sepFilter2D(image, -1, core, core, borderType=cv2.BORDER_REFLECT)
 
 
 def mosaic_intensity(raw, calibration: MosaicCalibration = MosaicCalibration(), *,

@@ -94,6 +94,7 @@ class Compositor(Node):
         depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
         mosaic_rule: Literal["local", "global", "pixel"] = "local"  # a polarization camera's E_b/E_w angle
         mosaic_angle_sigma_px: float = 6.0  # the local rule's smoothing of the light's angle [px]
+        mosaic_polarized_sigma_px: float = 0.0  # smooth the polarized part of E_b/E_w [px] (0: not)
         mosaic_extinction_ratio: float = 300.0  # the camera's calibration: micro-polarizer ER
         mosaic_crosstalk: list[float] = [0.001, 0.0002]  # … and crosstalk to each edge, diagonal neighbour
 

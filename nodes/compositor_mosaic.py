@@ -28,6 +28,7 @@ class MosaicViews:
 
     def __init__(self, params):
         self.rule, self.sigma_px = params.mosaic_rule, params.mosaic_angle_sigma_px
+        self.polarized_sigma_px = params.mosaic_polarized_sigma_px
         self.calibration = MosaicCalibration(extinction_ratio=params.mosaic_extinction_ratio,
                                              crosstalk_edge=params.mosaic_crosstalk[0],
                                              crosstalk_diagonal=params.mosaic_crosstalk[1])
@@ -39,6 +40,6 @@ class MosaicViews:
         cal = dataclasses.replace(self.calibration, layout=tuple(frame.mosaic_deg))
         if polarized:
             e_b, e_w = crossed_pair(frame.image, cal, rule=self.rule, angle_sigma_px=self.sigma_px,
-                                    saturation=saturation)
+                                    polarized_sigma_px=self.polarized_sigma_px, saturation=saturation)
             return {E_B_KEY: e_b, E_W_KEY: e_w}
         return {None: mosaic_intensity(frame.image, cal, saturation=saturation)}

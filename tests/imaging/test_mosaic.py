@@ -108,3 +108,17 @@ def test_bad_frames_and_rules_are_one_line_errors():
         crossed_pair(np.zeros((8, 8), np.uint16), rule="median")
     with pytest.raises(ImagingError, match="mosaic layout"):
         MosaicCalibration(layout=(0, 0, 45, 90))
+
+
+def test_smoothing_the_polarized_part_keeps_its_mean_and_cuts_white_noise_by_the_gaussians_factor():
+    """A Gaussian of sigma px (2-D) scales white noise's std by 1/(2 sigma sqrt(pi)); E_w - E_b = 2 a0 proj."""
+    rng = np.random.default_rng(3)
+    sigma, a0, proj = 10.0, 0.5, 300.0
+    n = rng.normal(0, sigma, (2, 400, 400))
+    stokes = np.stack([np.full((400, 400), 1000.0), proj + n[0], n[1]], -1)   # chi = 0
+    raw = crossed_from_stokes(stokes, a0, rule="global")
+    smooth = crossed_from_stokes(stokes, a0, rule="global", polarized_sigma_px=2.0)
+    diff_raw, diff_smooth = (raw[1] - raw[0])[20:-20, 20:-20], (smooth[1] - smooth[0])[20:-20, 20:-20]
+    assert diff_smooth.mean() == pytest.approx(2 * a0 * proj, rel=1e-3)
+    assert diff_raw.std() == pytest.approx(2 * a0 * sigma, rel=0.02)
+    assert diff_smooth.std() / diff_raw.std() == pytest.approx(1 / (2 * 2.0 * np.sqrt(np.pi)), rel=0.08)
