@@ -111,7 +111,7 @@ def test_bad_frames_and_rules_are_one_line_errors():
 
 
 def test_smoothing_the_polarized_part_keeps_its_mean_and_cuts_white_noise_by_the_gaussians_factor():
-    """A Gaussian of sigma px (2-D) scales white noise's std by 1/(2 sigma sqrt(pi)); E_w - E_b = 2 a0 proj."""
+    """A Gaussian of sigma px (2-D) scales white noise by 1/(2 sigma sqrt(pi)); E_w - E_b = 2 a0 proj."""
     rng = np.random.default_rng(3)
     sigma, a0, proj = 10.0, 0.5, 300.0
     n = rng.normal(0, sigma, (2, 400, 400))
