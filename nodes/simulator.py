@@ -90,6 +90,7 @@ from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
+from polarstripe.sim.threads import set_threads
 from polarstripe.sim.truth import unscattered_object
 
 __all__ = ["Simulator", "SimulatorError"]
@@ -112,6 +113,7 @@ class Simulator(Node):
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
         render_ahead: bool = True  # render the scan's next pattern in a worker thread
+        threads: int = 0  # model threads per render; 0 = the cores of the process's CPU affinity
         analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
         can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
         can_node_id: int = 5
@@ -139,6 +141,8 @@ class Simulator(Node):
                 raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
             if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
                 raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
+            if self.threads < 0:
+                raise ValueError(f"threads must be >= 0 (0: the CPU affinity), got {self.threads}")
             check_medium(self.medium_sigma_t, self.medium_g)
             self.mosaic()
 
@@ -167,6 +171,7 @@ class Simulator(Node):
             self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
             self.base = self.base if p.light == "scene" else with_light(self.base, p.light)
             self.fidelity = resolve_fidelity(p.fidelity)
+            self.threads = set_threads(p.threads)
             self.target = Target.of(p, self.base, self.fidelity)
             self.base = self.base if self.target is None else self.target.place(self.base, 0)
         except SceneError as exc:
@@ -212,9 +217,9 @@ class Simulator(Node):
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.serve("simulator/target", self.move_target)
-        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %s noise, drive %s", w, cam.resolution[1],
-                      self.fidelity.name, self.scale, "gaussian" if self.gaussian else "poisson",
-                      p.can_channel or "none (fixed analyzer)")
+        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %d model threads, %s noise, drive %s", w,
+                      cam.resolution[1], self.fidelity.name, self.scale, self.threads,
+                      "gaussian" if self.gaussian else "poisson", p.can_channel or "none (fixed analyzer)")
 
     def teardown(self):
         if self.target is not None:

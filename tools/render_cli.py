@@ -23,6 +23,7 @@ from polarstripe.sim.orders import ORDERS
 from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.render import render_frame, resolve_fidelity
 from polarstripe.sim.scene import load_scene, parse_size, scene_to_dict
+from polarstripe.sim.threads import set_threads
 
 HELP = "render one frame of a scene with the light-transport model"
 
@@ -44,12 +45,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--components", action="store_true", help="also write D.npy, A.npy, B.npy")
     parser.add_argument("--resolution", default=None, metavar="WxH", help="override the camera resolution")
     parser.add_argument("--seed", type=int, default=None, help="sensor noise seed (default: camera.seed)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="model threads (default 0: the cores of this process's CPU affinity); the frame "
+                             "is the same for any count")
     parser.add_argument("-o", "--out", required=True, help="output folder (created)")
 
 
 
 def main(args: argparse.Namespace) -> int:
 
+    if args.threads < 0:
+        raise PolarstripeError(f"--threads must be >= 0 (0: the CPU affinity), got {args.threads}")
+    threads = set_threads(args.threads)
     pattern = parse_pattern(args.pattern)
     fidelity = resolve_fidelity(args.fidelity)
     scene = load_scene(args.scene)
@@ -81,6 +88,7 @@ def main(args: argparse.Namespace) -> int:
                      "higher": dataclasses.asdict(fidelity.higher)},
         "orders": comp.orders.as_dict(),
         "seconds": seconds,
+        "threads": threads,
         "units": {"image.png": "DN (uint16)", "D/A/B.npy": "W sr^-1 m^-2, before the analyzer"},
         "seed": scene.camera.seed if args.seed is None else args.seed,
         "saturated_pixels": int(np.count_nonzero(dn >= (1 << scene.camera.bits) - 1)),

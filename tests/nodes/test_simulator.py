@@ -199,6 +199,7 @@ def test_a_bad_fault_argument_is_one_clear_refusal(command, why):
 @pytest.mark.parametrize("params, why", [
     ({"fidelity": "ultra"}, "params: fidelity 'ultra' is not preview, standard, reference"),
     ({"resolution": "100000x100000"}, "params: resolution 100000x100000 is 1e\\+04 Mpx, beyond the limit"),
+    ({"threads": -1}, "threads must be >= 0"),
 ])
 def test_bad_params_are_refused_before_anything_starts(params, why):
     with pytest.raises(ParamError, match=why):

@@ -29,6 +29,20 @@ def test_render_writes_image_meta_and_components(tmp_path):
     assert np.load(out / "D.npy").max() > 0 and np.load(out / "B.npy").max() > 0
 
 
+def test_threads_give_the_same_frame_and_a_bad_count_is_one_line(tmp_path):
+    arrays = []
+    for n in ("1", "2"):
+        out = tmp_path / n
+        r = _run("--pattern", "stripe:3/8", "--fidelity", "standard", "--components", "--resolution", "96x72",
+                 "--threads", n, "-o", str(out))
+        assert r.returncode == 0, r.stderr
+        assert json.loads((out / "meta.json").read_text())["threads"] == int(n)
+        arrays.append([np.load(out / f"{name}.npy") for name in "DAB"])
+    assert all(np.array_equal(a, b) for a, b in zip(*arrays, strict=True))
+    r = _run("--threads", "-2", "-o", str(tmp_path / "o"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "--threads must be >= 0" in r.stderr
+
+
 def test_bad_pattern_is_one_line(tmp_path):
     r = _run("--pattern", "stripes:3", "-o", str(tmp_path / "o"))
     assert r.returncode == 2 and "Traceback" not in r.stderr
