@@ -36,6 +36,7 @@ from polarstripe.nodes.rig_views import (
     Image,
     LogLine,
     Packed,
+    Points,
     Record,
     Transforms,
 )
@@ -203,6 +204,15 @@ class FoxgloveEncoder:
             level = getattr(fm.LogLevel, _LEVELS.get(v.level, "Info"))
             m = fm.Log(timestamp=self._ts(v.stamp_ns), level=level, message=v.text, name=v.node)
             return Encoded(v.topic, self.schema("Log"), [m.encode()])
+        if isinstance(v, Points):
+            xyz = np.ascontiguousarray(v.points, dtype="<f4")
+            f32 = fm.PackedElementFieldNumericType.Float32
+            m = fm.PointCloud(timestamp=self._ts(v.stamp_ns), frame_id=v.frame_id,
+                              pose=fm.Pose(position=fm.Vector3(x=0.0, y=0.0, z=0.0),
+                                           orientation=fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                              point_stride=12, fields=[fm.PackedElementField(name=n, offset=4 * k, type=f32)
+                                                       for k, n in enumerate("xyz")], data=xyz.tobytes())
+            return Encoded(v.topic, self.schema("PointCloud"), [m.encode()])
         if isinstance(v, Packed):
             body = {"type": v.type, "version": v.version, "stamp_ns": v.stamp_ns}
             if v.msg is not None:

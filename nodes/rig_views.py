@@ -11,6 +11,7 @@ message on ``T``           views
 ``Pattern``                ``T/image`` the projector image, ``T/camera_info``, ``T/info`` PatternInfo
 ``PolarizerState``         ``T`` PolarizerState, ``T/joint_states`` joint ``analyzer`` [rad]
 ``Composite``              ``T/<name>`` per image, ``T/metrics`` CompositeMetrics
+``DepthMap``               ``T/image`` depth [m] (NaN: none), ``T/points`` the points, ``T`` packed
 ``Log``                    ``T`` log line
 ``ScanEvent`` …            ``T`` a record of the same name (see :data:`RECORDS`)
 anything else              ``T`` packed (its MessagePack form)
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from polarstripe.msgs import (
     Composite,
+    DepthMap,
     Frame,
     Heartbeat,
     Log,
@@ -151,7 +153,17 @@ class Packed:
     msg: Message | None = None
 
 
-View = Image | Calibration | Transforms | LogLine | Joint | Record | Packed
+@dataclass(frozen=True)
+class Points:
+    """A point cloud: ``points`` (n, 3) float32 [m] in ``frame_id`` (n ≥ 1)."""
+
+    topic: str
+    stamp_ns: int
+    frame_id: str
+    points: np.ndarray
+
+
+View = Image | Calibration | Transforms | LogLine | Joint | Record | Points | Packed
 
 
 def _f(v) -> float:
@@ -253,6 +265,13 @@ class RigViews:
                     out.append(Image(f"{topic}/{name}", stamp_ns, msg.header.frame_id or CAMERA, img))
             out.append(Record(f"{topic}/metrics", stamp_ns, "CompositeMetrics",
                               metrics_values(msg.method, msg.scan_id, msg.metrics)))
+        elif isinstance(msg, DepthMap):
+            frame_id = msg.header.frame_id or CAMERA
+            out.append(Image(f"{topic}/image", stamp_ns, frame_id, np.asarray(msg.depth_m, np.float32)))
+            if msg.points_m is not None and len(msg.points_m):
+                points = np.asarray(msg.points_m, np.float32)
+                out.append(Points(f"{topic}/points", stamp_ns, frame_id, points))
+            out.append(Packed(topic, stamp_ns, msg.TYPE, msg.VERSION, pack(msg, topic=topic), msg))
         elif isinstance(msg, Log):
             out.append(LogLine(topic, stamp_ns, msg.level, msg.node, msg.text))
         elif isinstance(msg, ScanEvent):

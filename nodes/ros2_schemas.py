@@ -10,6 +10,7 @@ Calibration        ``sensor_msgs/msg/CameraInfo``             ``T/camera_info`` 
 Transforms         ``tf2_msgs/msg/TFMessage``                 ``/tf_static`` (QoS transient local)
 LogLine            ``rcl_interfaces/msg/Log``                 ``/rosout`` (name = the node)
 Joint              ``sensor_msgs/msg/JointState``             ``T/joint_states``
+Points             ``sensor_msgs/msg/PointCloud2``            ``T/points`` (x, y, z float32, dense)
 Record ``K``       ``polarstripe_msgs/msg/K`` (registered)    as the view
 Packed             ``polarstripe_msgs/msg/Packed``            as the view (type, version, msgpack)
 =================  =========================================  ==========================================
@@ -41,6 +42,7 @@ from polarstripe.nodes.rig_views import (
     Joint,
     LogLine,
     Packed,
+    Points,
     Record,
     Transforms,
 )
@@ -57,6 +59,7 @@ else:
 PACKAGE = "polarstripe_msgs"
 ROSOUT = "/rosout"
 TF_MSG, IMAGE_MSG, INFO_MSG = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
+CLOUD_MSG = "sensor_msgs/msg/PointCloud2"
 _EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
 _SCALARS = {"string": "string", "bool": "bool", "uint32": "uint32", "int64": "int64", "float64": "float64",
             "uint8": "uint8"}
@@ -307,6 +310,16 @@ class Ros2Encoder:
                 velocity=np.zeros(0), effort=np.zeros(0))
             return Encoded(v.topic, "sensor_msgs/msg/JointState", v.stamp_ns,
                            [self.cdr(obj, "sensor_msgs/msg/JointState")])
+        if isinstance(v, Points):
+            xyz = np.ascontiguousarray(v.points, dtype="<f4")
+            field = t["sensor_msgs/msg/PointField"]
+            obj = t[CLOUD_MSG](
+                header=self.header(v.stamp_ns, v.frame_id), height=1, width=len(xyz),
+                fields=[field(name=n, offset=4 * k, datatype=field.FLOAT32, count=1)
+                        for k, n in enumerate("xyz")],
+                is_bigendian=False, point_step=12, row_step=12 * len(xyz),
+                data=xyz.reshape(-1).view(np.uint8), is_dense=True)
+            return Encoded(v.topic, CLOUD_MSG, v.stamp_ns, [self.cdr(obj, CLOUD_MSG)])
         if isinstance(v, Transforms):
             vec, quat = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
             tfs = [t["geometry_msgs/msg/TransformStamped"](

@@ -1,8 +1,8 @@
 """A ROS 2 program we did not write: zenoh-ros2-sdk (a Python ROS 2-over-Zenoh client implementing
 rmw_zenoh's formats), run by tests/nodes/test_ros2_bridge.py as ``python ros2_sdk_client.py PORT MSGS_DIR``.
 It connects to the router at tcp/127.0.0.1:PORT, subscribes to the camera frame's image, camera info and
-info, looks at the graph through the liveliness tokens, calls /rig/emitter/start_scan, and prints one JSON
-line per finding."""
+info and to the depth's point cloud, looks at the graph through the liveliness tokens, calls
+/rig/emitter/start_scan, and prints one JSON line per finding."""
 
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ got: dict[str, dict] = {}
 done = threading.Event()
 TOPICS = {"/rig/camera/frame/image": "sensor_msgs/msg/Image",
           "/rig/camera/frame/camera_info": "sensor_msgs/msg/CameraInfo",
-          "/rig/camera/frame/info": "polarstripe_msgs/msg/FrameInfo"}
+          "/rig/camera/frame/info": "polarstripe_msgs/msg/FrameInfo",
+          "/rig/compositor/depth/points": "sensor_msgs/msg/PointCloud2"}
 
 
 def say(**kw):
@@ -48,6 +49,9 @@ def on(topic):
         if topic.endswith("/image"):
             got[topic] = {"height": m.height, "width": m.width, "encoding": m.encoding, "step": m.step,
                           "bigendian": int(m.is_bigendian), "stamp_ns": stamp, "frame_id": m.header.frame_id,
+                          "sha256": hashlib.sha256(bytes(m.data)).hexdigest()}
+        elif topic.endswith("/points"):
+            got[topic] = {"width": m.width, "point_step": m.point_step, "fields": [f.name for f in m.fields],
                           "sha256": hashlib.sha256(bytes(m.data)).hexdigest()}
         elif topic.endswith("/camera_info"):
             got[topic] = {"width": m.width, "height": m.height, "k": [float(x) for x in m.k],

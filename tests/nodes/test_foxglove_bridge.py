@@ -183,6 +183,24 @@ def test_bridge_serves_foxglove_schemas_on_loopback():
         node.teardown()
 
 
+def test_depth_points_are_a_foxglove_point_cloud():
+    from polarstripe.msgs import DepthMap
+    from polarstripe.nodes.foxglove_schemas import FoxgloveEncoder
+    from polarstripe.nodes.rig_views import Points, RigViews
+
+    points = np.array([[0.01, -0.02, 0.31], [-0.1, 0.05, 0.29], [0.0, 0.0, 0.5]], np.float32)
+    msg = DepthMap(depth_m=np.ones((2, 2), np.float32), points_m=points, method="stripes")
+    view = next(v for v in RigViews(None).views("/rig/compositor/depth", 1, msg) if isinstance(v, Points))
+    e = FoxgloveEncoder().encode(view)
+    channel = {"encoding": e.schema.message_encoding, "schemaEncoding": e.schema.encoding,
+               "schema": base64.b64encode(e.schema.data).decode(), "schemaName": e.schema.name}
+    cloud = decoder(channel)(b"".join(e.parts))
+    assert (e.topic, e.schema.name) == ("/rig/compositor/depth/points", "foxglove.PointCloud")
+    assert cloud.point_stride == 12  # FLOAT32 = 7:
+    assert [(f.name, f.offset, f.type) for f in cloud.fields] == [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+    assert np.array_equal(np.frombuffer(cloud.data, "<f4").reshape(-1, 3), points)
+
+
 # ---- in launch/sim.toml ------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):

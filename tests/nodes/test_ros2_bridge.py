@@ -1,10 +1,11 @@
 """The live ROS 2 bridge over loopback tcp only: a Zenoh router (the role of ``rmw_zenohd``), the bridge node
 over the mock bus, and a ROS 2 client we did not write (zenoh-ros2-sdk, in its own process:
-ros2_sdk_client.py) that decodes a camera frame bit for bit, its camera info and info record, sees the node,
-its topics and its service through the liveliness tokens, and calls the start-scan service. Also: the raw
-samples on the key and with the attachment rmw_zenoh's design document gives, a router of another Zenoh
-release refused in one line, an absent router in one line, and the TLS tether: mutual TLS where the rig's CA
-is the allow-list on both ends (certificates made with the openssl command line)."""
+ros2_sdk_client.py) that decodes a camera frame and a depth point cloud bit for bit, the camera info and
+info record, sees the node, its topics and its service through the liveliness tokens, and calls the
+start-scan service. Also: the raw samples on the key and with the attachment rmw_zenoh's design document
+gives, a router of another Zenoh release refused in one line, an absent router in one line, and the TLS
+tether: mutual TLS where the rig's CA is the allow-list on both ends (certificates made with the openssl
+command line)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh  # the test extra: a missing package fails here, it is not skipped
-from polarstripe.msgs import Frame, Header, Log, ScanEvent, ScanRequest
+from polarstripe.msgs import DepthMap, Frame, Header, Log, ScanEvent, ScanRequest
 from polarstripe.nodes.ros2_bridge import Ros2Bridge
 from polarstripe.nodes.ros2_zenoh import parse_attachment
 from polarstripe.runtime.node import NodeError
@@ -40,7 +41,8 @@ def bridge(port: int, **params) -> Ros2Bridge:
     bus.graph = {
         "launch": "t",
         "nodes": {"simulator": {"module": "polarstripe.nodes.simulator", "params": {}}},
-        "topics": {"/rig/camera/frame": {"type": "frame"}, "/rig/log": {"type": "log"}},
+        "topics": {"/rig/camera/frame": {"type": "frame"}, "/rig/log": {"type": "log"},
+                   "/rig/compositor/depth": {"type": "depth_map"}},
         "services": {"/rig/emitter/start_scan": {"node": "emitter"}},
     }
     params = {"endpoint": f"tcp/127.0.0.1:{port}", "connect_timeout_s": 3.0, **params}
@@ -71,6 +73,8 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
     img = (np.arange(24 * 32, dtype=np.uint16).reshape(24, 32) * 67) ^ 0x5A5A
     frame = Frame(image=img, exposure_s=0.01, pattern="stripe:1/4", polarizer_deg=90.0,
                   header=Header(stamp_ns=1_700_000_000_123_456_789, seq=4, frame_id="camera"))
+    points = np.array([[0.01, -0.02, 0.31], [-0.1, 0.05, 0.29], [0.0, 0.0, 0.5]], np.float32)
+    depth = DepthMap(depth_m=np.full((24, 32), np.nan, np.float32), points_m=points, method="stripes")
     raw = _client_session(zenoh_router)
     samples = []
     raw.declare_subscriber(IMAGE_KEY, lambda s: samples.append(s.attachment.to_bytes()))
@@ -93,6 +97,7 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
             node.forward("/rig/camera/frame", frame)
             node.forward("/rig/log", Log(level="ERROR", node="grabber", text="lost",
                                          header=Header(stamp_ns=5)))
+            node.forward("/rig/compositor/depth", depth)
             node.answer_requests()
             time.sleep(0.05)
         proc.wait(10)
@@ -113,6 +118,9 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
     assert (image["stamp_ns"], image["frame_id"]) == (1_700_000_000_123_456_789, "camera")
     info = topics["/rig/camera/frame/camera_info"]
     assert (info["width"], info["height"]) == (32, 24) and info["k"][8] == 1.0 and info["k"][0] > 0
+    cloud = topics["/rig/compositor/depth/points"]
+    assert (cloud["width"], cloud["point_step"], cloud["fields"]) == (3, 12, ["x", "y", "z"])
+    assert cloud["sha256"] == hashlib.sha256(points.astype("<f4").tobytes()).hexdigest()
     assert topics["/rig/camera/frame/info"]["pattern"] == "stripe:1/4"
     frame_info = topics["/rig/camera/frame/info"]
     assert (frame_info["polarizer_deg"], frame_info["seq"]) == (90.0, 4)

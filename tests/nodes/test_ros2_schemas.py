@@ -106,3 +106,37 @@ def test_cli_writes_the_package_and_refuses_a_foreign_folder(tmp_path):
 @pytest.mark.parametrize("typename", ["sensor_msgs/msg/Image", "polarstripe_msgs/srv/StartScan"])
 def test_hash_is_stable_text(typename):
     assert type_hash(typename).startswith("RIHS01_") and len(type_hash(typename)) == 7 + 64
+
+
+def test_depth_map_is_an_image_and_a_point_cloud():
+    """A DepthMap's views in ROS 2 types, read back by rosbags with its own Jazzy definitions."""
+    import numpy as np
+    from polarstripe.msgs import DepthMap, Header
+    from polarstripe.nodes.rig_views import RigViews
+    from polarstripe.nodes.ros2_schemas import Ros2Encoder
+    from rosbags.typesys import Stores, get_typestore
+
+    depth = np.full((4, 5), np.nan, np.float32)
+    depth[1, 2], depth[3, 0] = 0.31, 0.29
+    points = np.array([[0.01, -0.02, 0.31], [-0.1, 0.05, 0.29]], np.float32)
+    msg = DepthMap(depth_m=depth, points_m=points, method="stripes", scan_id=3,
+                   header=Header(stamp_ns=2_000_000_007, frame_id="camera"))
+    views = RigViews(None).views("/rig/compositor/depth", 2_000_000_007, msg)
+    encoded = {e.topic: e for e in map(Ros2Encoder().encode, views)}
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    cloud = encoded["/rig/compositor/depth/points"]
+    assert cloud.msgtype == "sensor_msgs/msg/PointCloud2"
+    c = jazzy.deserialize_cdr(b"".join(cloud.parts), cloud.msgtype)
+    assert (c.height, c.width, c.point_step, c.row_step) == (1, 2, 12, 24)
+    assert c.is_dense and not c.is_bigendian
+    assert [(f.name, f.offset, f.datatype, f.count) for f in c.fields] == [
+        ("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1)]  # 7: PointField.FLOAT32
+    assert np.array_equal(np.frombuffer(bytes(c.data), "<f4").reshape(-1, 3), points)
+    assert (c.header.frame_id, c.header.stamp.sec, c.header.stamp.nanosec) == ("camera", 2, 7)
+    image = encoded["/rig/compositor/depth/image"]
+    i = jazzy.deserialize_cdr(b"".join(bytes(p) for p in image.parts), image.msgtype)
+    assert (i.encoding, i.width, i.height) == ("32FC1", 5, 4)
+    assert np.array_equal(np.frombuffer(bytes(i.data), "<f4").reshape(4, 5), depth, equal_nan=True)
+    assert encoded["/rig/compositor/depth"].msgtype == "polarstripe_msgs/msg/Packed"  # the whole message too
+    no_points = DepthMap(depth_m=depth, points_m=None, method="stripes")
+    assert [v.topic for v in RigViews(None).views("/d", 1, no_points)] == ["/d/image", "/d"]
