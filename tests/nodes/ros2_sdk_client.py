@@ -2,7 +2,7 @@
 rmw_zenoh's formats), run by tests/nodes/test_ros2_bridge.py as ``python ros2_sdk_client.py PORT MSGS_DIR``.
 It connects to the router at tcp/127.0.0.1:PORT, subscribes to the camera frame's image, camera info and
 info and to the depth's point cloud, looks at the graph through the liveliness tokens, calls
-/rig/emitter/start_scan, and prints one JSON line per finding."""
+/rig/emitter/start_scan and /rig/planner/plan, and prints one JSON line per finding."""
 
 from __future__ import annotations
 
@@ -89,6 +89,11 @@ say(start_scan=None if r is None else {"ok": bool(r.ok), "detail": r.detail, "sc
                                         "analyzer_deg": [float(a) for a in r.event.analyzer_deg]})
 r = client.call(method="", stripes=0, analyzer_deg=np.zeros(0))
 say(refused=None if r is None else {"ok": bool(r.ok), "detail": r.detail})
+plan = ROS2ServiceClient("/rig/planner/plan", "polarstripe_msgs/srv/GetPlan", router_port=port, timeout=10.0)
+r = plan.call()
+say(plan=None if r is None else {"ok": bool(r.ok), "modality": r.plan.modality,
+                                 "separation_m": r.plan.separation_m,
+                                 "curves": {c.name: [float(x) for x in c.values] for c in r.plan.curves}})
 say(done=True)
 sys.stdout.flush()
 os._exit(0)  # zenoh's threads would keep the process

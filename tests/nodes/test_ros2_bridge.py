@@ -1,10 +1,10 @@
 """The live ROS 2 bridge over loopback tcp only: a Zenoh router (the role of ``rmw_zenohd``), the bridge node
 over the mock bus, and a ROS 2 client we did not write (zenoh-ros2-sdk, in its own process:
 ros2_sdk_client.py) that decodes a camera frame and a depth point cloud bit for bit, the camera info and
-info record, sees the node, its topics and its service through the liveliness tokens, and calls the
-start-scan service. Also: the raw samples on the key and with the attachment rmw_zenoh's design document
-gives, a router of another Zenoh release refused in one line, an absent router in one line, and the TLS
-tether: mutual TLS where the rig's CA is the allow-list on both ends (certificates made with the openssl
+info record, sees the node, its topics and its services through the liveliness tokens, and calls the
+start-scan and plan services. Also: the raw samples on the key and with the attachment rmw_zenoh's design
+document gives, a router of another Zenoh release refused in one line, an absent router in one line, and the
+TLS tether: mutual TLS where the rig's CA is the allow-list on both ends (certificates made with the openssl
 command line)."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh  # the test extra: a missing package fails here, it is not skipped
-from polarstripe.msgs import DepthMap, Frame, Header, Log, ScanEvent, ScanRequest
+from polarstripe.msgs import DepthMap, Frame, Header, Log, Plan, ScanEvent, ScanRequest
 from polarstripe.nodes.ros2_bridge import Ros2Bridge
 from polarstripe.nodes.ros2_zenoh import parse_attachment
 from polarstripe.runtime.node import NodeError
@@ -43,7 +43,8 @@ def bridge(port: int, **params) -> Ros2Bridge:
         "nodes": {"simulator": {"module": "polarstripe.nodes.simulator", "params": {}}},
         "topics": {"/rig/camera/frame": {"type": "frame"}, "/rig/log": {"type": "log"},
                    "/rig/compositor/depth": {"type": "depth_map"}},
-        "services": {"/rig/emitter/start_scan": {"node": "emitter"}},
+        "services": {"/rig/emitter/start_scan": {"node": "emitter"},
+                     "/rig/planner/plan": {"node": "planner"}},
     }
     params = {"endpoint": f"tcp/127.0.0.1:{port}", "connect_timeout_s": 3.0, **params}
     return Ros2Bridge("ros2", namespace="/rig", params=params, bus=bus)
@@ -70,6 +71,9 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
     node = bridge(zenoh_router)
     node.setup()
     node._bus.responders["/rig/emitter/start_scan"] = start_scan
+    node._bus.responders["/rig/planner/plan"] = lambda req: Plan(
+        modality="stripes", separation_m=0.166, scan_type="translate", stripe_optima=[0.1, 0.2],
+        curves={"quality": np.array([0.5, 0.75, 0.25])})
     img = (np.arange(24 * 32, dtype=np.uint16).reshape(24, 32) * 67) ^ 0x5A5A
     frame = Frame(image=img, exposure_s=0.01, pattern="stripe:1/4", polarizer_deg=90.0,
                   header=Header(stamp_ns=1_700_000_000_123_456_789, seq=4, frame_id="camera"))
@@ -140,6 +144,8 @@ def test_third_party_client_decodes_frames_sees_the_graph_and_calls_a_service(ze
     sent = node._bus.clients["/rig/emitter/start_scan"].requests
     assert (sent[0].method, sent[0].stripes, sent[0].analyzer_deg) == ("flood", 0, [10.0, 100.0])
     assert out["refused"]["ok"] is False and "a scan needs a method" in out["refused"]["detail"]
+    assert out["plan"] == {"ok": True, "modality": "stripes", "separation_m": 0.166,
+                           "curves": {"quality": [0.5, 0.75, 0.25]}}
 
     # the raw samples: on the design document's key, each with the 33-byte attachment, numbered from 1
     seqs = [parse_attachment(a) for a in samples]
