@@ -51,6 +51,8 @@ from polarstripe.nodes.ros2_zenoh import (
     Entity,
     Ros2FormatError,
     attachment,
+    check_domain,
+    check_node_name,
     data_key,
     parse_attachment,
     qos_key,
@@ -108,22 +110,22 @@ class Ros2Bridge(Node):
                             "(pip install 'polarstripe[ros2]')") from None
         p = self.params
         try:
+            check_domain(p.domain), check_node_name(p.ros_node)
             config = session_config(p.endpoint, tls_ca=p.tls_ca, tls_cert=p.tls_cert, tls_key=p.tls_key)
-            config["connect/timeout_ms"] = json.dumps(int(p.connect_timeout_s * 1000))
-            zconf = zenoh.Config()
+        except Ros2FormatError as exc:
+            raise NodeError(f"node {self.name!r}: {exc}") from None
+        config["connect/timeout_ms"] = json.dumps(int(p.connect_timeout_s * 1000))
+        zconf = zenoh.Config()
+        try:
             for key, value in config.items():
                 zconf.insert_json5(key, value)
             self.session = zenoh.open(zconf)
-        except (Ros2FormatError, zenoh.ZError) as exc:
+        except zenoh.ZError as exc:
             why = str(exc).split(" at /")[0]  # zenoh appends its source location
             raise NodeError(f"node {self.name!r}: ROS 2 router {p.endpoint}: {why}") from None
         self._check_version()
-        zid = str(self.session.info.zid())
-        try:
-            self.entity = Entity(p.domain, zid, 0, self.namespace or "/", p.ros_node)
-            self.node_token = self.session.liveliness().declare_token(self.entity.node_token())
-        except Ros2FormatError as exc:
-            raise NodeError(f"node {self.name!r}: {exc}") from None
+        self.entity = Entity(p.domain, str(self.session.info.zid()), 0, self.namespace or "/", p.ros_node)
+        self.node_token = self.session.liveliness().declare_token(self.entity.node_token())
         self._next_id = 1
         self.pubs: dict[tuple[str, str], _Pub] = {}
         self.queryables: list[tuple[str, object, object, object]] = []

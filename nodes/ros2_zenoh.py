@@ -46,6 +46,14 @@ def check_domain(domain: int) -> int:
     return domain
 
 
+def check_node_name(name: str) -> str:
+    """``name`` if it is a ROS 2 node name (a letter or ``_``, then letters, digits, ``_``), else
+    :class:`Ros2FormatError`."""
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise Ros2FormatError(f"not a ROS 2 node name (letters, digits, _): {name!r}")
+    return name
+
+
 def dds_type_name(typename: str) -> str:
     """``pkg/msg/Name`` (or ``pkg/srv/Name``) as DDS names it in CDR: ``pkg::msg::dds_::Name_``."""
     parts = typename.split("/")
@@ -93,7 +101,7 @@ class Entity:
     def node_token(self) -> str:
         """The node's liveliness token (``NN``)."""
         return (f"{ADMIN_SPACE}/{check_domain(self.domain)}/{self.zid}/{self.node_id}/{self.node_id}/{NODE}"
-                f"/%/{mangle(self.namespace)}/{self.node}")
+                f"/%/{mangle(self.namespace)}/{check_node_name(self.node)}")
 
     def token(self, kind: str, entity_id: int, name: str, typename: str, type_hash: str, qos: str) -> str:
         """The liveliness token of a publisher, subscription, service or client of this node."""

@@ -177,8 +177,10 @@ def test_no_router_is_one_line(zenoh_router):
     with pytest.raises(NodeError, match=r"^node 'ros2': ROS 2 router tcp/127.0.0.1:9: .*connect") as err:
         node.setup()
     assert "\n" not in str(err.value)
-    with pytest.raises(NodeError, match="ros2_domain"):
-        bridge(zenoh_router, domain=300).setup()
+    for bad, match in (({"domain": 300}, "ros2_domain"), ({"ros_node": "rig view"}, "node name"),
+                       ({"endpoint": "udp/127.0.0.1:7447"}, "tcp/HOST:PORT")):
+        with pytest.raises(NodeError, match=match):
+            bridge(zenoh_router, **bad).setup()
 
 
 def _certificates(folder: Path) -> None:

@@ -103,6 +103,8 @@ def test_bad_names_domains_and_types_are_refused():
             data_key(0, name, *STRING)
     with pytest.raises(Ros2FormatError, match="pkg/msg/Name"):
         data_key(0, "/a", "String", "RIHS01_x")
+    with pytest.raises(Ros2FormatError, match="node name"):
+        Entity(0, "aa", 0, "/", "my-node").node_token()
     with pytest.raises(Ros2FormatError, match="MP, MS, SS or SC"):
         Entity(0, "aa", 0, "/", "n").token("NN", 1, "/a", *STRING, qos_key())
 
