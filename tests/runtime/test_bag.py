@@ -16,6 +16,8 @@ from polarstripe.msgs import Composite, Frame, Header, Log, ScanEvent, json_sche
 from polarstripe.runtime.bag import BagError, BagWriter, payload
 from polarstripe.runtime.bag_reader import BagReader, check_file, recover
 
+FUTURE = Frame.VERSION + 1  # a schema version no build of this one knows
+
 
 def _frame(i: int, shape=(48, 64)) -> Frame:
     rng = np.random.default_rng(i)
@@ -191,7 +193,8 @@ def test_bag_reader_summary_and_metadata(tmp_path):
         assert bag.message_count == len(msgs)
         assert bag.topics["/rig/camera/frame"].count == 6
         assert (
-            bag.topics["/rig/camera/frame"].type == "frame" and bag.topics["/rig/camera/frame"].version == 1
+            bag.topics["/rig/camera/frame"].type == "frame"
+            and bag.topics["/rig/camera/frame"].version == Frame.VERSION
         )
         # log times 5000, 7000, ... 15000 ns on the frame topic: 5 intervals of 2 µs
         assert bag.topics["/rig/camera/frame"].first_ns == 5_000
@@ -290,18 +293,18 @@ def test_bad_inputs_each_give_one_clear_error(tmp_path):
     (tmp_path / "cut.mcap").write_bytes(full[: len(full) - 30])
     with pytest.raises(BagError, match="truncated MCAP file.*bag recover"):
         BagReader(tmp_path / "cut.mcap")
-    # a channel recorded by a build whose 'frame' schema is version 2
+    # a channel recorded by a newer build, whose 'frame' schema is a version this one does not know
     schema = json_schema(Frame)
-    schema["properties"]["version"]["const"] = 2
+    schema["properties"]["version"]["const"] = FUTURE
     with BagWriter(tmp_path / "v2.mcap") as w:
         cid = w.register(
             "/rig/camera/frame",
             "polarstripe/frame",
             json.dumps(schema).encode(),
-            {"type": "frame", "version": "2"},
+            {"type": "frame", "version": str(FUTURE)},
         )
         w.add_payload(cid, [b"\x80"], log_time_ns=1, publish_time_ns=1, sequence=0)
-    with pytest.raises(BagError, match=r"'/rig/camera/frame': unknown schema version 2 of 'frame'"):
+    with pytest.raises(BagError, match=rf"'/rig/camera/frame': unknown schema version {FUTURE} of 'frame'"):
         BagReader(tmp_path / "v2.mcap")
     with pytest.raises(BagError, match="not an MCAP file"):
         recover(tmp_path / "text.mcap", tmp_path / "out.mcap")
@@ -309,14 +312,15 @@ def test_bad_inputs_each_give_one_clear_error(tmp_path):
 
 @pytest.mark.parametrize(
     "name, needle",
-    [("text.mcap", "not an MCAP file"), ("cut.mcap", "truncated"), ("v2.mcap", "unknown schema version 2")],
+    [("text.mcap", "not an MCAP file"), ("cut.mcap", "truncated"),
+     ("v2.mcap", f"unknown schema version {FUTURE}")],
 )
 def test_bag_info_prints_one_line_errors(tmp_path, name, needle):
     (tmp_path / "text.mcap").write_bytes(b"PK\x03\x04 a zip, not a bag")
     full = _write(tmp_path / "f.mcap", _messages(2)).read_bytes()
     (tmp_path / "cut.mcap").write_bytes(full[: len(full) // 2])
     schema = json_schema(Frame)
-    schema["properties"]["version"]["const"] = 2
+    schema["properties"]["version"]["const"] = FUTURE
     with BagWriter(tmp_path / "v2.mcap") as w:
         w.register("/rig/camera/frame", "polarstripe/frame", json.dumps(schema).encode(), {})
     r = subprocess.run(
@@ -340,7 +344,7 @@ def test_bag_info_and_recover_commands(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     row = next(line for line in r.stdout.splitlines() if line.startswith("/rig/camera/frame"))
-    assert row.split()[1:4] == ["frame", "v1", "10"]
+    assert row.split()[1:4] == ["frame", f"v{Frame.VERSION}", "10"]
     assert "decoded:     10 messages" in r.stdout
     data = full.read_bytes()
     (tmp_path / "torn.mcap").write_bytes(data[: len(data) * 3 // 4])
