@@ -139,7 +139,8 @@ def zenoh_router():
     c = zenoh.Config()
     for k, v in {"mode": "router", "listen/endpoints": [f"tcp/127.0.0.1:{port}"], "connect/endpoints": [],
                  "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
-                 "adminspace/enabled": True, "adminspace/permissions/read": True}.items():
+                 "adminspace/enabled": True, "adminspace/permissions/read": True,
+                 "scouting/delay": 0}.items():  # (a peer's wait for scouted peers: none here)
         c.insert_json5(k, json.dumps(v))
     session = zenoh.open(c)
     yield port

@@ -6,8 +6,6 @@ third-party client's computation from the shipped ``ros2/polarstripe_msgs`` file
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -90,17 +88,21 @@ def test_records_carry_every_field_of_their_message():
     assert request[1::2] == [f.name for f in dataclasses.fields(ScanRequest) if f.name != "header"]
 
 
-def test_cli_writes_the_package_and_refuses_a_foreign_folder(tmp_path):
+def test_cli_writes_the_package_and_refuses_a_foreign_folder(tmp_path, capsys):
+    from polarstripe.tools.cli import main
+
     out = tmp_path / "polarstripe_msgs"
-    run = [sys.executable, "-m", "polarstripe", "ros2", "msgs", "-o", str(out)]
     (out / "msg").mkdir(parents=True)
     (out / "msg" / "Gone.msg").write_text("int32 x\n")
-    assert subprocess.run(run, capture_output=True, text=True).returncode == 0
+    assert main(["ros2", "msgs", "-o", str(out)]) == 0
     written = {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()}
     assert written == set(interface_package(__version__))
     (out / "notes.txt").write_text("mine")
-    r = subprocess.run(run, capture_output=True, text=True)
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not polarstripe_msgs'" in r.stderr
+    capsys.readouterr()
+    assert main(["ros2", "msgs", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("polarstripe ros2: error:")
+    assert "not polarstripe_msgs'" in err
 
 
 @pytest.mark.parametrize("typename", ["sensor_msgs/msg/Image", "polarstripe_msgs/srv/StartScan"])
