@@ -29,6 +29,7 @@ import json
 import time
 from dataclasses import dataclass
 from importlib import metadata
+from pathlib import Path
 
 from polarstripe.msgs import (
     REGISTRY,
@@ -59,6 +60,7 @@ from polarstripe.nodes.ros2_zenoh import (
     session_config,
     version_mismatch,
 )
+from polarstripe.runtime.auth import KeyFileError, check_private
 from polarstripe.runtime.bag import BagError
 from polarstripe.runtime.bus import BusError
 from polarstripe.runtime.graph import resolve
@@ -114,6 +116,14 @@ class Ros2Bridge(Node):
             config = session_config(p.endpoint, tls_ca=p.tls_ca, tls_cert=p.tls_cert, tls_key=p.tls_key)
         except Ros2FormatError as exc:
             raise NodeError(f"node {self.name!r}: {exc}") from None
+        if p.endpoint.startswith("tls/"):
+            self._check_tls_files()
+        graph = self.graph
+        meta = {"launch": {"graph": json.dumps(graph), "file": graph.get("file", "")}}
+        try:
+            geometry, note = geometry_from_metadata(meta, p.scene or None)
+        except (SceneError, OSError) as exc:
+            raise NodeError(f"node {self.name!r}: scene: {exc}") from None
         config["connect/timeout_ms"] = json.dumps(int(p.connect_timeout_s * 1000))
         zconf = zenoh.Config()
         try:
@@ -129,12 +139,6 @@ class Ros2Bridge(Node):
         self._next_id = 1
         self.pubs: dict[tuple[str, str], _Pub] = {}
         self.queryables: list[tuple[str, object, object, object]] = []
-        graph = self.graph
-        meta = {"launch": {"graph": json.dumps(graph), "file": graph.get("file", "")}}
-        try:
-            geometry, note = geometry_from_metadata(meta, p.scene or None)
-        except (SceneError, OSError) as exc:
-            raise NodeError(f"node {self.name!r}: scene: {exc}") from None
         self.views = RigViews(geometry)
         self._last_image: dict[str, float] = {}
         self._static = self.views.start(time.time_ns())
@@ -160,6 +164,17 @@ class Ros2Bridge(Node):
                       p.endpoint, p.domain, p.ros_node, len(self.topics), len(self.queryables), note)
 
     # ---- the router ----------------------------------------------------------------------------------------
+    def _check_tls_files(self) -> None:
+        """The CA and certificate exist and the private key is this user's alone (as the CURVE keys)."""
+        p = self.params
+        for what, path in (("tls_ca", p.tls_ca), ("tls_cert", p.tls_cert)):
+            if not Path(path).is_file():
+                raise NodeError(f"node {self.name!r}: {what} {path} does not exist")
+        try:
+            check_private(p.tls_key)
+        except KeyFileError as exc:
+            raise NodeError(f"node {self.name!r}: tls_key: {exc}") from None
+
     def _check_version(self) -> None:
         """Refuse a router whose Zenoh major.minor differs from ours (one line), where it says its version."""
         ours = metadata.version("eclipse-zenoh")

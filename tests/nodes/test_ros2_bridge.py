@@ -222,6 +222,12 @@ def test_tls_tether_admits_the_rigs_certificates_only(tmp_path):
                           tls_ca=str(tmp_path / "rigca.pem"), tls_cert=str(tmp_path / f"{name}.pem"),
                           tls_key=str(tmp_path / f"{name}.key"))
 
+        (tmp_path / "vehicle.key").chmod(0o644)
+        with pytest.raises(NodeError, match=r"tls_key: .*vehicle\.key is readable by others .*chmod 600"):
+            tls_bridge("vehicle").setup()
+        (tmp_path / "vehicle.key").chmod(0o600)
+        with pytest.raises(NodeError, match="tls_cert .*nobody.pem does not exist"):
+            tls_bridge("nobody").setup()
         node = tls_bridge("vehicle")
         node.setup()  # the rig's certificate: admitted, and the router's is the rig CA's
         node.teardown()
