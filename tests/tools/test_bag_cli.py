@@ -45,7 +45,8 @@ def _bag(path, *, recording: dict | str | None = None, seqs=(0, 1, 2, 5), ghost=
 def test_info_reports_counts_rates_and_the_recorders_gaps(tmp_path):
     d = info(_bag(tmp_path / "a.mcap", recording={"/rig/camera/frame": {"gaps": 7, "messages": 4}}))
     frame = d["topics"]["/rig/camera/frame"]
-    assert (frame["type"], frame["version"], frame["known"], frame["messages"]) == ("frame", 1, True, 4)
+    got = (frame["type"], frame["version"], frame["known"], frame["messages"])
+    assert got == ("frame", Frame.VERSION, True, 4)
     assert frame["rate_hz"] == pytest.approx(10.0)
     assert frame["gaps"] == 7 and d["topics"]["/rig/log"]["gaps"] is None  # not in the recorder's report
     assert (d["messages"], d["launch"], d["polarstripe"], d["compression"]) == (5, "sim", "9.9.9", ["none"])
@@ -74,7 +75,7 @@ def test_info_table(tmp_path, capsys):
     assert out[1].endswith(", 0.300 s, 6 messages, launch 'sim', polarstripe 9.9.9")
     assert out[2] == "decoded:     5 messages, every one valid"
     rows = {line.split()[0]: line.split()[1:] for line in out[4:]}
-    assert rows["/rig/camera/frame"] == ["frame", "v1", "4", "10.00", "7", "2"]
+    assert rows["/rig/camera/frame"] == ["frame", f"v{Frame.VERSION}", "4", "10.00", "7", "2"]
     assert rows["/rig/log"] == ["log", "v1", "1", "0.00", "-", "0"]
     assert rows["/rig/ghost"][:3] == ["ghost", "v1", "(?)"]
 
