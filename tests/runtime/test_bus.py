@@ -216,6 +216,6 @@ def test_wire_layout_is_topic_header_buffers(ipc):
         h = msgpack.unpackb(header)
         assert topic == b"/t/img"
         # [type, version, stamp_ns, seq, frame_id, *Frame's fields in declared order]; image first
-        assert h[:2] == ["frame", 1] and h[4] == "" and h[5] == [0, "<u2", [2, 3]] and h[6] == 0.5
+        assert h[:2] == ["frame", Frame.VERSION] and h[4] == "" and h[5] == [0, "<u2", [2, 3]] and h[6] == 0.5
         assert buf == img.tobytes()
         raw.close(0)
