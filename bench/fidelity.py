@@ -131,7 +131,8 @@ def accuracy(data: Path) -> dict:
 
 def polarization(data: Path) -> list[dict]:
     """Per polarized reference (all orders): the truth's DOP per region and, per level, the model's DOP and
-    its E_b, E_w ÷ the truth's (analyzer at 0° and 90°, ideal; the model at 640×640, box-filtered)."""
+    its E_b, E_w ÷ the truth's (analyzer at 0° and 90°, ideal; the model at 640×640, box-filtered); for the
+    circular references (``circ_``) |V|/S0 and the frames through the circular analyzers, ½(S0 ± S3)."""
     from polarstripe.bench.mitsuba_polarized_references import SCENES, dop, polarized_scene
     from polarstripe.bench.mitsuba_polarized_references import file_stem as stem
 
@@ -142,16 +143,22 @@ def polarization(data: Path) -> list[dict]:
             continue
         z = np.load(f)
         t = z["regions"].mean(0)
-        row = {"name": name, "truth_dop": dop(t).tolist(), "spread": z["spread"].tolist()}
+        # circular light (docs/physics.md §5.1): the DOP a circular analyzer sees, |V|/S0, and its frames
+        k = 3 if name.startswith("circ_") else 1
+
+        def seen(s, k=k):
+            return np.abs(s[3]) / s[0] if k == 3 else dop(s)
+
+        row = {"name": name, "truth_dop": seen(t).tolist(), "spread": z["spread"].tolist()}
         scene = polarized_scene(name)
         w, h = scene.camera.resolution
         big = scene.replace(camera=scene.camera.replace(resolution=(w * SS, h * SS)))
         for level in ("preview", "standard"):
             c = render_components(big, "flood", level, need=("B", "p"))
-            st = np.stack([regions(a.reshape(h, SS, w, SS).mean(axis=(1, 3))) for a in (c.B, c.Bq, c.Bu)]
-                          + [np.zeros(3)])
-            row[level] = {"dop": dop(st).tolist(), "e_b": ((st[0] + st[1]) / (t[0] + t[1])).tolist(),
-                          "e_w": ((st[0] - st[1]) / (t[0] - t[1])).tolist()}
+            st = np.stack([regions(a.reshape(h, SS, w, SS).mean(axis=(1, 3)))
+                           for a in (c.B, c.Bq, c.Bu, c.Bv)])
+            row[level] = {"dop": seen(st).tolist(), "e_b": ((st[0] + st[k]) / (t[0] + t[k])).tolist(),
+                          "e_w": ((st[0] - st[k]) / (t[0] - t[k])).tolist()}
         rows.append(row)
     return rows
 
@@ -298,7 +305,8 @@ def _table(res: dict) -> str:
                      + ", ".join(f"{lv} {_fmt(x['ratio'][lv])}" for lv in LEVELS))
     if acc.get("polarization"):
         lines.append("")
-        lines.append("backscatter DOP (left, right, centre) vs the polarized references; E_b, E_w ÷ truth")
+        lines.append("backscatter DOP (left, right, centre; circ_: |V|/S0) vs the polarized references; E_b, "
+                     "E_w ÷ truth")
         lines.append(f"{'scene':<16}{'truth':>18}{'preview':>18}{'standard':>18}{'E_b standard':>18}"
                      f"{'E_w standard':>18}")
         for r in acc["polarization"]:

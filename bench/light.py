@@ -56,7 +56,8 @@ def run(args) -> dict:
     rows, started = [], time.process_time()
     for g in args.g:
         for sigma in args.sigma_t:
-            scene = base.replace(medium=base.medium.replace(sigma_t=float(sigma), phase=Phase("tthg", float(g))))
+            medium = base.medium.replace(sigma_t=float(sigma), phase=Phase("tthg", float(g)))
+            scene = base.replace(medium=medium)
             row = {"sigma_t": float(sigma), "g": float(g), "lights": {}}
             for light in LIGHTS:
                 lit = with_light(scene, light)

@@ -112,8 +112,9 @@ def _cells(v, fmt="{:.3f}") -> str:
 
 
 _HEADER = ("| file | σ_t [1/m] | phase | albedo | max_depth | spp | seeds | seconds per seed | "
-           "S0: left / right / centre | DOP: left / right / centre | S0 seed spread % | DOP seed spread |\n"
-           "|---|---|---|---|---|---|---|---|---|---|---|---|")
+           "S0: left / right / centre | DOP: left / right / centre | V/S0: left / right / centre | "
+           "S0 seed spread % | DOP seed spread |\n"
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 def write_readme(out: Path) -> None:
@@ -131,14 +132,17 @@ def write_readme(out: Path) -> None:
             rows.append(f"| `{file_stem(name, depth)}.npz` | {sigma:g} | {model} {g:g} | {albedo:g} | "
                         f"{depth_tag(depth)} | {int(z['spp'])} | {', '.join(str(s) for s in z['seeds'])} | "
                         f"{_cells(z['seconds'], '{:.0f}')} | {_cells(mean[0], '{:.4g}')} | "
-                        f"{_cells(dop(mean))} | {_cells(100 * z['spread'][0], '{:.2f}')} | "
+                        f"{_cells(dop(mean))} | {_cells(circular(mean))} | "
+                        f"{_cells(100 * z['spread'][0], '{:.2f}')} | "
                         f"{_cells(z['spread'][1])} |")
             if depth > 0 and prev is not None and depth == prev[0] + 1:
                 k = depth - 1
                 orders.append(f"| {name} | {k} | {_cells(dop(mean - prev[1]))} | "
+                              f"{_cells(circular(mean - prev[1]))} | "
                               f"{_cells((mean - prev[1])[0] / s0_all, '{:.3f}')} |")
             elif depth == 2:
-                orders.append(f"| {name} | 1 | {_cells(dop(mean))} | {_cells(mean[0] / s0_all)} |")
+                orders.append(f"| {name} | 1 | {_cells(dop(mean))} | {_cells(circular(mean))} | "
+                              f"{_cells(mean[0] / s0_all)} |")
             prev = (depth, mean)
     text = f"""# Polarized Mitsuba 3 references (the backscatter's Stokes images, per order)
 
@@ -147,8 +151,11 @@ Written by `python -m polarstripe.bench.mitsuba_polarized_references -o {out}` w
 roulette from depth 100000, `independent` sampler, box pixel filter), through
 `sim/mitsuba_polarized.py`: every scattering applies the model's Mueller matrix M(θ) = P(θ)·M_R(θ)/m11_R(θ)
 (P the scene's phase function, M_R the depolarized-Rayleigh reduced matrix of docs/physics.md §5, δ = 0.2),
-m12 included; the point source (1 W/sr) is fully polarized at the model's default 90° (vertical) by an ideal
-polarizer sheet. Read by `tests/sim/test_mitsuba_polarized.py`, which needs no Mitsuba.
+m12 and m44 included; the point source (1 W/sr) is fully polarized at the model's default 90° (vertical) by an
+ideal polarizer sheet, and in the `circ_` scenes made circular (V = +1) by an ideal quarter-wave plate sheet
+after it, fast axis at 45° (docs/physics.md §5.1; written with `--scenes circ_tthg08_s5,circ_tthg08_s2,
+circ_iso_a08_s5,circ_hg095_a08_s5 --spp 16384 --spp-depth 8192`). Read by
+`tests/sim/test_mitsuba_polarized.py` and `tests/sim/test_mitsuba_circular.py`, which need no Mitsuba.
 
 Rig: `reference_scene(σ_t, plane=False)` of `bench/mitsuba_references.py` (the default 60 × 60 × 38 cm tank,
 camera 32×32, fov 60°, at (0, 0, −0.05) m; source at (0.2, 0, −0.05) m), medium only, with the phase function
@@ -156,20 +163,24 @@ and albedo listed. `max_depth` 2 is single scattering; depth k + 1 minus depth k
 
 Each `<scene>_depth<d>.npz` holds `stokes` (seeds × 4 × 32 × 32 float32: S0..S3 [W sr⁻¹ m⁻²] in the camera
 frame, S1 > 0 along image right, S2 > 0 at 45° toward image up, row 0 at the top), `seeds`, `spp` (per seed),
-`seconds` (per seed, wall-clock on a 2-core machine shared with four other jobs), `max_depth`, `scene_toml`
+`seconds` (per seed, wall-clock on a 2-core machine shared with other jobs: four for the linear scenes, a
+load average of 12–16 for the `circ_` ones), `max_depth`, `scene_toml`
 (also `<scene>.toml`), `m12`, `regions` (seeds × 4 × 3: Stokes means over the left half, right half and
-central 8×8 block), `spread` (2 × 3: seed-to-seed spread of S0, relative, and of the DOP, absolute),
-`mitsuba_version`, `variant`. Through an ideal analyzer at φ: I(φ) = ½(S0 + S1 cos 2φ + S2 sin 2φ); E_b is
-φ = 0° (crossed with the vertical backscatter polarization), E_w φ = 90°. The DOP is formed from the
-Stokes means over a region (not averaged per pixel: noise biases a per-pixel DOP up).
+central 8×8 block), `spread` (2 × 3, the `circ_` files 3 × 3: seed-to-seed spread of S0, relative, of the
+DOP and of V/S0, absolute), `mitsuba_version`, `variant`. S3 > 0 is V > 0 in the convention of
+docs/physics.md §5.1 (Mitsuba's; checked through analyzer sheets in front of the camera). Through an ideal
+analyzer at φ: I(φ) = ½(S0 + S1 cos 2φ + S2 sin 2φ); E_b is φ = 0° (crossed with the vertical backscatter
+polarization), E_w φ = 90°; through a quarter-wave plate at 45° and the analyzer at 90° (E_b of circular
+light, whose backscatter has V < 0) ½(S0 + S3), at 0° ½(S0 − S3). The DOP is the linear one, √(S1² + S2²)/S0,
+formed from the Stokes means over a region (not averaged per pixel: noise biases a per-pixel DOP up).
 
 {_HEADER}
 {chr(10).join(rows)}
 
-## DOP per order (left / right / centre), and the order's share of all orders' S0
+## DOP and V/S0 per order (left / right / centre), and the order's share of all orders' S0
 
-| scene | order | DOP | share of S0 |
-|---|---|---|---|
+| scene | order | DOP | V/S0 | share of S0 |
+|---|---|---|---|---|
 {chr(10).join(orders)}
 """
     (out / "README.md").write_text(text)

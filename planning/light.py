@@ -42,8 +42,8 @@ def compare_lights(scene: Scene, separations_m: np.ndarray, *, modalities=("floo
             at = model.flood(c.best_separation_m)
             best = float(c.objective[c.best_index])
             p = float(np.sum(at.dop * at.backscatter) / max(float(np.sum(at.backscatter)), 1e-300))
-            entry[key] = {"separation_m": c.best_separation_m, "objective": best, "expected_error": 1.0 - best,
-                          "p": p}
+            entry[key] = {"separation_m": c.best_separation_m, "objective": best,
+                          "expected_error": 1.0 - best, "p": p}
         lights[light] = entry
     recommended = {}
     for key in lights["linear"]:

@@ -45,10 +45,10 @@ def geo(view: View, name, make):
 
 
 def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
-    """B's single wide-angle scattering and its Stokes (B, Bq, Bu, Bv), every pixel or (``div`` > 1, whole frames) on a grid
-    of every div-th pixel, bilinear in between (B is continuous across the image except at silhouettes:
-    pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or 1 % away from
-    their own are computed exactly)."""
+    """B's single wide-angle scattering and its Stokes (B, Bq, Bu, Bv), every pixel or (``div`` > 1, whole
+    frames) on a grid of every div-th pixel, bilinear in between (B is continuous across the image except
+    at silhouettes: pixels whose coarse neighbours end their rays (``x_end`` per pixel) more than 1 cm or
+    1 % away from their own are computed exactly)."""
     keys = tuple(k for k in ("B", "p") if k in need)
     if div <= 1 or view.pixels is not None:
         return single_parts(view, ssrc, keys)[2:]

@@ -335,7 +335,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     fields = [orders.total] if "B" in need else []
     sigmas = [sc.sigma_t] * len(fields)
     lin, circ = src.linear_circular
-    if pol:           # the polarized part travels with σ_p, the circular part with σ_pV (docs/physics.md §10.4)
+    if pol:           # the polarized part travels with σ_p, the circular with σ_pV (docs/physics.md §10.4)
         psrc = polarized_source(src, plan, view.scene)
         if lin != 0.0:
             fields.append(polarized_field(psrc, plan, view.scene, st, grid))

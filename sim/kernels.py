@@ -316,7 +316,8 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 for jj in range(gl_n[rule] if qwp else nsubs[rule]):
                     i = jj if qwp else sub_all[rule, jj]
                     dn = 1.0 / max(dly[i], 1e-300)
-                    c2, s2, v2 = _source_state((-hw + uu[i] * dw) * dn, bb, (-hwf + uu[i] * dwf) * dn, bf, qwp)
+                    c2, s2, v2 = _source_state((-hw + uu[i] * dw) * dn, bb, (-hwf + uu[i] * dwf) * dn, bf,
+                                               qwp)
                     q_in, u_in = dop_l * c2, dop_l * s2
                     omm, opm = omm_a[i], opm_a[i]
                     mu = 0.5 * (opm - omm)

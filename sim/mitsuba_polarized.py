@@ -24,11 +24,18 @@ ideal linear polarizer sheet 1 mm in front of it (a Python BSDF, ``polarstripe_p
 volpath's shadow rays cross it). Its transmission axis for light along k is the model's (docs/physics.md §0.2,
 §5): the source's E-field vector e = cos a·r + sin a·u projected on the plane ⊥ k; Mitsuba's own ``polarizer``
 projects the absorbing axis instead (Korger et al. 2013), which differs by up to ~10° off the axes. The sheet
-is not seen by the camera and lies outside the medium. Only ``projector.model = "point"`` sources outside the
-medium box, with ``polarization.dop`` 0 (no sheet) or 1, are translated.
+is not seen by the camera and lies outside the medium. With ``polarization.quarter_wave_deg`` an ideal
+quarter-wave plate sheet follows 1 mm further (the same BSDF with ``retarder``: Mitsuba's
+``linear_retarder(π/2)``, its fast axis the projection of the local axis at that angle), making the light
+circular (docs/physics.md §5.1). The sheets' transforms are proper rotations (local x, y, z = projector
+right, up, r × u): a mirrored one turns the axis angle a into −a, which no 0° or 90° axis shows. Only
+``projector.model = "point"`` sources outside the medium box, with ``polarization.dop`` 0 (no sheet) or 1,
+are translated.
 
 The ``stokes`` integrator around ``volpath`` writes S0..S3 in the camera frame: S1 > 0 along image right,
-S2 > 0 at 45° from image right toward image up (the model's χ, docs/physics.md §4.1), radiance W sr⁻¹ m⁻².
+S2 > 0 at 45° from image right toward image up (the model's χ, docs/physics.md §4.1), S3 > 0 as the model's
+V > 0 (§5.1: checked by rendering through polarizer and retarder sheets in front of the camera), radiance
+W sr⁻¹ m⁻². The m44 of the phase function is Hansen & Travis' Δ·Δ'·(3/2)μ.
 """
 
 from __future__ import annotations
@@ -152,7 +159,8 @@ def register() -> None:
         def _m(self, fwd):
             e = mi.Vector3f(self.axis[0], self.axis[1], 0.0)
             t = dr.normalize(e - dr.dot(e, fwd) * fwd)
-            return mi.mueller.rotate_mueller_basis_collinear(self.element, fwd, t, mi.mueller.stokes_basis(fwd))
+            return mi.mueller.rotate_mueller_basis_collinear(self.element, fwd, t,
+                                                             mi.mueller.stokes_basis(fwd))
 
         def sample(self, ctx, si, sample1, sample2, active=True):
             bs = mi.BSDFSample3f()

@@ -61,3 +61,18 @@ def test_plan_command_light_both(capsys):
     with pytest.raises(SystemExit):
         main(["plan", "--light", "elliptic"])
     assert "invalid choice: 'elliptic'" in capsys.readouterr().err
+
+
+def test_bench_light_table(capsys):
+    """``polarstripe bench light`` end to end on one tiny water: both lights scored through the compositor's
+    pipeline, circular light's backscatter DOP on the analyzer's circle below linear light's (§5.1), the
+    lower error named per method."""
+    assert main(["bench", "light", "--sigma-t", "5", "--g", "0.8", "--resolution", "32x24", "--stripes", "6",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    (row,) = doc["rows"]
+    lin, circ = row["lights"]["linear"], row["lights"]["circular"]
+    assert 0.0 < circ["p_seen"] < lin["p_seen"] < 1.0
+    for key in ("flood_polarized", "stripes_polarized"):
+        errors = {lt: row["lights"][lt][key]["error"] for lt in ("linear", "circular")}
+        assert row["e2e_better"][key] == min(errors, key=errors.get)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from polarstripe.sim.mitsuba_polarized import mueller_elements
+from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.polarization import (
     analyzer,
     cone_retention,
@@ -18,7 +19,6 @@ from polarstripe.sim.polarization import (
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import SceneError, load_scene, scene_from_dict
 from polarstripe.sim.transport import line_radiance, make_source
-from polarstripe.sim.patterns import parse_pattern
 from scipy.integrate import quad
 
 DELTA = 0.2
@@ -72,7 +72,8 @@ def test_m44_of_depolarized_rayleigh():
         np.testing.assert_allclose(m44 / m11, [1 - 2 * d, -(1 - 2 * d)], rtol=1e-12)
         assert m44[1] == pytest.approx(m11[1] - 2 * m22[1], rel=1e-12)
         if d == 0:
-            np.testing.assert_allclose(rayleigh_m44(1 - mu, 1 + mu, d), rayleigh_mueller(1 - mu, 1 + mu, d)[3])
+            np.testing.assert_allclose(rayleigh_m44(1 - mu, 1 + mu, d),
+                                       rayleigh_mueller(1 - mu, 1 + mu, d)[3])
 
 
 def test_truth_phase_function_carries_the_same_m44():
@@ -117,7 +118,8 @@ def _rotator(angle):
 
 def test_circular_pair_retention_against_explicit_mueller_products():
     """κ_V of isotropic scattering: circular light along +z scattered at ω then back to −z, 4×4 Mueller
-    matrices P·M_R/m11_R (P = 1/4π) with explicit frame rotations, summed over a Gauss–Legendre × uniform-azimuth grid; ÷ the
+    matrices P·M_R/m11_R (P = 1/4π) with explicit frame rotations, summed over a Gauss–Legendre ×
+    uniform-azimuth grid; ÷ the
     once-backscattered V (m44/m11 at π). Both flip the helicity, so κ_V > 0."""
     nt, nphi = 48, 48
     t, w = np.polynomial.legendre.leggauss(nt)
@@ -150,7 +152,8 @@ def _circular_scene(source_qw=45.0, camera_qw=None, res=(33, 33)):
 
 
 def test_scene_keys():
-    s = scene_from_dict({"projector": {"polarization": {"dop": 1.0, "angle_deg": 90.0, "quarter_wave_deg": 45}},
+    pol = {"dop": 1.0, "angle_deg": 90.0, "quarter_wave_deg": 45}
+    s = scene_from_dict({"projector": {"polarization": pol},
                          "camera": {"polarizer": {"quarter_wave_deg": 135.0}}})
     assert s.projector.polarization.quarter_wave_deg == 45.0
     assert s.camera.polarizer.quarter_wave_deg == 135.0
@@ -165,8 +168,10 @@ def test_scene_keys():
 def test_source_state_is_jones(angle, qw):
     """The source's (L, V) on its axis (transport.Source.linear_circular) is Jones calculus of the polarizer
     and the plate in a frame right-handed about the projector's forward axis."""
-    src = make_source(_circular_scene(qw).replace(projector=_circular_scene(qw).projector.replace(
-        polarization=_circular_scene(qw).projector.polarization.replace(angle_deg=angle))), parse_pattern("flood"))
+    scene = _circular_scene(qw)
+    pol = scene.projector.polarization.replace(angle_deg=angle)
+    src = make_source(scene.replace(projector=scene.projector.replace(polarization=pol)),
+                      parse_pattern("flood"))
     # (x, y, k) = (u, r, f) is right-handed (r × u = −f): angles from r toward u are angles from y toward x
     e = np.array([math.sin(math.radians(angle)), math.cos(math.radians(angle))], complex)
     fast = math.pi / 2 - math.radians(qw)
