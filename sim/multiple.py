@@ -32,6 +32,7 @@ from functools import lru_cache
 import numpy as np
 from polarstripe.sim.grid_kernels import GridArgs
 from polarstripe.sim.threads import fft_workers
+from numba import njit
 from scipy import fft as sfft
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -148,6 +149,23 @@ def kernel_tables(n: tuple[int, int, int], h: tuple[float, float, float], sigma:
     return k0, k1, k2
 
 
+@njit(cache=True, nogil=True)
+def kernel_product(f0, f1, f2, t, out):
+    """The P1 kernels' product in Fourier space, per frequency: out₀ = K̂₀ŝ₀ + 3(K̂₁·ŝ₁) and
+    outₐ = K̂₁ₐŝ₀ + 3(K̂₂ₐ·ŝ₁) (t = (ŝ₀, ŝ₁ₓ, ŝ₁ᵧ, ŝ₁_z), f1 (3, …), f2 (3, 3, …); the operations of the numpy
+    expression, in its order, in one pass)."""
+    a_, b_, c_ = f0.shape
+    for i in range(a_):
+        for j in range(b_):
+            for k in range(c_):
+                s0, sx, sy, sz = t[0, i, j, k], t[1, i, j, k], t[2, i, j, k], t[3, i, j, k]
+                out[0, i, j, k] = f0[i, j, k] * s0 + 3 * (f1[0, i, j, k] * sx + f1[1, i, j, k] * sy
+                                                          + f1[2, i, j, k] * sz)
+                for a in range(3):
+                    out[1 + a, i, j, k] = f1[a, i, j, k] * s0 + 3 * (
+                        f2[a, 0, i, j, k] * sx + f2[a, 1, i, j, k] * sy + f2[a, 2, i, j, k] * sz)
+
+
 @lru_cache(maxsize=16)
 def _transforms(n: tuple[int, int, int], h: tuple[float, float, float], sigma: float):
     k0, k1, k2 = kernel_tables(n, h, sigma)
@@ -158,7 +176,7 @@ def _transforms(n: tuple[int, int, int], h: tuple[float, float, float], sigma: f
     index = {}
     for p, (a, b) in enumerate(_PAIRS):
         index[(a, b)] = index[(b, a)] = p
-    return shape, f0, f1, [[f2[index[(a, b)]] for b in range(3)] for a in range(3)]
+    return shape, f0, np.stack(f1), np.stack([np.stack([f2[index[(a, b)]] for b in range(3)]) for a in range(3)])
 
 
 def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field:
@@ -174,11 +192,8 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field
     src[1:] = np.moveaxis(s1, -1, 0)
     axes, workers = (1, 2, 3), fft_workers()
     t = sfft.rfftn(src, shape, axes=axes, workers=workers)
-    t0, t1 = t[0], t[1:]
     out = np.empty_like(t)
-    out[0] = f0 * t0 + 3 * (f1[0] * t1[0] + f1[1] * t1[1] + f1[2] * t1[2])
-    for a in range(3):
-        out[1 + a] = f1[a] * t0 + 3 * (f2[a][0] * t1[0] + f2[a][1] * t1[1] + f2[a][2] * t1[2])
+    kernel_product(f0, f1, f2, t, out)
     res = sfft.irfftn(out, shape, axes=axes, workers=workers)[sl]
     return Field(np.maximum(res[0], 0.0), np.moveaxis(res[1:], 0, -1))
 
