@@ -15,10 +15,13 @@ from polarstripe.nodes.rig_views import RECORDS
 from polarstripe.nodes.ros2_schemas import SERVICES, interface_package, make_typestore, type_hash
 
 # Published hashes: std_msgs/String and example_interfaces/AddTwoInts in rmw_zenoh's docs/design.md (key
-# expression examples); sensor_msgs/Image in a ROS 2 Jazzy rmw_zenoh publisher's log.
+# expression examples); sensor_msgs/Image in a ROS 2 Jazzy rmw_zenoh publisher's log; tf2_msgs/TFMessage and
+# rcl_interfaces/Log in liveliness tokens captured from ROS 2 nodes on rmw_zenoh (/tf, /rosout of ros2cli).
 KNOWN = {
     "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
     "sensor_msgs/msg/Image": "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47",
+    "tf2_msgs/msg/TFMessage": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+    "rcl_interfaces/msg/Log": "RIHS01_e28ce254ca8abc06abf92773b74602cdbf116ed34fbaf294fb9f81da9f318eac",
 }
 PACKAGE_DIR = Path(__file__).resolve().parents[2] / "ros2" / "polarstripe_msgs"
 ADD_TWO_INTS = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
