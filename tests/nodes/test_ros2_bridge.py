@@ -249,3 +249,13 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_bench_ros2_runs_on_a_small_frame():
+    from polarstripe.bench.ros2 import run
+
+    result = run([(32, 24)], 3)
+    rows = {r["row"]: r for r in result["rows"]}
+    assert set(rows) == {"bridge", "zenoh put", "memcpy"}
+    assert all(r["received"] == r["sent"] == 3 and r["cpu_ms_per_frame"] >= 0 for r in rows.values())
+    assert rows["zenoh put"]["cpu_vs_put"] == 1.0 and rows["bridge"]["latency_ms"] > 0
