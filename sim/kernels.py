@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 from numba import njit
+from polarstripe.sim.stokes_kernels import m12_over_m11, source_state
 
 _FOUR_PI = 4.0 * math.pi
 _G_MAX = 1.0 - 1e-6
@@ -90,34 +91,6 @@ def segment_in_box(ax, ay, az, bx, by, bz, lo, hi):
         t1 = min(t1, max(ta, tb))
     t0 = max(t0, 0.0)
     return max(min(t1, length) - t0, 0.0)
-
-
-@njit(cache=True, nogil=True)
-def _m12_over_m11(omm, opm, big):
-    """m12/m11 of the Rayleigh-δ reduced matrix (docs/physics.md §5): −Δ·¾(1 − μ²) / (Δ·¾(1 + μ²) + 1 − Δ)."""
-    mu = 0.5 * (opm - omm)
-    return -big * 0.75 * (omm * opm) / (big * 0.75 * (1.0 + mu * mu) + 1.0 - big)
-
-
-@njit(cache=True, nogil=True)
-def _source_state(aa, bb, af, bf, qwp):
-    """Unit Stokes (q, u, v) of the source light in the scattering-plane frame (docs/physics.md §5.1): a
-    linear polarizer whose E-field has components aa in the plane and bb normal to it (ψ_E = atan2(bb, aa)),
-    then, with ``qwp``, a quarter-wave plate whose fast axis has components (af, bf) (ψ_F): linear
-    cos 2(ψ_E − ψ_F) along the fast axis and v = sin 2(ψ_F − ψ_E) (Mitsuba's retarder convention). Zeros
-    where the field has no component ⊥ the light."""
-    nrm = aa * aa + bb * bb
-    if nrm <= 0:
-        return 0.0, 0.0, 0.0
-    if not qwp:
-        return (aa * aa - bb * bb) / nrm, 2.0 * aa * bb / nrm, 0.0
-    nf = af * af + bf * bf
-    if nf <= 0:
-        return 0.0, 0.0, 0.0
-    c, s = aa * af + bb * bf, bb * af - aa * bf          # ∝ cos, sin of ψ_E − ψ_F
-    cs = c * c + s * s
-    c2d, s2d = (c * c - s * s) / cs, 2.0 * c * s / cs
-    return c2d * (af * af - bf * bf) / nf, c2d * 2.0 * af * bf / nf, -s2d
 
 
 @njit(cache=True, nogil=True)
@@ -290,9 +263,9 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                     v = gl_w[rule, i] * phase_value(phase, omm_a[i], opm_a[i]) * math.exp(-(ang[i] - m))
                     if mueller:     # I = P·(1 + m12/m11·Q_in): the matrix normalised by its m11 is P
                         dn = 1.0 if reverse else 1.0 / max(dly[i], 1e-300)
-                        qn = _source_state(dw if reverse else (-hw + uu[i] * dw) * dn, bb,
+                        qn = source_state(dw if reverse else (-hw + uu[i] * dw) * dn, bb,
                                            dwf if reverse else (-hwf + uu[i] * dwf) * dn, bf, qwp)[0]
-                        v *= 1.0 + _m12_over_m11(omm_a[i], opm_a[i], big) * dop_l * qn
+                        v *= 1.0 + m12_over_m11(omm_a[i], opm_a[i], big) * dop_l * qn
                     if use_facing:
                         cos_f = (-(hx * nfx + hy * nfy + hz * nfz) + uu[i] * (dx * nfx + dy * nfy + dz * nfz)
                                  ) / max(dly[i], 1e-300)
@@ -316,7 +289,7 @@ def line_integrals(light, medium, phase, quad, polarization, rays, intervals, ou
                 for jj in range(gl_n[rule] if qwp else nsubs[rule]):
                     i = jj if qwp else sub_all[rule, jj]
                     dn = 1.0 / max(dly[i], 1e-300)
-                    c2, s2, v2 = _source_state((-hw + uu[i] * dw) * dn, bb, (-hwf + uu[i] * dwf) * dn, bf,
+                    c2, s2, v2 = source_state((-hw + uu[i] * dw) * dn, bb, (-hwf + uu[i] * dwf) * dn, bf,
                                                qwp)
                     q_in, u_in = dop_l * c2, dop_l * s2
                     omm, opm = omm_a[i], opm_a[i]
