@@ -1,10 +1,10 @@
 """The grabber node: takes one frame per ``camera/trigger`` and publishes it on ``camera/frame``.
 
-The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``file``, ``sim``, or one added
-through the ``polarstripe.drivers`` entry points), named by ``camera`` and made from ``camera_options`` (the
-backend's own ``Options``: docs/nodes.md) when the node starts; ``exposure_s`` and ``gain`` are set through
-the camera role. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs one
-:class:`~polarstripe.nodes.drivers.camera.CameraFrame` and publishes it as one ``Frame`` (the image as the
+The camera is a backend of :mod:`polarstripe.nodes.drivers` (``v4l2``, ``aravis``, ``file``, ``sim``, or one
+added through the ``polarstripe.drivers`` entry points), named by ``camera`` and made from ``camera_options``
+(the backend's own ``Options``: docs/nodes.md) when the node starts; ``exposure_s`` and ``gain`` are set
+through the camera role. A trigger (:class:`~polarstripe.msgs.FrameRequest`: scan id, step, pattern tag) grabs
+one :class:`~polarstripe.nodes.drivers.camera.CameraFrame` and publishes it as one ``Frame`` (the image as the
 camera delivered it, with the exposure, gain and bit depth it was taken with) tagged with the pattern, the
 scan and step, and the analyzer angle. The angle is decided here and only here, where the stage's state is
 known: the newest ``polarizer/state`` when the frame is taken; None while the analyzer is out of the path (see
@@ -18,7 +18,9 @@ wrong scan is an ``Ack(ok=False, detail=…)`` reply naming the camera and what 
 ``log`` topic, and a count in the heartbeat (``grab_faults``); no frame is published for it. After a lost
 camera the next trigger reopens it. A frame larger than ``$POLARSTRIPE_MAX_PIXELS``
 (:func:`~polarstripe.runtime.params.check_frame_size`; a real camera set to a mode the rig cannot carry) is
-dropped the same way, logged once and counted (``frames_oversize``); the node keeps running.
+dropped the same way, logged once and counted (``frames_oversize``); the node keeps running. A frame that
+did not arrive whole (a GigE Vision packet lost: the backend raises ``FrameDropped``) is never published: a
+fault reply, one ERROR line, counted in ``frames_dropped`` (and ``grab_faults``), and the camera stays open.
 
 Services: ``camera/trigger`` (FrameRequest → Ack), ``camera/analyzer`` (:class:`AnalyzerMount` → Ack: put
 the analyzer in or out of the optical path; in a lab rig a flip mount, in the simulator a flag per frame).
@@ -32,7 +34,7 @@ from typing import Any
 
 from polarstripe.msgs import Ack, AnalyzerMount, Frame, FrameRequest, PolarizerState
 from polarstripe.nodes.drivers.backend import BackendContext
-from polarstripe.nodes.drivers.errors import DriverError
+from polarstripe.nodes.drivers.errors import DriverError, FrameDropped
 from polarstripe.nodes.drivers.registry import check_backend, open_backend
 from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.node import Node
@@ -43,7 +45,7 @@ class Grabber(Node):
     """Grabs a frame per trigger from a camera backend (see the module docstring)."""
 
     class Params(NodeParams):
-        camera: str = "sim"  # camera backend: sim | sim_polarization | v4l2 | file, or an entry point's
+        camera: str = "sim"  # backend: sim | sim_polarization | v4l2 | aravis | file, or an entry point's
         camera_options: dict[str, Any] = {}  # the backend's own options (its Options)
         exposure_s: float | None = None  # None: the backend's (the simulator's scene)
         gain: float | None = None  # None: the backend's
@@ -70,6 +72,7 @@ class Grabber(Node):
         self.analyzer_in = True
         self.counters["grab_faults"] = 0
         self.counters["frames_oversize"] = 0  # frames beyond $POLARSTRIPE_MAX_PIXELS, dropped
+        self.counters["frames_dropped"] = 0  # frames that did not arrive whole (lost packets): not published
         self.camera = None
         self._service_clients: dict = {}  # kept across reopening the camera
         try:
@@ -149,7 +152,9 @@ class Grabber(Node):
         try:
             shot = cam.grab(timeout=self.params.grab_timeout_s + 1.0)
         except DriverError as exc:
-            if not isinstance(exc, TimeoutError):  # lost: reopen at the next trigger
+            if isinstance(exc, FrameDropped):  # incomplete: nothing published, the camera stays open
+                self.counters["frames_dropped"] += 1
+            elif not isinstance(exc, TimeoutError):  # lost: reopen at the next trigger
                 cam.close()
                 self.camera = None
             return self._fault(req, f"{type(exc).__name__}: {exc}")

@@ -3,6 +3,9 @@ on a real device as well as on the simulated one; ``--long`` also runs the tests
 each, e.g. SIGINT at 40 moments), which the README's test command and CI leave out. Registered here so that
 they work from the repository root."""
 
+import contextlib
+import fcntl
+
 import pytest
 
 
@@ -29,3 +32,33 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "long" in item.keywords:
             item.add_marker(skip)
+
+
+GIGE_LOCK = "/tmp/polarstripe-gige-fake.lock"
+
+
+@contextlib.contextmanager
+def gige_port():
+    """Hold the GigE Vision control port 127.0.0.1:3956 of this host (a simulator binds it): test runs on the
+    same host take turns instead of failing."""
+    with open(GIGE_LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+@pytest.fixture(scope="module")
+def gige_fake():
+    """Aravis's GigE Vision simulator on 127.0.0.1 for a test module (nodes/drivers/aravis_system.py); its
+    ``lost_ratio`` is put back to 0 by :func:`gige`. Without Aravis this fails: the tests run in CI."""
+    from polarstripe.nodes.drivers.aravis_system import FakeGvCamera
+
+    with gige_port(), FakeGvCamera("127.0.0.1") as fake:
+        yield fake
+
+
+@pytest.fixture
+def gige(gige_fake):
+    """The module's simulator, sending every packet at the start and end of each test."""
+    gige_fake.lost_ratio = 0.0
+    yield gige_fake
+    gige_fake.lost_ratio = 0.0

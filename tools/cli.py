@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("polarstripe.tools.view", "contact sheet of the latest frames and composites"),
     "bench": ("polarstripe.bench.cli", "run a benchmark and print its table"),
     "calibrate": ("polarstripe.tools.calibrate_cli", "calibrate projector and camera (Gray code)"),
+    "camera": ("polarstripe.tools.camera_cli", "list cameras, grab one frame, run a GigE Vision simulator"),
     "keys": ("polarstripe.tools.keys_cli", "make a host's CURVE certificates, print a key's fingerprint"),
     "ros2": ("polarstripe.tools.ros2_cli", "write the ROS 2 interface package polarstripe_msgs"),
     "docs": ("polarstripe.tools.node_docs", "write the node reference (params, topics, services)"),

@@ -3,8 +3,10 @@
 :class:`Camera` owns the shared behaviour: the grab timeout (a capture call that blocks longer raises
 :class:`DriverTimeout` instead of hanging the node), the check that a frame is a real image (a backend that
 returns nothing raises :class:`DeviceLost`, never a blank frame), exposure and gain validation, the frame
-counter, the context manager and an idempotent :meth:`~Camera.close`. A backend implements ``_grab`` (the
-image and the device's own metadata) and, where the device can, ``_apply_exposure`` / ``_apply_gain``; a
+counter, the count of frames that did not arrive whole (a backend raises :class:`FrameDropped`; nothing
+is delivered for them), the context manager and an idempotent :meth:`~Camera.close`. A backend implements
+``_grab`` (the image and the device's own metadata) and, where the device can, ``_apply_exposure`` /
+``_apply_gain``; a
 device that reports the exposure or bit depth it actually used (the simulator) sets ``_exposure_s`` /
 ``_bit_depth`` in ``_grab``, and the frame carries those. :meth:`Camera.request` says what the next frame is
 for; a camera that makes its frame on demand (the simulator's) uses it, a free-running one ignores it.
@@ -22,7 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from polarstripe.nodes.drivers.backend import Backend
-from polarstripe.nodes.drivers.errors import DeviceLost, DriverError, DriverTimeout, DriverValueError
+from polarstripe.nodes.drivers.errors import (
+    DeviceLost,
+    DriverError,
+    DriverTimeout,
+    DriverValueError,
+    FrameDropped,
+)
 
 
 @dataclass(frozen=True)
@@ -58,6 +66,7 @@ class Camera(Backend, ABC):
         self._gain = self._check_gain(gain)
         self._bit_depth = int(bit_depth)
         self._seq = 0
+        self.frames_dropped = 0  # frames that did not arrive whole (FrameDropped), never delivered
         self._closed = False
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"grab {name}")
         self._pending: concurrent.futures.Future | None = None
@@ -68,6 +77,7 @@ class Camera(Backend, ABC):
 
         :raises DriverTimeout: no frame within ``timeout`` seconds (the next grab waits for the late one).
         :raises DeviceLost: the device returned no frame (disconnected).
+        :raises FrameDropped: the frame did not arrive whole; counted in :attr:`frames_dropped`.
         :raises DriverError: other failures, the text names the device.
         """
         if self._closed:
@@ -80,7 +90,11 @@ class Camera(Backend, ABC):
         if not done:
             raise DriverTimeout(f"{self.name}: no frame within {timeout:g} s")
         pending, self._pending = self._pending, None
-        image, metadata = pending.result()
+        try:
+            image, metadata = pending.result()
+        except FrameDropped:
+            self.frames_dropped += 1
+            raise
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
             raise DeviceLost(f"{self.name}: returned no image ({type(image).__name__})")
         frame = CameraFrame(image, self._exposure_s, self._gain, self._bit_depth, self._seq, time.time_ns(),

@@ -33,6 +33,11 @@ class DeviceLost(DriverError):
     """The device disappeared while in use (a camera unplugged, a serial port closed)."""
 
 
+class FrameDropped(DriverError):
+    """A frame did not arrive whole (stream packets lost, a transfer cut short): it is not delivered, the
+    camera stays open, and the next grab may succeed."""
+
+
 class EndOfFrames(DriverError):
     """A file camera has no more frames (and does not loop)."""
 

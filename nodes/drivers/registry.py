@@ -11,9 +11,9 @@ A distribution adds backends with entry point names ``"<role>.<name>"``; the cla
 (nodes/drivers/backend.py)::
 
     [project.entry-points."polarstripe.drivers"]
-    "camera.aravis" = "mypkg.aravis_camera:AravisCamera"
+    "camera.acme" = "mypkg.acme_camera:AcmeCamera"
 
-A launch file then names it like a built-in one: ``camera = "aravis"``, ``camera_options = {...}``. A built-in
+A launch file then names it like a built-in one: ``camera = "acme"``, ``camera_options = {...}``. A built-in
 name wins over an entry point of the same name.
 """
 
@@ -55,11 +55,12 @@ BACKENDS: dict[str, dict[str, str]] = {
         "file": f"{_PKG}.file_camera:FileCamera",
         "sim": f"{_PKG}.sim_camera:SimCamera",
         "sim_polarization": f"{_PKG}.sim_polarization_camera:SimPolarizationCamera",
+        "aravis": f"{_PKG}.aravis_camera:AravisCamera",
     },
 }
 
 #: "role.name" -> the optional extra (pyproject ``[project.optional-dependencies]``) that backend needs.
-EXTRAS: dict[str, str] = {"display.window": "display"}
+EXTRAS: dict[str, str] = {"display.window": "display", "camera.aravis": "aravis"}
 
 
 def _table(role: str) -> dict[str, str]:
