@@ -46,6 +46,13 @@ def gige_port():
         yield
 
 
+@pytest.fixture
+def gige_lock():
+    """The GigE Vision port held for a test that starts its own simulator (``polarstripe camera fake``)."""
+    with gige_port():
+        yield
+
+
 @pytest.fixture(scope="module")
 def gige_fake():
     """Aravis's GigE Vision simulator on 127.0.0.1 for a test module (nodes/drivers/aravis_system.py); its

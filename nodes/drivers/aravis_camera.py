@@ -101,7 +101,7 @@ class AravisCamera(Camera):
             for auto in ("ExposureAuto", "GainAuto"):
                 self._set_if_offered(auto, "Off")
             self._set_if_offered("GainSelector", "All")
-            self._exposure_used = self._read(self._exposure_feature) * 1e-6
+            self._exposure_used = self._read(self._exposure_feature) / 1e6
             super().__init__(name, exposure_s=exposure_s or self._exposure_used,
                              gain=self._read(self._gain_feature) if gain is None else gain, bit_depth=depth)
             if exposure_s is not None:
@@ -210,13 +210,13 @@ class AravisCamera(Camera):
 
     # -- the role ---------------------------------------------------------------------------------------
     def _apply_exposure(self, value: float) -> None:
-        feature = self._exposure_feature
+        feature, us = self._exposure_feature, round(value * 1e6, 3)  # 0.1 s is 100000 µs, not 99999.99…
         lo, hi = self._dev.get_float_feature_bounds(feature)
-        if not lo <= value * 1e6 <= hi:
-            raise DriverValueError(f"{self.name}: exposure {value * 1e6:g} µs is outside the camera's "
+        if not lo <= us <= hi:
+            raise DriverValueError(f"{self.name}: exposure {us:g} µs is outside the camera's "
                                    f"{lo:g}-{hi:g} µs ({feature})")
-        self._set(feature, value * 1e6)
-        self._exposure_used = self._read(feature) * 1e-6  # the camera's own step
+        self._set(feature, us)
+        self._exposure_used = self._read(feature) / 1e6  # the camera's own step
 
     def _apply_gain(self, value: float) -> None:
         feature = self._gain_feature
