@@ -117,29 +117,44 @@ class AravisCamera(Camera):
     def _offers(self, feature: str) -> bool:
         return bool(self._dev.is_feature_available(feature))
 
+    def _ask(self, what: str, call, *args):
+        """``call(*args)`` on the device; Aravis's GError becomes one DriverError line naming ``what``."""
+        try:
+            return call(*args)
+        except GLib.Error as exc:
+            raise DriverError(f"{self.name}: {what}: {error_text(exc)}") from None
+
+    def _is_float(self, feature: str) -> bool:
+        return isinstance(self._dev.get_feature(feature), Aravis.GcFloat)
+
     def _choices(self, feature: str) -> list[str]:
-        return list(self._dev.dup_available_enumeration_feature_values_as_strings(feature) or [])
+        return list(self._ask(feature, self._dev.dup_available_enumeration_feature_values_as_strings, feature)
+                    or [])
 
     def _read(self, feature: str) -> float:
-        node = self._dev.get_feature(feature)
-        if isinstance(node, Aravis.GcFloat):
-            return float(self._dev.get_float_feature_value(feature))
-        return float(self._dev.get_integer_feature_value(feature))
+        dev = self._dev
+        call = dev.get_float_feature_value if self._is_float(feature) else dev.get_integer_feature_value
+        return float(self._ask(feature, call, feature))
+
+    def _bounds(self, feature: str) -> tuple[float, float]:
+        dev = self._dev
+        call = dev.get_float_feature_bounds if self._is_float(feature) else dev.get_integer_feature_bounds
+        return tuple(self._ask(feature, call, feature))
 
     def _set(self, feature: str, value) -> None:
         """Write ``feature`` (enumeration, integer or float, by the value's type and the node's)."""
-        try:
-            if isinstance(value, str):
-                self._dev.set_string_feature_value(feature, value)
-            elif isinstance(self._dev.get_feature(feature), Aravis.GcFloat):
-                self._dev.set_float_feature_value(feature, float(value))
-            else:
-                self._dev.set_integer_feature_value(feature, int(round(value)))
-        except GLib.Error as exc:
-            raise DriverError(f"{self.name}: {feature} = {value}: {error_text(exc)}") from None
+        dev = self._dev
+        if isinstance(value, str):
+            self._ask(f"{feature} = {value}", dev.set_string_feature_value, feature, value)
+        elif self._is_float(feature):
+            self._ask(f"{feature} = {value}", dev.set_float_feature_value, feature, float(value))
+        else:
+            self._ask(f"{feature} = {value}", dev.set_integer_feature_value, feature, int(round(value)))
 
     def _set_if_offered(self, feature: str, value: str) -> None:
-        if self._offers(feature) and value in self._choices(feature):
+        """Set enumeration ``feature`` to ``value`` where the camera has both and it is not so already."""
+        if self._offers(feature) and value in self._choices(feature) and \
+                self._ask(feature, self._dev.get_string_feature_value, feature) != value:
             self._set(feature, value)
 
     def _first_of(self, features: tuple[str, ...], what: str) -> str:
@@ -211,7 +226,7 @@ class AravisCamera(Camera):
     # -- the role ---------------------------------------------------------------------------------------
     def _apply_exposure(self, value: float) -> None:
         feature, us = self._exposure_feature, round(value * 1e6, 3)  # 0.1 s is 100000 µs, not 99999.99…
-        lo, hi = self._dev.get_float_feature_bounds(feature)
+        lo, hi = self._bounds(feature)
         if not lo <= us <= hi:
             raise DriverValueError(f"{self.name}: exposure {us:g} µs is outside the camera's "
                                    f"{lo:g}-{hi:g} µs ({feature})")
@@ -220,12 +235,10 @@ class AravisCamera(Camera):
 
     def _apply_gain(self, value: float) -> None:
         feature = self._gain_feature
-        bounds = self._dev.get_float_feature_bounds(feature) \
-            if isinstance(self._dev.get_feature(feature), Aravis.GcFloat) \
-            else self._dev.get_integer_feature_bounds(feature)
-        if not bounds[0] <= value <= bounds[1]:
-            raise DriverValueError(f"{self.name}: gain {value:g} is outside the camera's {bounds[0]:g}-"
-                                   f"{bounds[1]:g} ({feature})")
+        lo, hi = self._bounds(feature)
+        if not lo <= value <= hi:
+            raise DriverValueError(f"{self.name}: gain {value:g} is outside the camera's {lo:g}-{hi:g} "
+                                   f"({feature})")
         self._set(feature, value)
 
     def grab(self, timeout: float = 2.0):
@@ -260,10 +273,7 @@ class AravisCamera(Camera):
                 raise DriverTimeout(f"{self.name}: no frame within {wait_s:g} s ({hint})")
 
     def _fire_software_trigger(self) -> None:
-        try:
-            self._dev.execute_command("TriggerSoftware")
-        except GLib.Error as exc:
-            raise DriverError(f"{self.name}: TriggerSoftware: {error_text(exc)}") from None
+        self._ask("TriggerSoftware", self._dev.execute_command, "TriggerSoftware")
 
     @staticmethod
     def _drain(stream) -> None:
