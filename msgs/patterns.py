@@ -9,7 +9,11 @@ Text forms (the tag a frame carries, the spec a user types):
 - ``gray:BIT:AXIS:INV``: bit BIT (0 = finest) of the Gray code g = j XOR (j >> 1) of each pattern pixel's
   column (AXIS = ``col``) or row (``row``) index j, lit where the bit is 1 (INV = 0) or 0 (INV = 1): the
   images of OpenCV's ``cv2.structured_light.GrayCodePattern`` (:func:`gray_code` lists them in the order its
-  ``generate()`` returns them; the projector calibration, docs/depth.md "Calibration").
+  ``generate()`` returns them);
+- ``gray:BIT:AXIS:INV:xorBASE``: that bit XOR bit BASE of the Gray code of the column index, the XOR codes
+  of Gupta et al. (CVPR 2011) that keep every pattern fine enough for the light scattered in the medium to
+  be alike under a pattern and its inverse (:func:`xor_code`; the projector calibration, docs/depth.md
+  "Calibration").
 
 Room for more kinds is one entry in :data:`KINDS`, one branch in :func:`parse` and ``__str__``.
 Which patterns a scan of an imaging method shows is ``Method.patterns`` (:mod:`polarstripe.msgs.methods`).
@@ -30,7 +34,7 @@ KINDS = ("flood", "stripe", "checker", "off", "gray")
 
 _STRIPE = re.compile(r"stripe:(\d+)/(\d+)")
 _CHECKER = re.compile(r"checker:(\d+):(\d+)")
-_GRAY = re.compile(r"gray:(\d+):(col|row):([01])")
+_GRAY = re.compile(r"gray:(\d+):(col|row):([01])(?::xor(\d+))?")
 
 
 class PatternError(PolarstripeError, ValueError):
@@ -40,7 +44,8 @@ class PatternError(PolarstripeError, ValueError):
 @dataclass(frozen=True)
 class PatternSpec:
     """A checked pattern: ``kind``; stripe ``index`` of ``count``; checker ``size`` and ``shift`` [px]; Gray
-    code bit ``index`` of ``axis`` (``col``/``row``), ``inverse``."""
+    code bit ``index`` of ``axis`` (``col``/``row``), ``inverse``, XOR the column code's bit ``xor`` (−1:
+    none)."""
 
     kind: str
     index: int = 0
@@ -49,6 +54,7 @@ class PatternSpec:
     shift: int = 0
     axis: str = ""
     inverse: bool = False
+    xor: int = -1
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -62,6 +68,10 @@ class PatternSpec:
         if self.kind == "gray" and not (0 <= self.index < 31 and self.axis in ("col", "row")):
             raise PatternError(f"gray pattern bit={self.index} axis={self.axis!r}: need 0 <= bit < 31, "
                                "axis col or row")
+        if self.xor != -1 and not (self.kind == "gray" and 0 <= self.xor < 31 and
+                                   (self.axis, self.index) != ("col", self.xor)):
+            raise PatternError(f"{self.kind} pattern xor={self.xor}: only a gray pattern takes an XOR base, "
+                               "a column bit 0..30 other than its own")
 
     def __str__(self) -> str:
         if self.kind == "stripe":
@@ -69,7 +79,8 @@ class PatternSpec:
         if self.kind == "checker":
             return f"checker:{self.size}:{self.shift}"
         if self.kind == "gray":
-            return f"gray:{self.index}:{self.axis}:{int(self.inverse)}"
+            xor = f":xor{self.xor}" if self.xor >= 0 else ""
+            return f"gray:{self.index}:{self.axis}:{int(self.inverse)}{xor}"
         return self.kind
 
 
@@ -90,15 +101,16 @@ def parse(pattern) -> PatternSpec:
         if m := _CHECKER.fullmatch(spec):
             return PatternSpec("checker", size=int(m[1]), shift=int(m[2]))
         if m := _GRAY.fullmatch(spec):
-            return PatternSpec("gray", index=int(m[1]), axis=m[2], inverse=m[3] == "1")
+            return PatternSpec("gray", index=int(m[1]), axis=m[2], inverse=m[3] == "1",
+                               xor=-1 if m[4] is None else int(m[4]))
         raise PatternError(f"pattern {pattern!r} is not flood, off, stripe:K/N, checker:SIZE:SHIFT or "
-                           "gray:BIT:col|row:0|1")
+                           "gray:BIT:col|row:0|1[:xorBASE]")
     kind = getattr(pattern, "kind", None)
     if kind is None:
         raise PatternError(f"pattern {pattern!r} has no kind")
     fields = {name: int(getattr(pattern, name, 0)) for name in ("index", "count", "size", "shift")}
     return PatternSpec(str(kind), **fields, axis=str(getattr(pattern, "axis", "")),
-                       inverse=bool(getattr(pattern, "inverse", False)))
+                       inverse=bool(getattr(pattern, "inverse", False)), xor=int(getattr(pattern, "xor", -1)))
 
 
 def stripes(count: int) -> Iterator[PatternSpec]:
@@ -147,11 +159,38 @@ def gray_code(width: int, height: int) -> list[PatternSpec]:
     return out
 
 
+def xor_code(width: int, height: int, base: int) -> list[PatternSpec]:
+    """The XOR code of a ``width``×``height`` projector with base bit ``base`` (Gupta, Agrawal,
+    Veeraraghavan & Narasimhan, CVPR 2011): the order of :func:`gray_code`, every column bit coarser than
+    ``base`` and every row bit XOR the column code's bit ``base``; the finer column bits and the base itself
+    as they are. Each pattern then changes at least every 2^(base+1) columns, and along every row (where a
+    camera ray crosses the projector's columns: a horizontal baseline) alike, so light scattered in the medium
+    over many columns is alike under a pattern and its inverse; the decoder XORs the base back
+    (imaging/structured_light.py)."""
+    if not 0 <= base < gray_bits(width):
+        raise PatternError(f"XOR base bit {base}: a {width}-column projector has column bits 0.."
+                           f"{gray_bits(width) - 1}")
+    out = []
+    for axis, n in (("col", width), ("row", height)):
+        for bit in range(gray_bits(n) - 1, -1, -1):
+            xor = base if axis == "row" or bit > base else -1
+            out += [PatternSpec("gray", index=bit, axis=axis, xor=xor),
+                    PatternSpec("gray", index=bit, axis=axis, inverse=True, xor=xor)]
+    return out
+
+
+def _gray_bit(x, bit: int) -> np.ndarray:
+    """Bit ``bit`` of the Gray code j XOR (j >> 1) of j = ⌊x⌋ (NaN: −1)."""
+    with np.errstate(invalid="ignore"):
+        j = np.floor(np.nan_to_num(np.asarray(x, float), nan=-1.0)).astype(np.int64)
+    return ((j ^ (j >> 1)) >> bit) & 1
+
+
 def gray_lit(pattern: PatternSpec, col, row) -> np.ndarray:
     """Where a ``gray`` pattern is lit at continuous pattern coordinates (col, row) (pixel j covers [j, j+1)):
-    bit ``index`` of g = j XOR (j >> 1), j = ⌊col⌋ (or ⌊row⌋), is 1 (0 for the inverse)."""
-    x = np.asarray(col if pattern.axis == "col" else row, float)
-    with np.errstate(invalid="ignore"):
-        j = np.floor(np.nan_to_num(x, nan=-1.0)).astype(np.int64)
-    bit = ((j ^ (j >> 1)) >> pattern.index) & 1
+    bit ``index`` of g = j XOR (j >> 1), j = ⌊col⌋ (or ⌊row⌋), XOR (with ``xor`` ≥ 0) bit ``xor`` of the
+    column's g, is 1 (0 for the inverse)."""
+    bit = _gray_bit(col if pattern.axis == "col" else row, pattern.index)
+    if pattern.xor >= 0:
+        bit = bit ^ _gray_bit(col, pattern.xor)
     return (bit == 1) != pattern.inverse

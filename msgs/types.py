@@ -35,12 +35,12 @@ class Frame(Message):
     mosaic_deg: list[float] = field(default_factory=list)
 
 
-@message("pattern", version=2, older={1: 7})
+@message("pattern", version=3, older={1: 7, 2: 9})
 class Pattern(Message):
     """What the emitter lights now: flood, stripe ``index`` of ``count`` (``size`` px wide), a checker of
     ``size`` px shifted by ``shift`` px, Gray code bit ``index`` of the ``axis`` (``col``/``row``, its
-    ``inverse``; msgs/patterns.py), or nothing. Version 2 added ``axis`` and ``inverse`` (version 1 reads
-    with their defaults)."""
+    ``inverse``, XOR the column code's bit ``xor`` when ≥ 0; msgs/patterns.py), or nothing. Version 2 added
+    ``axis`` and ``inverse``, version 3 ``xor`` (older versions read with their defaults)."""
 
     kind: Literal["flood", "stripe", "checker", "off", "gray"]
     index: int = 0
@@ -51,6 +51,7 @@ class Pattern(Message):
     step: int = 0
     axis: str = ""
     inverse: bool = False
+    xor: int = -1
 
     @classmethod
     def of(cls, pattern, scan_id: int = 0, step: int = 0) -> Pattern:
@@ -58,7 +59,7 @@ class Pattern(Message):
         :class:`~polarstripe.msgs.patterns.PatternSpec`; ``PatternError`` if it describes no pattern."""
         p = parse_pattern(pattern)
         return cls(kind=p.kind, index=p.index, count=p.count, size=p.size, shift=p.shift, scan_id=scan_id,
-                   step=step, axis=p.axis, inverse=p.inverse)
+                   step=step, axis=p.axis, inverse=p.inverse, xor=p.xor)
 
     def spec(self) -> PatternSpec:
         """The checked pattern; ``PatternError`` if the fields describe none."""

@@ -3,7 +3,7 @@
 The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
 value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns`` and ``gray_lit`` here are
 those, imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit
-state can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1)).
+state can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1), an XOR base bit too).
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
 Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (docs/physics.md §2.3).
 """
@@ -85,6 +85,8 @@ def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.n
     rays, los, his = [], [], []
     if pattern.kind == "gray":   # (axis, first boundary, period) of the pattern-pixel lines where it changes
         bounds = [(0 if pattern.axis == "col" else 1, 2 ** pattern.index, 2 ** (pattern.index + 1))]
+        if pattern.xor >= 0:     # and where the column code's XOR base bit changes
+            bounds.append((0, 2 ** pattern.xor, 2 ** (pattern.xor + 1)))
     else:
         size, shift = pattern.size, pattern.shift % (2 * pattern.size)
         bounds = [(0, shift % size, size), (1, 0, size)]

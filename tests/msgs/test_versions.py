@@ -17,11 +17,11 @@ def _v1_frames(type_name, *values):
     return [msgpack.packb([type_name, 1, 5, 0, "", *values])]
 
 
-def test_a_version_1_pattern_reads_with_the_fields_version_2_added_at_their_defaults():
+def test_a_version_1_pattern_reads_with_the_fields_later_versions_added_at_their_defaults():
     msg = decode(_v1_frames("pattern", "stripe", 3, 30, 0, 0, 7, 2))
-    assert isinstance(msg, Pattern) and Pattern.VERSION == 2
+    assert isinstance(msg, Pattern) and Pattern.VERSION == 3
     assert (msg.kind, msg.index, msg.count, msg.scan_id, msg.step) == ("stripe", 3, 30, 7, 2)
-    assert (msg.axis, msg.inverse) == ("", False)
+    assert (msg.axis, msg.inverse, msg.xor) == ("", False, -1)
 
 
 def test_a_version_1_medium_estimate_has_no_mean_cosine_and_no_reason():
@@ -83,3 +83,11 @@ def test_a_version_1_map_with_a_field_of_version_2_is_refused():
                       "step": 1, "axis": "col"}}
     with pytest.raises(MessageError, match="unknown field"):
         unpack(msgpack.packb(old))
+
+
+def test_a_version_2_pattern_reads_without_an_xor_base():
+    frames = [msgpack.packb(["pattern", 2, 5, 0, "", "gray", 3, 0, 0, 0, 7, 2, "row", True])]
+    msg = decode(frames)
+    assert (msg.kind, msg.index, msg.axis, msg.inverse, msg.xor) == ("gray", 3, "row", True, -1)
+    assert str(msg.spec()) == "gray:3:row:1"
+    assert str(Pattern.of("gray:3:row:1:xor2").spec()) == "gray:3:row:1:xor2"
