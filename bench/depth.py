@@ -8,9 +8,11 @@ the running argmax the depth needs is timed too, as the per-frame cost it adds).
 reported, with the load average: on a shared machine the wall time holds the waits for a core.
 
 Accuracy (``--accuracy``): a sphere in front of a tilted plane in the default tank, rendered by the model
-(:func:`polarstripe.sim.render.render_components`) at a small resolution for σ_t = 2, 5, 10, scanned with
-stripes and polarized stripes, with all orders of scattering as the simulator renders them (``--orders
-single``: the paper's single-scattering model); RMS depth error [mm] against the simulator's depth truth
+(:func:`polarstripe.sim.render.render_components`) at a small resolution for each ``--sigmas`` (2, 5, 8),
+scanned with stripes (E, no analyzer) and polarized stripes read as E_b (the analyzer crossed to the
+backscatter) and as Ŝ (eq. 6 from E_b and E_w, p̂ measured on the frames), with all orders of scattering as
+the simulator renders them (``--orders single``: the paper's single-scattering model), delineated with each
+``--k-sigma`` and ``--min-contrast``; RMS depth error [mm] against the simulator's depth truth
 (:func:`polarstripe.sim.depth_truth.depth_truth`) and the fraction of object pixels with a valid depth.
 """
 
@@ -22,6 +24,7 @@ import os
 import time
 
 import numpy as np
+from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.composite import RunningComposite
 from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
 from polarstripe.imaging.triangulation import (
@@ -32,7 +35,7 @@ from polarstripe.imaging.triangulation import (
     stripe_edges,
 )
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
-from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.polarization import analyzer, least_backscatter_angle
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, SphereObject, load_scene
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, full_scale_dn
@@ -49,6 +52,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         "renders (default 160)")
     parser.add_argument("--orders", choices=("all", "single"), default="all",
                         help="orders of scattering of the accuracy renders (default all, as the simulator)")
+    parser.add_argument("--sigmas", default="2,5,8", metavar="S,S,…",
+                        help="media sigma_t [1/m] of the accuracy table (default 2,5,8)")
+    parser.add_argument("--min-contrast", default="0.15,0.05,0", metavar="C,C,…",
+                        help="edge contrast tests of the accuracy table (default 0.15,0.05,0; 0: the noise "
+                             "test alone)")
+    parser.add_argument("--k-sigma", default="4", metavar="K,K,…",
+                        help="noise tests of the accuracy table: K sigma of the reading's noise model "
+                             "(default 4)")
 
 
 # ---- the accuracy scene -----------------------------------------------------------------------------------
@@ -71,11 +82,7 @@ def scan_votes(scene: Scene, stripes: int, angles=(None,), *, orders: str = "sin
     ({angle: SheetVotes}, the scene as exposed)."""
     comps = [render_components(scene, f"stripe:{k}/{stripes}", fidelity, orders=orders)
              for k in range(stripes)]
-    cam = scene.camera
-    e_map = electrons_per_radiance(cam)
-    peak = max(float(np.max((c.D + c.A + c.B) * e_map)) for c in comps) / cam.gain_e_per_dn
-    limit = 0.8 * min(full_scale_dn(cam) - dark_offset_dn(cam), cam.full_well_e / cam.gain_e_per_dn)
-    scene = scene.replace(camera=cam.replace(exposure_s=cam.exposure_s * limit / peak))
+    scene = _exposed(scene, comps, None)
     w, h = scene.camera.resolution
     ra = RunningArgmax((h, w), np.uint16)
     rng = np.random.default_rng(seed)
@@ -83,6 +90,16 @@ def scan_votes(scene: Scene, stripes: int, angles=(None,), *, orders: str = "sin
         for a in angles:
             ra.add(expose(analyzer(comp, a), scene.camera, rng), k, a)
     return {a: ra.result(a) for a in angles}, scene
+
+
+def _exposed(scene: Scene, comps, angle: float | None, fill: float = 0.8) -> Scene:
+    """``scene`` with the exposure that brings the brightest of the frames through the analyzer at ``angle``
+    (None: none) to ``fill`` of full scale."""
+    cam = scene.camera
+    e_map = electrons_per_radiance(cam)
+    peak = max(float(np.max(analyzer(c, angle) * e_map)) for c in comps) / cam.gain_e_per_dn
+    limit = fill * min(full_scale_dn(cam) - dark_offset_dn(cam), cam.full_well_e / cam.gain_e_per_dn)
+    return scene.replace(camera=cam.replace(exposure_s=cam.exposure_s * limit / peak))
 
 
 def noise_of(scene: Scene) -> NoiseModel:
@@ -102,21 +119,70 @@ def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict:
             "off_object": int((np.isfinite(depth) & ~np.isfinite(truth)).sum())}
 
 
-def accuracy(sigmas=(2.0, 5.0, 10.0), stripes: int = 30, width: int = 160, orders: str = "all") -> list[dict]:
+def polarized_votes(scene: Scene, comps, truth: np.ndarray, seed: int = 2):
+    """The polarized readings of a stripe scan, each exposed for its own brightest frame: E_b (the analyzer
+    crossed to the backscatter, :func:`~polarstripe.sim.polarization.least_backscatter_angle`) and Ŝ =
+    E_b(1 + 1/p̂) + E_w(1 − 1/p̂) (eq. 6; p̂ measured on the frames' object-free pixels, E_w at 90° to E_b,
+    both at E_w's exposure). Returns {reading: (SheetVotes, NoiseModel)}, and p̂."""
+    crossed = least_backscatter_angle(comps[len(comps) // 2])
+    parallel = (crossed + 90.0) % 180.0
+    rng = np.random.default_rng(seed)
+    w, h = scene.camera.resolution
+    out = {}
+    sb = _exposed(scene, comps, crossed)
+    ra = RunningArgmax((h, w), np.uint16)
+    for k, comp in enumerate(comps):
+        ra.add(expose(analyzer(comp, crossed), sb.camera, rng), k)
+    out["E_b"] = (ra.result(), noise_of(sb))
+    sw = _exposed(scene, comps, parallel)
+    dark = dark_offset_dn(sw.camera)
+    pairs = [tuple(expose(analyzer(c, a), sw.camera, rng) - dark for a in (crossed, parallel)) for c in comps]
+    water = ~np.isfinite(truth)
+    eb, ew = sum(p[0] for p in pairs), sum(p[1] for p in pairs)
+    seen = water & (ew + eb > 0)
+    p_hat = float(np.clip(np.median((ew - eb)[seen] / (ew + eb)[seen]), 0.05, 1.0)) if seen.any() else 1.0
+    ra = RunningArgmax((h, w), np.float64)
+    for k, (b, e) in enumerate(pairs):
+        ra.add(b * (1 + 1 / p_hat) + e * (1 - 1 / p_hat), k)
+    n = noise_of(sw)
+    c = 2.0 * (1.0 + 1.0 / p_hat ** 2)    # Var Ŝ = c·read² + (c/2)·Ŝ/gain where E_b ≈ E_w ≈ Ŝ/2
+    out["S_hat"] = (ra.result(), NoiseModel(dark_dn=0.0, read_noise_dn=n.read_noise_dn * np.sqrt(c),
+                                            dn_per_electron=n.dn_per_electron * c / 2,
+                                            saturation_dn=None))
+    return out, p_hat
+
+
+def accuracy(sigmas=(2.0, 5.0, 8.0), stripes: int = 30, width: int = 160, orders: str = "all",
+             min_contrasts=(0.15,), k_sigmas=(4.0,)) -> list[dict]:
+    """Depth error per σ_t, reading (E: no analyzer; E_b; Ŝ) and thresholds: the edge contrast test
+    ``min_contrast`` (0: the noise test alone) and the noise test ``k_sigma`` (σ of the reading's noise
+    model: the sensor's, for Ŝ propagated through eq. 6)."""
     rows = []
     for sigma in sigmas:
         scene = depth_scene(sigma, width)
         truth = depth_truth(scene)
-        votes, scene = scan_votes(scene, stripes, (None, 0.0, 90.0), orders=orders)
+        comps = [render_components(scene, f"stripe:{k}/{stripes}", "preview", orders=orders)
+                 for k in range(stripes)]
+        plain = _exposed(scene, comps, None)
+        rng = np.random.default_rng(1)
+        w, h = scene.camera.resolution
+        ra = RunningArgmax((h, w), np.uint16)
+        for k, comp in enumerate(comps):
+            ra.add(expose(analyzer(comp, None), plain.camera, rng), k)
+        readings, p_hat = polarized_votes(scene, comps, truth)
+        readings = {"E": (ra.result(), noise_of(plain)), **readings}
         geom = RigGeometry.from_dict(rig_geometry(scene))
         edges = stripe_edges(stripes, geom.proj_size[0])
-        noise = noise_of(scene)
-        # E_b: the analyzer angle passing less backscatter (the default source is polarized at 90°)
-        crossed = min((0.0, 90.0), key=lambda a: float(np.median(votes[a].best)))
-        for method, v in (("stripes", votes[None]), ("polarized_stripes", votes[crossed])):
-            z = depth_from_columns(geom, delineate(v, edges, noise))
-            rows.append({"sigma_t": sigma, "method": method, **depth_error(z, truth)})
+        for name, (votes, noise) in readings.items():
+            for k in k_sigmas:
+                for mc in min_contrasts:
+                    z = depth_from_columns(geom, delineate(votes, edges, noise, k_sigma=k, min_contrast=mc))
+                    rows.append({"sigma_t": sigma, "reading": name, "method": METHOD_OF[name], "k_sigma": k,
+                                 "min_contrast": mc, "p_hat": p_hat, **depth_error(z, truth)})
     return rows
+
+
+METHOD_OF = {"E": "stripes", "E_b": "polarized_stripes", "S_hat": "polarized_stripes"}
 
 
 # ---- timing ----------------------------------------------------------------------------------------------
@@ -185,10 +251,22 @@ def run(width: int, height: int, stripes: int, repeats: int) -> dict:
     return out
 
 
+def _floats(text: str, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise PolarstripeError(f"{what} {text!r}: comma-separated numbers expected") from None
+    if not values or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise PolarstripeError(f"{what} {text!r}: numbers >= 0 expected")
+    return values
+
+
 def main(args: argparse.Namespace) -> int:
     out = run(args.width, args.height, args.stripes, args.repeats)
     if args.accuracy:
-        out["accuracy"] = accuracy(width=args.accuracy_width, stripes=args.stripes, orders=args.orders)
+        out["accuracy"] = accuracy(_floats(args.sigmas, "--sigmas"), args.stripes, args.accuracy_width,
+                                   args.orders, _floats(args.min_contrast, "--min-contrast"),
+                                   _floats(args.k_sigma, "--k-sigma"))
         what = "all orders of scattering" if args.orders == "all" else "single scattering"
         out["accuracy_model"] = (f"{what} (render_components orders={args.orders!r}), preview fidelity, "
                                  f"{args.accuracy_width} px wide")
@@ -211,10 +289,11 @@ def main(args: argparse.Namespace) -> int:
         print(f"  triangulation ({kind} time {t:.1f} ms) {ok} the {out['target_ms']:.0f} ms target")
     if args.accuracy:
         print(f"\ndepth error vs the simulator's truth ({out['accuracy_model']})")
-        print(f"  {'sigma_t':>7}  {'method':<18}{'RMS mm':>8}{'median mm':>10}{'valid':>7}{'off-obj':>8}")
+        print(f"  {'sigma_t':>7}  {'method':<18}{'reading':<8}{'k_sigma':>8}{'min contr.':>11}{'RMS mm':>8}"
+              f"{'median mm':>10}{'valid':>7}{'off-obj':>8}")
         for r in out["accuracy"]:
             rms = "n/a" if r["rms_mm"] is None else f"{r['rms_mm']:.2f}"
             med = "n/a" if r["median_abs_mm"] is None else f"{r['median_abs_mm']:.2f}"
-            print(f"  {r['sigma_t']:>7g}  {r['method']:<18}{rms:>8}{med:>10}{r['valid_fraction']:>7.2f}"
-                  f"{r['off_object']:>8d}")
+            print(f"  {r['sigma_t']:>7g}  {r['method']:<18}{r['reading']:<8}{r['k_sigma']:>8g}"
+                  f"{r['min_contrast']:>11g}{rms:>8}{med:>10}{r['valid_fraction']:>7.2f}{r['off_object']:>8d}")
     return 0
