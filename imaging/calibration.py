@@ -1,17 +1,18 @@
-"""Projector–camera calibration from Gray code images of a checkerboard (docs/depth.md "Calibration").
+"""Projector–camera calibration from coded images of a checkerboard (docs/depth.md "Calibration").
 
 Per pose of a planar checkerboard of ``cols``×``rows`` inner corners (squares ``square_m`` wide):
 
 1. the camera's corners: ``cv2.findChessboardCornersSB`` on the white (flood) image, refined by
    ``cv2.cornerSubPix`` (:func:`refine_corners`);
-2. the projector pixel of every camera pixel in a window around each corner: OpenCV's
-   ``structured_light.GrayCodePattern.getProjPixel`` on the Gray code images (the patterns of
-   :func:`polarstripe.msgs.patterns.gray_code`, in ``generate()`` order), kept where white − black exceeds
-   ``black_threshold`` (shadow mask) and the decoding reports no error;
-3. the projector's corners by local homographies: in each window (±1 square) a homography H (RANSAC, then
-   least squares on its inliers) maps camera pixels to decoded projector pixels, and the corner x_p = H·x_c
-   (homogeneous). A plane seen by two pinholes is a homography, so H is exact up to lens distortion and the
-   window's decoding noise averages down;
+2. the projector pixel of every camera pixel: the XOR code's images (Gray code XOR a base bit,
+   :func:`polarstripe.imaging.structured_light.calibration_code`), each bit from a pattern against its
+   inverse (:func:`polarstripe.imaging.structured_light.decode`), kept where white − black exceeds
+   ``black_threshold`` (shadow mask);
+3. the projector's corners by local homographies: in each window (±1 square) a homography H (RANSAC at
+   2 projector pixels, then least squares on its inliers) maps camera pixels to decoded projector pixels,
+   and the corner x_p = H·x_c (homogeneous). A plane seen by two pinholes is a homography, so H is exact up
+   to lens distortion, and the window's decoding noise averages down while the pixels whose bits the
+   medium's noise flipped fall out as outliers;
 4. ``cv2.calibrateCamera`` for the camera (distortion per ``distortion``) and for the projector (no
    distortion: the light sheets of imaging/triangulation.py assume none), ``cv2.stereoCalibrate`` with
    both intrinsics fixed for the pose X_p = R·X_c + T, then (``joint``) one ``stereoCalibrateExtended``
@@ -21,8 +22,8 @@ Per pose of a planar checkerboard of ``cols``×``rows`` inner corners (squares `
    final fit) and of the stereo fit.
 
 Pixel coordinates are OpenCV's (pixel centres at integers); decoded projector pixel j is the pattern column
-[j, j+1) of msgs/patterns.py, i.e. OpenCV projector coordinate j. Images are any real dtype; they are scaled
-to 8 bits between ``dark`` and the brightest white pixel (the Gray decoder's input).
+[j, j+1) of msgs/patterns.py, i.e. OpenCV projector coordinate j. Images are any real dtype; the white one
+is scaled to 8 bits between ``dark`` and its brightest pixel for the corner finder.
 """
 
 from __future__ import annotations
@@ -33,10 +34,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from polarstripe.errors import PolarstripeError
-from polarstripe.msgs.patterns import gray_code
+from polarstripe.imaging.structured_light import Decoded, calibration_code, decode
+from polarstripe.msgs.patterns import PatternSpec
 from polarstripe.sim.filestorage import read_storage
 
 MIN_POSES = 3
+MURK_CONTRAST = 0.1  # a code contrast below this: the medium's scattered light, not the optics, failed it
+MURK = "the medium scatters nearly all of the projector's light: the murk"
 HALF = 1.0   # decoding window: ± HALF squares around a corner (0.5 to 1 gave alike accuracy in simulation)
 DISTORTION = {"none": (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST),
               "radial": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
@@ -46,6 +50,29 @@ DISTORTION = {"none": (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | 
 class CalibrationError(PolarstripeError, ValueError):
     """Calibration input that gives no calibration: too few poses, a target not seen, patterns the camera
     cannot decode, images or a file of another rig size. The text says which pose and why."""
+
+
+class PoseError(CalibrationError):
+    """One pose gives nothing: ``pose``, ``reason`` and, where its code did not decode, the code's measured
+    ``contrast`` on the board (a fraction of the light; None otherwise)."""
+
+    def __init__(self, pose: int, reason: str, contrast: float | None = None):
+        super().__init__(f"pose {pose}: {reason}")
+        self.pose, self.reason, self.contrast = pose, reason, contrast
+
+
+def failed_poses(errors: list[PoseError]) -> str:
+    """The failed poses in one line: those the murk failed (code contrast below :data:`MURK_CONTRAST`)
+    together, with the range of their contrast; each other one with its reason."""
+    murk = [e for e in errors if e.contrast is not None and e.contrast < MURK_CONTRAST]
+    parts = []
+    if murk:
+        lo, hi = (100 * f(e.contrast for e in murk) for f in (min, max))
+        span = f"{lo:.1f} %" if round(lo, 1) == round(hi, 1) else f"{lo:.1f}-{hi:.1f} %"
+        parts.append(f"pose{'s' if len(murk) > 1 else ''} {', '.join(str(e.pose) for e in murk)}: the code's "
+                     f"contrast is {span} of the light, too little to find or decode the board ({MURK})")
+    parts += [str(e) for e in errors if e not in murk]
+    return "; ".join(parts)
 
 
 @dataclass(frozen=True)
@@ -117,41 +144,31 @@ def refine_corners(white8: np.ndarray, corners: np.ndarray, spacing: float) -> n
     return out.reshape(-1, 2).astype(float)
 
 
-def projector_corners(corners: np.ndarray, gray8: list[np.ndarray], white8: np.ndarray, black8: np.ndarray,
-                      proj_size: tuple[int, int], *, half: int, black_threshold: int = 10,
-                      white_threshold: int = 15, min_points: int = 12) -> tuple[np.ndarray, int]:
+def projector_corners(corners: np.ndarray, decoded: Decoded, *, half: int, min_points: int = 12,
+                      ransac_px: float = 2.0) -> tuple[np.ndarray, int]:
     """Projector corners (n, 2) by local homographies (module docstring, step 3), NaN where a window has
-    fewer than ``min_points`` decoded pixels; and the number of pixels decoded."""
-    gcp = cv2.structured_light.GrayCodePattern.create(int(proj_size[0]), int(proj_size[1]))
-    gcp.setWhiteThreshold(int(white_threshold))
-    gcp.setBlackThreshold(int(black_threshold))
-    h, w = white8.shape
-    lit = white8.astype(int) - black8.astype(int) > black_threshold
+    fewer than ``min_points`` decoded pixels; and the number of pixels the homographies kept (inliers)."""
+    h, w = decoded.valid.shape
     out, total = np.full((len(corners), 2), np.nan), 0
     for k, (x, y) in enumerate(corners):
         x0, x1 = max(int(round(x)) - half, 0), min(int(round(x)) + half + 1, w)
         y0, y1 = max(int(round(y)) - half, 0), min(int(round(y)) + half + 1, h)
-        cam, proj = [], []
-        for v in range(y0, y1):
-            for u in range(x0, x1):
-                if not lit[v, u]:
-                    continue
-                err, p = gcp.getProjPixel(gray8, u, v)
-                if not err:
-                    cam.append((u, v))
-                    proj.append(p)
-        total += len(cam)
-        if len(cam) < min_points:
+        vv, uu = np.mgrid[y0:y1, x0:x1]
+        m = decoded.valid[y0:y1, x0:x1]
+        if m.sum() < min_points:
             continue
-        cam_a, proj_a = np.asarray(cam, np.float64), np.asarray(proj, np.float64)
-        H, inl = cv2.findHomography(cam_a, proj_a, cv2.RANSAC, 2.0)
+        cam = np.column_stack([uu[m], vv[m]]).astype(np.float64)
+        proj = np.column_stack([decoded.col[y0:y1, x0:x1][m], decoded.row[y0:y1, x0:x1][m]]).astype(float)
+        H, inl = cv2.findHomography(cam, proj, cv2.RANSAC, ransac_px)
         if H is None:
             continue
         inl = inl.ravel().astype(bool)
-        if inl.sum() >= min_points:
-            H, _ = cv2.findHomography(cam_a[inl], proj_a[inl], 0)
-            if H is None:
-                continue
+        if inl.sum() < min_points:
+            continue
+        H, _ = cv2.findHomography(cam[inl], proj[inl], 0)
+        if H is None:
+            continue
+        total += int(inl.sum())
         q = H @ np.array([x, y, 1.0])
         out[k] = q[:2] / q[2]
     return out, total
@@ -165,40 +182,58 @@ def camera_corners(white: np.ndarray, black: np.ndarray, board: Board, *, pose: 
     dark = float(np.median(black))
     bright = float(np.percentile(white, 99.5))
     if bright - dark <= 0:
-        raise CalibrationError(f"pose {pose}: the white frame is no brighter than the black one")
+        raise PoseError(pose, "the white frame is no brighter than the black one")
     w8, b8 = to8bit(white, dark, bright), to8bit(black, dark, bright)
     corners = find_corners(w8, board)
     if corners is None:
-        raise CalibrationError(f"pose {pose}: the {board.cols}x{board.rows} checkerboard is not seen "
-                               "in the white frame")
+        raise PoseError(pose, f"the {board.cols}x{board.rows} checkerboard is not seen in the white frame")
     spacing = float(np.median(np.linalg.norm(np.diff(corners.reshape(board.rows, board.cols, 2), axis=1),
                                              axis=2)))
     return refine_corners(w8, corners, spacing), max(3, int(round(HALF * spacing))), (dark, bright, w8, b8)
 
 
-def decode_pose(white: np.ndarray, black: np.ndarray, gray: list[np.ndarray], board: Board,
-                proj_size: tuple[int, int], *, pose: int = 0, black_threshold: int = 10,
-                white_threshold: int = 15) -> PoseResult:
-    """Steps 1–3 for one pose. ``gray``: the frames of :func:`polarstripe.msgs.patterns.gray_code`
-    (proj_size) in order; ``white``/``black``: the flood and off frames.
+def decode_pose(white: np.ndarray, black: np.ndarray, frames: list[np.ndarray], board: Board,
+                proj_size: tuple[int, int], *, pose: int = 0, code: list[PatternSpec] | None = None,
+                black_threshold: int = 10) -> PoseResult:
+    """Steps 1–3 for one pose. ``frames``: those of ``code`` (default
+    :func:`~polarstripe.imaging.structured_light.calibration_code` of ``proj_size``) in order;
+    ``white``/``black``: the flood and off frames; a pixel is decoded where white − black exceeds
+    ``black_threshold`` of 255 of the white frame's range.
 
-    :raises CalibrationError: the board is not found, or too few of its corners decode in the projector."""
-    n = len(gray_code(*proj_size))
-    if len(gray) != n:
-        raise CalibrationError(f"pose {pose}: {len(gray)} Gray code frames, a {proj_size[0]}x{proj_size[1]} "
-                               f"projector needs {n}")
-    shapes = {np.shape(a) for a in (white, black, *gray)}
+    :raises CalibrationError: the board is not found, or too few of its corners decode in the projector
+        (the text gives the code's contrast there: the murk's signature is a contrast of a few per cent)."""
+    code = calibration_code(*proj_size) if code is None else code
+    if len(frames) != len(code):
+        raise CalibrationError(f"pose {pose}: {len(frames)} code frames, a {proj_size[0]}x{proj_size[1]} "
+                               f"projector needs {len(code)}")
+    shapes = {np.shape(a) for a in (white, black, *frames)}
     if len(shapes) != 1:
         raise CalibrationError(f"pose {pose}: frames of different sizes {sorted(shapes)}")
-    corners, half, (dark, bright, w8, b8) = camera_corners(white, black, board, pose=pose)
-    g8 = [to8bit(g, dark, bright) for g in gray]
-    proj, total = projector_corners(corners, g8, w8, b8, proj_size, half=half,
-                                    black_threshold=black_threshold, white_threshold=white_threshold)
+    dark, bright = float(np.median(black)), float(np.percentile(white, 99.5))
+    decoded = decode(frames, code, proj_size, white, black,
+                     lit_threshold=black_threshold * max(bright - dark, 0.0) / 255)
+    try:
+        corners, half, _ = camera_corners(white, black, board, pose=pose)
+    except PoseError as exc:      # in the murk the board's own contrast goes with the code's
+        c = float(np.nanmedian(decoded.contrast)) if decoded.valid.any() else None
+        if c is None or c >= MURK_CONTRAST:
+            raise
+        raise PoseError(pose, f"{exc.reason}: the code's contrast over the lit image is {100 * c:.1f} % of "
+                              f"the light ({MURK})", c) from None
+    proj, total = projector_corners(corners, decoded, half=half)
     good = np.isfinite(proj).all(axis=1)
     if good.mean() < 0.9:
-        raise CalibrationError(f"pose {pose}: only {int(good.sum())} of {len(corners)} corners decode in the "
-                               "projector (the camera cannot decode the Gray code there: too dark, "
-                               "saturated or out of focus?)")
+        head = f"only {int(good.sum())} of {len(corners)} corners decode in the projector"
+        h, w = decoded.valid.shape
+        x0, y0 = np.maximum(np.floor(corners.min(axis=0)).astype(int) - half, 0)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + half + 1
+        region = decoded.contrast[y0:min(y1, h), x0:min(x1, w)]
+        if not np.isfinite(region).any():
+            raise PoseError(pose, f"{head}: the projector does not light the board (a shadow, or out of view?)")
+        c = float(np.nanmedian(region))
+        why = MURK if c < MURK_CONTRAST else "saturated or out of focus?"
+        raise PoseError(pose, f"{head}: the code's contrast on the board is {100 * c:.1f} % of the light "
+                              f"({why})", c)
     return PoseResult(corners, proj, total)
 
 

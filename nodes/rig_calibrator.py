@@ -5,8 +5,8 @@ The calibrator node, per board pose k of ``poses``:
 
 1. puts the board at pose k: calls ``target_service`` (the simulator's ``simulator/target``, Empty → Ack)
    or, on a real rig (``target_service = ""``), logs "pose k: place the board" and waits ``pose_wait_s``;
-2. for each of ``flood``, ``off`` and the Gray code of the ``projector`` size (msgs/patterns.py
-   ``gray_code``): ``emitter/show`` (the pattern), ``camera/trigger`` (a FrameRequest tagged with that
+2. for each of ``flood``, ``off`` and the XOR code of the ``projector`` size (imaging/structured_light.py
+   ``calibration_code``): ``emitter/show`` (the pattern), ``camera/trigger`` (a FrameRequest tagged with that
    pattern, scan id ``CALIBRATION_SCAN_ID + 1000 + k``, step i) and the matching frame on ``camera/frame``,
    exactly as a scan's frames travel (docs/architecture.md "How a frame travels");
 3. decodes the pose (``decode_pose``; a pose the board or its decoding fails is skipped with its reason)
@@ -29,13 +29,15 @@ from polarstripe.imaging.calibration import (
     MIN_POSES,
     Board,
     CalibrationError,
+    PoseError,
     calibrate,
     coverage_image,
     decode_pose,
+    failed_poses,
     save,
 )
+from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
-from polarstripe.msgs.patterns import gray_code
 from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
 from polarstripe.runtime.bus import BusError, BusTimeout
 from polarstripe.runtime.node import Node, NodeStopping
@@ -142,7 +144,7 @@ class RigCalibrator(Node):
         cols, rows = parse_board(p.board, "board")
         board = Board(cols, rows, float(p.square_m))
         proj = parse_size(p.projector, "projector")
-        tags = ["flood", "off", *(str(g) for g in gray_code(*proj))]
+        tags = ["flood", "off", *(str(g) for g in calibration_code(*proj))]
         self.call("camera/analyzer", AnalyzerMount, AnalyzerMount(inserted=False))
         results, failures, cam_size = [], [], None
         for k in range(p.poses):
@@ -159,8 +161,8 @@ class RigCalibrator(Node):
             cam_size = (images[0].shape[1], images[0].shape[0])
             try:
                 results.append(decode_pose(images[0], images[1], images[2:], board, proj, pose=k))
-            except CalibrationError as exc:
-                failures.append(str(exc))
+            except PoseError as exc:
+                failures.append(exc)
                 self.log.warning("skipped %s", exc)
                 continue
             write_coverage(coverage_path(p.out), results, proj)  # the live view: the poses so far
@@ -169,7 +171,8 @@ class RigCalibrator(Node):
         self.call("emitter/show", Pattern, Pattern.of("off"))
         if len(results) < MIN_POSES:
             raise RigCalibrationError(f"{len(results)} usable poses of {p.poses}: a calibration needs at "
-                                      f"least {MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
+                                      f"least {MIN_POSES}"
+                                      + (f"; {failed_poses(failures)}" if failures else ""))
         cal = calibrate(results, board, cam_size, proj, distortion=p.distortion)
         save(p.out, {**cal.geometry(), "dist_proj": cal.dist_proj},
              {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,

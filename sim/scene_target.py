@@ -82,13 +82,15 @@ def with_target(scene: Scene, pose: dict, texture: str, size) -> Scene:
     return scene.replace(objects=(board,))
 
 
-def lit_for_target(scene: Scene, pose: dict, texture: str, size, fidelity, level: float = 0.6) -> Scene:
+def lit_for_target(scene: Scene, pose: dict, texture: str, size, fidelity, level: float = 0.6,
+                   polarizer_deg: float | None = None) -> Scene:
     """``scene`` with the projector's intensity set so that the white board's brightest pixels (99.5th
-    percentile) reach ``level`` of the camera's full scale above the dark offset (the radiance is linear in
-    the intensity: one probe render at 1 mW/sr scales it)."""
+    percentile), seen through the analyzer at ``polarizer_deg`` (None: none), reach ``level`` of the
+    camera's full scale above the dark offset (the radiance is linear in the intensity: one probe render at
+    1 mW/sr scales it)."""
     probe = 1e-3
     sc = scene.replace(projector=scene.projector.replace(intensity_w_sr=probe))
-    white, _ = render_frame(with_target(sc, pose, texture, size), "flood", None, fidelity, seed=0)
+    white, _ = render_frame(with_target(sc, pose, texture, size), "flood", polarizer_deg, fidelity, seed=0)
     signal = float(np.percentile(white, 99.5)) - sc.camera.offset_dn
     full = 2 ** sc.camera.bits - 1 - sc.camera.offset_dn
     if signal <= 0:

@@ -1,10 +1,12 @@
-"""``polarstripe calibrate``: projector–camera calibration with Gray code on a checkerboard (docs/depth.md).
+"""``polarstripe calibrate``: projector–camera calibration with coded light on a checkerboard (docs/depth.md).
 
 ``polarstripe calibrate -o rig.yaml --sim [--poses N] [--sigma-t S] [scene.toml]`` runs it on the simulated
 rig: the scene's camera and projector, its medium (σ_t from ``--sigma-t``), and instead of its objects a
 checkerboard plane (a PNG texture on a plane, docs/scene-format.md) at N random, seeded poses, each rendered
-under the white (``flood``) pattern, in the dark, and under every Gray code pattern of the projector
-(``gray_code`` of msgs/patterns.py); then :mod:`polarstripe.imaging.calibration` decodes and calibrates.
+under the white (``flood``) pattern, in the dark, and under every pattern of the projector's XOR code
+(imaging/structured_light.py ``calibration_code``), through the analyzer at the angle of least backscatter
+(E_b, found as the polarizer node finds it: four flood frames of the empty tank; none in clear water); then
+:mod:`polarstripe.imaging.calibration` decodes and calibrates.
 
 Writes ``rig.yaml`` (OpenCV FileStorage, atomically: a failed run leaves the previous file untouched) and
 ``rig_coverage.png`` beside it (the projector plane with every pose's corners, rewritten after every pose:
@@ -25,22 +27,28 @@ from polarstripe.imaging.calibration import (
     MIN_POSES,
     Board,
     CalibrationError,
+    PoseError,
     calibrate,
     decode_pose,
+    failed_poses,
     load,
     save,
 )
+from polarstripe.imaging.polarization import least_backscatter_angle
+from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.imaging.triangulation import RigGeometry
-from polarstripe.msgs.patterns import gray_code
+from polarstripe.imaging.validation import ImagingError
 from polarstripe.nodes.rig_calibrator import coverage_path, write_coverage
 from polarstripe.sim import scene_target as target
 from polarstripe.sim.depth_truth import rig_geometry
+from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components, render_frame
 from polarstripe.sim.scene import Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.sensor import expose
 from tqdm import tqdm
 
 SUPERSAMPLE = 3
+ANALYZER_PROBE_DEG = (0.0, 45.0, 90.0, 135.0)  # the polarizer node's calibration angles
 HELP = "projector-camera calibration with Gray code on a checkerboard (--sim: on the simulated rig)"
 
 
@@ -96,36 +104,58 @@ def rig_scene(args: argparse.Namespace) -> Scene:
     return scene
 
 
-def exposed(scene: Scene, pose: dict, texture: str, size, fidelity: str, level: float = 0.6) -> Scene:
-    """The scene with the projector lighting the white board at ``level`` of full scale
-    (sim/scene_target.py ``lit_for_target``)."""
+def exposed(scene: Scene, pose: dict, texture: str, size, fidelity: str, level: float = 0.6,
+            polarizer_deg: float | None = None) -> Scene:
+    """The scene with the projector lighting the white board at ``level`` of full scale through the analyzer
+    at ``polarizer_deg`` (sim/scene_target.py ``lit_for_target``)."""
     try:
-        return target.lit_for_target(scene, pose, texture, size, fidelity, level)
+        return target.lit_for_target(scene, pose, texture, size, fidelity, level, polarizer_deg)
     except SceneError as exc:
         raise CalibrationError(str(exc)) from None
+
+
+def crossed_angle(scene: Scene, fidelity: str, rng) -> float | None:
+    """E_b: the analyzer angle [deg] of least backscatter, from flood frames of the empty tank at
+    :data:`ANALYZER_PROBE_DEG` (imaging/polarization.py ``least_backscatter_angle``, as the polarizer node
+    calibrates); None where the water sends back no light above the read noise (clear water) or light that
+    shows no polarization: no analyzer then."""
+    empty = scene.replace(objects=())
+    comp = render_components(empty, "flood", fidelity)
+    cam = scene.camera
+    frames = [expose(analyzer(comp, a), cam, rng) for a in ANALYZER_PROBE_DEG]
+    if np.mean(frames) - cam.offset_dn < 10 * cam.read_noise_e / cam.gain_e_per_dn:
+        return None
+    try:
+        return least_backscatter_angle(ANALYZER_PROBE_DEG, frames, dark_offset=cam.offset_dn,
+                                       saturation=2 ** cam.bits - 1)
+    except ImagingError:
+        return None
 
 
 _with_board = target.with_target
 
 
-def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str, tick=None):
-    """White, black and Gray code frames (uint16 DN) of the board at one pose. The white frame, where the
-    corners are found, integrates each pixel's area (SUPERSAMPLE² rays, as a sensor pixel does; one ray
-    per pixel aliases the board's edges by ~0.2 px); the Gray frames, decoded per pixel, take one ray."""
+def render_pose(scene: Scene, pose: dict, texture: str, size, rng, fidelity: str, tick=None,
+                polarizer_deg: float | None = None):
+    """White, black and code frames (uint16 DN; :func:`calibration_code`) of the board at one pose, through
+    the analyzer at ``polarizer_deg`` (None: none). The white frame, where the corners are found, integrates
+    each pixel's area (SUPERSAMPLE² rays, as a sensor pixel does; one ray per pixel aliases the board's edges
+    by ~0.2 px); the code frames, decoded per pixel, take one ray."""
     sc = _with_board(scene, pose, texture, size)
     w, h = sc.camera.resolution
     fine = render_components(sc.replace(camera=sc.camera.replace(resolution=(w * SUPERSAMPLE,
                                                                              h * SUPERSAMPLE))),
-                             "flood", fidelity, need=("D", "A", "B"))
-    radiance = (fine.D + fine.A + fine.B).reshape(h, SUPERSAMPLE, w, SUPERSAMPLE).mean(axis=(1, 3))
+                             "flood", fidelity, need=("D", "A", "B") if polarizer_deg is None else
+                             ("D", "A", "B", "p"))
+    radiance = analyzer(fine, polarizer_deg).reshape(h, SUPERSAMPLE, w, SUPERSAMPLE).mean(axis=(1, 3))
     white = expose(radiance, sc.camera, rng)
     black = expose(np.zeros(white.shape), sc.camera, rng)
-    gray = []
-    for p in gray_code(*sc.projector.resolution):
-        gray.append(render_frame(sc, p, None, fidelity, seed=rng)[0])
+    frames = []
+    for p in calibration_code(*sc.projector.resolution):
+        frames.append(render_frame(sc, p, polarizer_deg, fidelity, seed=rng)[0])
         if tick is not None:
             tick(1)
-    return white, black, gray
+    return white, black, frames
 
 
 def _board(text: str) -> tuple[int, int]:
@@ -140,30 +170,31 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     proj = tuple(scene.projector.resolution)
     poses = random_poses(args.poses, args.seed, scene)
     rng = np.random.default_rng(args.seed)
-    n_frames = len(gray_code(*proj)) + 2
+    n_frames = len(calibration_code(*proj)) + 2
     results, failures = [], []
+    angle = crossed_angle(scene, args.fidelity, rng)
     with tempfile.TemporaryDirectory(prefix="polarstripe-calib-") as tmp:
         tex = os.path.join(tmp, "board.png")
         size = board_texture(board, tex)
-        scene = exposed(scene, poses[0], tex, size, args.fidelity)
+        scene = exposed(scene, poses[0], tex, size, args.fidelity, polarizer_deg=angle)
         bar = tqdm(total=args.poses * n_frames, desc="calibrate", unit="frame", disable=not progress,
                    file=sys.stderr)
         for k, pose in enumerate(poses):
-            white, black, gray = render_pose(scene, pose, tex, size, rng, args.fidelity, bar.update)
+            white, black, frames = render_pose(scene, pose, tex, size, rng, args.fidelity, bar.update, angle)
             bar.update(2)
             try:
-                results.append(decode_pose(white, black, gray, board, proj, pose=k))
-            except CalibrationError as exc:
-                failures.append(str(exc))
+                results.append(decode_pose(white, black, frames, board, proj, pose=k))
+            except PoseError as exc:
+                failures.append(exc)
                 bar.write(f"skipped {exc}")
                 continue
             write_coverage(coverage_path(args.out), results, proj)   # the live view: poses so far
         bar.close()
     if len(results) < MIN_POSES:
         raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
-                               f"{MIN_POSES}" + (f" ({failures[-1]})" if failures else ""))
+                               f"{MIN_POSES}" + (f"; {failed_poses(failures)}" if failures else ""))
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
-    return cal, rig_geometry(scene), scene
+    return cal, rig_geometry(scene), scene, angle
 
 
 def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
@@ -212,15 +243,17 @@ def main(args: argparse.Namespace) -> int:
     if not os.path.isdir(out_dir):
         raise PolarstripeError(f"-o {args.out!r}: folder {out_dir!r} does not exist")
     t0 = time.perf_counter()
-    cal, truth, scene = calibrate_sim(args, not args.no_progress and sys.stderr.isatty())
+    cal, truth, scene, angle = calibrate_sim(args, not args.no_progress and sys.stderr.isatty())
     extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
              "poses": len(cal.poses), "board": f"{args.board} inner corners, {args.square} m squares",
+             "analyzer_deg": "none" if angle is None else f"{round(angle, 1) % 180:.1f}",
              "source": "polarstripe calibrate --sim" if args.sim else "polarstripe calibrate"}
     save(args.out, {**cal.geometry(), "dist_proj": cal.dist_proj}, extra)
     coverage = coverage_path(args.out)
     write_coverage(coverage, cal.poses, cal.proj_size)
     print(f"{args.out}: {len(cal.poses)} poses, RMS camera {cal.rms_cam:.3f} px, projector "
-          f"{cal.rms_proj:.3f} px, stereo {cal.rms_stereo:.3f} px ({time.perf_counter() - t0:.1f} s)")
+          f"{cal.rms_proj:.3f} px, stereo {cal.rms_stereo:.3f} px ({time.perf_counter() - t0:.1f} s; "
+          + ("no analyzer" if angle is None else f"analyzer at E_b, {round(angle, 1) % 180:.1f} deg") + ")")
     print(f"coverage: {coverage}")
     if args.sim:
         print(f"{'':16}{'truth':>12}{'estimate':>12}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.msgs import Ack, Frame
-from polarstripe.msgs.patterns import gray_code
+from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.nodes.rig_calibrator import SCAN_ID_BASE, RigCalibrator
 from polarstripe.runtime.testing import NodeHarness
 
@@ -33,7 +33,7 @@ def test_a_board_never_seen_fails_cleanly_and_leaves_the_previous_file(tmp_path)
     errors = [text for level, text in h.logs if level == "ERROR"]
     assert len(errors) == 1 and "0 usable poses of 3" in errors[0] and "not seen" in errors[0], errors
     assert out.read_text() == "previous\n"
-    tags = ["flood", "off", *(str(g) for g in gray_code(16, 8))]
+    tags = ["flood", "off", *(str(g) for g in calibration_code(16, 8))]
     assert mounts == [False] and len(moves) == 3
     assert shown == tags * 3 + ["off"]
     assert triggers == [(SCAN_ID_BASE + k, i, t) for k in range(3) for i, t in enumerate(tags)]

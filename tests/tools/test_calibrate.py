@@ -13,7 +13,17 @@ import os
 
 import numpy as np
 import pytest
-from polarstripe.imaging.calibration import Board, CalibrationError, calibrate, decode_pose, load, save
+from polarstripe.imaging.calibration import (
+    Board,
+    MURK_CONTRAST,
+    CalibrationError,
+    PoseError,
+    calibrate,
+    decode_pose,
+    failed_poses,
+    load,
+    save,
+)
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.nodes.compositor_depth import GeometryError, load_geometry, read_calibration
 from polarstripe.sim.depth_truth import rig_geometry
@@ -39,9 +49,12 @@ def rig(request, tmp_path_factory):
     tex = str(tmp_path_factory.mktemp("board") / "board.png")
     size = calibrate_cli.board_texture(BOARD, tex)
     poses = calibrate_cli.random_poses(POSES, 0, scene)
-    scene = calibrate_cli.exposed(scene, poses[0], tex, size, "preview")
     rng = np.random.default_rng(0)
-    frames = [calibrate_cli.render_pose(scene, p, tex, size, rng, "preview") for p in poses]
+    angle = calibrate_cli.crossed_angle(scene, "preview", rng)        # E_b; None in clear water
+    assert (angle is None) == (request.param == 0.0)
+    scene = calibrate_cli.exposed(scene, poses[0], tex, size, "preview", polarizer_deg=angle)
+    frames = [calibrate_cli.render_pose(scene, p, tex, size, rng, "preview", polarizer_deg=angle)
+              for p in poses]
     proj = tuple(scene.projector.resolution)
     decoded = [decode_pose(*f, BOARD, proj, pose=k) for k, f in enumerate(frames)]
     return scene, frames, decoded
@@ -101,8 +114,30 @@ def test_patterns_the_camera_cannot_decode_are_one_error(rig):
     proj = tuple(scene.projector.resolution)
     with pytest.raises(CalibrationError, match="corners decode in the projector"):
         decode_pose(white, black, [white] * len(gray), BOARD, proj)      # every pattern = its inverse
-    with pytest.raises(CalibrationError, match="Gray code frames, a 256x192 projector needs 32"):
+    with pytest.raises(CalibrationError, match="code frames, a 256x192 projector needs 32"):
         decode_pose(white, black, gray[:-2], BOARD, proj)
+
+
+def test_a_code_the_murk_drowned_names_the_pose_and_its_contrast(rig):
+    """Each pattern pair keeps 1/200 of its difference, the rest becomes light alike under both (as when
+    the medium scatters nearly all of the projector's light), under the sensor's noise (10 DN): the pose
+    fails with the code's contrast, and the failed poses are one line."""
+    scene, frames, _ = rig
+    white, black, gray = frames[0]
+    dark = float(np.median(black))
+    rng = np.random.default_rng(1)
+    g = [np.asarray(f, float) - dark for f in gray]
+    murky = [dark + 0.5 * (a + b) + s * 0.0025 * (a - b) + rng.normal(0.0, 10.0, a.shape)
+             for a, b in zip(g[::2], g[1::2], strict=True) for s in (1, -1)]
+    with pytest.raises(PoseError, match=r"pose 5: only \d+ of 48 corners decode .*contrast on the board is "
+                                        r"\d\.\d % of the light .*the murk\)$") as err:
+        decode_pose(white, black, murky, BOARD, tuple(scene.projector.resolution), pose=5)
+    assert 0.0 < err.value.contrast < MURK_CONTRAST
+    other = PoseError(2, "the 8x6 checkerboard is not seen in the white frame")
+    line = failed_poses([err.value, PoseError(6, "x", 0.001), other])
+    assert line.startswith("poses 5, 6: the code's contrast is 0.1-") and ": the murk)" in line
+    assert line.endswith("; pose 2: the 8x6 checkerboard is not seen in the white frame")
+    assert "\n" not in line
 
 
 def test_cli_writes_the_file_and_the_coverage_view(tmp_path, capsys):

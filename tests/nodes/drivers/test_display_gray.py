@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from polarstripe.msgs import Pattern
 from polarstripe.msgs.codec import pack, unpack
-from polarstripe.msgs.patterns import gray_code
+from polarstripe.msgs.patterns import gray_code, xor_code
 from polarstripe.nodes.drivers.display import NullDisplay, render_pattern
 from polarstripe.nodes.drivers.errors import DriverValueError
 from polarstripe.nodes.drivers.serial_trigger import pattern_command
@@ -24,11 +24,22 @@ def test_display_draws_opencvs_gray_code_images(size):
         assert np.array_equal(drawn, ref), str(spec)
 
 
+def test_display_draws_the_xor_code_as_opencvs_images_xor_the_base():
+    w, h = 20, 12
+    ok, images = cv2.structured_light.GrayCodePattern.create(w, h).generate()
+    by = {(p.axis, p.index, p.inverse): img for p, img in zip(gray_code(w, h), images, strict=True)}
+    for spec in xor_code(w, h, 1):
+        ref = by[(spec.axis, spec.index, spec.inverse)]
+        if spec.xor >= 0:
+            ref = ref ^ by[("col", spec.xor, False)]
+        assert np.array_equal(render_pattern(str(spec), w, h), ref), str(spec)
+
+
 def test_pattern_message_carries_a_gray_pattern_over_the_wire():
-    msg = Pattern.of("gray:3:row:1", scan_id=2, step=5)
+    msg = Pattern.of("gray:3:row:1:xor2", scan_id=2, step=5)
     back = unpack(pack(msg))
-    assert (back.kind, back.index, back.axis, back.inverse) == ("gray", 3, "row", True)
-    assert str(back.spec()) == "gray:3:row:1"
+    assert (back.kind, back.index, back.axis, back.inverse, back.xor) == ("gray", 3, "row", True, 2)
+    assert str(back.spec()) == "gray:3:row:1:xor2"
     assert str(Pattern.of("stripe:2/4").spec()) == "stripe:2/4"
 
 
