@@ -23,6 +23,8 @@ import json
 import os
 import time
 
+from dataclasses import replace
+
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging.composite import RunningComposite
@@ -39,6 +41,7 @@ from polarstripe.sim.polarization import analyzer, least_backscatter_angle
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, SphereObject, load_scene
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, full_scale_dn
+from scipy.ndimage import uniform_filter1d
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -57,6 +60,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-contrast", default="0.15,0.05,0", metavar="C,C,…",
                         help="edge contrast tests of the accuracy table (default 0.15,0.05,0; 0: the noise "
                              "test alone)")
+    parser.add_argument("--rows", default="1", metavar="N,N,…",
+                        help="frames averaged over N camera rows along the stripes before delineation "
+                             "(default 1: none)")
     parser.add_argument("--k-sigma", default="4", metavar="K,K,…",
                         help="noise tests of the accuracy table: K sigma of the reading's noise model "
                              "(default 4)")
@@ -119,21 +125,20 @@ def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict:
             "off_object": int((np.isfinite(depth) & ~np.isfinite(truth)).sum())}
 
 
-def polarized_votes(scene: Scene, comps, truth: np.ndarray, seed: int = 2):
-    """The polarized readings of a stripe scan, each exposed for its own brightest frame: E_b (the analyzer
-    crossed to the backscatter, :func:`~polarstripe.sim.polarization.least_backscatter_angle`) and Ŝ =
-    E_b(1 + 1/p̂) + E_w(1 − 1/p̂) (eq. 6; p̂ measured on the frames' object-free pixels, E_w at 90° to E_b,
-    both at E_w's exposure). Returns {reading: (SheetVotes, NoiseModel)}, and p̂."""
+def readings(scene: Scene, comps, truth: np.ndarray, seed: int = 1):
+    """The frames of a stripe scan as each reading sees them, each exposed for its own brightest frame:
+    E (no analyzer), E_b (the analyzer crossed to the backscatter,
+    :func:`~polarstripe.sim.polarization.least_backscatter_angle`) and Ŝ = E_b(1 + 1/p̂) + E_w(1 − 1/p̂)
+    (eq. 6; p̂ measured on the frames' object-free pixels, E_w at 90° to E_b, both at E_w's exposure).
+    Returns {reading: (frames (float DN), NoiseModel)} and p̂; Ŝ's noise model is the sensor's through
+    eq. 6: Var Ŝ = c·read² + (c/2)·Ŝ/gain with c = 2(1 + 1/p̂²), where E_b ≈ E_w ≈ Ŝ/2."""
     crossed = least_backscatter_angle(comps[len(comps) // 2])
     parallel = (crossed + 90.0) % 180.0
     rng = np.random.default_rng(seed)
-    w, h = scene.camera.resolution
     out = {}
-    sb = _exposed(scene, comps, crossed)
-    ra = RunningArgmax((h, w), np.uint16)
-    for k, comp in enumerate(comps):
-        ra.add(expose(analyzer(comp, crossed), sb.camera, rng), k)
-    out["E_b"] = (ra.result(), noise_of(sb))
+    for name, angle in (("E", None), ("E_b", crossed)):
+        sc = _exposed(scene, comps, angle)
+        out[name] = ([expose(analyzer(c, angle), sc.camera, rng).astype(float) for c in comps], noise_of(sc))
     sw = _exposed(scene, comps, parallel)
     dark = dark_offset_dn(sw.camera)
     pairs = [tuple(expose(analyzer(c, a), sw.camera, rng) - dark for a in (crossed, parallel)) for c in comps]
@@ -141,45 +146,50 @@ def polarized_votes(scene: Scene, comps, truth: np.ndarray, seed: int = 2):
     eb, ew = sum(p[0] for p in pairs), sum(p[1] for p in pairs)
     seen = water & (ew + eb > 0)
     p_hat = float(np.clip(np.median((ew - eb)[seen] / (ew + eb)[seen]), 0.05, 1.0)) if seen.any() else 1.0
-    ra = RunningArgmax((h, w), np.float64)
-    for k, (b, e) in enumerate(pairs):
-        ra.add(b * (1 + 1 / p_hat) + e * (1 - 1 / p_hat), k)
     n = noise_of(sw)
-    c = 2.0 * (1.0 + 1.0 / p_hat ** 2)    # Var Ŝ = c·read² + (c/2)·Ŝ/gain where E_b ≈ E_w ≈ Ŝ/2
-    out["S_hat"] = (ra.result(), NoiseModel(dark_dn=0.0, read_noise_dn=n.read_noise_dn * np.sqrt(c),
-                                            dn_per_electron=n.dn_per_electron * c / 2,
-                                            saturation_dn=None))
+    c = 2.0 * (1.0 + 1.0 / p_hat ** 2)
+    out["S_hat"] = ([b * (1 + 1 / p_hat) + e * (1 - 1 / p_hat) for b, e in pairs],
+                    NoiseModel(dark_dn=0.0, read_noise_dn=n.read_noise_dn * np.sqrt(c),
+                               dn_per_electron=n.dn_per_electron * c / 2, saturation_dn=None))
     return out, p_hat
 
 
+def along_stripes(frames, noise: NoiseModel, rows: int):
+    """SheetVotes of ``frames`` each averaged over ``rows`` camera rows (a box along the vertical stripes:
+    the edges, which cross the rows, stay sharp; vertical resolution is given for noise), and the noise
+    model of the average (variance / ``rows``)."""
+    ra = RunningArgmax(frames[0].shape, np.float64)
+    for k, f in enumerate(frames):
+        ra.add(uniform_filter1d(f, rows, axis=0, mode="nearest") if rows > 1 else f, k)
+    return ra.result(), replace(noise, read_noise_dn=noise.read_noise_dn / np.sqrt(rows),
+                                dn_per_electron=noise.dn_per_electron / rows)
+
+
 def accuracy(sigmas=(2.0, 5.0, 8.0), stripes: int = 30, width: int = 160, orders: str = "all",
-             min_contrasts=(0.15,), k_sigmas=(4.0,)) -> list[dict]:
-    """Depth error per σ_t, reading (E: no analyzer; E_b; Ŝ) and thresholds: the edge contrast test
-    ``min_contrast`` (0: the noise test alone) and the noise test ``k_sigma`` (σ of the reading's noise
-    model: the sensor's, for Ŝ propagated through eq. 6)."""
-    rows = []
+             min_contrasts=(0.15,), k_sigmas=(4.0,), rows=(1,)) -> list[dict]:
+    """Depth error per σ_t, reading (E: no analyzer; E_b; Ŝ), frames averaged over ``rows`` camera rows
+    along the stripes, and thresholds: the edge contrast test ``min_contrast`` (0: the noise test alone)
+    and the noise test ``k_sigma`` (σ of the reading's noise model)."""
+    out = []
     for sigma in sigmas:
         scene = depth_scene(sigma, width)
         truth = depth_truth(scene)
         comps = [render_components(scene, f"stripe:{k}/{stripes}", "preview", orders=orders)
                  for k in range(stripes)]
-        plain = _exposed(scene, comps, None)
-        rng = np.random.default_rng(1)
-        w, h = scene.camera.resolution
-        ra = RunningArgmax((h, w), np.uint16)
-        for k, comp in enumerate(comps):
-            ra.add(expose(analyzer(comp, None), plain.camera, rng), k)
-        readings, p_hat = polarized_votes(scene, comps, truth)
-        readings = {"E": (ra.result(), noise_of(plain)), **readings}
         geom = RigGeometry.from_dict(rig_geometry(scene))
         edges = stripe_edges(stripes, geom.proj_size[0])
-        for name, (votes, noise) in readings.items():
-            for k in k_sigmas:
-                for mc in min_contrasts:
-                    z = depth_from_columns(geom, delineate(votes, edges, noise, k_sigma=k, min_contrast=mc))
-                    rows.append({"sigma_t": sigma, "reading": name, "method": METHOD_OF[name], "k_sigma": k,
-                                 "min_contrast": mc, "p_hat": p_hat, **depth_error(z, truth)})
-    return rows
+        frames, p_hat = readings(scene, comps, truth)
+        for name, (fr, noise0) in frames.items():
+            for n_rows in rows:
+                votes, noise = along_stripes(fr, noise0, int(n_rows))
+                for k in k_sigmas:
+                    for mc in min_contrasts:
+                        columns = delineate(votes, edges, noise, k_sigma=k, min_contrast=mc)
+                        z = depth_from_columns(geom, columns)
+                        out.append({"sigma_t": sigma, "reading": name, "method": METHOD_OF[name],
+                                    "rows": int(n_rows), "k_sigma": k, "min_contrast": mc, "p_hat": p_hat,
+                                    **depth_error(z, truth)})
+    return out
 
 
 METHOD_OF = {"E": "stripes", "E_b": "polarized_stripes", "S_hat": "polarized_stripes"}
@@ -261,12 +271,19 @@ def _floats(text: str, what: str) -> tuple[float, ...]:
     return values
 
 
+def _rows(text: str) -> tuple[int, ...]:
+    values = _floats(text, "--rows")
+    if not all(v >= 1 and v == int(v) for v in values):
+        raise PolarstripeError(f"--rows {text!r}: whole numbers >= 1 expected")
+    return tuple(int(v) for v in values)
+
+
 def main(args: argparse.Namespace) -> int:
     out = run(args.width, args.height, args.stripes, args.repeats)
     if args.accuracy:
         out["accuracy"] = accuracy(_floats(args.sigmas, "--sigmas"), args.stripes, args.accuracy_width,
                                    args.orders, _floats(args.min_contrast, "--min-contrast"),
-                                   _floats(args.k_sigma, "--k-sigma"))
+                                   _floats(args.k_sigma, "--k-sigma"), _rows(args.rows))
         what = "all orders of scattering" if args.orders == "all" else "single scattering"
         out["accuracy_model"] = (f"{what} (render_components orders={args.orders!r}), preview fidelity, "
                                  f"{args.accuracy_width} px wide")
@@ -289,11 +306,12 @@ def main(args: argparse.Namespace) -> int:
         print(f"  triangulation ({kind} time {t:.1f} ms) {ok} the {out['target_ms']:.0f} ms target")
     if args.accuracy:
         print(f"\ndepth error vs the simulator's truth ({out['accuracy_model']})")
-        print(f"  {'sigma_t':>7}  {'method':<18}{'reading':<8}{'k_sigma':>8}{'min contr.':>11}{'RMS mm':>8}"
-              f"{'median mm':>10}{'valid':>7}{'off-obj':>8}")
+        print(f"  {'sigma_t':>7}  {'method':<18}{'reading':<8}{'rows':>5}{'k_sigma':>8}{'min contr.':>11}"
+              f"{'RMS mm':>8}{'median mm':>10}{'valid':>7}{'off-obj':>8}")
         for r in out["accuracy"]:
             rms = "n/a" if r["rms_mm"] is None else f"{r['rms_mm']:.2f}"
             med = "n/a" if r["median_abs_mm"] is None else f"{r['median_abs_mm']:.2f}"
-            print(f"  {r['sigma_t']:>7g}  {r['method']:<18}{r['reading']:<8}{r['k_sigma']:>8g}"
-                  f"{r['min_contrast']:>11g}{rms:>8}{med:>10}{r['valid_fraction']:>7.2f}{r['off_object']:>8d}")
+            print(f"  {r['sigma_t']:>7g}  {r['method']:<18}{r['reading']:<8}{r['rows']:>5d}{r['k_sigma']:>8g}"
+                  f"{r['min_contrast']:>11g}{rms:>8}{med:>10}{r['valid_fraction']:>7.2f}"
+                  f"{r['off_object']:>8d}")
     return 0
