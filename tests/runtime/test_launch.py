@@ -306,11 +306,11 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
             time.sleep(0.05)
         before = int(_call(g, "/rig/counter/count").detail)
 
-        head = msgpack.unpackb(good[0])  # [type, version, stamp_ns, seq, frame_id, image, …, step]
+        head = msgpack.unpackb(good[0])  # [type, version, stamp_ns, seq, frame_id, image, …, mosaic_deg]
         bad_frames = []
         for i, value in ((1, 9), (0, "nonesuch")):  # version, type
             bad_frames.append([msgpack.packb([*head[:i], value, *head[i + 1:]]), good[1]])
-        bad_frames.append([msgpack.packb(head[:-1]), good[1]])  # the last field (step) missing
+        bad_frames.append([msgpack.packb(head[:-2]), good[1]])  # the last two (step, mosaic_deg) missing
         shape = [*head[:5], [0, "<u2", [5, 4]], *head[6:]]  # image: 40 bytes for a 32-byte buffer
         bad_frames.append([msgpack.packb(shape), good[1]])
         bad_frames.append([b"\xc1 not msgpack"])
