@@ -182,3 +182,20 @@ def test_a_named_can_segment_in_use_is_refused(tmp_path):
     finally:
         first.send_signal(signal.SIGINT)
         first.communicate(timeout=60)
+
+
+@pytest.mark.long
+def test_sim_polarization_launch_scans_one_frame_per_stripe_and_ends_with_metrics(tmp_path):
+    """launch/sim_polarization.toml (a polarization camera, no polarizer node): every method through the
+    mosaic, polarized stripes in N frames (a rotating analyzer takes 2N), the chart's contrast above flood's."""
+    out = tmp_path / "out"
+    proc, logs = launch(tmp_path, ROOT / "launch" / "sim_polarization.toml", f"out={out}", *SMALL,
+                        timeout=150)
+    assert proc.returncode == 0, proc.stderr + logs.get("sequencer", "")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {"flood", "polarized_flood", "stripes", "polarized_stripes", "hf_separation"}
+    assert metrics["polarized_stripes"]["frames"] == 8 and metrics["polarized_flood"]["frames"] == 1
+    assert metrics["polarized_stripes"]["mosaic"]["layout_deg"] == [90.0, 45.0, 135.0, 0.0]
+    assert metrics["polarized_stripes"]["contrast"] > metrics["flood"]["contrast"]
+    assert 0.0 < metrics["polarized_stripes"]["p"] < 1.0
+    assert_clean_exit(proc, logs, ["simulator", "grabber", "emitter", "sequencer", "compositor", "planner"])
