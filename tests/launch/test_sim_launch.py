@@ -187,7 +187,8 @@ def test_a_named_can_segment_in_use_is_refused(tmp_path):
 @pytest.mark.long
 def test_sim_polarization_launch_scans_one_frame_per_stripe_and_ends_with_metrics(tmp_path):
     """launch/sim_polarization.toml (a polarization camera, no polarizer node): every method through the
-    mosaic, polarized stripes in N frames (a rotating analyzer takes 2N), the chart's contrast above flood's."""
+    mosaic, polarized stripes in N frames (a rotating analyzer takes 2N), the chart's contrast above
+    flood's."""
     out = tmp_path / "out"
     proc, logs = launch(tmp_path, ROOT / "launch" / "sim_polarization.toml", f"out={out}", *SMALL,
                         timeout=150)
