@@ -32,6 +32,11 @@ def test_ros2_args_wire_the_bridge(tmp_path):
     node = next(n for n in on.nodes if n.name == "ros2")
     assert node.module == "polarstripe.nodes.ros2_bridge:Ros2Bridge"
     assert node.params == {"endpoint": "tcp/10.0.0.2:7448", "domain": 7}
+    assert "sequencer" in {n.name for n in on.nodes}
+    idle = load_launch(ROOT / "launch" / "sim.toml", {"ros2": "true", "sequence": "false"},
+                       run_dir=tmp_path / "d")
+    names = {n.name for n in idle.nodes}
+    assert {"ros2", "emitter", "compositor"} <= names and "sequencer" not in names
     rov = load_launch(ROOT / "launch" / "rov.toml", {"ros2": "true", "keys_dir": "/k"},
                       run_dir=tmp_path / "c")
     params = next(n for n in rov.nodes if n.name == "ros2").params
