@@ -1,13 +1,15 @@
 """``polarstripe launch launch/sim.toml ros2=true`` against a Zenoh router on loopback: the launch's ``ros2``
-node is wired from the launch args (default run, a dry run), and, with ``--long``, a whole small demo seen
-from a Zenoh client as ROS 2 sees it: the node's liveliness tokens and a composite image decoded by rosbags
-from its rmw_zenoh key."""
+node is wired from the launch args (default run, the files read), and, with ``--long``, a whole small demo
+seen from a Zenoh client as ROS 2 sees it (the node's liveliness tokens and a composite image decoded by
+rosbags from its rmw_zenoh key), and the idle rig (``sequence=false``) driven by a ROS 2 client we did not
+write (zenoh-ros2-sdk: start_scan, then the composite's metrics)."""
 
 from __future__ import annotations
 
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -91,3 +93,48 @@ def test_sim_launch_shows_a_composite_to_ros2(tmp_path):
     assert (m.width, m.height, m.encoding) == (96, 72, "32FC1")
     pixels = np.frombuffer(bytes(m.data), "<f4").reshape(72, 96)
     assert np.isfinite(pixels).all() and pixels.max() > 0
+
+
+@pytest.mark.long
+def test_idle_sim_rig_scans_when_ros2_asks(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    msgs = tmp_path / "msgs"
+    shutil.copytree(ROOT / "tests" / "data" / "ros2_msgs", msgs)
+    for kind in ("msg", "srv"):
+        shutil.copytree(ROOT / "ros2" / "polarstripe_msgs" / kind, msgs / "polarstripe_msgs" / kind)
+    config = tmp_path / "session.json5"
+    no_scouting = {"multicast": {"enabled": False}, "gossip": {"enabled": False}}
+    config.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
+                                  "scouting": no_scouting}))
+    router = _router(port)
+    can = tempfile.mkdtemp(prefix="ps-can-", dir="/tmp")
+    launch = subprocess.Popen(
+        [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"),
+         f"out={tmp_path / 'out'}", "resolution=96x72", f"can=ipc://{can}/bus", "ros2=true",
+         f"ros2_endpoint=tcp/127.0.0.1:{port}", "sequence=false"],
+        cwd=tmp_path, env={**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True)
+    try:
+        script = ROOT / "tests" / "launch" / "ros2_drive_client.py"
+        client = subprocess.run([sys.executable, str(script), str(port), str(msgs)],
+                                env={**os.environ, "ZENOH_SESSION_CONFIG_URI": str(config)},
+                                capture_output=True, text=True, timeout=260)
+    finally:
+        launch.send_signal(signal.SIGINT)
+        try:
+            out, _ = launch.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            launch.kill()
+            out, _ = launch.communicate()
+        shutil.rmtree(can, ignore_errors=True)
+        router.close()
+    lines = [json.loads(x) for x in client.stdout.splitlines() if x.startswith("{")]
+    calls = [x["call"] for x in lines if "call" in x]
+    got = next((x["metrics"] for x in lines if "metrics" in x), [])
+    assert got, (lines, client.stderr[-1500:], out[-2500:])
+    started = [c for c in calls if c and c["ok"]]
+    assert started and all(c["event"] == "start" for c in started)
+    assert got[0]["method"] == "flood" and got[0]["scan_id"] in {c["scan_id"] for c in started}
+    assert launch.returncode == 130 and "SIGINT: stopping" in out  # it ran until told to stop
