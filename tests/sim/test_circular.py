@@ -263,3 +263,14 @@ def test_a_circular_analyzer_finds_the_flipped_helicity():
     assert ang == pytest.approx(90.0, abs=12.0)
     e_90, e_0 = (analyzer(c, a, extinction_ratio=np.inf) for a in (90.0, 0.0))
     assert np.all(e_90 < e_0)
+
+
+def test_constant_dop_model_flips_the_helicity():
+    """``dop = {model = "constant", p}``: the backscatter carries p times the source's state with the helicity
+    flipped, every order (docs/physics.md §5.1): V/B = −p·V_L, no linear part for circular light."""
+    s = _circular_scene(45.0, None, (8, 6))
+    s = s.replace(medium=s.medium.replace(dop=s.medium.dop.replace(model="constant", p=0.7)))
+    for orders in ("single", "all"):
+        c = render_components(s, "flood", "preview", need=("B", "p"), orders=orders)
+        np.testing.assert_allclose(c.v, -0.7, atol=1e-12)
+        assert np.all(c.dolp < 1e-12)
