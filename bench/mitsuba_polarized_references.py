@@ -154,7 +154,8 @@ roulette from depth 100000, `independent` sampler, box pixel filter), through
 m12 and m44 included; the point source (1 W/sr) is fully polarized at the model's default 90° (vertical) by an
 ideal polarizer sheet, and in the `circ_` scenes made circular (V = +1) by an ideal quarter-wave plate sheet
 after it, fast axis at 45° (docs/physics.md §5.1; written with `--scenes circ_tthg08_s5,circ_tthg08_s2,
-circ_iso_a08_s5,circ_hg095_a08_s5 --spp 16384 --spp-depth 8192`). Read by
+circ_iso_a08_s5,circ_hg095_a08_s5 --spp 16384 --spp-depth 8192`; `circ_hg095_a08_s5_depthall` has seeds 2
+and 3 appended, `render_case` with the same spp, its heavy tail needing them). Read by
 `tests/sim/test_mitsuba_polarized.py` and `tests/sim/test_mitsuba_circular.py`, which need no Mitsuba.
 
 Rig: `reference_scene(σ_t, plane=False)` of `bench/mitsuba_references.py` (the default 60 × 60 × 38 cm tank,
