@@ -68,6 +68,7 @@ from polarstripe.nodes.simulator_frames import (
     check_medium,
     exposure_factor,
     host_ell14,
+    micro_polarizers,
     model_scene,
     parse_fault,
     parse_resolution,
@@ -79,13 +80,7 @@ from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
-from polarstripe.sim.mosaic import (
-    SONY_EXTINCTION_RATIO,
-    SONY_LAYOUT,
-    MicroPolarizerArray,
-    linear_stokes,
-    mosaic_radiance,
-)
+from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT, linear_stokes, mosaic_radiance
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
@@ -144,15 +139,7 @@ class Simulator(Node):
             if self.threads < 0:
                 raise ValueError(f"threads must be >= 0 (0: the CPU affinity), got {self.threads}")
             check_medium(self.medium_sigma_t, self.medium_g)
-            self.mosaic()
-
-        def mosaic(self) -> MicroPolarizerArray:
-            """The micro-polarizer array of ``simulator/render_mosaic``; ValueError names a bad param."""
-            if len(self.mosaic_crosstalk) != 2:
-                raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {self.mosaic_crosstalk}")
-            return MicroPolarizerArray(tuple(self.mosaic_layout), self.mosaic_extinction_ratio,
-                                       self.mosaic_extinction_spread, *self.mosaic_crosstalk,
-                                       seed=0 if self.seed is None else self.seed)
+            micro_polarizers(self)
 
     PUBLISHES = {"simulator/truth": Composite}
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
@@ -213,7 +200,7 @@ class Simulator(Node):
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         self.serve("simulator/render", self.render)
         self.serve("simulator/render_mosaic", self.render_mosaic)
-        self.mosaic = p.mosaic()
+        self.mosaic = micro_polarizers(p)
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.serve("simulator/target", self.move_target)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from polarstripe.msgs.rig import FAULT_COMMANDS
 from polarstripe.nodes.drivers.simell14 import SimEll14
+from polarstripe.sim.mosaic import MicroPolarizerArray
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.scene_target import (
@@ -167,6 +168,16 @@ class Target:
 
     def close(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def micro_polarizers(params) -> MicroPolarizerArray:
+    """The micro-polarizer array of ``simulator/render_mosaic`` from the ``mosaic_*`` params (its per-pixel
+    extinction map seeded by ``seed``); ValueError names a bad param."""
+    if len(params.mosaic_crosstalk) != 2:
+        raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {params.mosaic_crosstalk}")
+    return MicroPolarizerArray(tuple(params.mosaic_layout), params.mosaic_extinction_ratio,
+                               params.mosaic_extinction_spread, *params.mosaic_crosstalk,
+                               seed=0 if params.seed is None else params.seed)
 
 
 def host_ell14(link: str, node: str, log) -> SimEll14:

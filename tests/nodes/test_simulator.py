@@ -200,6 +200,9 @@ def test_a_bad_fault_argument_is_one_clear_refusal(command, why):
     ({"fidelity": "ultra"}, "params: fidelity 'ultra' is not preview, standard, reference"),
     ({"resolution": "100000x100000"}, "params: resolution 100000x100000 is 1e\\+04 Mpx, beyond the limit"),
     ({"threads": -1}, "threads must be >= 0"),
+    ({"mosaic_crosstalk": [0.1]}, "mosaic_crosstalk must be \\[edge, diagonal\\]"),
+    ({"mosaic_extinction_ratio": 0.5}, "extinction_ratio=0.5 must be > 1"),
+    ({"mosaic_layout": [0, 45, 90, 90]}, "mosaic layout"),
 ])
 def test_bad_params_are_refused_before_anything_starts(params, why):
     with pytest.raises(ParamError, match=why):
