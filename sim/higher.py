@@ -270,8 +270,8 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     _, p_half, h_half, b, bq, bu, bv = _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
     size = (cam.w, cam.h)
-    up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel()
-          for x in (h_half, b, bq, bu, bv)]
+    up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel() if x.any()
+          else np.zeros(cam.w * cam.h) for x in (h_half, b, bq, bu, bv)]      # (V is 0 for linear light)
     p_full = np.zeros(cam.w * cam.h)
     args = (p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
             view.surf.object_id.reshape(cam.h, cam.w), p_full)
