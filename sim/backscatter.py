@@ -143,6 +143,22 @@ def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: 
     return bq, bu
 
 
+KAPPA_MADE = 0.3    # fitted to the polarized truth of circular light (docs/physics.md §5.1)
+
+
+def add_made_orders(bq: np.ndarray, bu: np.ndarray, b_one: np.ndarray, q_one: np.ndarray, u_one: np.ndarray,
+                    seen: np.ndarray, share: float):
+    """B's linear Stokes plus what orders ≥ 2 make of light that is not linearly polarized (circular or
+    unpolarized, ``share`` of the source's intensity): m21 of the last scattering polarizes it as it does
+    once-scattered light, but the grid's P1 field (docs/physics.md §10.3) carries no such polarization
+    (a P1 radiance makes none, by symmetry). A fitted law stands in: the grid's orders ≥ 2 (``seen``) carry
+    KAPPA_MADE of the linear DOP of single wide-angle scattering at the pixel (``b_one``, ``q_one``,
+    ``u_one``), in its orientation (docs/physics.md §5.1)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(b_one > 0, KAPPA_MADE * share * seen / np.where(b_one > 0, b_one, 1.0), 0.0)
+    return bq + f * q_one, bu + f * u_one
+
+
 def add_circular_orders(bv: np.ndarray, seen: np.ndarray, v_back: float) -> np.ndarray:
     """B's V plus the orders ≥ 2: the circular grid field seen along the view rays (σ_pV on the way) carries
     κ_V^(k−1) of once-backscattered light's V, ``v_back`` = m44/m11(π)·V_L = −(1 − 2δ)·V_L (κ_V's

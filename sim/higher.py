@@ -32,6 +32,7 @@ import numpy as np
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.backscatter import (
     add_circular_orders,
+    add_made_orders,
     add_polarized_orders,
     b_cone,
     b_single,
@@ -355,6 +356,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
     if "B" in need:
         B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
+        single = (B.copy(), Bq.copy(), Bu.copy()) if pol and abs(lin) < 1.0 else None
         sp = dataclasses.replace(src, sigma_pol=psrc.sigma_pol, sigma_pol_v=psrc.sigma_pol_v) if pol else src
         cone = b_cone(view, sp, plan, need, rg.x0)
         if cone is not None:
@@ -370,6 +372,8 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
                 k += 1
             if circ != 0.0:
                 Bv = add_circular_orders(Bv, seen_vals[k], -(1.0 - 2.0 * delta) * circ)
+            if abs(lin) < 1.0:           # the light that is not linearly polarized: what orders ≥ 2 make
+                Bq, Bu = add_made_orders(Bq, Bu, *single, seen_vals[0], 1.0 - abs(lin))
         B += seen_vals[0]
         if "p" in need and dop.model == "constant":
             Bq, Bu, Bv = _constant_stokes(view, src, B)

@@ -74,11 +74,13 @@ def test_single_scattering_v_and_circular_frames_match_max_depth_2(name):
 @pytest.mark.parametrize("level", list(LEVEL_TOL))
 @pytest.mark.parametrize("name", CIRCULAR)
 def test_all_orders_circular_light_matches_the_truth(name, level):
-    """All orders: V/S0 (the DOP a circular analyzer sees) within 0.03 per region, the frames through the
-    circular analyzers within the level's intensity tolerance plus the seed spread."""
+    """All orders: V/S0 (the DOP a circular analyzer sees) and the linear DOP (what orders ≥ 2 make of the
+    light, KAPPA_MADE) within 0.03 per region, the frames through the circular analyzers within the level's
+    intensity tolerance plus the seed spread."""
     t, spread = _truth(name, -1)
     m, e_b, e_w = _model(name, level, "all")
     np.testing.assert_allclose(circular(m), circular(t), atol=DOP_TOL, err_msg=f"{name} at {level}: V")
+    np.testing.assert_allclose(dop(m), dop(t), atol=DOP_TOL, err_msg=f"{name} at {level}: linear DOP")
     tol = LEVEL_TOL[level] + float(spread[0].max())
     np.testing.assert_allclose(e_b / (0.5 * (t[0] + t[3])), 1.0, atol=tol, err_msg=f"{name} at {level}: E_b")
     np.testing.assert_allclose(e_w / (0.5 * (t[0] - t[3])), 1.0, atol=tol, err_msg=f"{name} at {level}: E_w")
