@@ -5,8 +5,12 @@ What the backend sets, in this order (each feature checked against what the came
 not offer is one :class:`DriverError` listing what it does offer):
 
 * ``PixelFormat``: ``pixel_format``, or the deepest of Mono16, Mono14, Mono12, Mono10, Mono8 the camera
-  offers. Unpacked monochrome only (Mono10/12/14 in 16-bit words): the rig measures intensities, so Bayer,
-  colour and packed formats are refused. The significant bits are ``PixelDynamicRangeMax`` where the camera
+  offers (a camera offering none of them: the deepest polarization mosaic format). Unpacked monochrome only
+  (Mono10/12/14 in 16-bit words): the rig measures intensities, so Bayer, colour and packed formats are
+  refused. A polarization camera's raw mosaic (PFNC ``PolarizeMono16/12/8``, FLIR's ``Polarized16/8``) is
+  read like a monochrome frame, and its metadata carries ``mosaic_deg`` (``mosaic_layout``, Sony's 90, 45 /
+  135, 0 by default), so the grabber publishes it as a mosaic and the compositor demosaics it
+  (docs/physics.md §4.4). The significant bits are ``PixelDynamicRangeMax`` where the camera
   has it, else the format's.
 * ``Width``, ``Height`` when given.
 * Triggering on ``TriggerSelector = FrameStart`` (every other selector's ``TriggerMode`` Off first; a camera
@@ -43,10 +47,15 @@ from polarstripe.nodes.drivers.errors import (
     DriverValueError,
     FrameDropped,
 )
+from polarstripe.sim.mosaic import check_layout
 
 #: PixelFormat name -> (significant bits, numpy dtype): unpacked monochrome, deepest first
 MONO_FORMATS = {"Mono16": (16, "<u2"), "Mono14": (14, "<u2"), "Mono12": (12, "<u2"), "Mono10": (10, "<u2"),
                 "Mono8": (8, "u1")}
+#: … and a polarization camera's raw 2x2 micro-polarizer mosaic (PFNC's names, FLIR's), deepest first
+POLARIZED_FORMATS = {"PolarizeMono16": (16, "<u2"), "Polarized16": (16, "<u2"), "PolarizeMono12": (12, "<u2"),
+                     "PolarizeMono8": (8, "u1"), "Polarized8": (8, "u1")}
+FORMATS = {**MONO_FORMATS, **POLARIZED_FORMATS}
 EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")  # µs: SFNC, then older GigE Vision
 GAIN_FEATURES = ("Gain", "GainRaw")  # SFNC (usually dB), then the camera's integer steps
 TRIGGERS = "software | off | Line0, Line1, …"
@@ -63,19 +72,41 @@ _STATUS_TEXT = {
 _POLL_S = 0.1  # how often a waiting grab looks whether the camera was closed or lost
 
 
+def pick_pixel_format(name: str, offered: list[str], wanted: str | None) -> str:
+    """The PixelFormat to set: ``wanted`` if it is one this backend reads (:data:`FORMATS`) and the camera
+    offers it, else (None) the deepest unpacked monochrome format offered, else the deepest polarization
+    mosaic format (a polarization camera offers only those); one line naming what is offered otherwise."""
+    if wanted is None:
+        usable = [f for f in MONO_FORMATS if f in offered] or [f for f in POLARIZED_FORMATS if f in offered]
+        if not usable:
+            raise DriverError(f"{name}: offers no unpacked monochrome format (it offers "
+                              f"{', '.join(offered)})")
+        return usable[0]
+    if wanted not in FORMATS:
+        raise DriverValueError(f"{name}: pixel_format={wanted!r} is no unpacked monochrome format nor a "
+                               f"polarization mosaic ({', '.join(FORMATS)})")
+    if wanted not in offered:
+        raise DriverError(f"{name}: pixel_format {wanted} is not offered (the camera offers "
+                          f"{', '.join(offered)})")
+    return wanted
+
+
 class AravisCamera(Camera):
     """The GenICam camera ``device`` through Aravis (see the module docstring)."""
 
     class Options(BackendOptions):
         device: str  # GigE Vision: the camera's address (asked directly, no broadcast); USB3 Vision: its id
-        pixel_format: str | None = None  # Mono16 | Mono14 | Mono12 | Mono10 | Mono8; None: deepest offered
+        pixel_format: str | None = None  # Mono16 … Mono8, PolarizeMono16/12/8; None: deepest Mono offered
+        mosaic_layout: list[float] = [90.0, 45.0, 135.0, 0.0]  # a Polarize format's 2x2 angles [deg]
         trigger: str = "software"  # software | off (free running) | Line0, Line1, … (a hardware line)
         width: int | None = None  # region of interest [px]; None: the camera's
         height: int | None = None
         packet_size: int | None = None  # GigE Vision stream packet [bytes]; None: largest that gets through
         buffers: int = 4  # frames Aravis may hold
 
-    def __init__(self, device: str, *, pixel_format: str | None = None, trigger: str = "software",
+    def __init__(self, device: str, *, pixel_format: str | None = None,
+                 mosaic_layout: list[float] | tuple[float, ...] = (90.0, 45.0, 135.0, 0.0),
+                 trigger: str = "software",
                  width: int | None = None, height: int | None = None, packet_size: int | None = None,
                  buffers: int = 4, exposure_s: float | None = None, gain: float | None = None):
         self.name = name = f"Aravis camera {device}"
@@ -84,6 +115,10 @@ class AravisCamera(Camera):
         if buffers < 2:
             raise DriverValueError(f"{name}: buffers={buffers} must be at least 2")
         self.trigger = trigger
+        try:
+            self.mosaic_layout = [float(a) for a in check_layout(mosaic_layout)]
+        except ValueError as exc:
+            raise DriverValueError(f"{name}: {exc}") from None
         self._lost = False
         self._camera = Aravis.Camera.new_with_device(open_device(device))
         self._dev = self._camera.get_device()
@@ -164,22 +199,9 @@ class AravisCamera(Camera):
         return found
 
     def _set_pixel_format(self, wanted: str | None) -> tuple[str, int]:
-        name = self.name
-        offered = self._choices("PixelFormat")
-        usable = [f for f in MONO_FORMATS if f in offered]
-        if wanted is None:
-            if not usable:
-                raise DriverError(f"{name}: offers no unpacked monochrome format (it offers "
-                                  f"{', '.join(offered)})")
-            wanted = usable[0]
-        elif wanted not in MONO_FORMATS:
-            raise DriverValueError(f"{name}: pixel_format={wanted!r} is no unpacked monochrome format "
-                                   f"({', '.join(MONO_FORMATS)})")
-        elif wanted not in offered:
-            raise DriverError(f"{name}: pixel_format {wanted} is not offered (the camera offers "
-                              f"{', '.join(offered)})")
+        wanted = pick_pixel_format(self.name, self._choices("PixelFormat"), wanted)
         self._set("PixelFormat", wanted)
-        depth = MONO_FORMATS[wanted][0]
+        depth = FORMATS[wanted][0]
         if self._offers("PixelDynamicRangeMax"):
             depth = min(depth, max(1, int(self._read("PixelDynamicRangeMax")).bit_length()))
         return wanted, depth
@@ -289,7 +311,7 @@ class AravisCamera(Camera):
                 which = f"frame {frame_id}" if frame_id else "a frame"
                 why = _STATUS_TEXT.get(status.value_nick, status.value_nick)
                 raise FrameDropped(f"{self.name}: {which} dropped, incomplete: {why}")
-            bits, dtype = MONO_FORMATS[self.pixel_format]
+            bits, dtype = FORMATS[self.pixel_format]
             width, height = buffer.get_image_width(), buffer.get_image_height()
             pad_x, _ = buffer.get_image_padding()
             data = buffer.get_image_data()
@@ -301,6 +323,8 @@ class AravisCamera(Camera):
             image = rows[:, : row - pad_x].copy().view(np.dtype(dtype)).reshape(height, width)
             meta = {"pixel_format": self.pixel_format, "frame_id": frame_id,
                     "device_stamp_ns": buffer.get_timestamp(), "host_stamp_ns": buffer.get_system_timestamp()}
+            if self.pixel_format in POLARIZED_FORMATS:  # published as a mosaic (Frame.mosaic_deg)
+                meta["mosaic_deg"] = list(self.mosaic_layout)
             return image, meta
         finally:
             stream.push_buffer(buffer)

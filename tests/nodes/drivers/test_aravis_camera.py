@@ -173,3 +173,23 @@ def test_lost_packets_give_dropped_counted_frames_never_a_corrupt_image(camera, 
     f, more = grab_whole(cam)  # the camera stayed open
     assert np.array_equal(f.image, ramp(f.metadata["frame_id"], "Mono8", 10000, 0))
     assert f.seq == delivered and cam.frames_dropped == dropped + more  # dropped ones are not delivered
+
+
+def test_a_polarization_cameras_mosaic_formats_are_read_and_chosen_when_it_offers_no_mono():
+    from polarstripe.nodes.drivers.aravis_camera import FORMATS, pick_pixel_format
+
+    lucid = ["PolarizeMono8", "PolarizeMono12", "PolarizeMono12p", "PolarizeMono16"]   # PFNC names
+    assert pick_pixel_format("cam", lucid, None) == "PolarizeMono16"
+    assert pick_pixel_format("cam", ["Polarized8", "BayerRGPolarized8"], None) == "Polarized8"   # FLIR's
+    assert pick_pixel_format("cam", ["Mono8", *lucid], None) == "Mono8"   # a plain format first
+    assert pick_pixel_format("cam", lucid, "PolarizeMono12") == "PolarizeMono12"
+    assert FORMATS["PolarizeMono12"] == (12, "<u2") and FORMATS["PolarizeMono8"] == (8, "u1")
+    with pytest.raises(DriverValueError, match="no unpacked monochrome format nor a polarization mosaic"):
+        pick_pixel_format("cam", lucid, "PolarizeMono12p")   # packed
+    with pytest.raises(DriverError, match="offers no unpacked monochrome format"):
+        pick_pixel_format("cam", ["BayerRG8"], None)
+
+
+def test_a_bad_mosaic_layout_is_one_line(gige):
+    with pytest.raises(DriverValueError, match="mosaic layout"):
+        open_backend("camera", "aravis", {"device": gige.address, "mosaic_layout": [0, 0, 45, 90]})
