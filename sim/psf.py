@@ -135,7 +135,7 @@ def mixture(table: HaloTable, n: float) -> np.ndarray:
 
 
 def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
-               mask: np.ndarray | None = None) -> np.ndarray:
+               mask: np.ndarray | None = None, norms: dict | None = None) -> np.ndarray:
     """The halo of an (h, w) image's spread part: Σ_j mix_j·G_{c_j·rms} ⊛ spread_part (float32 (h, w)).
 
     ``spread_part`` is what each pixel spreads (weight·image, 0 where nothing is spread), ``rms_px`` the
@@ -145,7 +145,8 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
     to about two pixels per standard deviation, the components summed coarse to fine; the frame's edges
     reflect (the scene goes on beyond them). With ``mask`` (one object's pixels) every Gaussian is normalised
     over the mask — the light that lands beyond the object's edge stands for the light that would arrive from
-    beyond it — and the halo is returned on the mask only.
+    beyond it — and the halo is returned on the mask only. ``norms``: a dict that keeps those normalisations
+    (the mask's blurs) for the next call with the same mask, as a scan's frames have it.
     """
     src = np.asarray(spread_part, np.float32)
     recv = np.ones(src.shape, bool) if mask is None else mask
@@ -157,6 +158,8 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
     r_lo, r_hi = float(r.min()), float(r.max())
     m32 = None if mask is None else mask.astype(np.float32)
     pyramid: dict = {}
+    if norms is not None:
+        pyramid["norms"] = norms
     if r_hi <= _LEVEL_RATIO * r_lo:
         out = _halo(src, m32, math.sqrt(r_lo * r_hi), mix, pyramid)
     else:
@@ -182,6 +185,20 @@ def _down(pyramid: dict, key: str, img: np.ndarray, down: int) -> np.ndarray:
     return pyramid[key, down]
 
 
+def _mask_norm(pyramid: dict, m32: np.ndarray, s: float, down: int) -> np.ndarray:
+    """max(G_s ⊛ mask, 1e-6) on the image downsampled by ``down`` (kept in ``pyramid["norms"]`` when given)."""
+    keep = pyramid.get("norms")
+    key = (float(s), down)
+    if keep is not None and key in keep:
+        return keep[key]
+    m_small = _down(pyramid, "mask", m32, down)
+    nrm = np.maximum(cv2.GaussianBlur(m_small, (0, 0), sigmaX=s / down, sigmaY=s / down,
+                                      borderType=cv2.BORDER_CONSTANT), 1e-6)
+    if keep is not None:
+        keep[key] = nrm
+    return nrm
+
+
 def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, pyramid: dict) -> np.ndarray:
     """Σ_j mix_j G_{c_j·rms} ⊛ src, each Gaussian normalised over the mask when given, widest first."""
     h, w = src.shape
@@ -200,10 +217,7 @@ def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, 
         border = cv2.BORDER_CONSTANT if m32 is not None else cv2.BORDER_REFLECT
         b = cv2.GaussianBlur(small, (0, 0), sigmaX=s / down, sigmaY=s / down, borderType=border)
         if m32 is not None:
-            m_small = _down(pyramid, "mask", m32, down)
-            nrm = cv2.GaussianBlur(m_small, (0, 0), sigmaX=s / down, sigmaY=s / down,
-                                   borderType=cv2.BORDER_CONSTANT)
-            b = b / np.maximum(nrm, 1e-6)
+            b = b / _mask_norm(pyramid, m32, s, down)
         size = (b.shape[1], b.shape[0])
         if acc is None:
             acc, acc_size = m * b, size
