@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import time
-
 from dataclasses import replace
 
 import numpy as np

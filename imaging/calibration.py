@@ -229,7 +229,8 @@ def decode_pose(white: np.ndarray, black: np.ndarray, frames: list[np.ndarray], 
         x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + half + 1
         region = decoded.contrast[y0:min(y1, h), x0:min(x1, w)]
         if not np.isfinite(region).any():
-            raise PoseError(pose, f"{head}: the projector does not light the board (a shadow, or out of view?)")
+            raise PoseError(pose, f"{head}: the projector does not light the board "
+                                  "(a shadow, or out of view?)")
         c = float(np.nanmedian(region))
         why = MURK if c < MURK_CONTRAST else "saturated or out of focus?"
         raise PoseError(pose, f"{head}: the code's contrast on the board is {100 * c:.1f} % of the light "

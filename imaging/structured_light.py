@@ -8,8 +8,8 @@ under both, cancel (Gupta, Agrawal, Veeraraghavan & Narasimhan, CVPR 2011, §3).
 are a Gray code g; the projector pixel is its binary j (j = g XOR g >> 1 XOR g >> 2 …).
 
 The code's contrast, |P − P̄| / (P + P̄) above the dark level, is the share of a pixel's light that carries
-the code: in murky water most of the light has been scattered (forward, onto and from the board, and back from the
-medium) and is alike under both patterns; what is left to decode is the direct light.
+the code: in murky water most of the light has been scattered (forward, onto and from the board, and back from
+the medium) and is alike under both patterns; what is left to decode is the direct light.
 """
 
 from __future__ import annotations

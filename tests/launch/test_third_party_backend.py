@@ -114,7 +114,8 @@ def test_an_entry_point_camera_gets_its_options_in_a_launch(tmp_path, site):
                                                "serial, width)"),
     ("acme", "{ level = 3 }", "camera backend 'acme': missing option 'serial'"),
     ("acme", '{ serial = "A-17", level = "bright" }', "camera backend 'acme': option 'level': bad value"),
-    ("acmee", "{}", "unknown camera backend 'acmee' (choose from acme, aravis, file, sim, sim_polarization, v4l2)"),
+    ("acmee", "{}",
+     "unknown camera backend 'acmee' (choose from acme, aravis, file, sim, sim_polarization, v4l2)"),
 ])
 def test_a_bad_option_or_backend_is_one_line_before_anything_starts(tmp_path, site, camera, options, text):
     proc, out = _launch(tmp_path, site, camera, options, "--dry-run")

@@ -38,7 +38,8 @@ def test_a_dropped_frame_is_one_fault_and_the_camera_stays_open(gige):
         assert h.call("camera/trigger", FrameRequest(scan_id=1, step=2, pattern="flood")).ok
         assert h.node.camera is camera  # not reopened
         last = h.published("camera/frame")[-1]
-        assert last.step == 2 and int(last.image[0, 0]) == (first_id + 2) % 255  # the frame after the lost one
+        # the frame after the lost one
+        assert last.step == 2 and int(last.image[0, 0]) == (first_id + 2) % 255
         assert np.array_equal(last.image, ramp8(int(last.image[0, 0])))
     finally:
         h.stop()

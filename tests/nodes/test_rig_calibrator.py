@@ -4,8 +4,8 @@ and a board never seen is one ERROR line, exit status 1 and the previous file un
 from __future__ import annotations
 
 import numpy as np
-from polarstripe.msgs import Ack, Frame
 from polarstripe.imaging.structured_light import calibration_code
+from polarstripe.msgs import Ack, Frame
 from polarstripe.nodes.rig_calibrator import SCAN_ID_BASE, RigCalibrator
 from polarstripe.runtime.testing import NodeHarness
 

@@ -14,8 +14,8 @@ import os
 import numpy as np
 import pytest
 from polarstripe.imaging.calibration import (
-    Board,
     MURK_CONTRAST,
+    Board,
     CalibrationError,
     PoseError,
     calibrate,
