@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -54,6 +53,8 @@ from pathlib import Path
 import numpy as np
 import zmq
 from mcap.writer import CompressionType, Writer
+from polarstripe.bench.proc_cpu import process_cpu, thread_cpu
+from polarstripe.bench.record_export import export_rows
 from polarstripe.msgs import Frame, decode, encode, json_schema, pack
 from polarstripe.runtime.bag import BagWriter
 from polarstripe.runtime.bag_reader import BagReader
@@ -128,44 +129,13 @@ class _WatchedPub(PubSocket):
         raise RuntimeError(f"the recorder did not subscribe to {topic} (exit code {proc.poll()})")
 
 
-def _cpu(pid: int | None = None, prefix: str = "") -> tuple[float, int]:
-    """(user + system CPU seconds, minor page faults) so far of process ``pid`` (all threads), or of this
-    process's threads whose name starts with ``prefix`` (``ZMQbg``: the sender's I/O thread); from /proc
-    (Linux; (nan, 0) elsewhere)."""
-    tick = os.sysconf("SC_CLK_TCK")
-    stats = (
-        [f"/proc/{pid}/stat"]
-        if pid is not None
-        else [f"/proc/self/task/{t}/stat" for t in os.listdir("/proc/self/task")]
-        if os.path.isdir("/proc/self/task")
-        else []
-    )
-    cpu, faults, seen = 0.0, 0, False
-    for path in stats:
-        try:
-            text = Path(path).read_text()
-        except OSError:  # a thread that just ended
-            continue
-        name, f = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :].split()
-        if name.startswith(prefix):
-            cpu, faults, seen = cpu + (int(f[11]) + int(f[12])) / tick, faults + int(f[7]), True
-    return (cpu, faults) if seen else (float("nan"), 0)
-
-
-def _thread_cpu(since: dict | None = None) -> dict:
-    """CPU seconds and minor page faults of the calling thread so far, or since the reading ``since``."""
-    r = resource.getrusage(getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF))
-    now = {"cpu_s": r.ru_utime + r.ru_stime, "faults": r.ru_minflt}
-    return now if since is None else {k: now[k] - since[k] for k in now}
-
-
 def _plain(path: Path, blobs: list[bytes]) -> dict:
-    c0, t0 = _thread_cpu(), time.perf_counter()
+    c0, t0 = thread_cpu(), time.perf_counter()
     with open(path, "wb") as f:
         for b in blobs:
             f.write(b)
         f.flush()
-        t1, cpu = time.perf_counter(), _thread_cpu(c0)
+        t1, cpu = time.perf_counter(), thread_cpu(c0)
         os.fsync(f.fileno())
     t2 = time.perf_counter()
     return {"s": t1 - t0, "fsync_s": t2 - t1, "bytes": os.path.getsize(path), **cpu}
@@ -173,12 +143,12 @@ def _plain(path: Path, blobs: list[bytes]) -> dict:
 
 def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
 
-    c0, t0 = _thread_cpu(), time.perf_counter()
+    c0, t0 = thread_cpu(), time.perf_counter()
     w = BagWriter(path, compression=compression).start()
     for f in frames:
         w.add_message("/rig/camera/frame", f)
     w.finish(fsync=False)
-    t1, cpu = time.perf_counter(), _thread_cpu(c0)
+    t1, cpu = time.perf_counter(), thread_cpu(c0)
     fd = os.open(path, os.O_RDONLY)
     os.fsync(fd)
     os.close(fd)
@@ -187,7 +157,7 @@ def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
 
 def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
 
-    c0, t0 = _thread_cpu(), time.perf_counter()
+    c0, t0 = thread_cpu(), time.perf_counter()
     with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.NONE, chunk_size=1 << 20)
         w.start()
@@ -197,7 +167,7 @@ def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
             w.add_message(cid, time.time_ns(), b, f.header.stamp_ns)
         w.finish()
         fh.flush()
-        t1, cpu = time.perf_counter(), _thread_cpu(c0)
+        t1, cpu = time.perf_counter(), thread_cpu(c0)
         os.fsync(fh.fileno())
     return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path), **cpu}
 
@@ -250,7 +220,7 @@ def _over_bus(
         time.sleep(0.5 if warm_bytes else cold_pause_s)  # the recorder's start-up is over; cold: idle
         if warm_bytes:
             _warm(tmp, warm_bytes)
-        (rec0, flt0), (io0, _) = _cpu(proc.pid), _cpu(prefix="ZMQbg")
+        (rec0, flt0), (io0, _) = process_cpu(proc.pid), process_cpu(prefix="ZMQbg")
         t0 = time.perf_counter()
         for k, f in enumerate(frames):
             if rate:
@@ -263,7 +233,7 @@ def _over_bus(
         while (size := bag.stat().st_size if bag.exists() else 0) != last:  # until the recorder has caught up
             last = size
             time.sleep(1.0)
-        (rec1, flt1), (io1, _) = _cpu(proc.pid), _cpu(prefix="ZMQbg")
+        (rec1, flt1), (io1, _) = process_cpu(proc.pid), process_cpu(prefix="ZMQbg")
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=300)
     if proc.returncode:
@@ -288,47 +258,6 @@ def _over_bus(
         "cpu_recorder_s": rec1 - rec0,
         "faults": flt1 - flt0,
     }
-
-
-def _export_rows(tmp: Path, frames: list[Frame], repeats: int, warm) -> dict:
-    """Frames per second of reading a bag of ``frames`` alone and of exporting it (ROS 2, Foxglove)."""
-    import shutil
-
-    from polarstripe.tools.bag_export import ExportOptions, export
-
-    src = tmp / "export-src.mcap"
-    graph = {"nodes": {"simulator": {"module": "polarstripe.nodes.simulator", "params": {}}}}
-    with BagWriter(src) as w:
-        w.add_metadata("launch", {"launch": "bench", "namespace": "/rig", "graph": json.dumps(graph)})
-        for k, f in enumerate(frames):
-            w.add_message("/rig/camera/frame", f, log_time_ns=1_800_000_000_000_000_000 + k * 10_000_000)
-
-    def read(_out: Path) -> None:
-        with BagReader(src) as b:
-            for _ in b.messages():
-                pass
-
-    def exporter(fmt: str):
-        return lambda out: export(src, out, fmt, ExportOptions(progress=False))
-
-    fps = {}
-    for name, fn in (("read", read), ("ros2", exporter("ros2")), ("foxglove", exporter("foxglove"))):
-        times = []
-        for _ in range(repeats):
-            warm()
-            out = tmp / f"export-{name}"
-            t0 = time.perf_counter()
-            fn(out)
-            times.append(time.perf_counter() - t0)
-            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
-        fps[name] = len(frames) / sorted(times)[len(times) // 2]
-    src.unlink()
-    return {
-        "read_fps": fps["read"],
-        **{f"{k}_fps": fps[k] for k in ("ros2", "foxglove")},
-        **{f"{k}_ratio": fps[k] / fps["read"] for k in ("ros2", "foxglove")},
-        "target_ratio_ge_0_5": min(fps["ros2"], fps["foxglove"]) / fps["read"] >= 0.5,
-    }  # the write of the same bytes alone: the row "BagWriter none (warm)"
 
 
 def run(
@@ -369,7 +298,7 @@ def run(
             row = rows[f"{name} ({memory})"] = {**sorted(runs, key=lambda r: r["s"])[len(runs) // 2]}
             row["memory"], row["fps"], row["fps_runs"] = memory, n / row["s"], [n / r["s"] for r in runs]
         if export:
-            out["export"] = _export_rows(tmp, frames, repeats, warm)
+            out["export"] = export_rows(tmp, frames, repeats, warm)
         if bus:  # the two target rows: the median of `repeats` recorders (a busy machine's spread printed)
             for name, comp, pace, warm_bytes, runs in (
                 ("recorder over bus, none, max", "none", None, 2 * total, repeats),
