@@ -64,6 +64,15 @@ def fft_workers() -> int:
     return threads()
 
 
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there; the next band makes a new pool."""
+    _state["pool"] = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def _pool() -> ThreadPoolExecutor:
     with _lock:
         if _state["pool"] is None:

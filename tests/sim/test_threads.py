@@ -49,3 +49,20 @@ def test_bad_thread_count_is_refused(restore_threads):
     with pytest.raises(ValueError, match="threads must be"):
         threads.set_threads(-1)
     assert threads.set_threads(0) == threads.available()
+
+
+def test_a_forked_child_renders_with_its_own_pool(restore_threads):
+    import multiprocessing
+
+    threads.set_threads(2)
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.resized((96, 72)))
+    here = render_components(scene, "stripe:3/8", "standard").B     # the parent's pool exists now
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as pool:
+        there = pool.apply_async(_render_b, (scene,)).get(timeout=120)
+    assert np.array_equal(here, there)
+
+
+def _render_b(scene):
+    return render_components(scene, "stripe:3/8", "standard").B
