@@ -246,7 +246,8 @@ def timing(repeat: int, quick: bool, samples: int, threads: int = 1) -> dict:
                                                              getattr(ref[pat], k))[1]
         out["levels"][level] = row
     if threads > 1:
-        out["threads"] = {"count": threads, "available": available(), "levels": scaling(scene, threads, repeat)}
+        out["threads"] = {"count": threads, "available": available(),
+                          "levels": scaling(scene, threads, repeat)}
     return out
 
 
@@ -346,7 +347,8 @@ def _table(res: dict) -> str:
     th = tim.get("threads")
     if th:
         k = f"_{th['count']}"
-        lines.append(f"threads: {th['count']} (this process may use {th['available']} cores); stripe frame, wall "
+        lines.append(f"threads: {th['count']} (this process may use {th['available']} cores); "
+                     "stripe frame, wall "
                      "clock, one thread vs N: " + "; ".join(
                          f"{lv} {r['wall_s_1']:.3f} s vs {r['wall_s' + k]:.3f} s = {r['speedup']:.2f}x (CPU "
                          f"{r['cpu_s_1']:.3f} vs {r['cpu_s' + k]:.3f} s)" for lv, r in th["levels"].items()))

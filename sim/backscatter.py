@@ -15,16 +15,16 @@ import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
-from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.frame_kernels import polarized_gain
+from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.grid_kernels import upsample_checked
 from polarstripe.sim.grid_sources import source_field
 from polarstripe.sim.multiple import Field, Grid, solve_polarized
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.similarity import pair_retention_of, polarized_extinction
-from polarstripe.sim.threads import in_bands
 from polarstripe.sim.surface_field import View, single_parts
+from polarstripe.sim.threads import in_bands
 from polarstripe.sim.transport import Source
 
 if TYPE_CHECKING:

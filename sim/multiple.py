@@ -30,9 +30,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from polarstripe.sim.grid_kernels import GridArgs
 from polarstripe.sim.threads import fft_workers
-from numba import njit
 from scipy import fft as sfft
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -176,7 +176,8 @@ def _transforms(n: tuple[int, int, int], h: tuple[float, float, float], sigma: f
     index = {}
     for p, (a, b) in enumerate(_PAIRS):
         index[(a, b)] = index[(b, a)] = p
-    return shape, f0, np.stack(f1), np.stack([np.stack([f2[index[(a, b)]] for b in range(3)]) for a in range(3)])
+    f2 = np.stack([np.stack([f2[index[(a, b)]] for b in range(3)]) for a in range(3)])
+    return shape, f0, np.stack(f1), f2
 
 
 def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field:

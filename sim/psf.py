@@ -186,7 +186,7 @@ def _down(pyramid: dict, key: str, img: np.ndarray, down: int) -> np.ndarray:
 
 
 def _mask_norm(pyramid: dict, m32: np.ndarray, s: float, down: int) -> np.ndarray:
-    """max(G_s ⊛ mask, 1e-6) on the image downsampled by ``down`` (kept in ``pyramid["norms"]`` when given)."""
+    """max(G_s ⊛ mask, 1e-6) on the image downsampled by ``down`` (kept in ``pyramid["norms"]`` if given)."""
     keep = pyramid.get("norms")
     key = (float(s), down)
     if keep is not None and key in keep:

@@ -121,7 +121,7 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
         if not mask.any():
             continue
         n_med = f_sigma_s * float(np.median(ells[0][mask][::7]))
-        norms = cached(view.scene, ("mask_norms", cam.w, cam.h, k), dict)    # the object's mask, every pattern
+        norms = cached(view.scene, ("mask_norms", cam.w, cam.h, k), dict)  # the object's mask, every pattern
         halo = blur_image(spread_l.reshape(shape), rms_l.reshape(shape), mixture(table, n_med),
                           mask.reshape(shape), norms)
         halo_l += halo.ravel()
