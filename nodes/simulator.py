@@ -15,10 +15,8 @@ Services (relative to the namespace):
   ``polarizer_deg`` is the angle it was rendered at (the frame's analyzer angle on ``camera/frame`` is the
   grabber's, from ``polarizer/state``).
 * ``simulator/render_mosaic`` (:class:`RenderRequest` → ``Frame``) — the raw frame of a polarization
-  camera (the ``sim_polarization`` camera backend): each pixel through its own micro-polarizer of a 2×2
-  mosaic (sim/mosaic.py; ``mosaic_extinction_ratio`` 300 as Sony gives the IMX250MZR at 525 nm, its spread
-  over the pixels ``mosaic_extinction_spread``, ``mosaic_crosstalk`` into each edge and diagonal neighbour,
-  ``mosaic_layout``), then the same sensor noise; ``mosaic_deg`` gives the layout, ``polarizer_deg`` is None.
+  camera (the ``sim_polarization`` backend): each pixel through its own micro-polarizer of a 2×2 mosaic
+  (sim/mosaic.py, the ``mosaic_*`` params), then the same sensor noise; ``mosaic_deg`` gives the layout.
 * ``simulator/move_source`` (``Plan`` → ``Ack``) — move the source to ``plan.separation_m`` now; a
   ``planner/plan`` message moves it too, but only between scans (``emitter/scan`` start … done/fault).
 * ``simulator/fault`` (:class:`SimFault` → ``Ack``) — inject a fault (see :data:`FAULT_COMMANDS`).
@@ -75,18 +73,17 @@ from polarstripe.nodes.simulator_frames import (
     rig_scene,
     timed_render,
     to_camera,
+    truth_composite,
 )
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
-from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT, linear_stokes, mosaic_radiance
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
-from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, mean_dn
+from polarstripe.sim.sensor import electrons_per_radiance, expose
 from polarstripe.sim.threads import set_threads
-from polarstripe.sim.truth import unscattered_object
 
 __all__ = ["Simulator", "SimulatorError"]
 
@@ -400,19 +397,7 @@ class Simulator(Node):
         """The ground truth at the current source pose and exposure (cached; ``scan_id`` 0)."""
         key = self._truth_key()
         if key not in self._truth:
-            radiance, surface = unscattered_object(self.scene)  # docs/physics.md §10.8
-            cam = self.scene.camera
-            signal = mean_dn(radiance, cam) - dark_offset_dn(cam)
-            self._truth[key] = Composite(
-                images={"S": signal.astype(np.float64),
-                        "chart_band": surface.chart_band.astype(np.int32),
-                        "chart_high": surface.chart_high.astype(bool),
-                        "depth_m": np.nan_to_num(depth_truth(self.scene), nan=0.0).astype(np.float32)},
-                method="truth",
-                metrics={"separation_m": self.scene.separation_m(), "exposure_s": cam.exposure_s,
-                         "dark_offset_dn": dark_offset_dn(cam), "rig_geometry": {  # the source moves
-                             k: np.asarray(v, float).tolist() for k, v in rig_geometry(self.scene).items()}},
-            )
+            self._truth[key] = truth_composite(self.scene)
         return self._truth[key]
 
     def inject(self, req: SimFault, strict: bool = False) -> Ack:

@@ -14,8 +14,10 @@ import time
 
 import cv2
 import numpy as np
+from polarstripe.msgs import Composite
 from polarstripe.msgs.rig import FAULT_COMMANDS
 from polarstripe.nodes.drivers.simell14 import SimEll14
+from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.mosaic import MicroPolarizerArray
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, parse_size
@@ -26,7 +28,8 @@ from polarstripe.sim.scene_target import (
     target_poses,
     with_target,
 )
-from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
+from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn, mean_dn
+from polarstripe.sim.truth import unscattered_object
 
 PREVIEW_WIDTH = 160  # model width [px] the preview render scale aims at
 WHITE_SUPERSAMPLE = 3  # rays a pixel along each axis in a calibration target's white frame
@@ -209,3 +212,22 @@ def parse_fault(command: str) -> tuple[str, list[str]]:
     if name in ("frame_delay", "bus_off", "heartbeat_stop") and args and not 0.0 <= float(args[0]) <= 3600.0:
         raise ValueError(f"{name} {args[0]}: seconds must be in [0, 3600]")
     return name, args
+
+
+def truth_composite(scene: Scene) -> Composite:
+    """The ground truth of ``scene`` as ``simulator/truth`` publishes it (the node's docstring): the
+    unscattered object radiance in DN above the dark offset (docs/physics.md §10.8), the chart's bands and
+    bars, the objects' depth, and the rig's geometry at the current source pose."""
+    radiance, surface = unscattered_object(scene)
+    cam = scene.camera
+    signal = mean_dn(radiance, cam) - dark_offset_dn(cam)
+    return Composite(
+        images={"S": signal.astype(np.float64),
+                "chart_band": surface.chart_band.astype(np.int32),
+                "chart_high": surface.chart_high.astype(bool),
+                "depth_m": np.nan_to_num(depth_truth(scene), nan=0.0).astype(np.float32)},
+        method="truth",
+        metrics={"separation_m": scene.separation_m(), "exposure_s": cam.exposure_s,
+                 "dark_offset_dn": dark_offset_dn(cam), "rig_geometry": {  # the source moves
+                     k: np.asarray(v, float).tolist() for k, v in rig_geometry(scene).items()}},
+    )
