@@ -31,7 +31,7 @@ import time
 from polarstripe.msgs import REGISTRY, Frame, Message, Pattern
 from polarstripe.nodes.foxglove_schemas import FoxgloveEncoder
 from polarstripe.nodes.rig_geometry import geometry_from_metadata
-from polarstripe.nodes.rig_views import TF_STATIC, Image, RigViews, Transforms
+from polarstripe.nodes.rig_views import RigViews, ViewGate
 from polarstripe.runtime.bag import BagError
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.node import Node, NodeError
@@ -74,8 +74,7 @@ class FoxgloveBridge(Node):
         self.views = RigViews(geometry)
         self.context = foxglove.Context()
         self.channels: dict[str, object] = {}
-        self._last_image: dict[str, float] = {}
-        self._static: list = self.views.start(time.time_ns())
+        self.gate = ViewGate(self.views.start(time.time_ns()), self.params.images, self.params.image_max_hz)
         self.server = foxglove.start_server(
             host=self.params.host,
             port=self.params.port,
@@ -92,7 +91,7 @@ class FoxgloveBridge(Node):
             mode = "latest" if issubclass(cls, _LATEST) else "all"
             self.subscribe(topic, lambda m, t=topic: self.forward(t, m), msg_type=cls, mode=mode)
             self.topics.append(topic)
-        self._send(self._static)
+        self._send(self.gate.static)
         self.every(1.0, self._resend_static)
         self.log.info(
             "Foxglove WebSocket on ws://%s:%d (%d topics; geometry: %s)",
@@ -117,26 +116,13 @@ class FoxgloveBridge(Node):
 
     def _resend_static(self) -> None:
         """The latched poses again (a client that connected since gets them)."""
-        if self._static:
-            self._send(self._static)
+        if self.gate.static:
+            self._send(self.gate.static)
 
     def forward(self, topic: str, msg: Message) -> None:
         """Log one received message (as its views) to the Foxglove server."""
         views = self.views.views(topic, msg.header.stamp_ns or time.time_ns(), msg)
-        now = time.monotonic()
-        out = []
-        for v in views:
-            if isinstance(v, Transforms) and v.topic == TF_STATIC:
-                self._static = [v]
-            if isinstance(v, Image):
-                if not self.params.images:
-                    continue
-                hz = self.params.image_max_hz
-                if hz > 0 and now - self._last_image.get(v.topic, -1e9) < 1.0 / hz:
-                    continue
-                self._last_image[v.topic] = now
-            out.append(v)
-        self._send(out)
+        self._send(self.gate.select(views, time.monotonic()))
 
     def teardown(self):
         server = getattr(self, "server", None)

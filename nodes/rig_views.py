@@ -300,3 +300,28 @@ class RigViews:
         else:
             out.append(Packed(topic, stamp_ns, msg.TYPE, msg.VERSION, pack(msg, topic=topic), msg))
         return out
+
+
+class ViewGate:
+    """What a bridge sends of the views: images only if ``images``, at most ``image_max_hz`` per topic (0:
+    every one); the newest ``/tf_static`` is kept in ``static`` for subscribers that join later."""
+
+    def __init__(self, static: list[View], images: bool = True, image_max_hz: float = 0.0):
+        self.static, self.images, self.image_max_hz = static, images, image_max_hz
+        self._last_image: dict[str, float] = {}
+
+    def select(self, views: list[View], now: float) -> list[View]:
+        """The views to send at monotonic time ``now`` [s]."""
+        out = []
+        for v in views:
+            if isinstance(v, Transforms) and v.topic == TF_STATIC:
+                self.static = [v]
+            if isinstance(v, Image):
+                if not self.images:
+                    continue
+                hz = self.image_max_hz
+                if hz > 0 and now - self._last_image.get(v.topic, -1e9) < 1.0 / hz:
+                    continue
+                self._last_image[v.topic] = now
+            out.append(v)
+        return out

@@ -43,7 +43,7 @@ from polarstripe.msgs import (
     ScanRequest,
 )
 from polarstripe.nodes.rig_geometry import geometry_from_metadata
-from polarstripe.nodes.rig_views import RECORDS, TF_STATIC, Image, Record, RigViews, Transforms
+from polarstripe.nodes.rig_views import RECORDS, TF_STATIC, Record, RigViews, ViewGate
 from polarstripe.nodes.ros2_schemas import PACKAGE, Ros2Encoder, type_hash
 from polarstripe.nodes.ros2_zenoh import (
     PUBLISHER,
@@ -140,9 +140,8 @@ class Ros2Bridge(Node):
         self.pubs: dict[tuple[str, str], _Pub] = {}
         self.queryables: list[tuple[str, object, object, object]] = []
         self.views = RigViews(geometry)
-        self._last_image: dict[str, float] = {}
-        self._static = self.views.start(time.time_ns())
-        self._send(self._static)
+        self.gate = ViewGate(self.views.start(time.time_ns()), self.params.images, self.params.image_max_hz)
+        self._send(self.gate.static)
         self.every(1.0, self._resend_static)
         known = graph.get("topics", {})
         self.topics = []
@@ -213,25 +212,12 @@ class Ros2Bridge(Node):
 
     def _resend_static(self) -> None:
         """The latched poses again (a subscriber that joined since gets them)."""
-        self._send(self._static)
+        self._send(self.gate.static)
 
     def forward(self, topic: str, msg: Message) -> None:
         """Publish one received message (as its views) to ROS 2."""
         views = self.views.views(topic, msg.header.stamp_ns or time.time_ns(), msg)
-        now = time.monotonic()
-        out = []
-        for v in views:
-            if isinstance(v, Transforms) and v.topic == TF_STATIC:
-                self._static = [v]
-            if isinstance(v, Image):
-                if not self.params.images:
-                    continue
-                hz = self.params.image_max_hz
-                if hz > 0 and now - self._last_image.get(v.topic, -1e9) < 1.0 / hz:
-                    continue
-                self._last_image[v.topic] = now
-            out.append(v)
-        self._send(out)
+        self._send(self.gate.select(views, time.monotonic()))
 
     # ---- services ------------------------------------------------------------------------------------------
     def _declare_service(self, service: str, ros_type: str, req_type, resp_type, timeout_s: float) -> None:
