@@ -28,17 +28,15 @@ from __future__ import annotations
 import json
 import time
 
-from polarstripe.msgs import REGISTRY, Frame, Message, Pattern
+from polarstripe.msgs import Message
 from polarstripe.nodes.foxglove_schemas import FoxgloveEncoder
 from polarstripe.nodes.rig_geometry import geometry_from_metadata
-from polarstripe.nodes.rig_views import RigViews, ViewGate
+from polarstripe.nodes.rig_views import RigViews, ViewGate, subscribe_bridged
 from polarstripe.runtime.bag import BagError
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.node import Node, NodeError
 from polarstripe.runtime.params import NodeParams
 from polarstripe.sim.scene import SceneError
-
-_LATEST = (Frame, Pattern)  # big and frequent: the newest only
 
 
 class FoxgloveBridge(Node):
@@ -82,15 +80,7 @@ class FoxgloveBridge(Node):
             context=self.context,
         )
         self.port = self.server.port
-        self.topics = []
-        for topic in wanted:
-            cls = REGISTRY.get(known.get(topic, {}).get("type", ""))
-            if cls is None:
-                self.log.warning("not serving %s: unknown message type", topic)
-                continue
-            mode = "latest" if issubclass(cls, _LATEST) else "all"
-            self.subscribe(topic, lambda m, t=topic: self.forward(t, m), msg_type=cls, mode=mode)
-            self.topics.append(topic)
+        self.topics = subscribe_bridged(self, wanted, known, self.forward, "serving")
         self._send(self.gate.static)
         self.every(1.0, self._resend_static)
         self.log.info(

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from polarstripe.msgs import (
+    REGISTRY,
     Composite,
     DepthMap,
     Frame,
@@ -325,3 +326,23 @@ class ViewGate:
                 self._last_image[v.topic] = now
             out.append(v)
         return out
+
+
+LATEST = (Frame, Pattern)  # big and frequent: a bridge forwards the newest only
+
+
+def subscribe_bridged(node, topics: list[str], known: dict, forward, verb: str) -> list[str]:
+    """Subscribe a bridge ``node`` to each of ``topics`` (full names) whose type the launch graph ``known``
+    names and this build knows, ``forward(topic, msg)`` on each message (the newest only for :data:`LATEST`
+    types); any other topic is one warning, "not {verb} TOPIC". Returns the topics subscribed."""
+    subscribed = []
+    for topic in topics:
+        cls = REGISTRY.get(known.get(topic, {}).get("type", ""))
+        if cls is None:
+            node.log.warning("not %s %s: unknown message type", verb, topic)
+            continue
+        mode = "latest" if issubclass(cls, LATEST) else "all"
+        node.subscribe(topic, lambda m, t=topic: forward(t, m), msg_type=cls, mode=mode)
+        subscribed.append(topic)
+    return subscribed
+

@@ -32,18 +32,15 @@ from importlib import metadata
 from pathlib import Path
 
 from polarstripe.msgs import (
-    REGISTRY,
     Empty,
-    Frame,
     Message,
     MessageError,
-    Pattern,
     Plan,
     ScanEvent,
     ScanRequest,
 )
 from polarstripe.nodes.rig_geometry import geometry_from_metadata
-from polarstripe.nodes.rig_views import RECORDS, TF_STATIC, Record, RigViews, ViewGate
+from polarstripe.nodes.rig_views import RECORDS, TF_STATIC, Record, RigViews, ViewGate, subscribe_bridged
 from polarstripe.nodes.ros2_schemas import PACKAGE, Ros2Encoder, type_hash
 from polarstripe.nodes.ros2_zenoh import (
     PUBLISHER,
@@ -68,7 +65,6 @@ from polarstripe.runtime.node import Node, NodeError
 from polarstripe.runtime.params import NodeParams
 from polarstripe.sim.scene import SceneError
 
-_LATEST = (Frame, Pattern)  # big and frequent: the newest only
 #: rig service -> (ROS 2 service type, request type, reply type, timeout [s])
 RIG_SERVICES = {
     "emitter/start_scan": ("StartScan", ScanRequest, ScanEvent, 5.0),
@@ -144,15 +140,8 @@ class Ros2Bridge(Node):
         self._send(self.gate.static)
         self.every(1.0, self._resend_static)
         known = graph.get("topics", {})
-        self.topics = []
-        for topic in [resolve(t, self.namespace) for t in p.topics] or sorted(known):
-            cls = REGISTRY.get(known.get(topic, {}).get("type", ""))
-            if cls is None:
-                self.log.warning("not bridging %s: unknown message type", topic)
-                continue
-            mode = "latest" if issubclass(cls, _LATEST) else "all"
-            self.subscribe(topic, lambda m, t=topic: self.forward(t, m), msg_type=cls, mode=mode)
-            self.topics.append(topic)
+        self.topics = subscribe_bridged(self, [resolve(t, self.namespace) for t in p.topics] or sorted(known),
+                                        known, self.forward, "bridging")
         if p.services:
             served = graph.get("services", {})
             for service, spec in RIG_SERVICES.items():

@@ -167,12 +167,3 @@ def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray, coords=N
     elif pattern.kind == "gray":
         ok &= gray_lit(pattern, col, row)
     return ok
-    if pattern.kind == "stripe":
-        c0, c1 = stripe_columns(pattern, frame.w)
-        ok &= (col >= c0) & (col < c1)
-    elif pattern.kind == "checker":
-        shift = pattern.shift % (2 * pattern.size)
-        ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0
-    elif pattern.kind == "gray":
-        ok &= gray_lit(pattern, col, row)
-    return ok
