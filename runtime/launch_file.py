@@ -6,6 +6,7 @@ The format is documented in docs/architecture.md ("Launch files").
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import time
@@ -61,7 +62,8 @@ def sock_dir(run_dir: Path) -> Path:
     would be too long for an ipc endpoint (the kernel limits socket paths to ~107 bytes)."""
     d = run_dir / "sock"
     if len(str(d)) > 80:
-        d = Path("/tmp") / f"ps-{os.getuid()}-{os.getpid()}-{abs(hash(str(run_dir))) % 10**8}"
+        digest = hashlib.sha1(str(run_dir).encode()).hexdigest()[:10]  # the same in every process
+        d = Path("/tmp") / f"ps-{os.getuid()}-{os.getpid()}-{digest}"
     return d
 
 

@@ -6,12 +6,14 @@ itself; it writes a graph file like the launcher's, so ``topic``, ``record`` and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
 from pathlib import Path
 
 from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.graph import runs_dir, write_graph
+from polarstripe.runtime.launch_file import sock_dir
 from polarstripe.runtime.runner import run_node
 
 HELP = "publish a recording on its original topics"
@@ -91,7 +93,7 @@ def main(args: argparse.Namespace) -> int:
             run_dir = runs_dir() / f"replay-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"
             graph_file = run_dir / "graph.json"
         run_dir.mkdir(parents=True, exist_ok=True)
-        pub = args.pub or f"ipc://{run_dir / (args.name + '.pub')}"
+        pub = args.pub or f"ipc://{sock_dir(run_dir) / (args.name + '.pub')}"
         graph = replay_graph(bag, args.name, topics, run_dir, pub)
     write_graph(graph_file, graph)
     print(f"replay: graph {graph_file}, publishing {len(topics)} topics at {pub}", flush=True)
@@ -111,8 +113,10 @@ def main(args: argparse.Namespace) -> int:
             name=args.name,
             graph_file=str(graph_file),
             params=params,
-            srv=f"ipc://{run_dir / (args.name + '.srv')}",
+            srv=f"ipc://{sock_dir(run_dir) / (args.name + '.srv')}",
         )
     finally:
         graph["state"] = "stopped"
         write_graph(graph_file, graph)
+        with contextlib.suppress(OSError):  # the socket folder, once the node has closed its sockets
+            sock_dir(run_dir).rmdir()

@@ -13,7 +13,7 @@ the first participant hosts the hub in a thread (decided by a lock file for ``ip
 the others only connect. If the host leaves, the others lose the segment until a new participant becomes the
 hub (ZeroMQ reconnects them). ``python -m polarstripe.nodes.drivers.zmqcan --channel …`` runs a hub by itself.
 Only ``ipc://`` and loopback ``tcp://`` are meant; never multicast. A plain name (``rig``) means an ipc socket
-under ``$XDG_RUNTIME_DIR`` (or the temp dir).
+under ``$XDG_RUNTIME_DIR`` (or the temp dir; /tmp with a hashed name where the path is too long for a socket).
 
 What it models (like python-can's ``virtual.py``, it says what it does not): frames, ids, flags, DLC and data,
 error frames passed through as frames. A received bus-off error frame (class ``0x040``) puts the receiving bus
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import hashlib
 import os
 import signal
 import struct
@@ -53,7 +54,10 @@ def hub_endpoints(channel: str) -> tuple[str, str]:
                 f"CAN channel {channel!r}: give ipc://PATH, tcp://127.0.0.1:PORT or a plain name"
             )
         base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
-        channel = f"ipc://{os.path.join(base, f'polarstripe-can-{channel}')}"
+        path = os.path.join(base, f"polarstripe-can-{channel}")
+        if len(path) > 100:  # socket paths: ~107 bytes at most; a short name, the same in every process
+            path = f"/tmp/polarstripe-can-{hashlib.sha1(path.encode()).hexdigest()[:16]}"
+        channel = f"ipc://{path}"
     if channel.startswith("ipc://"):
         return channel + ".in", channel + ".out"
     if channel.startswith("tcp://"):

@@ -126,6 +126,17 @@ def test_hub_endpoints(channel, expected):
     assert hub_endpoints(channel) == expected
 
 
+def test_a_plain_name_under_a_long_runtime_dir_still_fits_a_socket_path(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/tmp/short")
+    assert hub_endpoints("rig")[0] == "ipc:///tmp/short/polarstripe-can-rig.in"
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/tmp/" + "d" * 120)
+    front, back = hub_endpoints("rig")
+    assert len(back) - len("ipc://") <= 107 and front.startswith("ipc:///tmp/polarstripe-can-")
+    assert hub_endpoints("rig") == (front, back) and hub_endpoints("other") != (front, back)
+    hub = ZmqCanHub("rig").start()  # binds: the kernel takes the path
+    hub.stop()
+
+
 @pytest.mark.parametrize("bad", ["udp://239.0.0.1:5", "tcp://127.0.0.1", "a/b"])
 def test_bad_channels_are_refused(bad):
     with pytest.raises(ValueError, match="CAN channel"):
