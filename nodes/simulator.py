@@ -8,6 +8,8 @@ CiA 402 drive (:class:`~polarstripe.nodes.drivers.simdrive.SimCia402Drive`) on a
 ZeroMQ, which the polarizer node drives with its real CANopen code (or, with ``ell14_link``, a simulated
 Thorlabs ELL14 on a pty for the ``ell14`` backend); and it moves the virtual source when a plan arrives (the
 in-situ loop of the paper's §4). ``medium_sigma_t``, ``medium_g``: a medium the other nodes do not know.
+``velocity_m_s``, ``fps``: the rig moves during each scan, every frame rendered at the pose of its capture
+time, the truth at the pose mid-scan (nodes/simulator_motion.py, docs/planning.md §11).
 
 Services (relative to the namespace):
 
@@ -75,6 +77,7 @@ from polarstripe.nodes.simulator_frames import (
     to_camera,
     truth_composite,
 )
+from polarstripe.nodes.simulator_motion import ScanMotion, rig_motion
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
@@ -122,6 +125,8 @@ class Simulator(Node):
         mosaic_extinction_spread: float = 0.1  # σ of log ER over the pixels (fixed per sensor)
         mosaic_crosstalk: list[float] = [0.001, 0.0002]  # to each edge and diagonal neighbour
         mosaic_layout: list[float] = list(SONY_LAYOUT)  # 2x2 angles [deg], row-major from the top left
+        velocity_m_s: list[float] = [0.0, 0.0, 0.0]  # the rig's during scans [m/s]: along, across, forward
+        fps: float = 30.0  # the camera's frame rate: a scan's frames are 1/fps apart (with velocity_m_s)
 
         def validate(self):
             super().validate()
@@ -137,6 +142,7 @@ class Simulator(Node):
                 raise ValueError(f"threads must be >= 0 (0: the CPU affinity), got {self.threads}")
             check_medium(self.medium_sigma_t, self.medium_g)
             micro_polarizers(self)
+            rig_motion(self)
 
     PUBLISHES = {"simulator/truth": Composite}
     SUBSCRIBES = {"planner/plan": Plan, "emitter/scan": ScanEvent}
@@ -198,6 +204,7 @@ class Simulator(Node):
         self.serve("simulator/render", self.render)
         self.serve("simulator/render_mosaic", self.render_mosaic)
         self.mosaic = micro_polarizers(p)
+        self.motion = ScanMotion(p)
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.serve("simulator/target", self.move_target)
@@ -230,17 +237,20 @@ class Simulator(Node):
             return self.ell14.position * 360.0 / self.ell14.pulses_per_rev
         return self.params.analyzer_deg
 
-    def _pose(self) -> tuple:
-        return (self.scene.projector.position, self.scene.projector.look_at,
+    def _pose(self, scene: Scene | None = None) -> tuple:
+        scene = self.scene if scene is None else scene
+        return (scene.camera.position, scene.projector.position, scene.projector.look_at,
                 None if self.target is None else self.target.index)
 
     def _truth_key(self) -> tuple:
         return (*self._pose(), self.scene.camera.exposure_s)
 
-    def components(self, pattern: str):
-        """Components of ``pattern`` at the current pose, at the model resolution (cached; the next pattern of
-        a scan is rendered ahead in a worker thread while this frame travels)."""
-        key = (pattern, self._pose())
+    def components(self, pattern: str, scene: Scene | None = None, next_scene: Scene | None = None):
+        """Components of ``pattern`` at the pose of ``scene`` (None: the current one), at the model resolution
+        (cached; the next pattern of a scan is rendered ahead, at ``next_scene``'s pose, in a worker thread
+        while this frame travels)."""
+        scene = self.scene if scene is None else scene
+        key = (pattern, self._pose(scene))
         comp = self._cache.get(key)
         if comp is not None:
             self._cache.move_to_end(key)
@@ -250,26 +260,27 @@ class Simulator(Node):
             if ahead is not None:
                 comp, seconds = ahead.result()
             else:
-                scene = model_scene(self.scene, pattern, self.scale, self.target is not None)
-                comp, seconds = timed_render(scene, pattern, self.fidelity)
+                comp, seconds = timed_render(model_scene(scene, pattern, self.scale, self.target is not None),
+                                             pattern, self.fidelity)
             self.stats["model_s"] += seconds
             self.stats["renders"] += 1
             self._cache[key] = comp
             while len(self._cache) > self.params.cache_size:
                 self._cache.popitem(last=False)
-        self._render_ahead(following(pattern))
+        self._render_ahead(following(pattern), scene if next_scene is None else next_scene)
         return comp
 
-    def _render_ahead(self, pattern: str | None) -> None:
+    def _render_ahead(self, pattern: str | None, scene: Scene) -> None:
         if pattern is None or self._pool is None:
             return
-        key = (pattern, self._pose())
+        key = (pattern, self._pose(scene))
         if key in self._cache or key in self._ahead:
             return
         for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
             self._ahead.pop(old).cancel()
-        scene = model_scene(self.scene, pattern, self.scale, self.target is not None)
-        self._ahead[key] = self._pool.submit(timed_render, scene, pattern, self.fidelity)
+        self._ahead[key] = self._pool.submit(timed_render, model_scene(scene, pattern, self.scale,
+                                                                       self.target is not None),
+                                             pattern, self.fidelity)
 
     def move_to(self, separation_m: float) -> Scene:
         """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
@@ -300,10 +311,12 @@ class Simulator(Node):
     def on_scan(self, event: ScanEvent) -> None:
         if event.event == "start":
             self.scanning.add(event.scan_id)
+            self.motion.start(event)  # moving, the rig passes this pose mid-scan (nodes/simulator_motion.py)
             # the pose cannot change until the scan ends: this is the truth of every frame of the scan
             self.truth_pub.publish(dataclasses.replace(self.truth(), scan_id=event.scan_id))
             return
         self.scanning.discard(event.scan_id)
+        self.motion.end(event.scan_id)
         if not self.scanning and self.pending_plan is not None:
             plan, self.pending_plan = self.pending_plan, None
             self.on_plan(plan)
@@ -366,7 +379,8 @@ class Simulator(Node):
             angle = self.analyzer_angle() if req.analyzer and not mosaic else None
         else:
             try:
-                comp = self.components(pattern)
+                comp = self.components(pattern, self.motion.scene_at(self.scene, req.scan_id, req.step),
+                                       self.motion.scene_at(self.scene, req.scan_id, req.step + 1))
             except SceneError as exc:
                 raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
             angle = self.analyzer_angle() if req.analyzer and not mosaic else None

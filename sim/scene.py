@@ -42,7 +42,7 @@ from polarstripe.sim.scene_parts import (
 __all__ = [
     "DEFAULT_CHART", "Box", "BoxObject", "Camera", "DopModel", "Medium", "Phase", "PlaneObject", "Polarizer",
     "Projector", "Scene", "SceneError", "SceneObject", "SourcePolarization", "SphereObject", "Vec3", "LIGHTS",
-    "with_light",
+    "with_light", "baseline_direction",
     "load_scene", "parse_size", "scene_from_dict", "scene_to_dict", "with_separation",
 ]
 
@@ -66,6 +66,20 @@ def with_light(scene: Scene, light: str) -> Scene:
                          camera=scene.camera.replace(polarizer=an))
 
 
+def baseline_direction(scene: Scene) -> np.ndarray:
+    """The unit vector from the camera toward the projector, perpendicular to the camera's forward axis (the
+    camera's right axis if the projector sits on that axis): the direction a translate scan moves the source
+    along, and the rig frame's x (sim/motion.py)."""
+    c = np.array(scene.camera.position)
+    f = np.subtract(scene.camera.look_at, c)
+    f /= np.linalg.norm(f)
+    e = np.array(scene.projector.position) - c
+    e -= f * (e @ f)
+    if np.linalg.norm(e) < 1e-12:
+        e = np.cross(f, scene.camera.up)
+    return e / np.linalg.norm(e)
+
+
 def with_separation(scene: Scene, d_lc_m: float, aim: bool = True) -> Scene:
     """Move the projector to camera–source distance ``d_lc_m`` along the front face (a translate scan).
 
@@ -74,15 +88,7 @@ def with_separation(scene: Scene, d_lc_m: float, aim: bool = True) -> Scene:
     kept (the projector turns to keep the chart lit); without, it translates with its orientation unchanged.
     """
     d = positive("separation d_lc_m", d_lc_m, allow_zero=True)
-    c, pr = np.array(scene.camera.position), np.array(scene.projector.position)
-    f = np.subtract(scene.camera.look_at, c)
-    f /= np.linalg.norm(f)
-    e = pr - c
-    e -= f * (e @ f)
-    if np.linalg.norm(e) < 1e-12:
-        e = np.cross(f, scene.camera.up)
-    e /= np.linalg.norm(e)
-    new_pos = c + d * e
+    new_pos = np.array(scene.camera.position) + d * baseline_direction(scene)
     proj = scene.projector
     look = proj.look_at if aim else tuple(new_pos + np.subtract(proj.look_at, proj.position))
     return scene.replace(projector=proj.replace(position=tuple(new_pos.tolist()), look_at=tuple(look)))
