@@ -125,8 +125,8 @@ class Simulator(Node):
         mosaic_extinction_spread: float = 0.1  # σ of log ER over the pixels (fixed per sensor)
         mosaic_crosstalk: list[float] = [0.001, 0.0002]  # to each edge and diagonal neighbour
         mosaic_layout: list[float] = list(SONY_LAYOUT)  # 2x2 angles [deg], row-major from the top left
-        velocity_m_s: list[float] = [0.0, 0.0, 0.0]  # the rig's during scans [m/s]: along, across, forward
-        fps: float = 30.0  # the camera's frame rate: a scan's frames are 1/fps apart (with velocity_m_s)
+        velocity_m_s: list[float] = [0.0, 0.0, 0.0]  # during scans [m/s]: along the baseline, across, forward
+        fps: float = 30.0  # the camera's frame rate: a scan's frames 1/fps apart (docs/planning.md §11)
 
         def validate(self):
             super().validate()
