@@ -14,8 +14,9 @@ fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py score
 * stripes with K sheets per frame: K = 1 only (N frames, no analyzer) until the patterns have K sheets.
 
 Frame i of a scan draws its sensor noise from the seed and i alone, the same at every speed, so a row's change
-with speed is the motion's, not the noise's. The last table gives, per mode and direction, the speed at
-which the error against T grows by 10 % over the rig at rest (linear between the speeds measured).
+with speed is the motion's, not the noise's. The last column gives, per mode and direction, the speed at
+which the error against T grows by 10 % over the rig at rest (linear between the speeds measured); the JSON
+also has p̂ and, for the polarized methods, the error of E_b alone (no eq. 6).
 """
 
 from __future__ import annotations
@@ -145,8 +146,11 @@ class Rig:
         band, high = self.truth.images["chart_band"], self.truth.images["chart_high"]
         s = score(made.image, bright=(band >= 0) & high, dark=(band >= 0) & ~high,
                   truth=self.truth.images["S"])
+        e_b = made.layers.get("e_b")  # the crossed image alone, without eq. 6 (gain fitted like the rest)
+        e_b = None if e_b is None else score(e_b, truth=self.truth.images["S"])["error_vs_truth"]
         return {"frames": len(times), "scan_s": float(times[-1]), "error": s["error_vs_truth"],
-                "contrast": s["contrast"], "p": made.p, "note": made.note or s.get("metrics_error", "")}
+                "contrast": s["contrast"], "p": made.p, "note": made.note or s.get("metrics_error", ""),
+                "error_e_b": e_b}
 
 
 def tolerated_speed(speeds, errors, growth: float = GROWTH) -> float | None:
@@ -181,6 +185,7 @@ def run(args) -> dict:
             errors = [r["error"] for r in results]
             row["directions"][name] = {
                 "error": errors, "contrast": [r["contrast"] for r in results], "p": [r["p"] for r in results],
+                "error_e_b": [r["error_e_b"] for r in results],
                 "tolerated_m_s": None if None in errors else tolerated_speed(speeds, errors)}
             if not args.json:
                 print(_line(row, name, speeds), flush=True)

@@ -55,6 +55,18 @@ def test_the_frames_poses_follow_the_scan_and_the_drives_move_time():
     assert h.node.motion.scene_at(h.node.scene, 7, 0) is h.node.scene  # after the scan: at rest
 
 
+def test_each_pose_is_rendered_anew_and_the_second_angle_at_rest_is_not():
+    # polarized flood: two frames of the same pattern. At rest the second analyzer angle reuses the components
+    # of the auto exposure's flood (one render in all); moving, each frame is a pose of its own (1 + 2)
+    for velocity, renders in (([0.0, 0.0, 0.0], 1), ([0.0, 0.0, 0.05], 3)):
+        h = sim(velocity_m_s=velocity)
+        h.deliver("emitter/scan", ScanEvent(scan_id=1, event="start", method="polarized_flood",
+                                            analyzer_deg=[0.0, 90.0]))
+        for step in (0, 1):
+            h.call("simulator/render", RenderRequest(pattern="flood", scan_id=1, step=step))
+        assert h.node.stats["renders"] == renders
+
+
 @pytest.mark.parametrize("params, why", [
     ({"velocity_m_s": [0.1, 0.0]}, "velocity_m_s must be a list of 3 numbers"),
     ({"fps": 0.0}, "fps must be a positive number"),
