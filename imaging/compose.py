@@ -8,13 +8,14 @@ arrays in, arrays and numbers out; bad input raises :class:`~.validation.Imaging
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 from polarstripe.imaging.composite import CompositeImage
 from polarstripe.imaging.metrics import michelson_contrast, signal_error
-from polarstripe.imaging.polarization import estimate_p, recover_signal
+from polarstripe.imaging.p_map import P_RULES, PEstimate, global_p, regional_p_map
+from polarstripe.imaging.polarization import recover_signal
 from polarstripe.imaging.separation import separate_direct_global
 from polarstripe.imaging.validation import ImagingError, roi_slices
 from polarstripe.msgs.methods import METHOD_NAMES, Method
@@ -33,14 +34,15 @@ class Composition:
         The images it was made from or beside: ``e_b`` and ``e_w`` (polarized methods, offset subtracted,
         E_b the crossed one) or ``global`` (``hf_separation``).
     p : float or None
-        The backscatter DOP estimated for eq. 6 (polarized methods; ``estimate_p``'s ``median`` rule), None
+        The backscatter DOP eq. 6 divided by (polarized methods): the rule's p̂, or a map's median; None
         otherwise or when it could not be estimated (then ``image`` is E_b, unrecovered, and ``note`` says
         why).
     p_backscatter : float or None
-        The backscatter's DOP as the medium has it (``estimate_p``'s ``upper`` rule: the blocks with the
-        least object light), published as the medium's p; None where ``p`` is.
+        The backscatter's DOP as the medium has it, published as the medium's p; None where ``p`` is.
     note : str
         Why a step was skipped; "" when none was.
+    p_estimate : PEstimate or None
+        Both, with eq. 6's map, the source and the spread (:class:`~.p_map.PEstimate`); None where ``p`` is.
     """
 
     image: np.ma.MaskedArray
@@ -48,6 +50,7 @@ class Composition:
     p: float | None = None
     note: str = ""
     p_backscatter: float | None = None
+    p_estimate: PEstimate | None = None
 
     @property
     def saturated_pixels(self) -> int:
@@ -57,7 +60,8 @@ class Composition:
 
 def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_offset: float = 0.0,
             saturation: float | None = None, object_free=None, lit_fraction: float = 0.5,
-            black_level: float = 0.0, p_min: float = 0.05) -> Composition:
+            black_level: float = 0.0, p_min: float = 0.05, p_rule: str = "median",
+            p_model: Callable[[np.ndarray, np.ndarray], PEstimate] | None = None) -> Composition:
     r"""The composite of one scan of ``method`` from its per-angle reductions.
 
     Parameters
@@ -78,6 +82,13 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
         α and b of the high-frequency patterns (``hf_separation``).
     p_min : float
         Lower clamp of p̂ (eq. 6 divides by p).
+    p_rule : {"median", "upper", "map"}
+        Eq. 6's p (polarized methods, docs/physics.md §4.2): one p̂ by that rule of
+        :func:`~.polarization.estimate_p`, or ``map`` per pixel: from ``p_model`` when given, else from the
+        frames (:func:`~.p_map.regional_p_map`).
+    p_model : callable (E_b, E_w) -> PEstimate, optional
+        The medium model's map for the pair's raw frames (E_b the crossed one; planning/medium_p.py's
+        ``p_map_with_model`` with the rig's scene), used by ``p_rule="map"``.
 
     Returns
     -------
@@ -99,15 +110,17 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
 
       .. math:: E_b = S/2 + B(1 - p)/2, \qquad E_w = S/2 + B(1 + p)/2,
 
-      so E_b is the angle passing less light over the object-free region (median). With S = 0 there,
-      p̂ = median(E_w − E_b) / median(E_w + E_b) (:func:`~.polarization.estimate_p`, clipped to
-      [p_min, 1]; with object light there it reads p·B/(S + B), low, and eq. 6 over-subtracts, which in
-      the simulated demo lowers the error against the unscattered object), and eq. 6 recovers the signal:
+      so E_b is the angle passing less light over the object-free region (median). Eq. 6 recovers the
+      signal with p per pixel (``p_rule="map"``) or one p̂:
 
       .. math:: \hat S = E_b (1 + 1/p) + E_w (1 - 1/p).
 
-      Without usable object-free pixels p is not estimated and Ŝ = E_b (``note`` says why). Beside it,
-      ``p_backscatter`` (the ``upper`` rule) estimates the medium's own DOP.
+      One p̂ is the ratio of medians over the object-free region (``median``: exact with S = 0 there; with
+      object light there it reads p·B/(S + B), low, and eq. 6 over-subtracts) or the ``upper`` rule,
+      clipped to [p_min, 1]. The map is the DOP the pair sees at each pixel, p(x)·cos 2(χ(x) − ψ), from
+      the medium's model, or from the frames per region (:mod:`.p_map`). Without usable pixels p is not
+      estimated and Ŝ = E_b (``note`` says why). Beside it, ``p_backscatter`` estimates the medium's own DOP
+      (the model's, or the frames' ``upper`` rule).
     * ``hf_separation``: Nayar et al. (2006) with L⁺ = max and L⁻ = min over the complementary checkers,
       α the lit fraction, b the projector's black level (:func:`~.separation.separate_direct_global`):
 
@@ -124,7 +137,9 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
     if not angles:
         raise ImagingError("views: no frames")
     if known.polarized:
-        return _polarized(method, views, dark_offset, saturation, object_free, p_min)
+        if p_rule not in P_RULES:
+            raise ImagingError(f"p_rule: {p_rule!r} is not one of {', '.join(P_RULES)}")
+        return _polarized(method, views, dark_offset, saturation, object_free, p_min, p_rule, p_model)
     view = views[angles[0]]
     if known is Method.HF_SEPARATION:
         direct, glob = separate_direct_global(view.maximum.astype(np.float64) - dark_offset,
@@ -134,7 +149,7 @@ def compose(method: str, views: Mapping[float | None, CompositeImage], *, dark_o
     return Composition(view.maximum.astype(np.float64) - dark_offset)  # flood: the frame; stripes: eq. 7
 
 
-def _polarized(method, views, dark_offset, saturation, object_free, p_min) -> Composition:
+def _polarized(method, views, dark_offset, saturation, object_free, p_min, p_rule, p_model) -> Composition:
     angles = list(views)
     if len(angles) != 2:
         raise ImagingError(f"{method} needs frames at two analyzer angles, got {angles}")
@@ -144,13 +159,18 @@ def _polarized(method, views, dark_offset, saturation, object_free, p_min) -> Co
         a, b = b, a  # E_b passes less backscatter
     e_b, e_w = a.astype(np.float64) - dark_offset, b.astype(np.float64) - dark_offset
     layers = {"e_b": e_b, "e_w": e_w}
+    kw = dict(dark_offset=dark_offset, saturation=saturation, p_min=p_min)
     try:
-        kw = dict(dark_offset=dark_offset, saturation=saturation, p_min=p_min)
-        p = estimate_p(a.data, b.data, object_free, **kw)
-        p_backscatter = estimate_p(a.data, b.data, object_free, rule="upper", **kw)
+        if p_rule != "map":
+            est = global_p(a.data, b.data, object_free, rule=p_rule, **kw)
+        elif p_model is not None:
+            est = p_model(a.data, b.data)
+        else:
+            est = regional_p_map(a.data, b.data, object_free, **kw)
     except ImagingError as exc:  # no usable object-free pixels: the crossed frame, unrecovered
         return Composition(e_b, layers, None, f"p not estimated ({exc}): the composite is E_b without eq. 6")
-    return Composition(recover_signal(e_b, e_w, p), layers, p, p_backscatter=p_backscatter)
+    p = est.summary()["p"]
+    return Composition(recover_signal(e_b, e_w, est.eq6), layers, p, est.note, est.p, est)
 
 
 def score(image, *, bright=None, dark=None, truth=None, region=None, fit_gain: bool = True) -> dict:

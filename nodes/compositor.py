@@ -53,11 +53,13 @@ from polarstripe.msgs import (
     Frame,
     MediumEstimate,
     Method,
+    Plan,
     ScanEvent,
 )
 from polarstripe.nodes.compositor_depth import DepthStage
 from polarstripe.nodes.compositor_mosaic import MosaicViews
 from polarstripe.nodes.compositor_output import PublishedDepth, fmt, write_comparison, write_method
+from polarstripe.nodes.compositor_p import MediumModel
 from polarstripe.nodes.compositor_scan import Scan, roi, scan_metrics
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
@@ -82,6 +84,10 @@ class Compositor(Node):
         lit_fraction: float = 0.5  # of the checker patterns
         black_level: float = 0.0  # projector "off" relative to "on"
         p_min: float = 0.05
+        p_rule: Literal["map", "median", "upper"] = "map"  # eq. 6's p: per pixel, or one p̂ (physics.md §4.2)
+        p_scene: str = ""  # the map's medium model: "" the paper's tank, a scene .toml, "none" (the frames')
+        p_fidelity: str = "preview"  # … rendered at this fidelity
+        light: Literal["scene", "linear", "circular"] = "scene"  # the rig's optics, for the model
         use_truth: bool = True  # score against each scan's simulator/truth message
         truth_wait_s: float = 1.0  # hold a complete scan this long for its truth (until the topic is silent)
         done_grace_s: float = 0.3  # after "done", wait this long since the last frame for frames in flight
@@ -110,10 +116,12 @@ class Compositor(Node):
             if len(self.mosaic_crosstalk) != 2:
                 raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {self.mosaic_crosstalk}")
             MosaicViews(self)  # ImagingError (a ValueError) names a bad number
+            MediumModel(self)  # a bad p_scene or p_fidelity
 
     PUBLISHES = {"compositor/composite": Composite, "compositor/medium_p": MediumEstimate,
                  "compositor/depth": DepthMap}
-    SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite}
+    SUBSCRIBES = {"camera/frame": Frame, "emitter/scan": ScanEvent, "simulator/truth": Composite,
+                  "medium/estimate": MediumEstimate, "planner/plan": Plan}
 
     def setup(self):
         self.scan: Scan | None = None
@@ -128,12 +136,14 @@ class Compositor(Node):
             self.counters[key] = 0
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("compositor/medium_p")
-        self.mosaic = MosaicViews(self.params)
+        self.mosaic, self.medium = MosaicViews(self.params), MediumModel(self.params)
         self.depth = DepthStage.of(self.params, PublishedDepth(self.publisher("compositor/depth")), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")
         if self.params.use_truth:
             self.subscribe("simulator/truth", self.on_truth, mode="all")
+        self.subscribe("medium/estimate", self.medium.on_estimate, mode="latest")
+        self.subscribe("planner/plan", self.medium.on_plan, mode="latest")
         if self.params.out:
             os.makedirs(self.params.out, exist_ok=True)
             path = os.path.join(self.params.out, "metrics.json")
@@ -357,7 +367,8 @@ class Compositor(Node):
             free = truth.images["S"] <= 1e-9
         made = compose(scan.method, {a: rc.result(a) for a in rc.angles}, dark_offset=dark,
                        saturation=rc.saturation, object_free=free, lit_fraction=p.lit_fraction,
-                       black_level=p.black_level, p_min=p.p_min)
+                       black_level=p.black_level, p_min=p.p_min, p_rule=p.p_rule,
+                       p_model=self.medium.p_model(scan.method, truth, free, dark, rc.saturation, p.p_min))
         if made.note:
             self.log.warning("scan %d: %s", scan.scan_id, made.note)
         m = self._metrics(scan, made, truth, dark)
@@ -389,8 +400,10 @@ class Compositor(Node):
         images.update({k: np.ma.filled(v, 0.0).astype(np.float32) for k, v in made.layers.items()})
         self.composite_pub.publish(Composite(images=images, method=scan.method, scan_id=scan.scan_id,
                                              metrics=m))
-        if made.p_backscatter is not None:  # the medium's DOP, not eq. 6's p̂ (imaging/compose.py)
-            self.estimate_pub.publish(MediumEstimate(p=made.p_backscatter, scan_id=scan.scan_id))
+        if made.p_estimate is not None:  # the medium's DOP (imaging/p_map.py)
+            est = made.p_estimate
+            self.estimate_pub.publish(MediumEstimate(p=est.p, scan_id=scan.scan_id,
+                                                     p_std=None if np.isnan(est.p_std) else est.p_std))
         self.results[scan.method], self.metrics[scan.method] = image, m
         self.counters["scans_done"] += 1
         self.log.info("scan %d %s: %d frames, contrast %s, error vs truth %s%s", scan.scan_id, scan.method,

@@ -63,8 +63,8 @@ def scan_metrics(scan: Scan, made, truth: Composite | None, dark: float, bright,
     m = {"scan_id": scan.scan_id, "frames": scan.frames, "frames_dropped": scan.dropped,
          "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
          "saturated_pixels": made.saturated_pixels}
-    if made.p is not None:
-        m["p"], m["p_backscatter"] = made.p, made.p_backscatter
+    if made.p_estimate is not None:  # eq. 6's p (one p̂ or a map's percentiles) and the medium's
+        m.update(made.p_estimate.summary())
     if scan.fault:
         m["fault"] = scan.fault
     m.update(score(made.image, bright=bright, dark=dim, truth=None if truth is None else truth.images["S"]))

@@ -15,13 +15,17 @@ the demo), and every ratio reads p·B/(S + B), low.
   by least squares over the region's unsaturated pixels (each pixel alike; a second pass without outliers),
   and p is κ times the model's backscatter-weighted DOP over the region, Σ p_m B / Σ B: what the planner's
   constant DOP stands for.
+* :func:`p_map_with_model`: the same fit, and the DOP the pair sees at each pixel, κ·p_m·cos 2(χ − ψ): the
+  map eq. 6 divides by (docs/physics.md §4.2), so that it removes the backscatter where p and χ vary.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+from polarstripe.imaging.p_map import PEstimate, regional_p_map
 from polarstripe.imaging.polarization import estimate_p, p_bootstrap_std
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.sim.render import render_components
@@ -45,16 +49,25 @@ def p_of_pair(pair: tuple[np.ndarray, np.ndarray] | None, object_free: np.ndarra
         return math.nan, math.nan, f"p: {exc}"
 
 
-def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | None, dark: float,
-                 saturation: float, scene: Scene, fidelity: str) -> tuple[float, float, str]:
-    """(p, its standard error, "") from an (E_b, E_w) pair and ``scene`` with the fitted medium (module
-    docstring), or what :func:`p_of_pair` gives where the model cannot serve (no backscatter in the
-    region, too few pixels, κ not positive)."""
+@dataclasses.dataclass(frozen=True)
+class PairFit:
+    """The least-squares fit (E_w − E_b)/(E_w + E_b) = q·(u cos 2χ + v sin 2χ) of an analyzer pair to the
+    model's q = p_m B/(S + B) and χ (module docstring): u = κ cos 2ψ, v = κ sin 2ψ, and κ's std."""
+
+    u: float
+    v: float
+    kappa_std: float
+
+    @property
+    def kappa(self) -> float:
+        return math.hypot(self.u, self.v)
+
+
+def fit_pair(components, pair, region, dark: float, saturation: float) -> PairFit | str:
+    """:class:`PairFit` of ``pair`` (E_b, E_w raw) to the model's flood ``components`` at the pair's
+    resolution over the bool mask ``region``, or why it cannot be fitted (str)."""
+    c = components
     eb, ew = (np.asarray(x, np.float64) for x in pair)
-    h, w = eb.shape
-    sc = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
-    c = render_components(sc, "flood", fidelity)
-    region = np.ones((h, w), bool) if object_free is None else np.asarray(object_free, bool)
     # E_w − E_b = κ p_m cos 2(χ − ψ) B/(S + B) · (E_w + E_b), ψ the pair's co-polarized angle in the
     # model's camera frame: linear in (κ cos 2ψ, κ sin 2ψ), so the analyzer's angle need not be known
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -62,7 +75,7 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
     diff, total = ew - eb, ew + eb - 2.0 * dark
     use = region & (eb < saturation) & (ew < saturation) & (total > 0) & (q > 0)
     if use.sum() < MIN_PIXELS or not np.any(c.B[region] > 0):
-        return p_of_pair(pair, object_free, dark, saturation)
+        return f"{int(use.sum())} pixels with backscatter in the model (need {MIN_PIXELS})"
     # in DOP units, each pixel alike, then once more without the pixels beyond 4 median absolute deviations
     # (a few bright pixels, an object's edge blurred into the region, would rule a fit in intensity)
     two_chi = 2.0 * c.chi_rad[use]
@@ -73,21 +86,72 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
     mad = float(np.median(np.abs(resid - np.median(resid))))
     keep = np.abs(resid) <= 4.0 * 1.4826 * mad if mad > 0 else np.ones(y.size, bool)
     if keep.sum() < MIN_PIXELS:
-        return p_of_pair(pair, object_free, dark, saturation)
+        return "too few pixels left after the outliers"
     x, y = x[keep], y[keep]
     (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
     kappa = math.hypot(u, v)
     if not kappa > 0:
-        return p_of_pair(pair, object_free, dark, saturation)
+        return "the model's DOP does not fit the pair (κ = 0)"
     resid = y - x @ np.array([u, v])
     try:
         cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
     except np.linalg.LinAlgError:
-        return p_of_pair(pair, object_free, dark, saturation)
+        return "singular fit"
     grad = np.array([u, v]) / kappa
-    kappa_std = math.sqrt(max(float(grad @ cov @ grad), 0.0))
+    return PairFit(float(u), float(v), math.sqrt(max(float(grad @ cov @ grad), 0.0)))
+
+
+def _components(pair, scene: Scene, fidelity: str):
+    h, w = np.shape(pair[0])
+    return render_components(scene.replace(camera=scene.camera.replace(resolution=(w, h))), "flood", fidelity)
+
+
+def _region(object_free, shape) -> np.ndarray:
+    return np.ones(shape, bool) if object_free is None else np.asarray(object_free, bool)
+
+
+def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | None, dark: float,
+                 saturation: float, scene: Scene, fidelity: str, components=None) -> tuple[float, float, str]:
+    """(p, its standard error, "") from an (E_b, E_w) pair and ``scene`` with the fitted medium (module
+    docstring), or what :func:`p_of_pair` gives where the model cannot serve (no backscatter in the
+    region, too few pixels, κ not positive). ``components``: the model's flood components at the pair's
+    resolution, when already rendered."""
+    c = _components(pair, scene, fidelity) if components is None else components
+    region = _region(object_free, np.shape(pair[0]))
+    fit = fit_pair(c, pair, region, dark, saturation)
+    if isinstance(fit, str):
+        return p_of_pair(pair, object_free, dark, saturation)
     p_b = float(np.sum((c.B * c.p)[region]) / np.sum(c.B[region]))
-    p = kappa * p_b
+    p = fit.kappa * p_b
     if not 0.0 < p <= 1.0:
         return math.nan, math.nan, f"p = {p:.3g} from the analyzer pair and the model is outside (0, 1]"
-    return p, kappa_std * p_b, ""
+    return p, fit.kappa_std * p_b, ""
+
+
+def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | None, dark: float,
+                     saturation: float, scene: Scene, fidelity: str, *, p_min: float = 0.05,
+                     components=None, fit: PairFit | None = None) -> PEstimate:
+    """Eq. 6's p per pixel from the medium's model (docs/physics.md §4.2).
+
+    With κ and ψ fitted as for :func:`p_with_model` (u = κ cos 2ψ, v = κ sin 2ψ), the DOP the pair sees
+    at each pixel is p_e(x) = κ p_m(x) cos 2(χ(x) − ψ) = p_m(x)(u cos 2χ(x) + v sin 2χ(x)), clamped to
+    [p_min, 1]; ``p`` is κ Σ p_m B / Σ B over the region (the medium's DOP). Where the model cannot serve
+    (no backscatter in the region, too few pixels, κ not positive, p outside (0, 1]) the map comes from the
+    frames alone (:func:`~polarstripe.imaging.p_map.regional_p_map`) and ``note`` says why.
+    ``components``: the model's flood components at the pair's resolution, when already rendered;
+    ``fit``: κ and ψ already fitted (:func:`fit_pair`; e.g. to the flood pair of this pose, for a stripe
+    scan's composites, whose object light the flood model does not predict), else fitted to ``pair``.
+    """
+    c = _components(pair, scene, fidelity) if components is None else components
+    region = _region(object_free, np.shape(pair[0]))
+    fit = fit_pair(c, pair, region, dark, saturation) if fit is None else fit
+    if not isinstance(fit, str):
+        p_b = float(np.sum((c.B * c.p)[region]) / np.sum(c.B[region]))
+        p = fit.kappa * p_b
+        if 0.0 < p <= 1.0:
+            two_chi = 2.0 * c.chi_rad
+            eq6 = np.clip(c.p * (fit.u * np.cos(two_chi) + fit.v * np.sin(two_chi)), p_min, 1.0)
+            return PEstimate(eq6, p, fit.kappa_std * p_b, "model")
+        fit = f"p = {p:.3g} from the pair and the model is outside (0, 1]"
+    est = regional_p_map(*pair, object_free, dark_offset=dark, saturation=saturation, p_min=p_min)
+    return dataclasses.replace(est, note=f"the model's p map not used: {fit}")
