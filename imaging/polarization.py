@@ -298,10 +298,9 @@ def estimate_p(e_b, e_w, roi=None, *, dark_offset: float = 0.0, saturation: floa
     the measured DOP to p·B/(B + S), so the ratio of medians reads low where the region has object light
     (the simulated tank's wall is lit everywhere by forward-scattered light: 0.32 where the backscatter's
     DOP is 0.48, docs/physics.md §4.2); the blocks of highest DOP are those with the least, so ``upper``
-    reads closer (0.40), and about one block standard deviation high from noise. Eq. 6 with the lower
-    ``median`` p̂ over-subtracts, which in the simulated demo lowers the error against the unscattered
-    object (the veil of forward-scattered object light goes with it): the compositor keeps ``median`` for
-    eq. 6 and publishes ``upper`` as the medium's p.
+    reads closer (0.40), and about one block standard deviation high from noise. Eq. 6 with either
+    over-subtracts there; the compositor divides by the medium model's p map instead (imaging/p_map.py,
+    planning/medium_p.py) and keeps these as its ``median`` and ``upper`` rules.
     """
     if rule not in RULES:
         raise ImagingError(f"rule: {rule!r} is not one of {', '.join(RULES)}")

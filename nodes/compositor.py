@@ -15,8 +15,11 @@ makes the method's composite, scores it and writes it out.
 * the composite and its scores: :func:`polarstripe.imaging.compose.compose` and ``score`` (the pipeline of
   ``polarstripe compare`` too), in DN above the dark offset, saturated pixels masked; Michelson contrast over
   the chart's bars, ``error_vs_truth`` (relative RMS, gain fitted) against the truth's S;
+* eq. 6's p (``p_rule``, docs/physics.md §4.2): ``map`` (default) per pixel from the medium's model
+  (:mod:`polarstripe.nodes.compositor_p`: the ``p_scene``, its medium from ``medium/estimate``, the pose
+  from the truth or ``planner/plan``), or from the frames alone; ``median``/``upper`` one p̂;
 * publishes ``compositor/composite`` (images ``composite`` float32 DN, 0 where masked, ``saturated`` uint8,
-  ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``compositor/medium_p`` (p only);
+  ``e_b``/``e_w`` or ``global``) and, after a polarized method, ``compositor/medium_p`` (p and its std);
   writes ``<out>/<method>.png``, ``.tiff``/``.npy``, ``metrics.json``, ``comparison.png``;
 * a polarization camera's frame (``Frame.mosaic_deg``, a 2×2 micro-polarizer mosaic; the ``mosaic_*``
   params are the camera's calibration and the rule of the crossed angle, docs/physics.md §4.4) is folded as
@@ -137,6 +140,7 @@ class Compositor(Node):
         self.composite_pub = self.publisher("compositor/composite")
         self.estimate_pub = self.publisher("compositor/medium_p")
         self.mosaic, self.medium = MosaicViews(self.params), MediumModel(self.params)
+        self.medium.warm()
         self.depth = DepthStage.of(self.params, PublishedDepth(self.publisher("compositor/depth")), self.log)
         self.subscribe("camera/frame", self.on_frame, mode="all")
         self.subscribe("emitter/scan", self.on_scan, mode="all")

@@ -44,6 +44,13 @@ class MediumModel:
         self._renders: dict[tuple, object] = {}
         self._flood: tuple | None = None  # the last polarized flood's (pose, pair, region, dark, saturation)
 
+    def warm(self) -> None:
+        """Load the model's kernels now (numba's cache: seconds in a fresh process), in the node's setup,
+        not in the first polarized scan's composite."""
+        if self.rule == "map" and self.base is not None:
+            render_components(self.base.replace(camera=self.base.camera.resized((8, 6))), "flood",
+                              self.fidelity)
+
     def on_plan(self, plan: Plan) -> None:
         self.plan_sep = float(plan.separation_m)
 

@@ -57,6 +57,14 @@ class PairFit:
     u: float
     v: float
     kappa_std: float
+    rss: float = 0.0  # the fit's sum of squared residuals [DOP²] over the pixels it kept
+    rss_constant: float = math.inf  # … and one constant DOP's over the same pixels
+
+    @property
+    def explains(self) -> bool:
+        """True when the model fits the pair's DOP better than one constant does (a pair the model does not
+        describe, e.g. frames of another rig, is better told by the frames alone)."""
+        return self.rss < self.rss_constant
 
     @property
     def kappa(self) -> float:
@@ -98,7 +106,8 @@ def fit_pair(components, pair, region, dark: float, saturation: float) -> PairFi
     except np.linalg.LinAlgError:
         return "singular fit"
     grad = np.array([u, v]) / kappa
-    return PairFit(float(u), float(v), math.sqrt(max(float(grad @ cov @ grad), 0.0)))
+    return PairFit(float(u), float(v), math.sqrt(max(float(grad @ cov @ grad), 0.0)), float(resid @ resid),
+                   float(np.sum((y - y.mean()) ** 2)))
 
 
 def _components(pair, scene: Scene, fidelity: str):
@@ -136,8 +145,8 @@ def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarra
     With κ and ψ fitted as for :func:`p_with_model` (u = κ cos 2ψ, v = κ sin 2ψ), the DOP the pair sees
     at each pixel is p_e(x) = κ p_m(x) cos 2(χ(x) − ψ) = p_m(x)(u cos 2χ(x) + v sin 2χ(x)), clamped to
     [p_min, 1]; ``p`` is κ Σ p_m B / Σ B over the region (the medium's DOP). Where the model cannot serve
-    (no backscatter in the region, too few pixels, κ not positive, p outside (0, 1]) the map comes from the
-    frames alone (:func:`~polarstripe.imaging.p_map.regional_p_map`) and ``note`` says why.
+    (no backscatter in the region, too few pixels, κ not positive, p outside (0, 1], a fit no better than
+    one constant DOP over the region) the map comes from the frames alone (:func:`~polarstripe.imaging.p_map.regional_p_map`) and ``note`` says why.
     ``components``: the model's flood components at the pair's resolution, when already rendered;
     ``fit``: κ and ψ already fitted (:func:`fit_pair`; e.g. to the flood pair of this pose, for a stripe
     scan's composites, whose object light the flood model does not predict), else fitted to ``pair``.
@@ -145,6 +154,8 @@ def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarra
     c = _components(pair, scene, fidelity) if components is None else components
     region = _region(object_free, np.shape(pair[0]))
     fit = fit_pair(c, pair, region, dark, saturation) if fit is None else fit
+    if not isinstance(fit, str) and not fit.explains:
+        fit = "it explains the pair's DOP no better than one constant DOP"
     if not isinstance(fit, str):
         p_b = float(np.sum((c.B * c.p)[region]) / np.sum(c.B[region]))
         p = fit.kappa * p_b
@@ -153,5 +164,6 @@ def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarra
             eq6 = np.clip(c.p * (fit.u * np.cos(two_chi) + fit.v * np.sin(two_chi)), p_min, 1.0)
             return PEstimate(eq6, p, fit.kappa_std * p_b, "model")
         fit = f"p = {p:.3g} from the pair and the model is outside (0, 1]"
-    est = regional_p_map(*pair, object_free, dark_offset=dark, saturation=saturation, p_min=p_min)
+    sat = saturation if math.isfinite(saturation) else None
+    est = regional_p_map(*pair, object_free, dark_offset=dark, saturation=sat, p_min=p_min)
     return dataclasses.replace(est, note=f"the model's p map not used: {fit}")

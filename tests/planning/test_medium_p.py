@@ -5,8 +5,9 @@ read the DOP lowered by the object's light and the angle."""
 
 import numpy as np
 import pytest
-from polarstripe.planning.medium_p import p_of_pair, p_with_model
-from polarstripe.sim.polarization import least_backscatter_angle
+from polarstripe.imaging.polarization import recover_signal
+from polarstripe.planning.medium_p import p_map_with_model, p_of_pair, p_with_model
+from polarstripe.sim.polarization import analyzer, least_backscatter_angle, polarizer_transmittances
 from polarstripe.sim.render import render_components, render_frame
 from polarstripe.sim.scene import Phase, load_scene, with_separation
 from polarstripe.sim.sensor import dark_offset_dn, full_scale_dn
@@ -30,3 +31,36 @@ def test_the_model_reads_the_backscatter_dop_through_object_light_and_a_missed_a
     assert not why and abs(p - truth) < 0.01 and 0 < std < 0.01
     alone, _, _ = p_of_pair(*args)
     assert alone < truth - 0.05
+
+
+def test_the_models_map_is_the_dop_the_pair_sees_and_eq6_with_it_gives_s():
+    """Noise-free pair through an analyzer 15° off the mean angle: the map is the pair's own DOP per pixel,
+    (k1 − k2)/(k1 + k2)·p·cos 2(χ − ψ) (ψ the co-polarized angle), and eq. 6 with it gives (k1 + k2)·S exactly
+    (E_b + E_w = (k1 + k2)(S + B), E_w − E_b = (k1 − k2)·B·p·cos 2(χ − ψ)); one p̂ does not."""
+    s = load_scene(None)
+    sd = with_separation(s.replace(camera=s.camera.resized((64, 48))), 0.2)
+    c = render_components(sd, "flood", "preview")
+    free = unscattered_object(sd)[0] <= 1e-9
+    psi = least_backscatter_angle(c) + 90.0 + 15.0  # co-polarized, off by 15°
+    pair = (analyzer(c, psi + 90.0), analyzer(c, psi))
+    est = p_map_with_model(pair, free, 0.0, np.inf, sd, "preview", components=c)
+    k1, k2 = polarizer_transmittances(sd.camera.polarizer.extinction_ratio)
+    seen = (k1 - k2) / (k1 + k2) * c.p * np.cos(2.0 * (c.chi_rad - np.radians(psi)))
+    assert est.source == "model" and not est.note
+    np.testing.assert_allclose(est.eq6, np.clip(seen, 0.05, 1.0), atol=2e-3)
+    truth = float(np.sum((c.B * c.p)[free]) / np.sum(c.B[free]))
+    assert est.p == pytest.approx(truth * (k1 - k2) / (k1 + k2), abs=2e-3)
+    np.testing.assert_allclose(recover_signal(*pair, est.eq6), (k1 + k2) * c.S, atol=2e-3 * np.max(c.S))
+    one = recover_signal(*pair, est.p)  # one p: the backscatter under- and over-subtracted across the image
+    assert np.max(np.abs(one - (k1 + k2) * c.S)) > 0.02 * np.max(c.S)
+
+
+def test_without_backscatter_in_the_model_the_map_comes_from_the_frames():
+    s = load_scene(None)
+    sd = s.replace(camera=s.camera.resized((40, 30)))
+    pair = (np.full((30, 40), 300.0), np.full((30, 40), 500.0))  # DOP 0.25 everywhere
+    c = render_components(sd, "flood", "preview")
+    c.B[:] = 0.0
+    est = p_map_with_model(pair, None, 0.0, np.inf, sd, "preview", components=c)
+    assert est.source == "frames" and "model's p map not used" in est.note
+    np.testing.assert_allclose(est.eq6, 0.25, atol=1e-9)
