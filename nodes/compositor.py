@@ -372,7 +372,8 @@ class Compositor(Node):
         made = compose(scan.method, {a: rc.result(a) for a in rc.angles}, dark_offset=dark,
                        saturation=rc.saturation, object_free=free, lit_fraction=p.lit_fraction,
                        black_level=p.black_level, p_min=p.p_min, p_rule=p.p_rule,
-                       p_model=self.medium.p_model(scan.method, truth, free, dark, rc.saturation, p.p_min))
+                       p_model=self.medium.p_model(scan.method, truth, free, dark, rc.saturation, p.p_min,
+                                                   crossed=bool(scan.mosaic) and p.mosaic_rule != "global"))
         if made.note:
             self.log.warning("scan %d: %s", scan.scan_id, made.note)
         m = self._metrics(scan, made, truth, dark)

@@ -71,9 +71,10 @@ class MediumModel:
         return scene
 
     def p_model(self, method: str, truth: Composite | None, object_free, dark: float,
-                saturation: float | None, p_min: float):
+                saturation: float | None, p_min: float, crossed: bool = False):
         """The callable :func:`~polarstripe.imaging.compose.compose` takes as ``p_model`` for a scan of
-        ``method``, or None (another rule, or no model)."""
+        ``method``, or None (another rule, or no model); ``crossed``: its pair is crossed at each pixel's
+        own angle (a polarization camera's ``local`` or ``pixel`` rule)."""
         scene = self.scene(truth)
         if self.rule != "map" or scene is None:
             return None
@@ -90,12 +91,13 @@ class MediumModel:
             if Method(method).family == "flood":
                 self._flood = (pose, (e_b, e_w), region, dark, sat)
             flood = self._flood if self._flood is not None and self._flood[0] == pose else None
-            fit = fit_pair(comps, *flood[1:]) if flood is not None else fit_pair(comps, (e_b, e_w), region,
-                                                                                 dark, sat)
+            fit = fit_pair(comps, *(flood[1:] if flood is not None else ((e_b, e_w), region, dark, sat)),
+                           crossed=crossed)
             if flood is None and not isinstance(fit, str):
                 note = "κ fitted to the stripe composites (no polarized flood at this pose): p reads low"
             est = p_map_with_model((e_b, e_w), region, dark, sat, sc, self.fidelity.name, p_min=p_min,
-                                   components=comps, fit=None if isinstance(fit, str) else fit)
+                                   components=comps, fit=None if isinstance(fit, str) else fit,
+                                   crossed=crossed)
             return est if est.note or not note else dataclasses.replace(est, note=note)
 
         return p_map

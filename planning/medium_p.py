@@ -59,6 +59,15 @@ class PairFit:
     kappa_std: float
     rss: float = 0.0  # the fit's sum of squared residuals [DOP²] over the pixels it kept
     rss_constant: float = math.inf  # … and one constant DOP's over the same pixels
+    crossed: bool = False  # the pair crossed at each pixel's own angle (a polarization camera): v = 0
+
+    def seen(self, components) -> np.ndarray:
+        """The DOP the pair sees at each pixel: κ p_m cos 2(χ − ψ) = p_m (u cos 2χ + v sin 2χ), or κ p_m for
+        a pair crossed per pixel."""
+        if self.crossed:
+            return self.u * components.p
+        two_chi = 2.0 * components.chi_rad
+        return components.p * (self.u * np.cos(two_chi) + self.v * np.sin(two_chi))
 
     @property
     def explains(self) -> bool:
@@ -71,9 +80,12 @@ class PairFit:
         return math.hypot(self.u, self.v)
 
 
-def fit_pair(components, pair, region, dark: float, saturation: float) -> PairFit | str:
+def fit_pair(components, pair, region, dark: float, saturation: float, *,
+             crossed: bool = False) -> PairFit | str:
     """:class:`PairFit` of ``pair`` (E_b, E_w raw) to the model's flood ``components`` at the pair's
-    resolution over the bool mask ``region``, or why it cannot be fitted (str)."""
+    resolution over the bool mask ``region``, or why it cannot be fitted (str). ``crossed``: the pair was
+    crossed at each pixel's own angle (a polarization camera's ``local`` or ``pixel`` rule, docs/physics.md
+    §4.4), so it sees κ p_m B/(S + B) without the cos 2(χ − ψ): κ alone is fitted."""
     c = components
     eb, ew = (np.asarray(x, np.float64) for x in pair)
     # E_w − E_b = κ p_m cos 2(χ − ψ) B/(S + B) · (E_w + E_b), ψ the pair's co-polarized angle in the
@@ -87,27 +99,29 @@ def fit_pair(components, pair, region, dark: float, saturation: float) -> PairFi
     # in DOP units, each pixel alike, then once more without the pixels beyond 4 median absolute deviations
     # (a few bright pixels, an object's edge blurred into the region, would rule a fit in intensity)
     two_chi = 2.0 * c.chi_rad[use]
-    x = q[use][:, None] * np.column_stack([np.cos(two_chi), np.sin(two_chi)])
+    x = q[use][:, None] * (np.ones((two_chi.size, 1)) if crossed else
+                           np.column_stack([np.cos(two_chi), np.sin(two_chi)]))
     y = diff[use] / total[use]
-    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
-    resid = y - x @ np.array([u, v])
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    resid = y - x @ coef
     mad = float(np.median(np.abs(resid - np.median(resid))))
     keep = np.abs(resid) <= 4.0 * 1.4826 * mad if mad > 0 else np.ones(y.size, bool)
     if keep.sum() < MIN_PIXELS:
         return "too few pixels left after the outliers"
     x, y = x[keep], y[keep]
-    (u, v), *_ = np.linalg.lstsq(x, y, rcond=None)
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    u, v = float(coef[0]), 0.0 if crossed else float(coef[1])
     kappa = math.hypot(u, v)
-    if not kappa > 0:
+    if not kappa > 0 or (crossed and u <= 0):
         return "the model's DOP does not fit the pair (κ = 0)"
-    resid = y - x @ np.array([u, v])
+    resid = y - x @ coef
     try:
         cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
     except np.linalg.LinAlgError:
         return "singular fit"
-    grad = np.array([u, v]) / kappa
-    return PairFit(float(u), float(v), math.sqrt(max(float(grad @ cov @ grad), 0.0)), float(resid @ resid),
-                   float(np.sum((y - y.mean()) ** 2)))
+    grad = np.array([1.0]) if crossed else np.array([u, v]) / kappa
+    return PairFit(u, v, math.sqrt(max(float(grad @ cov @ grad), 0.0)), float(resid @ resid),
+                   float(np.sum((y - y.mean()) ** 2)), crossed)
 
 
 def _components(pair, scene: Scene, fidelity: str):
@@ -139,29 +153,30 @@ def p_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | 
 
 def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarray | None, dark: float,
                      saturation: float, scene: Scene, fidelity: str, *, p_min: float = 0.05,
-                     components=None, fit: PairFit | None = None) -> PEstimate:
+                     components=None, fit: PairFit | None = None, crossed: bool = False) -> PEstimate:
     """Eq. 6's p per pixel from the medium's model (docs/physics.md §4.2).
 
     With κ and ψ fitted as for :func:`p_with_model` (u = κ cos 2ψ, v = κ sin 2ψ), the DOP the pair sees
     at each pixel is p_e(x) = κ p_m(x) cos 2(χ(x) − ψ) = p_m(x)(u cos 2χ(x) + v sin 2χ(x)), clamped to
     [p_min, 1]; ``p`` is κ Σ p_m B / Σ B over the region (the medium's DOP). Where the model cannot serve
     (no backscatter in the region, too few pixels, κ not positive, p outside (0, 1], a fit no better than
-    one constant DOP over the region) the map comes from the frames alone (:func:`~polarstripe.imaging.p_map.regional_p_map`) and ``note`` says why.
+    one constant DOP over the region) the map comes from the frames alone
+    (:func:`~polarstripe.imaging.p_map.regional_p_map`) and ``note`` says why.
     ``components``: the model's flood components at the pair's resolution, when already rendered;
     ``fit``: κ and ψ already fitted (:func:`fit_pair`; e.g. to the flood pair of this pose, for a stripe
-    scan's composites, whose object light the flood model does not predict), else fitted to ``pair``.
+    scan's composites, whose object light the flood model does not predict), else fitted to ``pair``;
+    ``crossed``: as :func:`fit_pair`'s (the map is then κ p_m).
     """
     c = _components(pair, scene, fidelity) if components is None else components
     region = _region(object_free, np.shape(pair[0]))
-    fit = fit_pair(c, pair, region, dark, saturation) if fit is None else fit
+    fit = fit_pair(c, pair, region, dark, saturation, crossed=crossed) if fit is None else fit
     if not isinstance(fit, str) and not fit.explains:
         fit = "it explains the pair's DOP no better than one constant DOP"
     if not isinstance(fit, str):
         p_b = float(np.sum((c.B * c.p)[region]) / np.sum(c.B[region]))
         p = fit.kappa * p_b
         if 0.0 < p <= 1.0:
-            two_chi = 2.0 * c.chi_rad
-            eq6 = np.clip(c.p * (fit.u * np.cos(two_chi) + fit.v * np.sin(two_chi)), p_min, 1.0)
+            eq6 = np.clip(fit.seen(c), p_min, 1.0)
             return PEstimate(eq6, p, fit.kappa_std * p_b, "model")
         fit = f"p = {p:.3g} from the pair and the model is outside (0, 1]"
     sat = saturation if math.isfinite(saturation) else None

@@ -11,7 +11,7 @@ from polarstripe.imaging.p_map import PEstimate, global_p, regional_p_map
 from polarstripe.imaging.polarization import recover_signal
 from polarstripe.imaging.validation import ImagingError
 
-ROWS, COLS, SIDE = 3, 4, 21  # tiles of 21 px: cv2's bilinear resize puts each tile's value on its centre pixel
+ROWS, COLS, SIDE = 3, 4, 21  # tiles of 21 px: cv2's bilinear resize puts a tile's value on its centre pixel
 H, W = ROWS * SIDE, COLS * SIDE
 
 

@@ -64,3 +64,20 @@ def test_without_backscatter_in_the_model_the_map_comes_from_the_frames():
     est = p_map_with_model(pair, None, 0.0, np.inf, sd, "preview", components=c)
     assert est.source == "frames" and "model's p map not used" in est.note
     np.testing.assert_allclose(est.eq6, 0.25, atol=1e-9)
+
+
+def test_a_pair_crossed_per_pixel_is_fitted_without_the_angle():
+    """A polarization camera's ``local`` rule crosses each pixel to its own angle: E_w − E_b = κ·p·B, no
+    cos 2(χ − ψ). The map is then κ·p per pixel and the medium's p the B-weighted DOP; fitted with the angle,
+    the pair would read high (the model's cos < 1 away from the mean angle, the pair's not)."""
+    s = load_scene(None)
+    sd = with_separation(s.replace(camera=s.camera.resized((64, 48))), 0.2)
+    c = render_components(sd, "flood", "preview")
+    free = unscattered_object(sd)[0] <= 1e-9
+    e_b, e_w = 0.5 * (c.S + c.B * (1 - c.p)), 0.5 * (c.S + c.B * (1 + c.p))  # eqs. 4-5 at each pixel's χ
+    est = p_map_with_model((e_b, e_w), free, 0.0, np.inf, sd, "preview", components=c, crossed=True)
+    truth = float(np.sum((c.B * c.p)[free]) / np.sum(c.B[free]))
+    np.testing.assert_allclose(est.eq6, np.clip(c.p, 0.05, 1.0), atol=1e-6)
+    assert est.p == pytest.approx(truth, abs=1e-6)
+    angled = p_map_with_model((e_b, e_w), free, 0.0, np.inf, sd, "preview", components=c)
+    assert angled.p > truth
