@@ -116,7 +116,7 @@ def fit_pair(components, pair, region, dark: float, saturation: float, *,
         return "the model's DOP does not fit the pair (κ = 0)"
     resid = y - x @ coef
     try:
-        cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - 2, 1)
+        cov = np.linalg.inv(x.T @ x) * float(resid @ resid) / max(y.size - x.shape[1], 1)
     except np.linalg.LinAlgError:
         return "singular fit"
     grad = np.array([1.0]) if crossed else np.array([u, v]) / kappa
