@@ -36,12 +36,13 @@ class Method(enum.StrEnum):
         (docs/depth.md) and the medium fit reads it (docs/planning.md §6)."""
         return self.family == "stripe"
 
-    def patterns(self, n_stripes: int, checker_size: int) -> tuple[PatternSpec, ...]:
-        """The patterns of one pass at one analyzer angle, in order."""
+    def patterns(self, n_stripes: int, checker_size: int, sheets: int = 1) -> tuple[PatternSpec, ...]:
+        """The patterns of one pass at one analyzer angle, in order (a stripe scan: ⌈n_stripes/sheets⌉
+        frames of ``sheets`` sheets each, msgs/patterns.py)."""
         if self.family == "flood":
             return (PatternSpec("flood"),)
         if self.family == "stripe":
-            return tuple(stripes(n_stripes))
+            return tuple(stripes(n_stripes, sheets))
         return checker_pair(checker_size)
 
     def accepts(self, tag: str) -> bool:

@@ -4,6 +4,11 @@ Text forms (the tag a frame carries, the spec a user types):
 
 - ``flood``: every pattern pixel lit; ``off``: nothing lit;
 - ``stripe:K/N``: stripe K of N (0 ≤ K < N), columns floor(K·W/N) … floor((K+1)·W/N) − 1 of a W-wide pattern;
+- ``stripe:I/N:xK``: K light sheets at once, evenly spaced: the stripes I, I + F, I + 2F, … (those < N) of N,
+  F = ⌈N/K⌉ (0 ≤ I < F, 1 ≤ K ≤ N). A scan of N stripe positions is then F frames, I = 0 … F − 1, and every
+  position is lit in exactly one frame (position n in frame n mod F); the sheets of one frame are F stripes
+  (F·W/N columns) apart, so when K does not divide N some frames light fewer than K sheets. ``:x1`` is
+  ``stripe:K/N`` (the tag is written without it);
 - ``checker:SIZE:SHIFT``: SIZE×SIZE squares lit where floor((col − SHIFT)/SIZE) + floor(row/SIZE) is even
   (SHIFT in pattern pixels along the columns; SHIFT = SIZE is the complement of SHIFT = 0);
 - ``gray:BIT:AXIS:INV``: bit BIT (0 = finest) of the Gray code g = j XOR (j >> 1) of each pattern pixel's
@@ -32,7 +37,7 @@ from polarstripe.errors import PolarstripeError
 
 KINDS = ("flood", "stripe", "checker", "off", "gray")
 
-_STRIPE = re.compile(r"stripe:(\d+)/(\d+)")
+_STRIPE = re.compile(r"stripe:(\d+)/(\d+)(?::x(\d+))?")
 _CHECKER = re.compile(r"checker:(\d+):(\d+)")
 _GRAY = re.compile(r"gray:(\d+):(col|row):([01])(?::xor(\d+))?")
 
@@ -43,9 +48,9 @@ class PatternError(PolarstripeError, ValueError):
 
 @dataclass(frozen=True)
 class PatternSpec:
-    """A checked pattern: ``kind``; stripe ``index`` of ``count``; checker ``size`` and ``shift`` [px]; Gray
-    code bit ``index`` of ``axis`` (``col``/``row``), ``inverse``, XOR the column code's bit ``xor`` (−1:
-    none)."""
+    """A checked pattern: ``kind``; stripe ``index`` of ``count`` with ``sheets`` sheets at once (frame
+    ``index`` of the scan's ⌈count/sheets⌉); checker ``size`` and ``shift`` [px]; Gray code bit ``index`` of
+    ``axis`` (``col``/``row``), ``inverse``, XOR the column code's bit ``xor`` (−1: none)."""
 
     kind: str
     index: int = 0
@@ -55,13 +60,18 @@ class PatternSpec:
     axis: str = ""
     inverse: bool = False
     xor: int = -1
+    sheets: int = 1
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise PatternError(f"pattern kind={self.kind!r} is not one of {', '.join(KINDS)}")
-        if self.kind == "stripe" and not (self.count >= 1 and 0 <= self.index < self.count):
-            raise PatternError(f"stripe pattern index={self.index} count={self.count}: "
-                               "need 0 <= index < count")
+        if self.sheets != 1 and not (self.kind == "stripe" and 1 <= self.sheets <= max(self.count, 1)):
+            raise PatternError(f"{self.kind} pattern sheets={self.sheets}: only a stripe pattern has sheets, "
+                               "1 <= sheets <= count")
+        if self.kind == "stripe" and not (self.count >= 1 and 0 <= self.index < frames_of(self.count,
+                                                                                        self.sheets)):
+            raise PatternError(f"stripe pattern index={self.index} count={self.count} sheets={self.sheets}: "
+                               "need 0 <= index < ceil(count/sheets)")
         if self.kind == "checker" and not (self.size >= 1 and self.shift >= 0):
             raise PatternError(f"checker pattern size={self.size} shift={self.shift}: "
                                "need size >= 1, shift >= 0")
@@ -75,7 +85,7 @@ class PatternSpec:
 
     def __str__(self) -> str:
         if self.kind == "stripe":
-            return f"stripe:{self.index}/{self.count}"
+            return f"stripe:{self.index}/{self.count}" + (f":x{self.sheets}" if self.sheets > 1 else "")
         if self.kind == "checker":
             return f"checker:{self.size}:{self.shift}"
         if self.kind == "gray":
@@ -97,25 +107,54 @@ def parse(pattern) -> PatternSpec:
         if spec in ("flood", "off"):
             return PatternSpec(spec)
         if m := _STRIPE.fullmatch(spec):
-            return PatternSpec("stripe", index=int(m[1]), count=int(m[2]))
+            return PatternSpec("stripe", index=int(m[1]), count=int(m[2]), sheets=int(m[3] or 1))
         if m := _CHECKER.fullmatch(spec):
             return PatternSpec("checker", size=int(m[1]), shift=int(m[2]))
         if m := _GRAY.fullmatch(spec):
             return PatternSpec("gray", index=int(m[1]), axis=m[2], inverse=m[3] == "1",
                                xor=-1 if m[4] is None else int(m[4]))
-        raise PatternError(f"pattern {pattern!r} is not flood, off, stripe:K/N, checker:SIZE:SHIFT or "
+        raise PatternError(f"pattern {pattern!r} is not flood, off, stripe:K/N[:xSHEETS], checker:SIZE:SHIFT or "
                            "gray:BIT:col|row:0|1[:xorBASE]")
     kind = getattr(pattern, "kind", None)
     if kind is None:
         raise PatternError(f"pattern {pattern!r} has no kind")
     fields = {name: int(getattr(pattern, name, 0)) for name in ("index", "count", "size", "shift")}
     return PatternSpec(str(kind), **fields, axis=str(getattr(pattern, "axis", "")),
-                       inverse=bool(getattr(pattern, "inverse", False)), xor=int(getattr(pattern, "xor", -1)))
+                       inverse=bool(getattr(pattern, "inverse", False)), xor=int(getattr(pattern, "xor", -1)),
+                       sheets=int(getattr(pattern, "sheets", 1)))
 
 
-def stripes(count: int) -> Iterator[PatternSpec]:
-    """The stripes 0 … count − 1 of a scan of ``count`` stripes, in order."""
-    return (PatternSpec("stripe", index=k, count=count) for k in range(count))
+def frames_of(count: int, sheets: int = 1) -> int:
+    """Frames of a scan of ``count`` stripe positions lit ``sheets`` at a time: ⌈count/sheets⌉."""
+    return -(-int(count) // max(int(sheets), 1))
+
+
+def stripes(count: int, sheets: int = 1) -> Iterator[PatternSpec]:
+    """The frames of a scan of ``count`` stripes with ``sheets`` sheets each (0 … ⌈count/sheets⌉ − 1), in
+    order."""
+    return (PatternSpec("stripe", index=k, count=count, sheets=sheets) for k in range(frames_of(count, sheets)))
+
+
+def sheet_positions(pattern: PatternSpec) -> tuple[int, ...]:
+    """The stripe positions a stripe pattern lights: index + j·F (j = 0 … sheets − 1, those < count),
+    F = ⌈count/sheets⌉."""
+    step = frames_of(pattern.count, pattern.sheets)
+    return tuple(range(pattern.index, pattern.count, step))[:pattern.sheets]
+
+
+def sheet_columns(pattern: PatternSpec, width: int) -> list[tuple[int, int]]:
+    """Lit column intervals [c0, c1) of a flood (one) or stripe pattern (one per sheet, left to right) on a
+    pattern ``width`` pixels wide."""
+    if pattern.kind == "flood":
+        return [(0, int(width))]
+    return [((k * width) // pattern.count, ((k + 1) * width) // pattern.count) for k in sheet_positions(pattern)]
+
+
+def single_sheets(pattern: PatternSpec) -> list[PatternSpec]:
+    """The one-sheet stripe patterns whose light adds up to ``pattern`` (itself when it has one sheet)."""
+    if pattern.kind != "stripe" or pattern.sheets == 1:
+        return [pattern]
+    return [PatternSpec("stripe", index=k, count=pattern.count) for k in sheet_positions(pattern)]
 
 
 def checker_pair(size: int) -> tuple[PatternSpec, PatternSpec]:
@@ -124,19 +163,24 @@ def checker_pair(size: int) -> tuple[PatternSpec, PatternSpec]:
 
 
 def stripe_columns(pattern: PatternSpec, width: int) -> tuple[int, int]:
-    """Lit column edges [c0, c1) of a stripe (c1 exclusive) on a pattern ``width`` pixels wide."""
+    """Lit column edges [c0, c1) of a one-sheet stripe (c1 exclusive) on a pattern ``width`` pixels wide
+    (:func:`sheet_columns` for several sheets; a several-sheet pattern here is a :class:`PatternError`)."""
+    if pattern.sheets != 1:
+        raise PatternError(f"{pattern} has {pattern.sheets} sheets: one column interval per sheet "
+                           "(sheet_columns)")
     return (pattern.index * width) // pattern.count, ((pattern.index + 1) * width) // pattern.count
 
 
 def following(tag: str) -> str | None:
-    """The pattern a scan shows after ``tag`` (``stripe:K/N`` → ``stripe:K+1/N``, ``checker:S:0`` →
-    ``checker:S:S``), or None when ``tag`` ends its scan (or is not a scan pattern)."""
+    """The pattern a scan shows after ``tag`` (``stripe:K/N`` → ``stripe:K+1/N``, ``stripe:I/N:xS`` →
+    ``stripe:I+1/N:xS``, ``checker:S:0`` → ``checker:S:S``), or None when ``tag`` ends its scan (or is not a
+    scan pattern)."""
     try:
         p = parse(tag)
     except PatternError:
         return None
-    if p.kind == "stripe" and p.index + 1 < p.count:
-        return str(PatternSpec("stripe", index=p.index + 1, count=p.count))
+    if p.kind == "stripe" and p.index + 1 < frames_of(p.count, p.sheets):
+        return str(PatternSpec("stripe", index=p.index + 1, count=p.count, sheets=p.sheets))
     if p.kind == "checker" and p.shift == 0:
         return str(checker_pair(p.size)[1])
     return None

@@ -35,12 +35,14 @@ class Frame(Message):
     mosaic_deg: list[float] = field(default_factory=list)
 
 
-@message("pattern", version=3, older={1: 7, 2: 9})
+@message("pattern", version=4, older={1: 7, 2: 9, 3: 10})
 class Pattern(Message):
     """What the emitter lights now: flood, stripe ``index`` of ``count`` (``size`` px wide), a checker of
     ``size`` px shifted by ``shift`` px, Gray code bit ``index`` of the ``axis`` (``col``/``row``, its
-    ``inverse``, XOR the column code's bit ``xor`` when ≥ 0; msgs/patterns.py), or nothing. Version 2 added
-    ``axis`` and ``inverse``, version 3 ``xor`` (older versions read with their defaults)."""
+    ``inverse``, XOR the column code's bit ``xor`` when ≥ 0; msgs/patterns.py), or nothing; a stripe lights
+    ``sheets`` evenly spaced sheets at once (frame ``index`` of ⌈count/sheets⌉). Version 2 added ``axis`` and
+    ``inverse``, version 3 ``xor``, version 4 ``sheets`` (older versions read with their defaults; a reader
+    of version 3 refuses a version 4 message: unknown schema version)."""
 
     kind: Literal["flood", "stripe", "checker", "off", "gray"]
     index: int = 0
@@ -52,6 +54,7 @@ class Pattern(Message):
     axis: str = ""
     inverse: bool = False
     xor: int = -1
+    sheets: int = 1
 
     @classmethod
     def of(cls, pattern, scan_id: int = 0, step: int = 0) -> Pattern:
@@ -59,16 +62,17 @@ class Pattern(Message):
         :class:`~polarstripe.msgs.patterns.PatternSpec`; ``PatternError`` if it describes no pattern."""
         p = parse_pattern(pattern)
         return cls(kind=p.kind, index=p.index, count=p.count, size=p.size, shift=p.shift, scan_id=scan_id,
-                   step=step, axis=p.axis, inverse=p.inverse, xor=p.xor)
+                   step=step, axis=p.axis, inverse=p.inverse, xor=p.xor, sheets=p.sheets)
 
     def spec(self) -> PatternSpec:
         """The checked pattern; ``PatternError`` if the fields describe none."""
         return parse_pattern(self)
 
 
-@message("scan_event")
+@message("scan_event", version=2, older={1: 6})
 class ScanEvent(Message):
-    """A scan starts, is done, or stopped on a fault (``detail`` says why)."""
+    """A scan starts, is done, or stopped on a fault (``detail`` says why). A stripe scan lights ``sheets``
+    sheets per frame (version 2; version 1 reads as one)."""
 
     scan_id: int
     event: Literal["start", "done", "fault"]
@@ -76,6 +80,7 @@ class ScanEvent(Message):
     stripes: int = 0
     analyzer_deg: list[float] = field(default_factory=list)
     detail: str = ""
+    sheets: int = 1
 
 
 @message("polarizer_command")
@@ -125,16 +130,18 @@ class MediumEstimate(Message):
     reason: str = ""
 
 
-@message("plan")
+@message("plan", version=2, older={1: 5})
 class Plan(Message):
-    """The planner's choice: modality, camera–source separation [m], scan type, per-stripe optima and the
-    quality curves it was chosen from (named arrays, e.g. ``"separation_m"``, ``"quality"``)."""
+    """The planner's choice: modality, camera–source separation [m], scan type, per-stripe optima, the
+    quality curves it was chosen from (named arrays, e.g. ``"separation_m"``, ``"quality"``) and the sheets
+    per stripe frame (version 2; version 1 reads as one)."""
 
     modality: Literal["flood", "stripes"]
     separation_m: float
     scan_type: str = ""
     stripe_optima: list[float] = field(default_factory=list)
     curves: dict[str, np.ndarray] = field(default_factory=dict)
+    sheets: int = 1
 
 
 @message("log")
@@ -179,14 +186,16 @@ class Ack(Message):
     detail: str = ""
 
 
-@message("scan_request")
+@message("scan_request", version=2, older={1: 3})
 class ScanRequest(Message):
-    """Ask the emitter for a scan: ``method`` (e.g. ``"flood"``, ``"stripes"``), the stripe count, and the
-    analyzer angles [deg] to scan at (empty: the current angle)."""
+    """Ask the emitter for a scan: ``method`` (e.g. ``"flood"``, ``"stripes"``), the stripe count, the
+    analyzer angles [deg] to scan at (empty: the current angle) and the sheets per frame of a stripe scan
+    (version 2; 0, and version 1: the emitter's ``sheets`` param)."""
 
     method: str
     stripes: int = 0
     analyzer_deg: list[float] = field(default_factory=list)
+    sheets: int = 0
 
 
 @message("frame_request")

@@ -218,7 +218,7 @@ class RigViews:
     def pattern_image(self, msg: Pattern) -> np.ndarray | None:
         """The projector image of a pattern message (cached per pattern), None if it describes none."""
         w, h = self.geometry.projector_size if self.geometry else DEFAULT_PROJECTOR
-        key = (msg.kind, msg.index, msg.count, msg.size, msg.shift, w, h)
+        key = (msg.kind, msg.index, msg.count, msg.size, msg.shift, msg.sheets, w, h)
         img = self._patterns.get(key)
         if img is None:
             try:

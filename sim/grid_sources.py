@@ -30,7 +30,7 @@ from polarstripe.sim.grid_kernels import (
     view_lookup,
 )
 from polarstripe.sim.multiple import Field, Grid
-from polarstripe.sim.patterns import gray_lit, pattern_lit, stripe_columns
+from polarstripe.sim.patterns import gray_lit, pattern_lit, sheet_columns
 from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 from polarstripe.sim.threads import in_bands
 from polarstripe.sim.transport import Source
@@ -63,13 +63,13 @@ def _square_mean(a: np.ndarray, b: np.ndarray, size: float) -> np.ndarray:
 def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
     """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels: exact for flood, stripes and
     checkers (lit = (1 + q(col − shift)·q(row))/2 with q the square wave of :func:`_square_mean`, separable
-    over a rectangle), 4 × 4 sub-samples for Gray code."""
+    over a rectangle; several sheets: the sum of theirs), 4 × 4 sub-samples for Gray code."""
     pat = src.pattern
     if pat.kind == "flood":
         return np.ones(c0.shape)
-    if pat.kind == "stripe":
-        s0, s1 = stripe_columns(pat, src.frame.w)
-        return np.clip(np.minimum(c1, s1) - np.maximum(c0, s0), 0.0, None) / (c1 - c0)
+    if pat.kind == "stripe":       # the sheets are disjoint: their lit fractions add
+        return sum(np.clip(np.minimum(c1, s1) - np.maximum(c0, s0), 0.0, None)
+                   for s0, s1 in sheet_columns(pat, src.frame.w)) / (c1 - c0)
     if pat.kind == "gray":
         u = (np.arange(4) + 0.5) / 4
         col = c0[:, None, None] + (c1 - c0)[:, None, None] * u[None, :, None]

@@ -40,7 +40,7 @@ import warnings
 
 import numpy as np
 from polarstripe.sim.geometry import Hits, pinhole_frame, plane_axes
-from polarstripe.sim.patterns import PatternSpec, gray_lit, parse_pattern, stripe_columns
+from polarstripe.sim.patterns import PatternSpec, gray_lit, parse_pattern, sheet_columns
 from polarstripe.sim.phase import tthg_parameters
 from polarstripe.sim.scene import BoxObject, PlaneObject, Scene, SceneError, SphereObject
 from polarstripe.sim.surface import surface_info
@@ -122,9 +122,8 @@ def projector_texture(scene: Scene, pattern: str | PatternSpec) -> np.ndarray:
     rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     if pat.kind == "flood":
         lit = np.ones((h, w), bool)
-    elif pat.kind == "stripe":
-        c0, c1 = stripe_columns(pat, w)
-        lit = (cols >= c0) & (cols < c1)
+    elif pat.kind == "stripe":       # every sheet of it
+        lit = np.logical_or.reduce([(cols >= c0) & (cols < c1) for c0, c1 in sheet_columns(pat, w)])
     elif pat.kind == "gray":
         lit = gray_lit(pat, cols + 0.5, rows + 0.5)
     else:

@@ -1,22 +1,34 @@
 """Projector patterns in the model: the analytic clipping of rays to the lit part of the projector's frustum.
 
-The grammar (``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
-value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns`` and ``gray_lit`` here are
-those, imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit
+The grammar (``flood``, ``stripe:K/N[:xSHEETS]``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
+value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns``, ``sheet_columns``,
+``single_sheets`` and ``gray_lit`` here are those, imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit
 state can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1), an XOR base bit too).
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
+A stripe pattern of several sheets is the union of their pyramids: a ray's lit intervals are each sheet's
+(disjoint, so every order of light adds up over the sheets; the surface term A sums them in
+:mod:`polarstripe.sim.surface_field`).
 Each clip is a set of half-spaces n·(P − L) ≥ 0 through the source, linear along a ray (docs/physics.md §2.3).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, stripe_columns
+from polarstripe.msgs.patterns import (
+    PatternError,
+    PatternSpec,
+    gray_lit,
+    parse,
+    sheet_columns,
+    single_sheets,
+    stripe_columns,
+)
 from polarstripe.sim.geometry import PinholeFrame, projector_coords
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["PatternSpec", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "stripe_columns"]
+__all__ = ["PatternSpec", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "sheet_columns",
+           "single_sheets", "stripe_columns"]
 
 _PAR_EPS = 1e-13
 
@@ -74,11 +86,15 @@ def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.n
     if frame is None:
         keep = x1 > x0
         return np.nonzero(keep)[0], x0[keep], x1[keep]
-    if pattern.kind in ("flood", "stripe"):
-        c0, c1 = (0, frame.w) if pattern.kind == "flood" else stripe_columns(pattern, frame.w)
-        lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, c0, c1))
-        keep = hi > lo
-        return np.nonzero(keep)[0], lo[keep], hi[keep]
+    if pattern.kind in ("flood", "stripe"):     # one pyramid per sheet; the sheets are disjoint
+        out = []
+        for c0, c1 in sheet_columns(pattern, frame.w):
+            lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, c0, c1))
+            keep = hi > lo
+            out.append((np.nonzero(keep)[0], lo[keep], hi[keep]))
+        if len(out) == 1:
+            return out[0]
+        return tuple(np.concatenate(parts) for parts in zip(*out, strict=True))
     # checker, gray: clip to the frustum, then split at every column/row boundary the ray crosses
     lo, hi = clip_halfspaces(origin, dirs, x0, x1, frame.position, _halfspaces(frame, 0, frame.w))
     keep = np.nonzero(hi > lo)[0]
@@ -159,8 +175,7 @@ def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray, coords=N
     if pattern is None:
         return ok
     if pattern.kind == "stripe":
-        c0, c1 = stripe_columns(pattern, frame.w)
-        ok &= (col >= c0) & (col < c1)
+        ok &= np.logical_or.reduce([(col >= c0) & (col < c1) for c0, c1 in sheet_columns(pattern, frame.w)])
     elif pattern.kind == "checker":
         shift = pattern.shift % (2 * pattern.size)
         ok &= (np.floor((col - shift) / pattern.size) + np.floor(row / pattern.size)) % 2 == 0

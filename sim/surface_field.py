@@ -7,13 +7,14 @@ coordinates, or the camera image) and interpolated per object (docs/physics.md Â
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
 from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays
 from polarstripe.sim.kernel_records import Stokes
 from polarstripe.sim.kernels import camera_stokes
-from polarstripe.sim.patterns import PatternSpec, lit_intervals, pattern_lit, stripe_columns
+from polarstripe.sim.patterns import PatternSpec, lit_intervals, pattern_lit, single_sheets, stripe_columns
 from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.surface import SurfaceInfo
 from polarstripe.sim.surface_grid import plane_stripe_field
@@ -65,7 +66,12 @@ def single_parts(view: View, src: Source, need) -> tuple[np.ndarray, ...]:
 
 
 def a_field(src: Source, scene: Scene, fid, cam, hits, surf: SurfaceInfo, pixels) -> np.ndarray:
-    """A per pixel: directly at requested pixels, else on the coarse grid and interpolated per object."""
+    """A per pixel: directly at requested pixels, else on the coarse grid and interpolated per object. A of
+    several sheets is the sum of each sheet's (A is linear in the lit light; each sheet's edges keep the
+    one-sheet rules and grid)."""
+    if len(sheets := single_sheets(src.pattern)) > 1:
+        return sum(a_field(dataclasses.replace(src, pattern=one), scene, fid, cam, hits, surf, pixels)
+                   for one in sheets)
     n = hits.t.size
     a_out = np.zeros(n)
     hit = surf.object_id >= 0

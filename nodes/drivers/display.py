@@ -23,7 +23,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 
 import numpy as np
-from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, stripe_columns
+from polarstripe.msgs.patterns import PatternError, PatternSpec, gray_lit, parse, sheet_columns
 from polarstripe.nodes.drivers.backend import Backend, BackendOptions
 from polarstripe.nodes.drivers.errors import DriverError, DriverValueError
 
@@ -62,8 +62,8 @@ def render_pattern(
     if p.kind == "flood":
         image[:] = lit
     elif p.kind == "stripe":
-        c0, c1 = stripe_columns(p, width)
-        image[:, c0:c1] = lit
+        for c0, c1 in sheet_columns(p, width):     # every sheet of it
+            image[:, c0:c1] = lit
     elif p.kind == "checker":
         col = np.arange(width)
         row = np.arange(height)

@@ -24,7 +24,7 @@ def test_parse_known_forms(text, spec):
     ("stripe:3/3", "index=3 count=3"),
     ("stripe:0/0", "count=0"),
     ("checker:0:0", "size=0"),
-    ("gray:3", "not flood, off, stripe:K/N, checker:SIZE:SHIFT or gray"),
+    ("gray:3", r"not flood, off, stripe:K/N\[:xSHEETS\], checker:SIZE:SHIFT or gray"),
     ("gray:3:diag:0", "not flood"),
     ("gray:31:col:0", "bit=31"),
     ("stripe:-1/3", "not flood"),

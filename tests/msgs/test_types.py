@@ -66,7 +66,8 @@ def test_every_type_is_registered_once_and_exported():
     for cls in ALL_TYPES:
         assert REGISTRY[cls.TYPE] is cls
         assert getattr(msgs, cls.__name__) is cls and cls.__name__ in msgs.__all__
-        appended = {"medium_estimate": 2, "frame": 2, "pattern": 3}  # versions that appended fields
+        appended = {"medium_estimate": 2, "frame": 2, "pattern": 4, "scan_event": 2, "scan_request": 2,
+                    "plan": 2}  # versions that appended fields
         assert cls.VERSION == appended.get(cls.TYPE, 1)
 
 

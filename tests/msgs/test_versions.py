@@ -19,9 +19,9 @@ def _v1_frames(type_name, *values):
 
 def test_a_version_1_pattern_reads_with_the_fields_later_versions_added_at_their_defaults():
     msg = decode(_v1_frames("pattern", "stripe", 3, 30, 0, 0, 7, 2))
-    assert isinstance(msg, Pattern) and Pattern.VERSION == 3
+    assert isinstance(msg, Pattern) and Pattern.VERSION == 4
     assert (msg.kind, msg.index, msg.count, msg.scan_id, msg.step) == ("stripe", 3, 30, 7, 2)
-    assert (msg.axis, msg.inverse, msg.xor) == ("", False, -1)
+    assert (msg.axis, msg.inverse, msg.xor, msg.sheets) == ("", False, -1, 1)
 
 
 def test_a_version_1_medium_estimate_has_no_mean_cosine_and_no_reason():
