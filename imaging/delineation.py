@@ -20,8 +20,9 @@ the triangulation (:func:`polarstripe.imaging.triangulation.depth_from_columns`)
   "Why the demo's depth was 4–30 % valid"), while a sharp edge keeps its two-pixel zero;
 * a pixel between the two edges of its own stripe (the columns ⌊k·W/N⌋ and ⌊(k + 1)·W/N⌋ of its sheet k,
   in either order) gets the column interpolated linearly between them;
-* a pixel is **invalid** (NaN), not guessed, when it is saturated (best ≥ saturation), dark (best − dark
-  below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is within
+* a pixel is **invalid** (NaN), not guessed, when it has no sheet (index −1: of a frame of several sheets
+  none or two can have lit it, :mod:`polarstripe.imaging.sheets`), saturated (best ≥ saturation), dark (best
+  − dark below ``k_sigma`` noise σ), its margin is below ``k_sigma`` σ of the margin (unless it is within
   the window its edge was fitted over, where a small margin is expected), or it is not bracketed by two good
   edges on its row (the first and last stripe, an object's silhouette, a shadow, a jump of more than one
   sheet). An edge is good when the line falls (β < 0) and the sum of the two sides' mean margins exceeds
@@ -149,8 +150,8 @@ def delineate(votes: SheetVotes, edges, noise: NoiseModel = NoiseModel(), *, k_s
         raise ImagingError(f"votes: shapes {best.shape}, {second.shape}, {index.shape} differ or are not 2-D")
     if edges.ndim != 1 or edges.size < 2:
         raise ImagingError(f"edges: need N + 1 >= 2 boundaries, got {edges.shape}")
-    if index.size and (index.min() < 0 or index.max() >= edges.size - 1):
-        raise ImagingError(f"votes: sheet index outside 0 … {edges.size - 2}")
+    if index.size and (index.min() < -1 or index.max() >= edges.size - 1):
+        raise ImagingError(f"votes: sheet index outside 0 … {edges.size - 2} (−1: none)")
     if isinstance(edge_window, bool) or not isinstance(edge_window, (int, np.integer)) or edge_window < 1:
         raise ImagingError(f"edge_window: need an integer >= 1 (pixels per side), got {edge_window!r}")
     sat = np.inf if noise.saturation_dn is None else finite_param("saturation", noise.saturation_dn)
@@ -195,7 +196,7 @@ def _delineate_rows(best, second, index, edges, tests, out):
             sb = b - dark if b > dark else 0.0
             ss = s - dark if s > dark else 0.0
             var[j] = 2.0 * read_var + g * (sb + ss)
-            ok[j] = b < sat and sb >= k * np.sqrt(read_var + g * sb)
+            ok[j] = b < sat and sb >= k * np.sqrt(read_var + g * sb) and index[i, j] >= 0
         kind[0] = 2
         kind[w] = 2
         for p in range(1, w):

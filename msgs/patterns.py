@@ -113,7 +113,8 @@ def parse(pattern) -> PatternSpec:
         if m := _GRAY.fullmatch(spec):
             return PatternSpec("gray", index=int(m[1]), axis=m[2], inverse=m[3] == "1",
                                xor=-1 if m[4] is None else int(m[4]))
-        raise PatternError(f"pattern {pattern!r} is not flood, off, stripe:K/N[:xSHEETS], checker:SIZE:SHIFT or "
+        raise PatternError(f"pattern {pattern!r} is not flood, off, stripe:K/N[:xSHEETS], checker:SIZE:SHIFT "
+                           "or "
                            "gray:BIT:col|row:0|1[:xorBASE]")
     kind = getattr(pattern, "kind", None)
     if kind is None:
@@ -132,7 +133,8 @@ def frames_of(count: int, sheets: int = 1) -> int:
 def stripes(count: int, sheets: int = 1) -> Iterator[PatternSpec]:
     """The frames of a scan of ``count`` stripes with ``sheets`` sheets each (0 … ⌈count/sheets⌉ − 1), in
     order."""
-    return (PatternSpec("stripe", index=k, count=count, sheets=sheets) for k in range(frames_of(count, sheets)))
+    return (PatternSpec("stripe", index=k, count=count, sheets=sheets)
+            for k in range(frames_of(count, sheets)))
 
 
 def sheet_positions(pattern: PatternSpec) -> tuple[int, ...]:
@@ -147,7 +149,8 @@ def sheet_columns(pattern: PatternSpec, width: int) -> list[tuple[int, int]]:
     pattern ``width`` pixels wide."""
     if pattern.kind == "flood":
         return [(0, int(width))]
-    return [((k * width) // pattern.count, ((k + 1) * width) // pattern.count) for k in sheet_positions(pattern)]
+    return [((k * width) // pattern.count, ((k + 1) * width) // pattern.count)
+            for k in sheet_positions(pattern)]
 
 
 def single_sheets(pattern: PatternSpec) -> list[PatternSpec]:

@@ -27,7 +27,9 @@ makes the method's composite, scores it and writes it out.
   (:mod:`polarstripe.nodes.compositor_mosaic`); metrics ``mosaic`` say so;
 * after a stripe scan, its depth (light-stripe triangulation with the ``geometry`` param's rig,
   :mod:`polarstripe.nodes.compositor_depth`): ``compositor/depth`` (``DepthMap``), ``depth_<method>.npy``
-  and ``.ply``, ``metrics[method]["depth"]``.
+  and ``.ply``, ``metrics[method]["depth"]``; a scan of K sheets per frame (``ScanEvent.sheets``) tells each
+  pixel's sheet by the ``depth_range_m`` param (:mod:`polarstripe.imaging.sheets`), and one whose sheets
+  overlap in the image has no depth, ``metrics[method]["depth"]["error"]`` saying why.
 
 Calibration frames of the polarizer (scan ids from 2**30) are ignored. Frames that do not belong are dropped
 and counted (heartbeat counters ``frames_unexpected`` no scan running / never started,
@@ -101,6 +103,8 @@ class Compositor(Node):
         depth_k_sigma: float = 4.0  # a stripe is delineated where its margins exceed this many noise sigma
         depth_min_contrast: float = 0.15  # and its edges this fraction of the signal
         depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
+        depth_range_m: list[float] = []  # [near, far] of the objects: tells a K-sheet frame's sheets apart;
+        # empty: the simulator truth's object depths widened by 10 % each way (K = 1 needs none)
         mosaic_rule: Literal["local", "global", "pixel"] = "local"  # a polarization camera's E_b/E_w angle
         mosaic_angle_sigma_px: float = 6.0  # the local rule's smoothing of the light's angle [px]
         mosaic_polarized_sigma_px: float = 0.0  # smooth the polarized part of E_b/E_w [px] (0: not)
@@ -251,8 +255,9 @@ class Compositor(Node):
             self.log.error("scan %d: unknown method %r (known: %s)", ev.scan_id, ev.method,
                            ", ".join(METHOD_NAMES))
             return
-        scan = self.scan = Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg])
-        self.depth.start(ev.method, ev.stripes)
+        scan = self.scan = Scan(ev.scan_id, ev.method, ev.stripes, [float(a) for a in ev.analyzer_deg],
+                                sheets=max(1, ev.sheets))
+        self.depth.start(ev.method, ev.stripes, scan.sheets)
         if self.running is not None:
             self.running.reset()
         held, self.early = self.early, deque()

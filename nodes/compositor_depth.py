@@ -6,8 +6,12 @@
   (``polarstripe calibrate -o rig.yaml``: OpenCV ``FileStorage`` YAML/XML/JSON with ``K_cam``, ``dist_cam``,
   ``K_proj``, ``R``, ``T``, ``cam_size``, ``proj_size``), or ``"none"`` (no depth);
 * per stripe scan, a :class:`~polarstripe.imaging.delineation.RunningArgmax` per analyzer angle keeps the
-  brightest value, its sheet (from the frame's ``stripe:K/N`` tag) and the second-brightest value: memory
-  does not grow with the stripes;
+  brightest value, its frame (the index of the frame's ``stripe:K/N`` or ``stripe:I/N:xS`` tag) and the
+  second-brightest value: memory does not grow with the stripes;
+* a scan of several sheets per frame: each pixel's stripe position is the sheet of its brightest frame that
+  its ray meets within the depth range (:mod:`polarstripe.imaging.sheets`: the ``depth_range_m`` param, else
+  the simulator truth's object depths widened by 10 % each way); sheets that overlap in the image over that
+  range are an error (no depth; the metrics' ``error`` says so and how many sheets would do);
 * at the end: the sheets of the crossed angle (E_b, the one passing less light over the object-free region,
   as :func:`~polarstripe.imaging.compose.compose` chooses) or of the only one are delineated, triangulated,
   published as a :class:`~polarstripe.msgs.DepthMap` on ``compositor/depth`` and written to
@@ -22,7 +26,8 @@ import os
 import numpy as np
 from polarstripe.errors import PolarstripeError
 from polarstripe.imaging import calibration
-from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
+from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, SheetVotes, delineate
+from polarstripe.imaging.sheets import assign_positions, check_sheets, depth_range, epipolar_span
 from polarstripe.imaging.triangulation import RigGeometry, Triangulator, stripe_edges
 from polarstripe.imaging.validation import ImagingError, roi_slices
 from polarstripe.msgs import DepthMap, Method
@@ -95,26 +100,32 @@ class DepthStage:
     """The compositor's depth, scan by scan: :meth:`start`, :meth:`add` per frame, :meth:`finish`."""
 
     def __init__(self, geometry: RigGeometry | None, noise: NoiseModel, *, k_sigma: float = 4.0,
-                 min_contrast: float = 0.15, source: str = "", publisher=None, log=None):
+                 min_contrast: float = 0.15, source: str = "", publisher=None, log=None,
+                 depth_range_m: tuple[float, float] | None = None):
         self.geometry, self.noise, self.source = geometry, noise, source
+        self.depth_range_m = depth_range_m
         self.k_sigma, self.min_contrast = k_sigma, min_contrast
         self.publisher, self.log = publisher, log
         self.running: RunningArgmax | None = None
         self.triangulator: Triangulator | None = None
         self._key: tuple = ()
-        self.active, self.count = False, 0
+        self.active, self.count, self.sheets = False, 0, 1
 
     @classmethod
     def of(cls, params, publisher, log) -> DepthStage:
         """From the compositor's params (``geometry``, ``depth_k_sigma``, ``depth_min_contrast``,
-        ``depth_noise``)."""
+        ``depth_noise``, ``depth_range_m``)."""
         if len(params.depth_noise) != 2 or min(params.depth_noise) < 0:
             raise GeometryError(f"depth_noise must be [read noise DN, DN per electron], got "
                                 f"{params.depth_noise}")
         read, gain = params.depth_noise
+        try:
+            near_far = depth_range(params.depth_range_m) if params.depth_range_m else None
+        except ImagingError as exc:
+            raise GeometryError(str(exc)) from None
         return cls(load_geometry(params.geometry), NoiseModel(0.0, read, gain),
                    k_sigma=params.depth_k_sigma, min_contrast=params.depth_min_contrast,
-                   source=params.geometry, publisher=publisher, log=log)
+                   source=params.geometry, publisher=publisher, log=log, depth_range_m=near_far)
 
     def run(self, method: str, scan_id: int, dark: float, saturation, object_free, truth, out: str) -> dict:
         """:meth:`finish`, then publish and write it; its metrics, or {} (no stripe scan, or no depth: the
@@ -125,7 +136,7 @@ class DepthStage:
                                 truth_geometry=None if truth is None else truth.metrics.get("rig_geometry"))
         except PolarstripeError as exc:
             self.log.warning("scan %d (%s): no depth: %s", scan_id, method, exc)
-            return {}
+            return {"error": str(exc)} if self.sheets > 1 else {}
         if depth is None:
             return {}
         self.publisher.publish(depth)
@@ -133,9 +144,9 @@ class DepthStage:
             write_depth(out, depth)
         return depth.metrics
 
-    def start(self, method: str, stripes: int) -> None:
+    def start(self, method: str, stripes: int, sheets: int = 1) -> None:
         self.active = self.geometry is not None and Method(method).striped and stripes > 0
-        self.count = stripes
+        self.count, self.sheets = stripes, max(1, sheets)
         if self.running is not None:
             self.running.reset()
 
@@ -146,7 +157,7 @@ class DepthStage:
             p = parse(pattern)
         except PatternError:
             return
-        if p.kind != "stripe" or p.count != self.count:
+        if p.kind != "stripe" or p.count != self.count or p.sheets != self.sheets:
             return
         if self.running is None or self.running.shape != image.shape or self.running.dtype != image.dtype:
             self.running = RunningArgmax(image.shape, image.dtype)
@@ -174,12 +185,16 @@ class DepthStage:
             region = roi_slices("object_free", object_free, (h, w))
             angle = min(angles, key=lambda a: float(np.median(rc.result(a).best[region])))
         noise = NoiseModel(dark, self.noise.read_noise_dn, self.noise.dn_per_electron, saturation)
-        columns = delineate(rc.result(angle), stripe_edges(self.count, g.proj_size[0]), noise,
+        votes = rc.result(angle)
+        if self.sheets > 1:
+            votes = self._positions(votes, truth_depth)
+        columns = delineate(votes, stripe_edges(self.count, g.proj_size[0]), noise,
                             k_sigma=self.k_sigma, min_contrast=self.min_contrast)
         depth = self.triangulator.depth(columns)
         points = self.triangulator.points(depth)
         valid = int(len(points))
-        m = {"stripes": self.count, "valid_pixels": valid, "valid_fraction": valid / depth.size,
+        m = {"stripes": self.count, "sheets": self.sheets, "valid_pixels": valid,
+             "valid_fraction": valid / depth.size, **(self.range_used if self.sheets > 1 else {}),
              "analyzer_deg": angle, "geometry": source}
         if truth_depth is not None and truth_depth.shape == depth.shape:
             truth_depth = np.where(truth_depth > 0, truth_depth, np.nan)  # the simulator's 0: no object
@@ -189,6 +204,27 @@ class DepthStage:
             m["valid_fraction_of_objects"] = float(both.sum() / max(1, np.isfinite(truth_depth).sum()))
         return DepthMap(depth_m=depth, points_m=points if valid else None, method=method, scan_id=scan_id,
                         metrics=m)
+
+
+    def _positions(self, votes: SheetVotes, truth_depth) -> SheetVotes:
+        """The votes with each pixel's stripe position for its frame index
+        (:mod:`polarstripe.imaging.sheets`); SheetsOverlap (an ImagingError) when the sheets can light one
+        pixel within the depth range."""
+        near_far, source = self.depth_range_m, "depth_range_m"
+        if near_far is None and truth_depth is not None and np.any(truth_depth > 0):
+            z = truth_depth[truth_depth > 0]
+            near_far, source = (0.9 * float(z.min()), 1.1 * float(z.max())), "simulator/truth"
+        self.range_used = {"depth_range_m": None if near_far is None else [float(v) for v in near_far],
+                           "depth_range_from": source}
+        if near_far is None:
+            raise GeometryError(f"a scan of {self.sheets} sheets per frame needs the depth range of the "
+                                "objects: the compositor's depth_range_m [near, far]")
+        tri = self.triangulator
+        lo, hi = epipolar_span(tri.geom, tri.rays, near_far)
+        width = tri.geom.proj_size[0]
+        check_sheets(self.count, self.sheets, width, lo, hi, near_far)
+        index = assign_positions(votes.index, self.count, self.sheets, width, lo, hi)
+        return SheetVotes(votes.best, votes.second, index, votes.n_frames)
 
 
 def write_depth(out: str, depth: DepthMap) -> None:

@@ -30,12 +30,13 @@ class Scan:
     waiting_truth: bool = False  # complete, held for its simulator/truth message
     fault: str = ""
     mosaic: list[float] = field(default_factory=list)  # a polarization camera's layout (its frames')
+    sheets: int = 1  # a stripe scan's sheets per frame
 
     @property
     def expected(self) -> int | None:
         """Frames the scan takes: its method's patterns at each analyzer angle; None when unknown (a
         stripe scan announced without its stripe count)."""
-        n = len(Method(self.method).patterns(self.stripes, 1)) * max(1, len(self.analyzer_deg))
+        n = len(Method(self.method).patterns(self.stripes, 1, self.sheets)) * max(1, len(self.analyzer_deg))
         return n or None
 
     @property
@@ -61,7 +62,8 @@ def scan_metrics(scan: Scan, made, truth: Composite | None, dark: float, bright,
         if np.any((band >= 0) & high) and np.any((band >= 0) & ~high):
             bright, dim = (band >= 0) & high, (band >= 0) & ~high
     m = {"scan_id": scan.scan_id, "frames": scan.frames, "frames_dropped": scan.dropped,
-         "stripes": scan.stripes, "analyzer_deg": scan.analyzer_deg, "dark_offset_dn": dark,
+         "stripes": scan.stripes, "sheets": scan.sheets, "analyzer_deg": scan.analyzer_deg,
+         "dark_offset_dn": dark,
          "saturated_pixels": made.saturated_pixels}
     if made.p_estimate is not None:  # eq. 6's p (one p̂ or a map's percentiles) and the medium's
         m.update(made.p_estimate.summary())

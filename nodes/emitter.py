@@ -22,7 +22,9 @@ waiting for camera/frame``), the display blanked and the analyzer put back. The 
 ``camera/trigger`` call (the grabber answers once the frame is taken), bounded by ``trigger_timeout_s``.
 
 Methods (:class:`~polarstripe.msgs.Method`): ``flood``, ``polarized_flood`` (flood at E_b and E_w),
-``stripes`` (N stripes), ``polarized_stripes`` (N stripes at E_b and E_w), ``hf_separation`` (two
+``stripes`` (N stripes), ``polarized_stripes`` (N stripes at E_b and E_w; with K sheets per frame, the
+request's ``sheets`` or the ``sheets`` param, ⌈N/K⌉ frames ``stripe:I/N:xK`` per angle),
+``hf_separation`` (two
 complementary checkers, Nayar et al.'s high-frequency separation). Polarized methods take the analyzer
 angles of the request: two angles as given, one angle ``a`` as (a, a + 90), none as the ``analyzer_deg``
 param. Unpolarized methods with angles are taken at those angles; without, with no analyzer (frames carry
@@ -83,10 +85,11 @@ class ScanPlan:
     patterns: tuple[str, ...]
     angles: tuple[float | None, ...]
     stripes: int = 0
+    sheets: int = 1
 
 
 def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_size: int,
-              default_analyzer_deg: list[float], mosaic: bool = False) -> ScanPlan:
+              default_analyzer_deg: list[float], mosaic: bool = False, default_sheets: int = 1) -> ScanPlan:
     """Check ``req`` and spell out the scan; raises ``ValueError`` naming the field and the value. With a
     polarization camera (``mosaic``) every method is one pass with no analyzer angle: each frame holds E_b
     and E_w."""
@@ -95,6 +98,9 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
     stripes = req.stripes or default_stripes
     if family == "stripe" and not 1 <= stripes <= 4096:
         raise ValueError(f"stripes={req.stripes} must be 1..4096")
+    sheets = (req.sheets or default_sheets) if family == "stripe" else 1
+    if not 1 <= sheets <= stripes:
+        raise ValueError(f"sheets={sheets} must be 1..stripes ({stripes})")
     angles = [float(a) for a in req.analyzer_deg]
     if any(not math.isfinite(a) for a in angles):
         raise ValueError(f"analyzer_deg={req.analyzer_deg} must be finite angles")
@@ -106,8 +112,8 @@ def plan_scan(req: ScanRequest, scan_id: int, *, default_stripes: int, checker_s
             raise ValueError(f"method {req.method!r} needs analyzer_deg [E_b, E_w] (or one angle, "
                              f"E_w = E_b + 90), got {req.analyzer_deg}")
     resolved: tuple[float | None, ...] = tuple(angles) if angles and not mosaic else (None,)
-    patterns = tuple(str(p) for p in method.patterns(stripes, checker_size))
-    return ScanPlan(scan_id, req.method, patterns, resolved, stripes if family == "stripe" else 0)
+    patterns = tuple(str(p) for p in method.patterns(stripes, checker_size, sheets))
+    return ScanPlan(scan_id, req.method, patterns, resolved, stripes if family == "stripe" else 0, sheets)
 
 
 @dataclass
@@ -142,6 +148,7 @@ class Emitter(Node):
         display: str = "null"  # display backend: null | window | serial, or an entry point's
         display_options: dict[str, Any] = {}  # the backend's own options (its Options)
         stripes: int = 30  # when the request says 0
+        sheets: int = 1  # light sheets per stripe frame when the request says 0 (stripe:I/N:xK)
         checker_size: int = 16  # hf_separation checker squares [projector px]
         analyzer_deg: list[float] = []  # polarized methods without angles in the request: [E_b, E_w]
         settle_timeout_s: float = 10.0  # the analyzer must settle within this
@@ -160,6 +167,8 @@ class Emitter(Node):
                     raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
             if self.stripes < 1 or self.checker_size < 1:
                 raise ValueError(f"stripes={self.stripes} and checker_size={self.checker_size} must be >= 1")
+            if not 1 <= self.sheets <= self.stripes:
+                raise ValueError(f"sheets={self.sheets} must be 1..stripes ({self.stripes})")
 
     PUBLISHES = {"emitter/pattern": Pattern, "emitter/scan": ScanEvent, "polarizer/cmd": PolarizerCommand}
     SUBSCRIBES = {"polarizer/state": PolarizerState, "camera/frame": Frame}
@@ -209,7 +218,8 @@ class Emitter(Node):
                              detail=f"emitter/start_scan: {len(self.queue)} scans already queued")
         try:
             plan = plan_scan(req, self.next_id, default_stripes=p.stripes, checker_size=p.checker_size,
-                             default_analyzer_deg=p.analyzer_deg, mosaic=p.analyzer == "mosaic")
+                             default_analyzer_deg=p.analyzer_deg, mosaic=p.analyzer == "mosaic",
+                             default_sheets=p.sheets)
         except ValueError as exc:
             return ScanEvent(scan_id=0, event="fault", method=req.method, detail=f"emitter/start_scan: {exc}")
         self.next_id += 1
@@ -236,7 +246,8 @@ class Emitter(Node):
 
     def _event(self, plan: ScanPlan, event: str, detail: str = "") -> ScanEvent:
         return ScanEvent(scan_id=plan.scan_id, event=event, method=plan.method, stripes=plan.stripes,
-                         analyzer_deg=[a for a in plan.angles if a is not None], detail=detail)
+                         analyzer_deg=[a for a in plan.angles if a is not None], detail=detail,
+                         sheets=plan.sheets)
 
     # ---- the events that step a scan ---------------------------------------------------------------------
     def on_tick(self) -> None:

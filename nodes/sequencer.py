@@ -63,6 +63,7 @@ class Sequencer(Node):
     class Params(NodeParams):
         methods: list[str] = list(METHOD_NAMES)
         stripes: int = 30
+        sheets: int = 0  # sheets per stripe frame; 0: the plan's (plan = true), else the emitter's param
         eb_deg: float = 0.0  # analyzer angle of least backscatter E_b [deg]; E_w = E_b + 90
         calibrate: bool = False  # measure E_b first with polarizer/calibrate (overrides eb_deg)
         plan: bool = True  # ask planner/plan first
@@ -92,6 +93,8 @@ class Sequencer(Node):
                 Method.parse(method)
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
+            if not 0 <= self.sheets <= self.stripes:
+                raise ValueError(f"sheets must be 0..stripes ({self.stripes}), got {self.sheets}")
             if self.max_rescans < 0:
                 raise ValueError(f"max_rescans must be >= 0, got {self.max_rescans}")
             if self.repeat < 0:
@@ -318,8 +321,10 @@ class Sequencer(Node):
         p = self.params
         peers = self.scan_peers(method)
         polarized = Method(method).polarized and p.analyzer == "stage"
+        sheets = (p.sheets or (self.plan.sheets if self.plan is not None else 0)) if Method(method).striped \
+            else 0
         req = ScanRequest(method=method, stripes=p.stripes if Method(method).striped else 0,
-                          analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [])
+                          analyzer_deg=[self.eb_deg, self.eb_deg + 90.0] if polarized else [], sheets=sheets)
         t0 = time.monotonic()
         reply = self.call("emitter/start_scan", ScanRequest, ScanEvent, req, timeout_s=5.0)
         if reply.event == "fault":
@@ -355,6 +360,11 @@ class Sequencer(Node):
                            p.composite_timeout_s)
             return False
         shown = {k: v for k, v in comp.metrics.items() if isinstance(v, (int, float, str))}
+        depth = comp.metrics.get("depth")
+        if isinstance(depth, dict):   # a stripe scan's depth: its valid fraction and RMS (or why none)
+            names = {"valid_fraction": "depth_valid_fraction", "depth_rms_mm": "depth_rms_mm",
+                     "error": "depth_error"}
+            shown.update({names[k]: v for k, v in depth.items() if k in names})
         self.results[method]["metrics"] = shown
         if comp.metrics.get("error"):  # nothing to composite: the scan produced no image
             self.log.error("%s: scan %d: compositor/composite error: %s", method, sid, comp.metrics["error"])
@@ -364,11 +374,17 @@ class Sequencer(Node):
         return True
 
     def summary(self) -> str:
-        """One line per method that reached a composite: contrast and error vs truth, side by side."""
-        rows = [f"{'method':<18} {'contrast':>9} {'error vs truth':>15}"]
+        """One line per method that reached a composite: frames, sheets, contrast, error vs truth and a
+        stripe scan's depth (valid fraction, RMS [mm]), side by side."""
+        rows = [f"{'method':<18} {'frames':>6} {'sheets':>6} {'contrast':>9} {'error vs truth':>15} "
+                f"{'depth valid':>11} {'RMS mm':>7}"]
         for method, r in self.results.items():
             m = r.get("metrics", {})
-            rows.append(f"{method:<18} {_num(m.get('contrast')):>9} {_num(m.get('error_vs_truth')):>15}")
+            rows.append(f"{method:<18} {m.get('frames', '-'):>6} {m.get('sheets', '-'):>6} "
+                        f"{_num(m.get('contrast')):>9} {_num(m.get('error_vs_truth')):>15} "
+                        f"{_num(m.get('depth_valid_fraction')):>11} {_num(m.get('depth_rms_mm'), 2):>7}")
+            if m.get("depth_error"):
+                rows.append(f"  {method}: no depth: {m['depth_error']}")
         return "\n".join(rows)
 
 
@@ -378,8 +394,8 @@ def _answers(plan: Plan, scan_id: int) -> bool:
     return sid is not None and len(sid) == 1 and int(sid[0]) == scan_id
 
 
-def _num(value) -> str:
-    return f"{value:.3f}" if isinstance(value, int | float) else "-"
+def _num(value, digits: int = 3) -> str:
+    return f"{value:.{digits}f}" if isinstance(value, int | float) else "-"
 
 
 def _scores(metrics: dict) -> str:

@@ -1,9 +1,10 @@
 """Projector patterns in the model: the analytic clipping of rays to the lit part of the projector's frustum.
 
-The grammar (``flood``, ``stripe:K/N[:xSHEETS]``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the pattern
-value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns``, ``sheet_columns``,
-``single_sheets`` and ``gray_lit`` here are those, imported for the model. Checkers and Gray code are cut at every pattern-pixel boundary where their lit
-state can change (checker squares; Gray bit b changes at columns 2^b + m·2^(b+1), an XOR base bit too).
+The grammar (``flood``, ``stripe:K/N[:xSHEETS]``, ``checker:SIZE:SHIFT``, ``gray:BIT:AXIS:INV``) and the
+pattern value are :mod:`polarstripe.msgs.patterns`; ``PatternSpec``, ``stripe_columns``, ``sheet_columns``,
+``single_sheets`` and ``gray_lit`` here are those, imported for the model. Checkers and Gray code are cut at
+every pattern-pixel boundary where their lit state can change (checker squares; Gray bit b changes at columns
+2^b + m·2^(b+1), an XOR base bit too).
 A lit pixel sends I0 [W/sr] through it; an unlit one b·I0 (``projector.black_level``), handled by linearity.
 A stripe pattern of several sheets is the union of their pyramids: a ray's lit intervals are each sheet's
 (disjoint, so every order of light adds up over the sheets; the surface term A sums them in

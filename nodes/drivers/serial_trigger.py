@@ -42,8 +42,9 @@ def pattern_command(pattern: PatternSpec) -> str:
                                "flood, off, stripe and checker only; Gray code needs a projector "
                                "(display = window)")
     if pattern.kind == "stripe" and pattern.sheets > 1:
-        raise DriverValueError(f"pattern {pattern}: a serial trigger box (protocol {PROTOCOL_VERSION}) lights "
-                               "one sheet at a time; several sheets need a projector (display = window)")
+        raise DriverValueError(f"pattern {pattern}: a serial trigger box (protocol {PROTOCOL_VERSION}) "
+                               "lights one sheet at a time; several sheets need a projector "
+                               "(display = window)")
     if pattern.kind == "stripe":
         return f"PAT STRIPE {pattern.index} {pattern.count}"
     if pattern.kind == "checker":

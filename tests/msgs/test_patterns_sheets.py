@@ -9,8 +9,15 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from polarstripe.msgs import Method, Pattern, PatternError, PatternSpec, ScanEvent, decode, encode
-from polarstripe.msgs.patterns import following, parse, sheet_columns, sheet_positions, single_sheets, \
-    stripe_columns, stripes
+from polarstripe.msgs.patterns import (
+    following,
+    parse,
+    sheet_columns,
+    sheet_positions,
+    single_sheets,
+    stripe_columns,
+    stripes,
+)
 
 
 def test_three_sheets_of_thirty_are_ten_stripes_apart():

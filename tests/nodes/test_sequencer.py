@@ -105,12 +105,15 @@ def test_a_composite_with_an_error_fails_the_scan():
 
 
 def test_the_results_table_lists_each_method_with_its_scores():
-    h = rig(metrics={"contrast": 0.4125, "error_vs_truth": 0.25})
+    h = rig(metrics={"contrast": 0.4125, "error_vs_truth": 0.25, "frames": 20, "sheets": 3,
+                     "depth": {"valid_fraction": 0.7512, "depth_rms_mm": 1.234}})
     h.node.run()
     table = next(t for lvl, t in h.logs if t.startswith("results:")).splitlines()
-    assert table[1].split() == ["method", "contrast", "error", "vs", "truth"]
-    assert [row.split() for row in table[2:]] == [["flood", "0.412", "0.250"],
-                                                  ["polarized_stripes", "0.412", "0.250"]]
+    assert table[1].split() == ["method", "frames", "sheets", "contrast", "error", "vs", "truth", "depth",
+                                "valid", "RMS", "mm"]
+    assert [row.split() for row in table[2:]] == [["flood", "20", "3", "0.412", "0.250", "0.751", "1.23"],
+                                                  ["polarized_stripes", "20", "3", "0.412", "0.250", "0.751",
+                                                   "1.23"]]
 
 
 def test_it_waits_until_every_node_of_the_graph_is_heard_before_the_first_step():
