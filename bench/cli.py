@@ -25,6 +25,7 @@ BENCHES: dict[str, str] = {
     "soak": "the sim rig scanning for N minutes, a node killed every M s: losses, memory, recovery",
     "light": "linear against circular light end to end over σ_t and g, and the planner's pick",
     "motion": "the composite's loss with the rig's speed: rotating analyzer, polarization camera, K sheets",
+    "sheets": "K light sheets per stripe frame end to end over σ_t: error vs T, depth, frames",
     "ros2": "the live ROS 2 bridge's cost per camera frame against a plain Zenoh put and memcpy",
 }
 

@@ -20,10 +20,14 @@ The plan comes from :func:`polarstripe.planning.planner.plan` on the model of it
 (:func:`~polarstripe.planning.planner.plan_model`: ``error``, the composite's expected error against the
 unscattered object from low-resolution whole frames, or ``paper``, the paper's measures at three observed
 points; ``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``):
-modality ``stripes`` or ``flood``, with or without the polarizer. :class:`Plan` carries the best
-separation of the mean curve, the scan type (``rotate``, ``translate`` or ``both``) and per-location optima
-for stripes, and the curves (``separation_m``, ``objective``, ``objective_noise_free``, ``quality``,
-``weight``, and ``objective_O1``… per observed location).
+modality ``stripes`` or ``flood``, with or without the polarizer. With a frame budget (``max_frames``) a
+stripe plan takes the fewest sheets per frame that fit it (two analyzer passes with ``analyzer = "stage"``),
+renders those K-sheet frames (their backscatter) and keeps to separations where the sheets stay apart in the
+image over the scene's objects' depth range (:mod:`polarstripe.planning.sheets`;
+``curves["sheets_allowed"]``). :class:`Plan` carries the sheets, the best separation of the mean curve, the
+scan type (``rotate``, ``translate`` or ``both``) and per-location optima for stripes, and the curves
+(``separation_m``, ``objective``, ``objective_noise_free``, ``quality``, ``weight``, and ``objective_O1``…
+per observed location).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel
 from polarstripe.planning.planner import default_separations, plan, plan_model
+from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
@@ -59,6 +64,8 @@ class Planner(Node):
         polarized: bool = True
         light: Literal["scene", "linear", "circular"] = "scene"  # the polarization optics (sim with_light)
         stripes: int = 30
+        max_frames: int = 0  # frame budget of a stripe scan: the fewest sheets per frame that fit (0: one)
+        analyzer: Literal["stage", "mosaic"] = "stage"  # polarized scans: two passes (stage) or one (mosaic)
         stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
         separations: int = 24
         d_min_m: float = 0.02
@@ -86,6 +93,11 @@ class Planner(Node):
                 raise ValueError("p_tolerance and sigma_tolerance must be >= 0")
             if self.stripes < 1:
                 raise ValueError(f"stripes must be >= 1, got {self.stripes}")
+            if self.max_frames < 0:
+                raise ValueError(f"max_frames must be >= 0 (0: no budget), got {self.max_frames}")
+            if self.max_frames and (self.modality != "stripes" or self.measure != "error"):
+                raise ValueError("max_frames plans sheets per stripe frame: modality 'stripes', measure "
+                                 "'error'")
             resolve_fidelity(self.fidelity)  # e.g. "ultra": one line naming the choices
             if self.resolution:
                 check_frame_size(*parse_size(self.resolution), what="resolution")
@@ -127,9 +139,17 @@ class Planner(Node):
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
 
         p = self.params
-        model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
-                           orders=p.orders, stripe_step=p.stripe_step)
         seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
+        passes = 2 if p.polarized and p.analyzer == "stage" else 1
+        sheets = sheets_for_budget(p.stripes, p.max_frames, passes) if p.max_frames else 1
+        allowed = feasible(sheet_limits(self.scene, p.stripes, seps), sheets) if sheets > 1 else \
+            np.ones(seps.size, bool)
+        if not allowed.any():
+            raise SceneError(f"a budget of {p.max_frames} frames needs {sheets} sheets per frame, and over "
+                             "the depth range of the scene's objects they overlap in the image at every "
+                             "separation: allow more frames or scan fewer stripes")
+        model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
+                           orders=p.orders, stripe_step=p.stripe_step, sheets=sheets)
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
@@ -141,6 +161,7 @@ class Planner(Node):
         saturated = (np.zeros(c.separations_m.size) if p.max_saturated_fraction >= 1.0 else
                      np.array([frames.saturated_fraction(d) for d in c.separations_m]))
         order = np.argsort(-c.objective, kind="stable")
+        order = [i for i in order if allowed[i]]   # where the sheets stay apart in the image
         usable = [i for i in order if saturated[i] <= p.max_saturated_fraction]
         best = float(c.separations_m[usable[0] if usable else order[0]])
         if not usable:
@@ -157,15 +178,15 @@ class Planner(Node):
         self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
                   "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight,
-                  "flood_saturated_fraction": saturated}
+                  "flood_saturated_fraction": saturated, "sheets_allowed": allowed.astype(float)}
         for i, lc in enumerate(mp.location_curves):
             curves[f"objective_O{i + 1}"] = lc.objective
         result = Plan(modality=p.modality, separation_m=best, scan_type=mp.scan["winner"] if mp.scan else "",
                       stripe_optima=[lc.best_separation_m for lc in mp.location_curves],
-                      curves={k: np.asarray(v, np.float64) for k, v in curves.items()})
-        self.log.info("plan: %s%s, d_LC = %.3f m%s (assumes p = %.3f, sigma_t = %.3g /m)", p.modality,
-                      " polarized" if p.polarized else "", best,
-                      f", scan {result.scan_type}" if result.scan_type else "", self.p_assumed,
+                      curves={k: np.asarray(v, np.float64) for k, v in curves.items()}, sheets=sheets)
+        self.log.info("plan: %s%s, d_LC = %.3f m%s, %d sheet(s) per frame (assumes p = %.3f, sigma_t = "
+                      "%.3g /m)", p.modality, " polarized" if p.polarized else "", best,
+                      f", scan {result.scan_type}" if result.scan_type else "", sheets, self.p_assumed,
                       self.sigma_assumed)
         return result
 

@@ -9,7 +9,8 @@ scored against (docs/physics.md §10.8). Values are electrons at the scene's exp
 with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the full well apply as they are.
 
 * flood: one flood frame; one location (group 0).
-* stripes: the scan's frames (the projector aimed as the rig aims it, N stripes; every ``stripe_step``-th
+* stripes: the scan's frames (the projector aimed as the rig aims it, N stripes, ``sheets`` per frame:
+  ⌈N/K⌉ frames ``stripe:I/N:xK`` carrying the backscatter of K sheets each; every ``stripe_step``-th
   with a step > 1, and then only the pixels they light or that see no object), composed by eq. 7 as the
   compositor does; one location per observed point, the pixels nearest its column.
 
@@ -19,6 +20,7 @@ with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the fu
 from __future__ import annotations
 
 import numpy as np
+from polarstripe.msgs.patterns import stripes
 from polarstripe.planning.objectives import Samples, SensorNoise
 from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
@@ -43,6 +45,7 @@ class ImageModel:
     fractions : where the observed points sit on the centre row (fractions of the width): their stripes
         are the stripe locations.
     orders : ``all`` (as the scene needs) or ``single``.
+    sheets : light sheets per stripe frame (msgs/patterns.py ``stripe:I/N:xK``).
     """
 
     measure = "error"
@@ -50,7 +53,7 @@ class ImageModel:
 
     def __init__(self, scene: Scene, fidelity: str = "preview", n_stripes: int = 30,
                  width: int = DEFAULT_WIDTH, fractions=(0.25, 0.5, 0.75), orders: str = "all",
-                 stripe_step: int = 1):
+                 stripe_step: int = 1, sheets: int = 1):
         if orders not in ("single", "all"):
             raise SceneError(f"orders must be 'single' or 'all', got {orders!r}")
         if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
@@ -68,6 +71,9 @@ class ImageModel:
             raise SceneError(f"stripe_step must be a positive integer, got {stripe_step!r}")
         self.fidelity, self.n_stripes, self.orders = fidelity, int(n_stripes), orders
         self.stripe_step = int(stripe_step)
+        if isinstance(sheets, bool) or int(sheets) != sheets or not 1 <= sheets <= n_stripes:
+            raise SceneError(f"sheets must be an integer 1..n_stripes ({n_stripes}), got {sheets!r}")
+        self.sheets = int(sheets)
         self.shape = (h, w)
         self._e = electrons_per_radiance(cam).reshape(-1)
         frame = part_frame(cam)
@@ -118,12 +124,13 @@ class ImageModel:
         return float(np.mean(mean_dn(c.D + c.A + c.B, sd.camera) >= full_scale_dn(sd.camera)))
 
     def stripes(self, d_lc_m: float) -> Samples:
-        """Every ``stripe_step``-th stripe's frame of the scan, (F, n): the objective composes them by eq. 7
-        at each analyzer angle. Locations: each pixel belongs to the nearest observed point's column."""
+        """Every ``stripe_step``-th frame of the scan (``sheets`` sheets each), (F, n): the objective composes
+        them by eq. 7 at each analyzer angle. Locations: each pixel belongs to the nearest observed point's
+        column."""
         sd = with_separation(self.scene, d_lc_m, aim=True)
         truth = unscattered_object(sd)[0].reshape(-1)
-        parts = [self._render(sd, f"stripe:{k}/{self.n_stripes}")
-                 for k in range(0, self.n_stripes, self.stripe_step)]
+        frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
+        parts = [self._render(sd, str(p)) for p in frames]
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
         group = self._columns
         if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)

@@ -39,6 +39,7 @@ from polarstripe.planning.planner import (
     plan,
     plan_model,
 )
+from polarstripe.planning.sheets import feasible, restrict, sheet_limits, sheets_for_budget
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
 from polarstripe.sim.scene import LIGHTS, load_scene, with_light
@@ -149,6 +150,7 @@ PLAN_SCHEMA = {
                                       "model": {"enum": ["plan", "reference"]},
                                       "winner": {"enum": list(SCAN_TYPES)}}}},
                    "figure": {"type": "object", "required": ["panels"]},
+                   "sheets": {"type": "object", "required": ["sheets", "max_frames", "frames", "allowed"]},
                    "light": {"type": "object", "required": ["recommended", "lights", "tie"], "properties": {
                        "recommended": {"type": "object", "additionalProperties": {"enum": list(LIGHTS)}}}},
                    "validation": {"type": "object", "required": ["grid_m", "rows", "curves"],
@@ -180,6 +182,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
                         help="separation range in metres (default 0.01 0.6)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
+    parser.add_argument("--max-frames", type=int, default=0, metavar="N",
+                        help="frame budget of a polarized stripe scan (two analyzer passes; --analyzer "
+                        "mosaic: one): plan the fewest sheets per frame that fit, with their backscatter, at "
+                        "separations where they stay apart in the image (error measure; planning.md §11)")
+    parser.add_argument("--analyzer", choices=("stage", "mosaic"), default="stage",
+                        help="what --max-frames counts: a rotating analyzer's two passes (default) or a "
+                        "polarization camera's one")
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="scene: the camera's exposure_s, saturated points score 0 (default); auto: one "
                         "exposure per modality, the longest with no saturation over the sweep")
@@ -296,19 +305,29 @@ def main(args: argparse.Namespace) -> int:
     seps = default_separations(args.separations, args.range[0], args.range[1])
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans, doc = {}, {}
+    sheets, allowed = 1, None
+    if args.max_frames:
+        sheets = sheets_for_budget(args.stripes, args.max_frames, 2 if args.analyzer == "stage" else 1)
+        allowed = feasible(sheet_limits(scene, args.stripes, seps), sheets)
     for role, measure, orders in (("plan", args.measure, args.orders),
                                   ("reference", REFERENCE["measure"], REFERENCE["orders"])):
         if role == "reference" and ((args.measure, args.orders) == (measure, orders) or
                                     not (args.reference or args.plot or args.validate)):
             break  # the plan is the paper's own, or nothing asks for the comparison (it costs a sweep)
         model = plan_model(scene, measure=measure, fidelity=args.fidelity, n_stripes=args.stripes,
-                           edge=args.edge, orders=orders)
+                           edge=args.edge, orders=orders, sheets=sheets if role == "plan" else 1)
         plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
+        if role == "plan" and allowed is not None:
+            restrict(plans[role], allowed)
         if role == "plan":
             doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders}}
         else:
             doc["reference"] = {"measure": measure, "orders": orders, "plans": plan_to_json(plans[role])}
     doc["scans"] = scan_rows(doc)
+    if args.max_frames:
+        doc["sheets"] = {"sheets": sheets, "max_frames": args.max_frames, "analyzer": args.analyzer,
+                         "frames": -(-args.stripes // sheets) * (2 if args.analyzer == "stage" else 1),
+                         "allowed": [bool(a) for a in allowed]}
     if args.light == "both":
         doc["light"] = compare_lights(scene, seps, modalities=modalities, fidelity=args.fidelity,
                                       n_stripes=args.stripes, orders=args.orders)
@@ -327,6 +346,12 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(doc))
     else:
+        if "sheets" in doc:
+            s = doc["sheets"]
+            ok = [d for d, a in zip(seps, s["allowed"], strict=True) if a]
+            print(f"sheets: {s['sheets']} per stripe frame ({s['frames']} frames of a polarized scan, budget "
+                  f"{s['max_frames']}); they stay apart in the image at "
+                  + (f"{ok[0] * 100:.0f}-{ok[-1] * 100:.0f} cm" if ok else "no separation"))
         _print_tables(doc)
         print_scan_rows(doc["scans"])
         if "light" in doc:

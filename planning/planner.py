@@ -103,14 +103,17 @@ class ModalityPlan:
 
 
 def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_stripes: int = 30,
-               orders: str = "all", edge: str = "margin", stripe_step: int = 1):
+               orders: str = "all", edge: str = "margin", stripe_step: int = 1, sheets: int = 1):
     """The model :func:`plan` sweeps for a measure: the ``error`` measure renders low-resolution whole frames
     (:class:`ImageModel`, ``preview`` unless ``fidelity`` says otherwise; every ``stripe_step``-th frame of a
-    stripe scan), the ``paper``'s measures evaluate a few observed points (:class:`SceneModel`,
-    ``standard`` by default, ``edge`` its stripe measure)."""
+    stripe scan of ``sheets`` sheets per frame), the ``paper``'s measures evaluate a few observed points
+    (:class:`SceneModel`, ``standard`` by default, ``edge`` its stripe measure; one sheet per frame)."""
     if measure == "error":
         return ImageModel(scene, fidelity=fidelity or "preview", n_stripes=n_stripes, orders=orders,
-                          stripe_step=stripe_step)
+                          stripe_step=stripe_step, sheets=sheets)
+    if sheets != 1:
+        raise SceneError(f"sheets={sheets}: the paper's measures plan one sheet per frame; several sheets "
+                         "need measure 'error' (docs/planning.md §11)")
     if measure == "paper":
         return SceneModel(scene, fidelity=fidelity or "standard", n_stripes=n_stripes, edge=edge,
                           orders=orders)

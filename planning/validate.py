@@ -19,7 +19,10 @@ scores the composite as the compositor's ``metrics.json`` does (:func:`polarstri
   image (``error_e_b``, ``contrast_e_b``), and the p̂ eq. 6 used;
 * for the stripe methods the depth (:mod:`polarstripe.imaging.delineation`,
   :mod:`polarstripe.imaging.triangulation`) against :func:`polarstripe.sim.depth_truth.depth_truth`:
-  ``depth_valid_fraction`` (of the pixels that see an object) and ``depth_rms_mm``.
+  ``depth_valid_fraction`` (of the pixels that see an object) and ``depth_rms_mm``; with ``sheets`` > 1 per
+  frame (``stripe:I/N:xK``) each pixel's sheet told by the objects' depth range as the compositor tells it
+  (:mod:`polarstripe.imaging.sheets`, the range :func:`polarstripe.planning.sheets.object_depth_range`);
+* ``frames``: the frames the scan took (patterns × analyzer passes).
 
 The analyzer is calibrated per separation as the polarizer node does it: frames of the flood at 0°, 45°,
 90° and 135°, the least-backscatter angle over the object-free pixels
@@ -43,10 +46,13 @@ from dataclasses import dataclass
 import numpy as np
 from polarstripe.imaging.compose import compose, score
 from polarstripe.imaging.composite import RunningComposite
-from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, delineate
+from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, SheetVotes, delineate
 from polarstripe.imaging.polarization import least_backscatter_angle
-from polarstripe.imaging.triangulation import RigGeometry, depth_from_columns, stripe_edges
+from polarstripe.imaging.sheets import assign_positions, check_sheets, epipolar_span
+from polarstripe.imaging.triangulation import RigGeometry, camera_rays, depth_from_columns, stripe_edges
 from polarstripe.imaging.validation import ImagingError
+from polarstripe.msgs.patterns import stripes as stripe_frames
+from polarstripe.planning.sheets import object_depth_range
 from polarstripe.sim import sensor
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
@@ -63,7 +69,8 @@ RIG_FILL, RIG_PERCENTILE, METHOD_FILL = 0.85, 99.5, 0.9
 @dataclass(frozen=True)
 class ScanSettings:
     """How the scans are made: model ``fidelity`` and ``orders`` (``all``, ``single``), stripes per scan,
-    camera ``width`` (None: the scene's), the ``exposure`` rule (module docstring), the noise ``seed``."""
+    camera ``width`` (None: the scene's), the ``exposure`` rule (module docstring), the noise ``seed``, the
+    light ``sheets`` per stripe frame."""
 
     fidelity: str = "standard"
     orders: str = "all"
@@ -71,6 +78,7 @@ class ScanSettings:
     width: int | None = 160
     exposure: str = "scene"
     seed: int = 1
+    sheets: int = 1
 
     def check(self) -> None:
         resolve_fidelity(self.fidelity)
@@ -82,6 +90,9 @@ class ScanSettings:
             raise SceneError(f"stripes must be an integer >= 2, got {self.n_stripes!r}")
         if self.width is not None and not 16 <= int(self.width):
             raise SceneError(f"width must be >= 16 pixels, got {self.width!r}")
+        if isinstance(self.sheets, bool) or int(self.sheets) != self.sheets or not 1 <= self.sheets <= \
+                self.n_stripes:
+            raise SceneError(f"sheets must be an integer 1..stripes ({self.n_stripes}), got {self.sheets!r}")
 
 
 def scan_scene(scene: Scene, width: int | None) -> Scene:
@@ -147,7 +158,14 @@ def _calibrate(flood, camera, scale, rng, background) -> tuple[tuple[float, floa
     return (crossed, (crossed + 90.0) % 180.0), ""
 
 
-def _depth(votes, geom: RigGeometry, noise: NoiseModel, n_stripes: int, truth: np.ndarray) -> dict:
+def _depth(votes, geom: RigGeometry, noise: NoiseModel, n_stripes: int, truth: np.ndarray, sheets: int = 1,
+           near_far=None) -> dict:
+    if sheets > 1:      # each pixel's sheet of its brightest frame, as the compositor tells it
+        h, w = truth.shape
+        lo, hi = epipolar_span(geom, camera_rays(geom, *np.mgrid[0:h, 0:w]), near_far)
+        check_sheets(n_stripes, sheets, geom.proj_size[0], lo, hi, near_far)
+        index = assign_positions(votes.index, n_stripes, sheets, geom.proj_size[0], lo, hi)
+        votes = SheetVotes(votes.best, votes.second, index, votes.n_frames)
     columns = delineate(votes, stripe_edges(n_stripes, geom.proj_size[0]), noise)
     z = depth_from_columns(geom, columns)
     both = np.isfinite(z) & np.isfinite(truth)
@@ -180,10 +198,11 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
     settings = settings or ScanSettings()
     sd = with_separation(scene, float(separation_m), aim=True)
     fid, orders, n = settings.fidelity, settings.orders, int(settings.n_stripes)
+    k_sheets = int(settings.sheets)
     flood = render_components(sd, "flood", fid, orders=orders)
     stripes = []
     if any("stripes" in m for m in methods):
-        stripes = [render_components(sd, f"stripe:{k}/{n}", fid, orders=orders) for k in range(n)]
+        stripes = [render_components(sd, p, fid, orders=orders) for p in stripe_frames(n, k_sheets)]
     truth, surf = unscattered_object(sd)
     background = surf.object_id < 0
     background = background if background.any() else None
@@ -221,7 +240,8 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
                        object_free=background)
         truth_dn = truth * cam.e_map / cam.camera.gain_e_per_dn  # DN above the offset, never clipped
         row = {"separation_m": float(separation_m), "exposure_scale": scale,
-               "saturated_fraction": made.saturated_pixels / made.image.size}
+               "saturated_fraction": made.saturated_pixels / made.image.size,
+               "frames": sum(len(p) for p in passes)}
         row["error"], row["contrast"] = _scored(made.image, truth_dn, bright, dark)
         notes = [made.note]
         if method.startswith("polarized"):
@@ -234,7 +254,8 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
                 region = background if background is not None else np.ones(shape, bool)
                 crossed = min((0.0, 1.0), key=lambda a: float(np.median(votes.result(a).best[region])))
             try:
-                row.update(_depth(votes.result(crossed), geom, cam.noise(), n, depth_z))
+                row.update(_depth(votes.result(crossed), geom, cam.noise(), n, depth_z, k_sheets,
+                                  object_depth_range(sd) if k_sheets > 1 else None))
             except ImagingError as exc:
                 row.update(depth_valid_fraction=None, depth_rms_mm=None)
                 notes.append(f"no depth: {exc}")
