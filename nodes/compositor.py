@@ -103,8 +103,7 @@ class Compositor(Node):
         depth_k_sigma: float = 4.0  # a stripe is delineated where its margins exceed this many noise sigma
         depth_min_contrast: float = 0.15  # and its edges this fraction of the signal
         depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
-        depth_range_m: list[float] = []  # [near, far] of the objects: tells a K-sheet frame's sheets apart;
-        # empty: the simulator truth's object depths widened by 10 % each way (K = 1 needs none)
+        depth_range_m: list[float] = []  # objects' [near, far] [m]: tells K sheets apart ([]: truth ±10 %)
         mosaic_rule: Literal["local", "global", "pixel"] = "local"  # a polarization camera's E_b/E_w angle
         mosaic_angle_sigma_px: float = 6.0  # the local rule's smoothing of the light's angle [px]
         mosaic_polarized_sigma_px: float = 0.0  # smooth the polarized part of E_b/E_w [px] (0: not)

@@ -35,8 +35,8 @@ _PAR_EPS = 1e-13
 
 
 def parse_pattern(spec: str | PatternSpec) -> PatternSpec:
-    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N), ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) or
-    ``gray:BIT:col|row:0|1`` with
+    """Parse ``flood``, ``stripe:K/N`` (0 ≤ K < N; ``stripe:I/N:xS``: S sheets at once),
+    ``checker:SIZE:SHIFT`` (SIZE ≥ 1, SHIFT ≥ 0 pixels) or ``gray:BIT:col|row:0|1`` with
     the grammar of :mod:`polarstripe.msgs.patterns`; a bad spec (or ``off``, which lights nothing to model)
     is a :class:`SceneError`."""
     try:

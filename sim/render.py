@@ -180,7 +180,8 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
     Parameters
     ----------
     scene : Scene
-    pattern : ``flood``, ``stripe:K/N``, ``checker:SIZE:SHIFT`` or a :class:`PatternSpec`.
+    pattern : ``flood``, ``stripe:K/N`` (``stripe:I/N:xS``: S sheets at once), ``checker:SIZE:SHIFT`` or a
+        :class:`PatternSpec`.
     fidelity : ``preview`` | ``standard`` | ``reference`` | :class:`Fidelity` |
         ``"xi=..,theta=..,phi=..,grid=.."``.
     pixels : optional (n, 2) int array of (row, col): compute only these (cost scales with n; A exact there).

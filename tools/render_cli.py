@@ -32,8 +32,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", nargs="?", default=None,
                         help="scene TOML file (docs/scene-format.md); omitted: the paper's default tank")
     parser.add_argument("--pattern", default="flood",
-                        help="flood | stripe:K/N | checker:SIZE:SHIFT | gray:BIT:col|row:INV[:xorBASE] (Gray "
-                             "code bit BIT, its inverse with INV = 1, XOR the column code's bit BASE)")
+                        help="flood | stripe:K/N[:xSHEETS] | checker:SIZE:SHIFT | "
+                             "gray:BIT:col|row:INV[:xorBASE] (stripe:I/N:xK: K sheets at once, positions I, "
+                             "I + ceil(N/K), ...; Gray code bit BIT, its inverse with INV = 1, XOR the "
+                             "column code's bit BASE)")
     parser.add_argument("--polarizer", type=float, default=None, metavar="DEG",
                         help="analyzer angle [deg] from image right toward image up "
                              "(default: camera.polarizer.angle_deg of the scene; none there = no analyzer)")

@@ -4,11 +4,12 @@ Pattern conventions are the rig's (:mod:`polarstripe.msgs.patterns`), for a proj
 pixels wide and ``H`` high, row 0 at the top:
 
 * ``flood`` lights every pixel, ``off`` none; * ``stripe:K/N`` lights columns ``floor(K·W/N)`` …
-``floor((K+1)·W/N) − 1`` (0 ≤ K < N); * ``checker:SIZE:SHIFT`` lights the pixels where ``floor((col −
-SHIFT)/SIZE) + floor(row/SIZE)`` is even; * ``gray:BIT:col|row:INV`` lights the pixels whose column (row)
-index j has bit BIT of its Gray code j XOR (j >> 1) at 1 (INV = 0) or 0 (INV = 1), the images of OpenCV's
-``GrayCodePattern``; with ``:xorBASE`` that bit XOR bit BASE of the column's Gray code (the XOR code of the
-projector calibration, docs/depth.md "Calibration").
+``floor((K+1)·W/N) − 1`` (0 ≤ K < N), ``stripe:I/N:xS`` those of each of its S sheets (msgs/patterns.py);
+* ``checker:SIZE:SHIFT`` lights the pixels where ``floor((col − SHIFT)/SIZE) + floor(row/SIZE)`` is even;
+* ``gray:BIT:col|row:INV`` lights the pixels whose column (row) index j has bit BIT of its Gray code
+j XOR (j >> 1) at 1 (INV = 0) or 0 (INV = 1), the images of OpenCV's ``GrayCodePattern``; with ``:xorBASE``
+that bit XOR bit BASE of the column's Gray code (the XOR code of the projector calibration, docs/depth.md
+"Calibration").
 
 :class:`Display` owns the shared behaviour (pattern parsing and validation, the current pattern, the context
 manager, an idempotent :meth:`~Display.close`); a backend implements ``_show`` and declares its ``Options``

@@ -155,3 +155,16 @@ def test_compositor_p_until_a_fit_gives_p_and_nan_p_is_no_p():
     assert h.node.counters["replans"] == 3 and h.node.fitted_p
     h.deliver("compositor/medium_p", MediumEstimate(p=0.1, scan_id=5))  # the fit's p outranks it
     assert h.node.counters["replans"] == 3 and h.node.scene.medium.dop.p == pytest.approx(0.6)
+
+
+def test_a_frame_budget_plans_the_fewest_sheets_that_fit_it():
+    """30 stripes in 20 frames of a polarized scan (two analyzer passes): 10 frames a pass, 3 sheets each;
+    the separation is one where three sheets stay apart in the image over the chart's depth range."""
+    h = NodeHarness(Planner, name="planner", namespace="/rig", params={**FAST, "max_frames": 20})
+    plan = h.call("planner/plan", Empty())
+    assert plan.sheets == 3
+    allowed = plan.curves["sheets_allowed"].astype(bool)
+    assert allowed.any() and allowed[list(plan.curves["separation_m"]).index(plan.separation_m)]
+    with pytest.raises(ParamError, match="max_frames"):
+        NodeHarness(Planner, name="planner", namespace="/rig", params={**FAST, "max_frames": 20,
+                                                                       "modality": "flood"})
