@@ -26,6 +26,7 @@ the output is written under a temporary name and renamed at the end.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -43,6 +44,7 @@ from polarstripe.msgs import (
     MediumEstimate,
     MessageError,
     Pattern,
+    PatternError,
     Plan,
     PolarizerCommand,
     PolarizerState,
@@ -119,8 +121,11 @@ def _record(kind: str, m, stamp_ns: int):
         return Heartbeat(header=h, node=m.node, pid=int(m.pid), uptime_s=float(m.uptime_s),
                          counters=dict(zip(m.counter_names, map(int, m.counter_values), strict=False)))
     if kind == "PatternInfo":
-        return Pattern(header=h, kind=m.kind, index=int(m.index), count=int(m.count), size=int(m.size),
-                       shift=int(m.shift), scan_id=int(m.scan_id), step=int(m.step))
+        try:  # the tag holds what the fields do not (a stripe's sheets, a Gray code's axis, inverse, XOR)
+            return dataclasses.replace(Pattern.of(m.tag, int(m.scan_id), int(m.step)), header=h)
+        except PatternError:
+            return Pattern(header=h, kind=m.kind, index=int(m.index), count=int(m.count), size=int(m.size),
+                           shift=int(m.shift), scan_id=int(m.scan_id), step=int(m.step))
     if kind == "Packed":
         try:
             return unpack(bytes(np.asarray(m.msgpack, np.uint8)))

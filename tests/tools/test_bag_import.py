@@ -130,3 +130,19 @@ def test_import_errors_are_one_line_and_leave_nothing(exported, tmp_path, capsys
     fails(cut, tmp_path / "a.mcap", "unreadable rosbag2")
     assert main(["bag", "import", str(exported), "-o", str(tmp_path / "ok.mcap"), "--no-progress"]) == 0
     assert "/rig/camera/frame: 16" in capsys.readouterr().out
+
+
+def test_a_pattern_record_comes_back_with_what_only_its_tag_holds():
+    """PatternInfo carries the tag beside the fields: a K-sheet stripe (and a Gray code) comes back whole; a
+    record whose tag is not a pattern falls back to its fields."""
+    from types import SimpleNamespace
+
+    from polarstripe.tools.bag_import import _record
+
+    def info(tag):
+        return SimpleNamespace(tag=tag, kind="stripe", index=2, count=30, size=0, shift=0, scan_id=4, step=7)
+
+    got = _record("PatternInfo", info("stripe:2/30:x3"), 5)
+    assert (str(got.spec()), got.sheets, got.scan_id, got.step) == ("stripe:2/30:x3", 3, 4, 7)
+    assert str(_record("PatternInfo", info("gray:3:row:1:xor2"), 5).spec()) == "gray:3:row:1:xor2"
+    assert str(_record("PatternInfo", info("stripe"), 5).spec()) == "stripe:2/30"
