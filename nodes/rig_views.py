@@ -64,7 +64,7 @@ RECORDS: dict[str, tuple[tuple[str, str], ...]] = {
                        ("fault", "string")),
     "PolarizerCommand": (("target_deg", "float64"),),
     "ScanEvent": (("scan_id", "uint32"), ("event", "string"), ("method", "string"), ("stripes", "uint32"),
-                  ("analyzer_deg", "float64[]"), ("detail", "string")),
+                  ("analyzer_deg", "float64[]"), ("detail", "string"), ("sheets", "uint32")),
     "CompositeMetrics": (("method", "string"), ("scan_id", "uint32"), ("contrast", "float64"),
                          ("error_vs_truth", "float64"), ("p", "float64"), ("dark_offset_dn", "float64"),
                          ("names", "string[]"), ("values", "float64[]")),
@@ -73,7 +73,7 @@ RECORDS: dict[str, tuple[tuple[str, str], ...]] = {
                        ("mean_cosine_std", "float64"), ("reason", "string")),
     "Curve": (("name", "string"), ("values", "float64[]")),
     "Plan": (("modality", "string"), ("separation_m", "float64"), ("scan_type", "string"),
-             ("stripe_optima", "float64[]"), ("curves", "Curve[]")),
+             ("stripe_optima", "float64[]"), ("curves", "Curve[]"), ("sheets", "uint32")),
     "Heartbeat": (("node", "string"), ("pid", "uint32"), ("uptime_s", "float64"),
                   ("counter_names", "string[]"), ("counter_values", "int64[]")),
     "Packed": (("type", "string"), ("version", "uint32"), ("msgpack", "uint8[]")),
@@ -278,7 +278,8 @@ class RigViews:
         elif isinstance(msg, ScanEvent):
             out.append(Record(topic, stamp_ns, "ScanEvent", {
                 "scan_id": _u32(msg.scan_id), "event": msg.event, "method": msg.method,
-                "stripes": _u32(msg.stripes), "analyzer_deg": list(msg.analyzer_deg), "detail": msg.detail}))
+                "stripes": _u32(msg.stripes), "analyzer_deg": list(msg.analyzer_deg), "detail": msg.detail,
+                "sheets": _u32(msg.sheets)}))
         elif isinstance(msg, PolarizerCommand):
             out.append(Record(topic, stamp_ns, "PolarizerCommand", {"target_deg": msg.target_deg}))
         elif isinstance(msg, MediumEstimate):
@@ -292,7 +293,7 @@ class RigViews:
                 "modality": msg.modality, "separation_m": msg.separation_m, "scan_type": msg.scan_type,
                 "stripe_optima": list(msg.stripe_optima),
                 "curves": [{"name": k, "values": np.asarray(v, float).ravel().tolist()}
-                           for k, v in msg.curves.items()]}))
+                           for k, v in msg.curves.items()], "sheets": _u32(msg.sheets)}))
         elif isinstance(msg, Heartbeat):
             out.append(Record(topic, stamp_ns, "Heartbeat", {
                 "node": msg.node, "pid": _u32(msg.pid), "uptime_s": msg.uptime_s,

@@ -254,7 +254,8 @@ class Ros2Bridge(Node):
     def _rig_request(srv: str, request) -> Message:
         if srv.endswith("/StartScan"):
             return ScanRequest(method=request.method, stripes=int(request.stripes),
-                               analyzer_deg=[float(a) for a in request.analyzer_deg])
+                               analyzer_deg=[float(a) for a in request.analyzer_deg],
+                               sheets=int(getattr(request, "sheets", 0)))
         return Empty()
 
     def _rig_reply(self, srv: str, reply: Message | None) -> dict:

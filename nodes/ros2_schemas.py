@@ -71,7 +71,7 @@ _ENCODINGS = {("u", 2, 1): "mono16", ("u", 1, 1): "mono8", ("f", 4, 1): "32FC1",
 #: The rig's services as ROS 2 services: ROS 2 type -> (request fields, response fields), in .msg syntax.
 #: Every response says whether the rig's service answered (``ok``) and why not (``detail``).
 SERVICES: dict[str, tuple[str, str]] = {
-    "StartScan": ("string method\nuint32 stripes\nfloat64[] analyzer_deg\n",
+    "StartScan": ("string method\nuint32 stripes\nfloat64[] analyzer_deg\nuint32 sheets\n",
                   f"bool ok\nstring detail\n{PACKAGE}/ScanEvent event\n"),
     "GetPlan": ("", f"bool ok\nstring detail\n{PACKAGE}/Plan plan\n"),
 }

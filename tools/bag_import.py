@@ -102,7 +102,7 @@ def _record(kind: str, m, stamp_ns: int):
     if kind == "ScanEvent":
         return ScanEvent(header=h, scan_id=int(m.scan_id), event=m.event, method=m.method,
                          stripes=int(m.stripes), analyzer_deg=[float(x) for x in m.analyzer_deg],
-                         detail=m.detail)
+                         detail=m.detail, sheets=int(getattr(m, "sheets", 1)) or 1)
     if kind == "PolarizerState":
         return PolarizerState(header=h, angle_deg=float(m.angle_deg), target_deg=float(m.target_deg),
                               settled=bool(m.settled), fault=m.fault)
@@ -116,7 +116,8 @@ def _record(kind: str, m, stamp_ns: int):
     if kind == "Plan":
         return Plan(header=h, modality=m.modality, separation_m=float(m.separation_m), scan_type=m.scan_type,
                     stripe_optima=[float(x) for x in m.stripe_optima],
-                    curves={c.name: np.asarray(c.values, np.float64) for c in m.curves})
+                    curves={c.name: np.asarray(c.values, np.float64) for c in m.curves},
+                    sheets=int(getattr(m, "sheets", 1)) or 1)
     if kind == "Heartbeat":
         return Heartbeat(header=h, node=m.node, pid=int(m.pid), uptime_s=float(m.uptime_s),
                          counters=dict(zip(m.counter_names, map(int, m.counter_values), strict=False)))

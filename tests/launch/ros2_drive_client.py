@@ -24,7 +24,7 @@ client = ROS2ServiceClient("/rig/emitter/start_scan", "polarstripe_msgs/srv/Star
                            timeout=20.0)
 deadline = time.monotonic() + 200
 while not metrics and time.monotonic() < deadline:
-    r = client.call(method="flood", stripes=0, analyzer_deg=np.zeros(0))
+    r = client.call(method="flood", stripes=0, analyzer_deg=np.zeros(0), sheets=0)
     print(json.dumps({"call": None if r is None else {"ok": bool(r.ok), "event": r.event.event,
                                                       "scan_id": int(r.event.scan_id)}}), flush=True)
     waited = time.monotonic()

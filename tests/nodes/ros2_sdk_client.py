@@ -83,11 +83,11 @@ say(services=get_service_names_and_types(router_port=port, timeout=1.0))
 
 client = ROS2ServiceClient("/rig/emitter/start_scan", "polarstripe_msgs/srv/StartScan", router_port=port,
                            timeout=10.0)
-r = client.call(method="flood", stripes=0, analyzer_deg=np.array([10.0, 100.0]))
+r = client.call(method="flood", stripes=0, analyzer_deg=np.array([10.0, 100.0]), sheets=0)
 say(start_scan=None if r is None else {"ok": bool(r.ok), "detail": r.detail, "scan_id": int(r.event.scan_id),
                                         "event": r.event.event, "method": r.event.method,
                                         "analyzer_deg": [float(a) for a in r.event.analyzer_deg]})
-r = client.call(method="", stripes=0, analyzer_deg=np.zeros(0))
+r = client.call(method="", stripes=0, analyzer_deg=np.zeros(0), sheets=0)
 say(refused=None if r is None else {"ok": bool(r.ok), "detail": r.detail})
 plan = ROS2ServiceClient("/rig/planner/plan", "polarstripe_msgs/srv/GetPlan", router_port=port, timeout=10.0)
 r = plan.call()
