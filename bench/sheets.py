@@ -9,7 +9,7 @@ gain-fitted error of the composite against T (``stripes`` by eq. 7, ``polarized_
 depth's valid fraction (of the object pixels) and RMS [mm] against the depth truth, and the frames the scan
 took (⌈N/K⌉ per analyzer pass). All at one separation (``--separation``, the scene's 0.2 m by default), so
 what changes down a column is K alone; the most sheets that separation allows over the objects' depth
-range (:func:`polarstripe.planning.sheets.sheet_limits`) is printed with each medium. docs/planning.md §11.
+range (:func:`polarstripe.planning.sheets.sheet_limits`) is printed with each medium. docs/planning.md §12.
 """
 
 from __future__ import annotations

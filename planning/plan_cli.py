@@ -185,7 +185,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=0, metavar="N",
                         help="frame budget of a polarized stripe scan (two analyzer passes; --analyzer "
                         "mosaic: one): plan the fewest sheets per frame that fit, with their backscatter, at "
-                        "separations where they stay apart in the image (error measure; planning.md §11)")
+                        "separations where they stay apart in the image (error measure; planning.md §12)")
     parser.add_argument("--analyzer", choices=("stage", "mosaic"), default="stage",
                         help="what --max-frames counts: a rotating analyzer's two passes (default) or a "
                         "polarization camera's one")

@@ -113,7 +113,7 @@ def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_
                           stripe_step=stripe_step, sheets=sheets)
     if sheets != 1:
         raise SceneError(f"sheets={sheets}: the paper's measures plan one sheet per frame; several sheets "
-                         "need measure 'error' (docs/planning.md §11)")
+                         "need measure 'error' (docs/planning.md §12)")
     if measure == "paper":
         return SceneModel(scene, fidelity=fidelity or "standard", n_stripes=n_stripes, edge=edge,
                           orders=orders)

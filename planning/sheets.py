@@ -1,4 +1,4 @@
-"""How many light sheets per stripe frame, for a frame budget (docs/planning.md §11).
+"""How many light sheets per stripe frame, for a frame budget (docs/planning.md §12).
 
 A stripe scan of N positions with K sheets per frame (``stripe:I/N:xK``, msgs/patterns.py) takes ⌈N/K⌉
 frames per analyzer pass (two passes for polarized striping with a rotating analyzer, one with a
