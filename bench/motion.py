@@ -11,7 +11,8 @@ fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py score
 * rotating analyzer: polarized flood (2 frames and one stage move) and polarized stripes (2N frames and one
   move), E_b found from four flood frames at rest (the polarizer node's calibration);
 * polarization camera: polarized flood (1 frame) and polarized stripes (N frames), the ``local`` rule;
-* stripes with K sheets per frame: K = 1 only (N frames, no analyzer) until the patterns have K sheets.
+* stripes with K sheets per frame (``stripe:I/N:xK``, ⌈N/K⌉ frames, no analyzer): K = 1, 3 and 5; and the
+  rotating analyzer's polarized stripes with 3 sheets (2⌈N/3⌉ frames and one move).
 
 Frame i of a scan draws its sensor noise from the seed and i alone, the same at every speed, so a row's change
 with speed is the motion's, not the noise's. The last column gives, per mode and direction, the speed at
@@ -51,10 +52,11 @@ from polarstripe.sim.scene import load_scene, parse_size
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, full_scale_dn
 
 DIRECTIONS = {"along": (1.0, 0.0, 0.0), "across": (0.0, 1.0, 0.0), "forward": (0.0, 0.0, 1.0)}
-#: (mode, method): the rows of the table
-SCANS = (("rotating analyzer", "polarized_flood"), ("rotating analyzer", "polarized_stripes"),
-         ("polarization camera", "polarized_flood"), ("polarization camera", "polarized_stripes"),
-         ("stripes, K = 1 sheet", "stripes"))
+#: (mode, method, sheets per stripe frame): the rows of the table
+SCANS = (("rotating analyzer", "polarized_flood", 1), ("rotating analyzer", "polarized_stripes", 1),
+         ("polarization camera", "polarized_flood", 1), ("polarization camera", "polarized_stripes", 1),
+         ("stripes, K = 1 sheet", "stripes", 1), ("stripes, K = 3 sheets", "stripes", 3),
+         ("stripes, K = 5 sheets", "stripes", 5), ("rotating analyzer, K = 3 sheets", "polarized_stripes", 3))
 GROWTH = 0.10  # the error growth the last table reports the speed of
 SPEEDS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # [m/s]
 
@@ -71,8 +73,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate [1/s] (default 30)")
     parser.add_argument("--seed", type=int, default=1, help="sensor noise seed")
     parser.add_argument("--only", nargs="+", type=int, default=None, metavar="ROW",
-                        help="only these rows of the table (0-4: " + ", ".join(
-                            f"{i} {m} {k}" for i, (m, k) in enumerate(SCANS)) + ")")
+                        help=f"only these rows of the table (0-{len(SCANS) - 1}: " + ", ".join(
+                            f"{i} {m} {k}" for i, (m, k, _) in enumerate(SCANS)) + ")")
 
 
 class Rig:
@@ -115,10 +117,11 @@ class Rig:
         return expose(radiance, self.scene.camera, rng, electrons=self.e_map,
                       gaussian=self.fidelity.name == "preview")
 
-    def scan(self, mode: str, method: str, motion: RigMotion) -> dict:
-        """One scan of ``method`` by ``mode`` with the rig moving as ``motion`` says: its scores."""
+    def scan(self, mode: str, method: str, motion: RigMotion, sheets: int = 1) -> dict:
+        """One scan of ``method`` by ``mode`` (``sheets`` per stripe frame) with the rig moving as ``motion``
+        says: its scores."""
         m = Method(method)
-        patterns = [str(p) for p in m.patterns(self.stripes, 1)]
+        patterns = [str(p) for p in m.patterns(self.stripes, 1, min(sheets, self.stripes))]
         rotating = mode.startswith("rotating")
         angles = [self.e_b, self.e_b + 90.0] if rotating else []
         times = motion.times(len(patterns), angles)
@@ -174,14 +177,14 @@ def run(args) -> dict:
     rig = Rig(args)
     rows = []
     for index in args.only if args.only is not None else range(len(SCANS)):
-        mode, method = SCANS[index]
+        mode, method, sheets = SCANS[index]
         rest = rig.scan(mode, method, RigMotion(fps=args.fps, stage_deg_s=rig.stage[0],
-                                                stage_settle_s=rig.stage[1]))
-        row = {"mode": mode, "method": method, "frames": rest["frames"], "scan_s": rest["scan_s"],
-               "directions": {}}
+                                                stage_settle_s=rig.stage[1]), sheets)
+        row = {"mode": mode, "method": method, "sheets": sheets, "frames": rest["frames"],
+               "scan_s": rest["scan_s"], "directions": {}}
         for name in args.directions:
             results = [rest] + [rig.scan(mode, method, RigMotion(
-                tuple(s * c for c in DIRECTIONS[name]), args.fps, *rig.stage)) for s in speeds[1:]]
+                tuple(s * c for c in DIRECTIONS[name]), args.fps, *rig.stage), sheets) for s in speeds[1:]]
             errors = [r["error"] for r in results]
             row["directions"][name] = {
                 "error": errors, "contrast": [r["contrast"] for r in results], "p": [r["p"] for r in results],

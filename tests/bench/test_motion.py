@@ -28,3 +28,12 @@ def test_bench_motion_table(capsys):
     assert camera["frames"] == 1 and camera["scan_s"] == 0.0
     flood = camera["directions"]["along"]
     assert flood["error"][0] == flood["error"][1] and flood["tolerated_m_s"] is None
+
+
+def test_a_three_sheet_stripe_scan_is_a_third_of_the_frames_and_time(capsys):
+    assert main(["bench", "motion", "--resolution", "32x24", "--stripes", "6", "--speeds", "0",
+                 "--directions", "along", "--only", "4", "5", "--json"]) == 0
+    one, three = json.loads(capsys.readouterr().out)["rows"]
+    assert (one["sheets"], one["frames"], three["sheets"], three["frames"]) == (1, 6, 3, 2)
+    assert one["scan_s"] == pytest.approx(5 / 30, rel=1e-12)       # the last frame at (frames − 1)/fps
+    assert three["scan_s"] == pytest.approx(1 / 30, rel=1e-12)
