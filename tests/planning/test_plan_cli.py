@@ -168,3 +168,18 @@ def test_usage_errors(argv, needle, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["plan", *argv])
     assert exc.value.code == 2 and needle in capsys.readouterr().err
+
+
+def test_a_frame_budget_plans_sheets_only_where_they_stay_apart(capsys):
+    """30 stripes in 4 frames of a polarized scan: 15 sheets per frame, 1 stripe (34 projector columns) apart,
+    which only the narrowest baseline keeps apart over the chart's depth range (planning/sheets.py): the pick
+    is there, the other separations score 0."""
+    assert main(["plan", "--modality", "stripes", "--separations", "3", "--range", "0.05", "0.3",
+                 "--stripes", "30", "--max-frames", "4", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    jsonschema.validate(doc, PLAN_SCHEMA)
+    assert doc["sheets"] == {"sheets": 15, "max_frames": 4, "analyzer": "stage", "frames": 4,
+                             "allowed": [True, False, False]}
+    for key in ("stripes", "stripes_polarized"):
+        assert doc[key]["best_separation"] == pytest.approx(0.05)
+        assert doc[key]["objective"][1:] == [0.0, 0.0] and doc[key]["objective"][0] > 0
