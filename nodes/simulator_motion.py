@@ -23,11 +23,12 @@ def rig_motion(params) -> RigMotion:
 
 
 def frames_per_pass(event: ScanEvent) -> int | None:
-    """Frames a scan of ``event`` takes at each analyzer angle (None for a method this does not know)."""
+    """Frames a scan of ``event`` takes at each analyzer angle: a stripe scan ⌈stripes/sheets⌉ (None for a
+    method this does not know or a stripe scan without stripes)."""
     method = Method.lookup(event.method)
-    if method is None or (method.striped and event.stripes < 1):
+    if method is None or (method.striped and (event.stripes < 1 or event.sheets < 1)):
         return None
-    return len(method.patterns(event.stripes, 1))
+    return len(method.patterns(event.stripes, 1, min(event.sheets, event.stripes) if method.striped else 1))
 
 
 class ScanMotion:

@@ -55,6 +55,16 @@ def test_the_frames_poses_follow_the_scan_and_the_drives_move_time():
     assert h.node.motion.scene_at(h.node.scene, 7, 0) is h.node.scene  # after the scan: at rest
 
 
+def test_a_scan_of_k_sheets_per_frame_is_timed_by_its_frames():
+    # 7 stripes, 3 sheets a frame: ceil(7/3) = 3 frames at 0, 0.1, 0.2 s (10 fps), mid-scan 0.1 s
+    h = sim(velocity_m_s=[1.0, 0.0, 0.0], fps=10.0)
+    h.deliver("emitter/scan", ScanEvent(scan_id=2, event="start", method="stripes", stripes=7, sheets=3))
+    for step, t in enumerate((0.0, 0.1, 0.2)):
+        pose = h.node.motion.scene_at(h.node.scene, 2, step).camera.position
+        np.testing.assert_allclose(pose, [t - 0.1, 0.0, 0.0], atol=1e-12)
+    assert h.node.motion.scene_at(h.node.scene, 2, 3) is h.node.scene  # no fourth frame
+
+
 def test_each_pose_is_rendered_anew_and_the_second_angle_at_rest_is_not():
     # polarized flood: two frames of the same pattern. At rest the second analyzer angle reuses the components
     # of the auto exposure's flood (one render in all); moving, each frame is a pose of its own (1 + 2)
