@@ -361,10 +361,11 @@ class Sequencer(Node):
             return False
         shown = {k: v for k, v in comp.metrics.items() if isinstance(v, (int, float, str))}
         depth = comp.metrics.get("depth")
-        if isinstance(depth, dict):   # a stripe scan's depth: its valid fraction and RMS (or why none)
-            names = {"valid_fraction": "depth_valid_fraction", "depth_rms_mm": "depth_rms_mm",
-                     "error": "depth_error"}
-            shown.update({names[k]: v for k, v in depth.items() if k in names})
+        if isinstance(depth, dict):   # a stripe scan's depth: its valid fraction (of the objects' pixels when
+            # the truth says which they are) and RMS, or why none
+            valid = depth.get("valid_fraction_of_objects", depth.get("valid_fraction"))
+            shown.update({"depth_valid_fraction": valid, "depth_rms_mm": depth.get("depth_rms_mm"),
+                          "depth_error": depth.get("error")})
         self.results[method]["metrics"] = shown
         if comp.metrics.get("error"):  # nothing to composite: the scan produced no image
             self.log.error("%s: scan %d: compositor/composite error: %s", method, sid, comp.metrics["error"])
@@ -375,7 +376,7 @@ class Sequencer(Node):
 
     def summary(self) -> str:
         """One line per method that reached a composite: frames, sheets, contrast, error vs truth and a
-        stripe scan's depth (valid fraction, RMS [mm]), side by side."""
+        stripe scan's depth (valid fraction of the objects' pixels, else of the frame; RMS [mm])."""
         rows = [f"{'method':<18} {'frames':>6} {'sheets':>6} {'contrast':>9} {'error vs truth':>15} "
                 f"{'depth valid':>11} {'RMS mm':>7}"]
         for method, r in self.results.items():

@@ -106,7 +106,8 @@ def test_a_composite_with_an_error_fails_the_scan():
 
 def test_the_results_table_lists_each_method_with_its_scores():
     h = rig(metrics={"contrast": 0.4125, "error_vs_truth": 0.25, "frames": 20, "sheets": 3,
-                     "depth": {"valid_fraction": 0.7512, "depth_rms_mm": 1.234}})
+                     "depth": {"valid_fraction": 0.3, "valid_fraction_of_objects": 0.7512,
+                               "depth_rms_mm": 1.234}})
     h.node.run()
     table = next(t for lvl, t in h.logs if t.startswith("results:")).splitlines()
     assert table[1].split() == ["method", "frames", "sheets", "contrast", "error", "vs", "truth", "depth",
