@@ -18,6 +18,7 @@ from polarstripe.sim.higher import HigherSettings, higher_components
 from polarstripe.sim.orders import OrdersPlan, plan_orders
 from polarstripe.sim.patterns import PatternSpec, parse_pattern
 from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.port_render import has_port, port_parts
 from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.sensor import expose
 from polarstripe.sim.surface import SurfaceInfo, surface_info
@@ -225,6 +226,14 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
         out.scene, out.seconds = scene, time.perf_counter() - t_start
         return out
     src = make_source(scene, pat)
+    if has_port(scene):      # refraction at flat ports: single scattering (docs/physics.md §11)
+        *parts, surf = port_parts(scene, src, fid, cam, pixels, need)
+        shape = (cam.h, cam.w) if pixels is None else (-1,)
+        surf = SurfaceInfo(*(a.reshape(shape) for a in (surf.object_id, surf.albedo, surf.chart_band,
+                                                         surf.chart_high)))
+        D, A, B, Bq, Bu, Bv = (a.reshape(shape) for a in parts)
+        return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan,
+                          Bv)
     if pixels is None:        # the pattern-independent geometry, once per scene (sim/geometry_cache.py)
         dirs, hits, surf = cached(scene, "camera", lambda: _camera_geometry(scene, cam, None))
     else:

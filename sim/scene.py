@@ -38,11 +38,12 @@ from polarstripe.sim.scene_parts import (
     SourcePolarization,
     SphereObject,
 )
+from polarstripe.sim.scene_port import GLASS_TANK, Port
 
 __all__ = [
     "DEFAULT_CHART", "Box", "BoxObject", "Camera", "DopModel", "Medium", "Phase", "PlaneObject", "Polarizer",
-    "Projector", "Scene", "SceneError", "SceneObject", "SourcePolarization", "SphereObject", "Vec3", "LIGHTS",
-    "with_light", "baseline_direction",
+    "Port", "Projector", "Scene", "SceneError", "glass_tank", "SceneObject", "SourcePolarization",
+    "SphereObject", "Vec3", "LIGHTS", "with_light", "baseline_direction",
     "load_scene", "parse_size", "scene_from_dict", "scene_to_dict", "with_separation",
 ]
 
@@ -145,14 +146,42 @@ def _pinhole(section: str, t: dict, nested: str, nested_cls: type, nested_keys: 
     return t
 
 
-def _camera(t: dict) -> Camera:
-    return Camera(**_pinhole("camera", t, "polarizer", Polarizer,
-                               {"angle_deg", "extinction_ratio", "quarter_wave_deg"}))
+def _camera(t: dict, base: Scene | None = None) -> Camera:
+    kw = _pinhole("camera", t, "polarizer", Polarizer, {"angle_deg", "extinction_ratio", "quarter_wave_deg"})
+    return Camera(**kw) if base is None else base.camera.replace(**kw)
 
 
-def _projector(t: dict) -> Projector:
-    return Projector(**_pinhole("projector", t, "polarization", SourcePolarization,
-                                  {"dop", "angle_deg", "quarter_wave_deg"}))
+def _projector(t: dict, base: Scene | None = None) -> Projector:
+    kw = _pinhole("projector", t, "polarization", SourcePolarization,
+                  {"dop", "angle_deg", "quarter_wave_deg"})
+    return Projector(**kw) if base is None else base.projector.replace(**kw)
+
+
+PRESETS = ("glass_tank",)
+
+
+def _preset(name) -> Scene | None:
+    """The top-level ``preset`` key: the scene whose camera and projector the file's keys start from."""
+    if name is None:
+        return None
+    if name not in PRESETS:
+        raise SceneError(f"preset must be one of {', '.join(PRESETS)}, got {name!r}")
+    return glass_tank(Scene())
+
+
+def glass_tank(scene: Scene) -> Scene:
+    """The paper's rig (its §3 and footnote 1): camera and projector outside the tank's glass front wall,
+    2 cm in front of 10 mm of anti-reflection coated glass whose outer face is the medium's front face
+    (``port = "glass_tank"``, :data:`~polarstripe.sim.scene_port.GLASS_TANK`); each keeps its look_at, and
+    its x, y."""
+    wall = GLASS_TANK
+    z = scene.medium.extent.min[2] - wall.distance_m - wall.thickness_m
+    parts = {}
+    for name in ("camera", "projector"):
+        dev = getattr(scene, name)
+        parts[name] = dev.replace(position=(dev.position[0], dev.position[1], z),
+                                  port=wall.replace(key=f"{name}.port"))
+    return scene.replace(**parts)
 
 
 def _object(i: int, t: dict, base: Path | None) -> SceneObject:
@@ -180,14 +209,15 @@ def scene_from_dict(data: dict, base: Path | None = None) -> Scene:
     hangs on the default tank's back wall, which a file may have moved (a file that set the medium to ±1 m
     and listed no object used to get that 0.3 × 0.2 m chart at z = 0.38 m, cutting the view rays that hit it).
     """
-    _check_keys("scene", data, {"medium", "camera", "projector", "object", "calibration"})
+    _check_keys("scene", data, {"medium", "camera", "projector", "object", "calibration", "preset"})
     kw: dict[str, Any] = {}
+    preset = _preset(data.get("preset"))
     if "medium" in data:
         kw["medium"] = _medium(data["medium"])
-    if "camera" in data:
-        kw["camera"] = _camera(data["camera"])
-    if "projector" in data:
-        kw["projector"] = _projector(data["projector"])
+    if "camera" in data or preset is not None:
+        kw["camera"] = _camera(data.get("camera", {}), preset)
+    if "projector" in data or preset is not None:
+        kw["projector"] = _projector(data.get("projector", {}), preset)
     objs = data.get("object", [])
     if not isinstance(objs, list):
         raise SceneError("object must be an array of tables ([[object]])")
@@ -246,6 +276,9 @@ def scene_to_dict(scene: Scene) -> dict:
         return obj
 
     out = {"medium": conv(scene.medium), "camera": conv(scene.camera), "projector": conv(scene.projector)}
+    for part in ("camera", "projector"):
+        if out[part]["port"] is not None:
+            out[part]["port"] = {k: v for k, v in out[part]["port"].items() if v is not None}
     ph = out["medium"]["phase"]
     out["medium"]["phase"] = ({"model": "tthg", "mean_cosine": ph["g"]} if ph["model"] == "tthg"
                               else {"model": ph["model"], "g": ph["g"]} if ph["model"] == "hg"

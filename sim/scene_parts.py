@@ -21,6 +21,7 @@ from polarstripe.sim.scene_checks import (
     unit_interval,
     vec3,
 )
+from polarstripe.sim.scene_port import Port, check_port, parse_port
 
 
 class _Part:
@@ -145,12 +146,15 @@ class Camera(_Part):
     wavelength_nm: float = 532.0
     seed: int = 0
     polarizer: Polarizer = Polarizer()
+    port: Port | None = None
 
     def __post_init__(self):
         p, t, u, fov = check_pose("camera", self.position, self.look_at, self.up, self.fov_deg)
         for k, v in (("position", p), ("look_at", t), ("up", u), ("fov_deg", fov)):
             object.__setattr__(self, k, v)
         object.__setattr__(self, "resolution", resolution("camera.resolution", self.resolution))
+        object.__setattr__(self, "port", parse_port("camera", self.port))
+        check_port("camera", self.port, p, t, u, fov, self.resolution)
         for k in ("exposure_s", "full_well_e", "gain_e_per_dn", "aperture_m", "wavelength_nm"):
             object.__setattr__(self, k, positive(f"camera.{k}", getattr(self, k)))
         for k in ("read_noise_e", "dark_current_e_s", "offset_dn"):
@@ -200,6 +204,7 @@ class Projector(_Part):
     black_level: float = 0.0
     source_radius_m: float = 1e-3
     polarization: SourcePolarization = SourcePolarization()
+    port: Port | None = None
 
     def __post_init__(self):
         if self.model not in ("pinhole", "point"):
@@ -208,6 +213,9 @@ class Projector(_Part):
         for k, v in (("position", p), ("look_at", t), ("up", u), ("fov_deg", fov)):
             object.__setattr__(self, k, v)
         object.__setattr__(self, "resolution", resolution("projector.resolution", self.resolution))
+        object.__setattr__(self, "port", parse_port("projector", self.port))
+        if self.model == "pinhole":
+            check_port("projector", self.port, p, t, u, fov, self.resolution)
         object.__setattr__(self, "intensity_w_sr",
                            positive("projector.intensity_w_sr", self.intensity_w_sr, allow_zero=True))
         b = finite("projector.black_level", self.black_level)

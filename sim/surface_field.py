@@ -121,7 +121,14 @@ def a_field(src: Source, scene: Scene, fid, cam, hits, surf: SurfaceInfo, pixels
     gval[gidx] = a_at(ghits.point[gidx], ghits.normal[gidx], np.ones(gidx.size))
     gval, gobj = gval.reshape(gh, gw), ghits.index.reshape(gh, gw)
     fields = extend_planes(scene, cam, gdirs, gval, gobj, a_at)
-    idx = np.nonzero(hit & ~done)[0]
+    return interpolate_grid(a_out, surf, cam, gval, gobj, fields, np.nonzero(hit & ~done)[0], at)
+
+
+def interpolate_grid(a_out, surf: SurfaceInfo, cam, gval, gobj, fields: dict, idx, exact) -> np.ndarray:
+    """Fill ``a_out`` at pixels ``idx`` from the (gh, gw) grid of A/ρ ``gval`` over the image (object index
+    per node ``gobj``; ``fields``: per object (values, valid) replacing them) by bilinear interpolation over
+    the nodes on the pixel's own object, times the pixel's albedo; ``exact(idx)`` where none is near."""
+    gh, gw = gval.shape
     rows, cols = idx // cam.w, idx % cam.w
     fr = rows * (gh - 1) / max(cam.h - 1, 1)
     fc = cols * (gw - 1) / max(cam.w - 1, 1)
@@ -144,7 +151,7 @@ def a_field(src: Source, scene: Scene, fid, cam, hits, surf: SurfaceInfo, pixels
     a_out[idx[good]] = surf.albedo[idx[good]] * num[good] / den[good]
     miss = idx[~good]
     if miss.size:
-        a_out[miss] = at(miss)
+        a_out[miss] = exact(miss)
     return a_out
 
 

@@ -193,6 +193,11 @@ def _polarization(src: Source, on: bool, mueller: bool, reverse: bool) -> record
                                 dsigma, np.asarray(src.fast_axis, float), dsigma_v)
 
 
+def phase_args(phase) -> records.PhaseArgs:
+    """The kernels' :class:`~polarstripe.sim.kernel_records.PhaseArgs` of a phase function."""
+    return records.PhaseArgs(*_phase_code(phase))
+
+
 def _phase_code(phase) -> tuple:
     """The kernel's phase arguments: (0 isotropic | 1 HG g | 2 TTHG g_F, g_B, α | 3 the similarity-scaled P̃
     of :class:`~polarstripe.sim.similarity.TruncatedPhase`: g1, g2, α, 1 − cos θ_c, 1/(1 − f))."""
