@@ -77,3 +77,14 @@ def test_the_demo_with_three_sheets_ends_by_itself_with_metrics(tmp_path):
     for method in ("stripes", "polarized_stripes"):
         assert metrics[method]["sheets"] == 3 and metrics[method]["depth"]["valid_fraction"] > 0.1
     assert "depth valid" in logs["sequencer"]               # the results table the launch ends with
+
+
+@pytest.mark.long
+def test_the_polarization_camera_with_three_sheets_scans_polarized_stripes_in_n_over_k_frames(tmp_path):
+    """``launch/sim_polarization.toml sheets=3``: one pass, ⌈9/3⌉ frames of polarized stripes, with depth."""
+    out = tmp_path / "out"
+    proc, logs = launch(tmp_path, ROOT / "launch" / "sim_polarization.toml", f"out={out}", "resolution=96x72",
+                        "stripes=9", "sheets=3", timeout=300)
+    assert proc.returncode == 0, proc.stderr + logs.get("sequencer", "")
+    m = json.loads((out / "metrics.json").read_text())["polarized_stripes"]
+    assert (m["frames"], m["sheets"]) == (3, 3) and m["depth"]["valid_fraction"] > 0.1
