@@ -65,6 +65,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         "brightest frame at 90 %%, as `polarstripe compare`)")
     g.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     g.add_argument("--seed", type=int, default=1, help="sensor noise seed")
+    g.add_argument("--p-rule", choices=("map", "median"), default="map",
+                   help="eq. 6's p, in the scans' composites and in the error measure's prediction: map "
+                        "(default, the compositor's: per pixel from the scene's medium model) or median "
+                        "(one p-hat, the ratio of medians over object-free pixels)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     g.add_argument("--cache", default=None, metavar="DIR",
                    help="where scored scans are kept between runs (default $XDG_CACHE_HOME/polarstripe/"
@@ -73,10 +77,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def code_hash() -> str:
-    """sha256 of the code a scored scan depends on: sim/, imaging/ and planning/validate.py."""
+    """sha256 of the code a scored scan depends on: sim/, imaging/, planning/validate.py and medium_p.py
+    (the p map)."""
     root = Path(__file__).resolve().parent.parent
     h = hashlib.sha256()
-    files = [*root.glob("sim/*.py"), *root.glob("imaging/*.py"), root / "planning" / "validate.py"]
+    files = [*root.glob("sim/*.py"), *root.glob("imaging/*.py"),
+             *(root / "planning" / f for f in ("validate.py", "medium_p.py"))]
     for path in sorted(files):
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
@@ -142,7 +148,8 @@ def run(args) -> dict:
         raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got "
                                f"{args.plan_orders!r}")
     settings = ScanSettings(fidelity=args.fidelity, orders=args.orders, n_stripes=args.stripes,
-                            width=args.width, exposure=args.scan_exposure, seed=args.seed)
+                            width=args.width, exposure=args.scan_exposure, seed=args.seed,
+                            p_rule=args.p_rule)
     settings.check()
     grid = default_grid(args.grid, *args.grid_range)
     paths = scene_paths(args)

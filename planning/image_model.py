@@ -12,7 +12,9 @@ with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the fu
 * stripes: the scan's frames (the projector aimed as the rig aims it, N stripes, ``sheets`` per frame:
   ⌈N/K⌉ frames ``stripe:I/N:xK`` carrying the backscatter of K sheets each; every ``stripe_step``-th
   with a step > 1, and then only the pixels they light or that see no object), composed by eq. 7 as the
-  compositor does; one location per observed point, the pixels nearest its column.
+  compositor does; one location per observed point, the pixels nearest its column. The flood frame's
+  backscatter DOP and angle come along: the analyzer is calibrated on the flood, and eq. 6's ``map`` rule
+  (``p_rule``, the compositor's default) divides a stripe composite by the flood's map.
 
 :mod:`polarstripe.planning.predicted_error` turns these into the expected error of each reading.
 """
@@ -22,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.msgs.patterns import stripes
 from polarstripe.planning.objectives import Samples, SensorNoise
+from polarstripe.planning.predicted_error import P_RULES
 from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.render import render_components
@@ -46,6 +49,8 @@ class ImageModel:
         are the stripe locations.
     orders : ``all`` (as the scene needs) or ``single``.
     sheets : light sheets per stripe frame (msgs/patterns.py ``stripe:I/N:xK``).
+    p_rule : eq. 6's p the composite is predicted with (planning/predicted_error.py): ``map`` (the
+        compositor's default, the model's DOP per pixel) or ``median`` (one p̂).
     """
 
     measure = "error"
@@ -53,7 +58,10 @@ class ImageModel:
 
     def __init__(self, scene: Scene, fidelity: str = "preview", n_stripes: int = 30,
                  width: int = DEFAULT_WIDTH, fractions=(0.25, 0.5, 0.75), orders: str = "all",
-                 stripe_step: int = 1, sheets: int = 1):
+                 stripe_step: int = 1, sheets: int = 1, p_rule: str = "map"):
+        if p_rule not in P_RULES:
+            raise SceneError(f"p_rule must be one of {', '.join(P_RULES)}, got {p_rule!r}")
+        self.p_rule = p_rule
         if orders not in ("single", "all"):
             raise SceneError(f"orders must be 'single' or 'all', got {orders!r}")
         if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
@@ -106,7 +114,8 @@ class ImageModel:
     def _samples(self, truth, parts, keep, group) -> Samples:
         d, s, b, p, chi = (x[keep] for x in parts)
         e = self._e[keep]
-        return Samples(d * e, (s - d) * e, b * e, p, chi=chi, truth=truth[keep] * e, group=group)
+        return Samples(d * e, (s - d) * e, b * e, p, chi=chi, truth=truth[keep] * e, group=group,
+                       p_rule=self.p_rule)
 
     def flood(self, d_lc_m: float) -> Samples:
         sd = with_separation(self.scene, d_lc_m, aim=True)
@@ -131,9 +140,11 @@ class ImageModel:
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
         parts = [self._render(sd, str(p)) for p in frames]
+        c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
+        flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
         group = self._columns
         if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)
             group = np.where((d > 0).any(axis=0) | (truth <= 0), group, -1)
         return Samples(d * self._e, (s - d) * self._e, b * self._e, p, chi=chi, truth=truth * self._e,
-                       group=group)
+                       group=group, p_rule=self.p_rule, flood_dop=flood)

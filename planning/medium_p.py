@@ -182,3 +182,32 @@ def p_map_with_model(pair: tuple[np.ndarray, np.ndarray], object_free: np.ndarra
     sat = saturation if math.isfinite(saturation) else None
     est = regional_p_map(*pair, object_free, dark_offset=dark, saturation=sat, p_min=p_min)
     return dataclasses.replace(est, note=f"the model's p map not used: {fit}")
+
+
+
+def scene_p_model(scene: Scene, object_free: np.ndarray | None, dark: float, saturation: float | None, *,
+                  fidelity: str = "preview", p_min: float = 0.05, flood=None, renders: dict | None = None):
+    """The ``p_model`` :func:`~polarstripe.imaging.compose.compose` takes under the ``map`` rule where the
+    scene is known (the end-to-end judge, ``compare``) for a pair of dark offset ``dark`` and ``saturation``
+    [DN]: :func:`p_map_with_model` with ``scene``'s own medium at the scan's pose, as the compositor's
+    ``p_scene`` gives it (nodes/compositor_p.py; ``preview``, its ``p_fidelity``), κ and ψ fitted to
+    ``flood`` = ((E_b, E_w) raw, its dark, its saturation), the polarized flood pair of this pose, as the
+    compositor fits them (None: to the pair composed). ``renders``: a dict the model's flood render is kept
+    in per frame size, to share it between the pairs of one pose."""
+    renders = {} if renders is None else renders
+
+    def p_map(e_b: np.ndarray, e_w: np.ndarray) -> PEstimate:
+        h, w = np.shape(e_b)
+        sc = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
+        if (w, h) not in renders:
+            renders[(w, h)] = render_components(sc, "flood", fidelity)
+        comps, region = renders[(w, h)], _region(object_free, (h, w))
+        fit = None
+        if flood is not None:
+            pair, f_dark, f_sat = flood
+            fit = fit_pair(comps, pair, region, f_dark, math.inf if f_sat is None else float(f_sat))
+        sat = math.inf if saturation is None else float(saturation)
+        return p_map_with_model((e_b, e_w), region, dark, sat, sc, fidelity, p_min=p_min, components=comps,
+                                fit=None if isinstance(fit, str) else fit)
+
+    return p_map

@@ -85,10 +85,13 @@ class Samples:
     dop: np.ndarray
     competitors: Competitors | None = None
     # the error measure's whole-image samples (planning/image_model.py): the backscatter's angle [rad],
-    # T, and each pixel's location (group)
+    # T, and each pixel's location (group); eq. 6's rule (planning/predicted_error.py P_RULES) and the
+    # flood frame's (B, p, χ) per pixel that its map and the analyzer's axis are read from
     chi: np.ndarray | None = None
     truth: np.ndarray | None = None
     group: np.ndarray | None = None
+    p_rule: str = "map"
+    flood_dop: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -191,12 +194,15 @@ def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: f
     dop = np.asarray(samples.dop)
     chi = np.zeros_like(s_e) if samples.chi is None else np.asarray(samples.chi)
     quality, saturated = np.zeros(n), np.zeros(n, bool)
+    flood = samples.flood_dop
 
     def scored(at):
         err, sat = reading_error(reading, s_e[..., at], b_e[..., at], dop[..., at], chi[..., at],
                                  truth[at] * k, full_well_e=math.inf if ideal else noise.full_well_e,
                                  dark_e=noise.dark_e, read_noise_e=noise.read_noise_e,
-                                 quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal)
+                                 quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal,
+                                 p_rule=samples.p_rule,
+                                 flood_dop=None if flood is None else tuple(np.asarray(x)[at] for x in flood))
         return 1.0 - err, sat >= 1.0
 
     for g in range(n):

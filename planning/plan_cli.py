@@ -200,6 +200,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--orders", choices=("all", "single"), default="all",
                         help="orders of scattering of the planner's model: all (default: those the scene "
                         "needs, sim/orders.py, as the simulator renders) or the paper's single scattering")
+    parser.add_argument("--p-rule", choices=("map", "median"), default="map",
+                        help="eq. 6's p the error measure predicts the polarized composites with, and "
+                        "--validate composes them with: map (default, the compositor's: per pixel from the "
+                        "medium's model) or median (one p-hat)")
     parser.add_argument("--reference", action="store_true",
                         help="also plan with the paper's measure and single scattering, beside the plan "
                         "(always with --plot and --validate; one more sweep)")
@@ -315,7 +319,8 @@ def main(args: argparse.Namespace) -> int:
                                     not (args.reference or args.plot or args.validate)):
             break  # the plan is the paper's own, or nothing asks for the comparison (it costs a sweep)
         model = plan_model(scene, measure=measure, fidelity=args.fidelity, n_stripes=args.stripes,
-                           edge=args.edge, orders=orders, sheets=sheets if role == "plan" else 1)
+                           edge=args.edge, orders=orders, sheets=sheets if role == "plan" else 1,
+                           p_rule=args.p_rule)
         plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
         if role == "plan" and allowed is not None:
             restrict(plans[role], allowed)
@@ -333,7 +338,7 @@ def main(args: argparse.Namespace) -> int:
                                       n_stripes=args.stripes, orders=args.orders)
     if args.validate:
         settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width,
-                                exposure=args.validate_exposure)
+                                exposure=args.validate_exposure, p_rule=args.p_rule)
         picks = {_variant(args.measure, args.orders): picks_of(plans["plan"])}
         if "reference" in plans:
             picks[_variant(REFERENCE["measure"], REFERENCE["orders"])] = picks_of(plans["reference"])

@@ -7,11 +7,21 @@ components (:mod:`polarstripe.planning.image_model`), per pixel x, in electrons:
 
 * the reading's noise-free composite m(x): the frame E = S + B; through the analyzer crossed to the mean
   backscatter polarization E_b = ½(S + B) − ½ B p cos 2(χ − χ̄) (p and χ per pixel: one analyzer angle
-  cannot follow the DOP's angle across the image); or eq. 6, Ŝ = E_b(1 + 1/p̂) + E_w(1 − 1/p̂) with one p̂
-  estimated as the compositor does (ratio of medians over object-free pixels, else over all), so where
-  p(x) ≠ p̂ the backscatter is under- or over-subtracted, B(1 − p/p̂);
+  cannot follow the DOP's angle across the image); or eq. 6, Ŝ = E_b(1 + 1/p̂) + E_w(1 − 1/p̂) by one of
+  the compositor's rules (docs/physics.md §4.2):
+
+  - ``map`` (the compositor's default): p̂(x) = p_e(x) = p_f(x) cos 2(χ_f(x) − χ̄), the DOP the analyzer pair
+    sees at each pixel from the medium's model, p_f and χ_f those of the flood frame, χ̄ its B·p-weighted
+    mean angle, along which the analyzer is calibrated (the compositor fits
+    its model to the flood pair, and divides a stripe composite by the same map), clamped to [p_min, 1].
+    Where p_e is the pixel's own (flood), Ŝ = S wherever p_e ≥ p_min; a stripe composite keeps
+    B(1 − p_e,stripe/p_e). The model's map is exact here: the scale κ the compositor fits to the pair
+    (planning/medium_p.py) has a standard error of ~1e-3 over thousands of pixels, and is not charged;
+  - ``median``: one p̂, the ratio of medians over object-free pixels (else over all), so where
+    p_e(x) ≠ p̂ the backscatter is under- or over-subtracted, B(1 − p_e/p̂);
 * its noise variance v(x) (EMVA 1288: shot noise of the frame's own electrons, dark, read and
-  quantization; eq. 6 carries (1 + 1/p̂)² v_b + (1 − 1/p̂)² v_w); a scan's eq. 7 maximum over noisy frames
+  quantization; eq. 6 carries (1 + 1/p̂)² v_b + (1 − 1/p̂)² v_w, per pixel with the map); a scan's eq. 7
+  maximum over noisy frames
   has its mean and variance from seeded draws (the brightest of many dark frames is not their mean);
 * pixels whose frame (either frame, for eq. 6) reaches the full well are left out, as the compositor masks
   them; no pixel left scores e = 1.
@@ -35,6 +45,8 @@ import numpy as np
 from numba import njit
 
 READINGS = ("E", "E_b", "S_hat")
+P_RULES = ("map", "median")
+"""Eq. 6's p in the prediction: the model's map per pixel (the compositor's default) or one median p̂."""
 
 
 def expected_error(mean, variance, truth, valid) -> float:
@@ -53,12 +65,17 @@ def frame_variance(frame_e, *, dark_e: float, read_noise_e: float, quantization_
     return np.maximum(frame_e, 0.0) + dark_e + read_noise_e ** 2 + quantization_e ** 2
 
 
-def polarized_frames(s, b, p, chi):
-    """(E_b, E_w): the frames through an ideal analyzer crossed to and along the B·p-weighted mean
-    polarization angle χ̄ (over every frame given): E = ½(S + B) ∓ ½ B p cos 2(χ − χ̄) (docs/physics.md
-    §4.1)."""
+def mean_angle(b, p, chi) -> float:
+    """χ̄ [rad]: the B·p-weighted mean polarization angle (of the Stokes sum), the analyzer's axis."""
     w = b * p
-    chi_bar = 0.5 * math.atan2(float(np.sum(w * np.sin(2 * chi))), float(np.sum(w * np.cos(2 * chi))))
+    return 0.5 * math.atan2(float(np.sum(w * np.sin(2 * chi))), float(np.sum(w * np.cos(2 * chi))))
+
+
+def polarized_frames(s, b, p, chi, chi_bar: float | None = None):
+    """(E_b, E_w): the frames through an ideal analyzer crossed to and along ``chi_bar`` (default: the
+    B·p-weighted mean polarization angle over every frame given, :func:`mean_angle`):
+    E = ½(S + B) ∓ ½ B p cos 2(χ − χ̄) (docs/physics.md §4.1)."""
+    chi_bar = mean_angle(b, p, chi) if chi_bar is None else chi_bar
     pol = 0.5 * b * p * np.cos(2.0 * (chi - chi_bar))
     half = 0.5 * (s + b)
     return half - pol, half + pol
@@ -118,16 +135,26 @@ def estimate_p_hat(e_b, e_w, object_free, valid, p_min: float) -> float:
     return float(np.clip(np.median((e_w - e_b)[use]) / den, p_min, 1.0))
 
 
+def seen_dop(p, chi, chi_bar: float, p_min: float) -> np.ndarray:
+    """Eq. 6's map: p_e = p cos 2(χ − χ̄), the DOP an analyzer pair along χ̄ sees, clamped to [p_min, 1]."""
+    return np.clip(np.asarray(p, np.float64) * np.cos(2.0 * (np.asarray(chi, np.float64) - chi_bar)),
+                   p_min, 1.0)
+
+
 def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float, dark_e: float = 0.0,
                   read_noise_e: float = 0.0, quantization_e: float = 0.0, p_min: float = 0.05,
-                  noise: bool = True) -> tuple[float, float]:
+                  noise: bool = True, p_rule: str = "map", flood_dop=None) -> tuple[float, float]:
     """(expected error, saturated fraction) of one reading's composite over the given pixels.
 
     ``s_e``, ``b_e``: signal S = D + A and backscatter B in electrons, (n,) for one frame or (F, n) for the
     F frames of a scan (composed by eq. 7 at each analyzer angle, :func:`composite`); ``p``, ``chi``: the
     backscatter's DOP and angle [rad], shaped alike; ``truth_e``: T (n,) in electrons (0 where no object).
-    ``noise=False`` gives the noise-free error (the bias alone).
+    ``noise=False`` gives the noise-free error (the bias alone). ``p_rule``: eq. 6's p (module docstring);
+    ``flood_dop``: (B_f, p_f, χ_f), each (n,), the flood frame's backscatter, its DOP and angle, that the
+    ``map`` and the analyzer's axis are read from (None: the frames' own, their B-weighted Stokes mean).
     """
+    if p_rule not in P_RULES:
+        raise ValueError(f"p_rule must be one of {', '.join(P_RULES)}, got {p_rule!r}")
     s_e, b_e = np.atleast_2d(np.asarray(s_e, np.float64)), np.atleast_2d(np.asarray(b_e, np.float64))
     t_e = np.asarray(truth_e, np.float64)
     p = np.clip(np.nan_to_num(np.atleast_2d(np.asarray(p, np.float64))), 0.0, 1.0)
@@ -141,13 +168,26 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
         mean, var = frames(s_e + b_e)
         brightest = mean
     else:
-        (e_b, v_b), (e_w, v_w) = (frames(x) for x in polarized_frames(s_e, b_e, p, chi))
+        if flood_dop is None:   # the frames' own: the B-weighted Stokes mean over a scan's frames
+            b_f, q, u = b_e.sum(axis=0), (b_e * p * np.cos(2 * chi)).sum(axis=0), \
+                (b_e * p * np.sin(2 * chi)).sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                p_f = np.where(b_f > 0, np.hypot(q, u) / b_f, 0.0)
+            chi_f = 0.5 * np.arctan2(u, q)
+        else:
+            b_f, p_f, chi_f = (np.asarray(x, np.float64) for x in flood_dop)
+            p_f = np.clip(np.nan_to_num(p_f), 0.0, 1.0)
+        chi_bar = mean_angle(b_f, p_f, chi_f)  # the analyzer calibrated on the flood, as the rig does
+        (e_b, v_b), (e_w, v_w) = (frames(x) for x in polarized_frames(s_e, b_e, p, chi, chi_bar))
         if reading == "E_b":
             mean, var, brightest = e_b, v_b, e_b
         else:
             brightest = np.maximum(e_b, e_w)
             valid = brightest + dark_e < full_well_e
-            ph = estimate_p_hat(e_b, e_w, t_e <= 0.0, valid, p_min)
+            if p_rule == "map":
+                ph = seen_dop(p_f, chi_f, chi_bar, p_min)
+            else:
+                ph = estimate_p_hat(e_b, e_w, t_e <= 0.0, valid, p_min)
             mean = e_b * (1.0 + 1.0 / ph) + e_w * (1.0 - 1.0 / ph)
             var = (1.0 + 1.0 / ph) ** 2 * v_b + (1.0 - 1.0 / ph) ** 2 * v_w
     if reading != "S_hat":

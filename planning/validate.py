@@ -6,8 +6,11 @@ For one scene and one camera–source separation d_LC, :func:`score_scans` does 
 across the scan's frames by :mod:`polarstripe.sim.geometry_cache`), exposes it through the scene camera's
 EMVA 1288 sensor (:func:`polarstripe.sim.sensor.expose`, seeded), folds it into the compositor's running
 reductions (:class:`~polarstripe.imaging.composite.RunningComposite`), composes it with the compositor's own
-pipeline (:func:`polarstripe.imaging.compose.compose`: eq. 7, p estimated on object-free pixels, eq. 6) and
-scores the composite as the compositor's ``metrics.json`` does (:func:`polarstripe.imaging.compose.score`):
+pipeline (:func:`polarstripe.imaging.compose.compose`: eq. 7, eq. 6 with the compositor's default ``map`` rule,
+p per pixel from the scene's own medium model with κ and ψ fitted to the pose's polarized flood pair as
+the compositor fits them, :func:`polarstripe.planning.medium_p.scene_p_model`; ``p_rule`` chooses another,
+e.g. ``median``, one p̂ on the object-free pixels) and scores the composite as the compositor's
+``metrics.json`` does (:func:`polarstripe.imaging.compose.score`):
 
 * ``error``: ‖g Ŝ − T‖ / ‖T‖ over the whole frame, gain g fitted, T the unscattered object radiance under
   flood light (:func:`polarstripe.sim.truth.unscattered_radiance`, docs/physics.md §10.8) in DN above the
@@ -47,11 +50,13 @@ import numpy as np
 from polarstripe.imaging.compose import compose, score
 from polarstripe.imaging.composite import RunningComposite
 from polarstripe.imaging.delineation import NoiseModel, RunningArgmax, SheetVotes, delineate
+from polarstripe.imaging.p_map import P_RULES
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.sheets import assign_positions, check_sheets, epipolar_span
 from polarstripe.imaging.triangulation import RigGeometry, camera_rays, depth_from_columns, stripe_edges
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs.patterns import stripes as stripe_frames
+from polarstripe.planning.medium_p import scene_p_model
 from polarstripe.planning.sheets import object_depth_range
 from polarstripe.sim import sensor
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
@@ -70,7 +75,8 @@ RIG_FILL, RIG_PERCENTILE, METHOD_FILL = 0.85, 99.5, 0.9
 class ScanSettings:
     """How the scans are made: model ``fidelity`` and ``orders`` (``all``, ``single``), stripes per scan,
     camera ``width`` (None: the scene's), the ``exposure`` rule (module docstring), the noise ``seed``, the
-    light ``sheets`` per stripe frame."""
+    light ``sheets`` per stripe frame, and eq. 6's ``p_rule`` (the compositor's: ``map``, its default,
+    ``median`` or ``upper``)."""
 
     fidelity: str = "standard"
     orders: str = "all"
@@ -79,9 +85,12 @@ class ScanSettings:
     exposure: str = "scene"
     seed: int = 1
     sheets: int = 1
+    p_rule: str = "map"
 
     def check(self) -> None:
         resolve_fidelity(self.fidelity)
+        if self.p_rule not in P_RULES:
+            raise SceneError(f"p_rule must be one of {', '.join(P_RULES)}, got {self.p_rule!r}")
         if self.orders not in ("all", "single"):
             raise SceneError(f"orders must be 'all' or 'single', got {self.orders!r}")
         if self.exposure not in EXPOSURES:
@@ -179,6 +188,23 @@ def _scored(image, truth, bright, dark) -> tuple[float | None, float | None]:
     return s["error_vs_truth"], s["contrast"]
 
 
+def _ordered(pair, region) -> tuple[np.ndarray, np.ndarray]:
+    """(E_b, E_w) raw of an analyzer pair: E_b the frame passing less light over ``region``, as compose
+    orders it."""
+    a, b = (np.asarray(np.ma.getdata(x), np.float64) for x in pair)
+    use = np.ones(a.shape, bool) if region is None else region
+    return (b, a) if np.median(a[use]) > np.median(b[use]) else (a, b)
+
+
+def _flood_pair(flood, angles, settings: ScanSettings, cam0, flood_e, region):
+    """The polarized flood's pair at this pose, exposed as its own scan exposes it (its noise stream):
+    ((E_b, E_w) raw, dark, saturation)."""
+    frames = [analyzer(flood, a) for a in angles]
+    scale = _scale(settings.exposure, cam0, frames, flood_e)
+    cam = _Sensor(cam0, scale, np.random.default_rng([settings.seed, METHODS.index("polarized_flood")]))
+    return _ordered([cam.expose(f) for f in frames], region), cam.offset, cam.saturation
+
+
 def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None = None,
                 methods=METHODS) -> dict[str, dict]:
     """Each method's scan at camera–source separation ``separation_m`` [m], composed and scored (module
@@ -220,6 +246,8 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
     depth_z = depth_truth(sd) if stripes else None
     geom = RigGeometry.from_dict(rig_geometry(sd)) if stripes and sd.projector.model == "pinhole" else None
     out = {}
+    renders: dict = {}   # the p map's model render, shared by the pose's polarized methods
+    flood_pair = None    # the polarized flood's ((E_b, E_w) raw, dark, saturation): κ and ψ are fitted to it
     for method in methods:
         comps = [flood] if "flood" in method else stripes
         passes = [[analyzer(c, a) for c in comps] for a in (angles if method.startswith("polarized")
@@ -236,8 +264,17 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
                 if votes is not None:
                     votes.add(frame, i, float(k))
             views[float(k)] = rc.result()
+        p_model = None
+        if method.startswith("polarized") and settings.p_rule == "map":
+            if method == "polarized_stripes" and flood_pair is None:
+                flood_pair = _flood_pair(flood, angles, settings, cam0, flood_e, background)
+            p_model = scene_p_model(sd, background, cam.offset, cam.saturation, renders=renders,
+                                    flood=flood_pair if method == "polarized_stripes" else None)
         made = compose(method, views, dark_offset=cam.offset, saturation=cam.saturation,
-                       object_free=background)
+                       object_free=background, p_rule=settings.p_rule, p_model=p_model)
+        if method == "polarized_flood":
+            flood_pair = (_ordered([views[0.0].maximum, views[1.0].maximum], background), cam.offset,
+                          cam.saturation)
         truth_dn = truth * cam.e_map / cam.camera.gain_e_per_dn  # DN above the offset, never clipped
         row = {"separation_m": float(separation_m), "exposure_scale": scale,
                "saturated_fraction": made.saturated_pixels / made.image.size,

@@ -48,18 +48,56 @@ def test_eq7_maximum_of_noisy_dark_frames():
 
 
 def test_eq6_removes_a_uniformly_polarized_veil_but_not_a_varying_one():
-    """Half the pixels see no object (T = S = 0): p̂ is read there, as the compositor reads it."""
+    """One median p̂ (half the pixels see no object, T = S = 0: p̂ is read there, as the compositor reads
+    it) removes a uniformly polarized veil, not a varying one; the map removes both."""
     t = np.concatenate([_chart(), np.zeros(4000)])
     s, b = 1000.0 * t, np.full(t.size, 3000.0)
     kw = dict(full_well_e=math.inf, noise=False)
     chi = np.zeros(t.size)
-    uniform = reading_error("S_hat", s, b, np.full(t.size, 0.7), chi, t, **kw)[0]
-    varying = reading_error("S_hat", s, b, np.linspace(0.5, 0.9, t.size), chi, t, **kw)[0]
+    ramp = np.linspace(0.5, 0.9, t.size)
+    uniform = reading_error("S_hat", s, b, np.full(t.size, 0.7), chi, t, p_rule="median", **kw)[0]
+    varying = reading_error("S_hat", s, b, ramp, chi, t, p_rule="median", **kw)[0]
+    mapped = reading_error("S_hat", s, b, ramp, chi, t, p_rule="map", **kw)[0]
     e_b = reading_error("E_b", s, b, np.full(t.size, 0.7), chi, t, **kw)[0]
     assert uniform == pytest.approx(0.0, abs=1e-6)        # Ŝ = S: no longer 1 by construction, but exact
     assert varying > 0.05 and e_b > 0.05                  # p ≠ p̂ somewhere; E_b keeps B(1 − p)/2
+    assert mapped == pytest.approx(0.0, abs=1e-6)         # p̂(x) = p(x): Ŝ = S at every pixel
     noisy = reading_error("S_hat", s, b, np.full(t.size, 0.7), chi, t, full_well_e=math.inf)[0]
     assert noisy > 0.0                                    # eq. 6's noise is charged
+
+
+def test_eq6_map_noise_gain_per_pixel_matches_the_closed_form():
+    """The map rule on a chart T = 1 ± r under a veil B with p(x) in two halves: Ŝ = S, so the error is the
+    noise alone, e² = V / (s² Σ T² + V) with V = Σ (1 + 1/p)² E_b + (1 − 1/p)² E_w (shot noise, E_b,w =
+    ½(S + B(1 ∓ p))): hand-derived, each pixel with its own p."""
+    r, s0, b0 = 0.4, 400.0, 900.0
+    t = _chart(r=r)
+    p = np.where(np.arange(t.size) < t.size // 2, 0.3, 0.8)
+    s, b = s0 * t, np.full(t.size, b0)
+    got = reading_error("S_hat", s, b, p, np.zeros(t.size), t, full_well_e=math.inf, p_rule="map")[0]
+    e_b, e_w = 0.5 * (s + b * (1 - p)), 0.5 * (s + b * (1 + p))
+    v = float(np.sum((1 + 1 / p) ** 2 * e_b + (1 - 1 / p) ** 2 * e_w))
+    want = math.sqrt(v / (s0 ** 2 * t.size * (1 + r * r) + v))
+    assert got == pytest.approx(want, rel=1e-9)
+    one = reading_error("S_hat", s, b, p, np.zeros(t.size), t, full_well_e=math.inf, p_rule="median")[0]
+    assert one > got                                      # one p̂ leaves half the veil (p ≠ p̂ there)
+
+
+def test_a_stripe_composite_divided_by_the_flood_map_keeps_its_own_residual():
+    """The map is the flood's (the compositor fits it to the flood pair): a frame whose backscatter has DOP
+    p_s ≠ p_f keeps the veil B(1 − p_s/p_f), the closed form of the uniform veil b = (B/s)(1 − p_s/p_f)."""
+    r, s0, b0, p_s, p_f = 0.4, 1000.0, 2000.0, 0.4, 0.6
+    t = _chart(r=r)
+    n = t.size
+    flood = (np.full(n, 1.0), np.full(n, p_f), np.zeros(n))
+    got = reading_error("S_hat", s0 * t, np.full(n, b0), np.full(n, p_s), np.zeros(n), t,
+                        full_well_e=math.inf, noise=False, p_rule="map", flood_dop=flood)[0]
+    b = b0 / s0 * (1 - p_s / p_f)
+    r2 = r * r
+    assert got == pytest.approx(math.sqrt(r2 * b * b / ((1 + r2) * ((1 + b) ** 2 + r2))), rel=1e-9)
+    own = reading_error("S_hat", s0 * t, np.full(n, b0), np.full(n, p_s), np.zeros(n), t,
+                        full_well_e=math.inf, noise=False, p_rule="map")[0]
+    assert own == pytest.approx(0.0, abs=1e-7)            # its own DOP as the map: removed
 
 
 def test_saturated_pixels_are_left_out():
