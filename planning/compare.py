@@ -25,9 +25,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 from polarstripe.imaging.compose import Composition, compose, score
 from polarstripe.imaging.composite import RunningComposite
+from polarstripe.imaging.p_map import P_RULES
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs.methods import Method
+from polarstripe.planning.medium_p import scene_p_model
 from polarstripe.sim import sensor
 from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.render import render_components
@@ -54,6 +56,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkers", nargs=2, type=int, default=(10, 20), metavar=("SMALL", "LARGE"),
                         help="checker sizes in projector pixels (default 10 20, as the paper)")
     parser.add_argument("--seed", type=int, default=1, help="sensor noise seed")
+    parser.add_argument("--p-rule", choices=P_RULES, default="map",
+                        help="eq. 6's p (docs/physics.md §4.2): map (default, the compositor's: per pixel "
+                        "from the scene's medium model, fitted to the polarized flood pair), median or upper "
+                        "(one p-hat from the frames)")
     parser.add_argument("--figure", default="compare.png", help="side-by-side figure (PNG); '' for none")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
@@ -86,10 +92,11 @@ class _Camera:
     def expose(self, radiance: np.ndarray) -> np.ndarray:
         return self.sensor.expose(radiance, self.camera, self.rng)
 
-    def compose(self, method: str, passes: list[list[np.ndarray]], background, black_level: float = 0.0
-                ) -> Composition:
+    def compose(self, method: str, passes: list[list[np.ndarray]], background, black_level: float = 0.0,
+                p_rule: str = "median", p_model=None) -> Composition:
         """Expose each pass (the radiances at one analyzer angle, in order), reduce it (max and min per
-        pixel, as the compositor does) and compose ``method``; DN above the dark offset."""
+        pixel, as the compositor does) and compose ``method`` (eq. 6 by ``p_rule``; ``p_model(dark,
+        saturation)`` makes the map's model for this exposure); DN above the dark offset."""
         views = {}
         for k, radiances in enumerate(passes):
             rc = RunningComposite(radiances[0].shape, np.uint16, saturation=self.saturation)
@@ -97,7 +104,9 @@ class _Camera:
                 rc.add(self.expose(r))
             views[float(k)] = rc.result()
         made = compose(method, views, dark_offset=self.offset, saturation=self.saturation,
-                       object_free=background, black_level=black_level)
+                       object_free=background, black_level=black_level, p_rule=p_rule,
+                       p_model=None if p_model is None else p_model(self.offset, self.saturation))
+        self.pair = (views[0.0].maximum, views[1.0].maximum) if len(views) == 2 else None
         if Method(method).polarized and made.p is None:
             raise ImagingError(f"{method}: {made.note}")
         return made
@@ -108,8 +117,10 @@ class _Camera:
 
 
 def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rng,
-              orders: str = "all") -> dict:
-    """All methods at one scattering level; returns images (radiance estimates) and their scores."""
+              orders: str = "all", p_rule: str = "map") -> dict:
+    """All methods at one scattering level; returns images (radiance estimates) and their scores. Eq. 6's p
+    by ``p_rule``: ``map`` as the compositor's default makes it, from the scene's own medium model, κ and ψ
+    fitted to the polarized flood pair (:func:`~polarstripe.planning.medium_p.scene_p_model`)."""
 
     scene = scene.replace(medium=scene.medium.replace(sigma_t=sigma_t))
     t0 = time.perf_counter()
@@ -141,10 +152,19 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
     cam = _Camera(scene.camera, plain, rng)
     est["flood"] = cam.to_radiance(cam.compose("flood", [plain], background).image)
 
+    renders: dict = {}   # the map's model render, shared by both polarized methods
+
+    def model(flood_pair=None):
+        if p_rule != "map":
+            return None
+        return lambda dark, sat: scene_p_model(scene, background, dark, sat, flood=flood_pair, renders=renders)
+
     pair = [analyzer(flood, ang_b), analyzer(flood, ang_w)]
     cam = _Camera(scene.camera, pair, rng)
-    made = cam.compose("polarized_flood", [pair[:1], pair[1:]], background)
+    made = cam.compose("polarized_flood", [pair[:1], pair[1:]], background, p_rule=p_rule, p_model=model())
     est["polarized flood"], p_flood = cam.to_radiance(made.image), made.p
+    flood_pair = (tuple(np.asarray(np.ma.getdata(x), np.float64) for x in cam.pair), cam.offset,
+                  cam.saturation)  # E_b first: ang_b is the calibrated crossed angle
 
     plain = [analyzer(s, None) for s in stripes]
     cam = _Camera(scene.camera, plain, rng)
@@ -152,7 +172,7 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
 
     rb, rw = [analyzer(s, ang_b) for s in stripes], [analyzer(s, ang_w) for s in stripes]
     cam = _Camera(scene.camera, rb + rw, rng)
-    made = cam.compose("polarized_stripes", [rb, rw], background)
+    made = cam.compose("polarized_stripes", [rb, rw], background, p_rule=p_rule, p_model=model(flood_pair))
     est["polarized striping (E_b only)"] = 2.0 * cam.to_radiance(made.layers["e_b"])
     est["polarized striping (eq. 6)"], p_stripes = cam.to_radiance(made.image), made.p
 
@@ -223,7 +243,7 @@ def main(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     scene = scene.replace(camera=scene.camera.replace(resolution=(w, h)))
     rng = np.random.default_rng(args.seed)
-    levels = [run_level(scene, s, args.stripes, args.checkers, args.fidelity, rng, args.orders)
+    levels = [run_level(scene, s, args.stripes, args.checkers, args.fidelity, rng, args.orders, args.p_rule)
               for s in args.sigma_t]
     if args.figure:
         _figure(levels, args.figure)

@@ -2,6 +2,7 @@
 compositor's pipeline, checked against the sensor's closed-form noise in clear water, and the regret table's
 bookkeeping against hand-made curves."""
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import pytest
 from polarstripe.planning.validate import ScanSettings, curves, scan_scene
 from polarstripe.planning.validate_table import _bisections, default_grid, regret_rows, validate
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import SceneError, load_scene, with_separation
 
 TINY = ScanSettings(fidelity="preview", n_stripes=4, width=32, exposure="method")
@@ -47,7 +49,7 @@ def _noise_limited_error(scene, exposure_scale: float) -> float:
 
 def test_clear_water_every_composite_is_the_object_up_to_sensor_noise(tank):
     """With sigma_t = 0 the frames hold T (no A, no B): the flood frame, the stripe max (eq. 7) and the
-    unrecovered E_b (no backscatter: p is not estimated) differ from T by the sensor's noise alone."""
+    polarized flood (no backscatter: the model's p map is not used) differ from T by the sensor's noise alone."""
     clear = tank.replace(medium=tank.medium.replace(sigma_t=0.0))
     got = curves(clear, [0.1], TINY, methods=("flood", "stripes", "polarized_flood"))
     small = scan_scene(clear, TINY.width)
@@ -57,7 +59,8 @@ def test_clear_water_every_composite_is_the_object_up_to_sensor_noise(tank):
         predicted = _noise_limited_error(sd, row["exposure_scale"] * (0.5 if "polarized" in method else 1))
         assert row["saturated_fraction"] == 0.0
         assert row["error"] == pytest.approx(predicted, rel=0.3), method
-    assert "p not estimated" in got["polarized_flood"][0]["note"]
+    # no backscatter: the model's map has nothing to fit (the frames' map or none stands in)
+    assert "0 pixels with backscatter in the model" in got["polarized_flood"][0]["note"]
     assert got["stripes"][0]["depth_valid_fraction"] > 0.5
     assert got["stripes"][0]["depth_rms_mm"] < 20.0
 
@@ -72,6 +75,20 @@ def test_murky_water_stripes_beat_flood_and_polarization_helps(tank):
     assert err["polarized_stripes"] < err["stripes"]
     assert got["polarized_flood"][0]["error_e_b"] < err["flood"]
     assert 0.0 < got["polarized_flood"][0]["p"] <= 1.0
+    # eq. 6 by the compositor's default, the model's map (fitted to the flood pair): the medium's DOP it
+    # reports is the backscatter's own, Σ p B / Σ B of the scene's render at the scan's pose
+    sd = with_separation(scan_scene(tank, TINY.width), 0.15, aim=True)
+    c = render_components(sd, "flood", TINY.fidelity)
+    p_true = float(np.sum(c.p * c.B) / np.sum(c.B))
+    for m in ("polarized_flood", "polarized_stripes"):
+        assert "note" not in got[m][0], got[m][0].get("note")
+        assert got[m][0]["p"] == pytest.approx(p_true, abs=0.05), m
+    median = curves(tank, [0.15], dataclasses.replace(TINY, p_rule="median"), methods=("polarized_flood",))
+    assert median["polarized_flood"][0]["p"] < p_true - 0.05  # the ratio of medians reads p B/(S + B), low
+    # the stripe scan's map is fitted to the polarized flood's pair, made from its own noise stream: the
+    # row does not depend on whether the flood was scanned beside it
+    alone = curves(tank, [0.15], TINY, methods=("polarized_stripes",))["polarized_stripes"][0]
+    assert alone == got["polarized_stripes"][0]
 
 
 class _Store:
