@@ -9,7 +9,10 @@ DOP_B = 0.8 at backscatter. Circular light: m44, the quarter-wave plates and V (
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from polarstripe.sim.sensor_kernels import malus
 
 
 def rayleigh_mueller(one_minus_mu, one_plus_mu, depolarization: float):
@@ -64,6 +67,48 @@ def polarizer_transmittances(extinction_ratio: float) -> tuple[float, float]:
     return 1.0, 1.0 / float(extinction_ratio)
 
 
+@dataclass(frozen=True)
+class AnalyzerBasis:
+    """What the radiance through a linear analyzer needs that does not depend on its angle: ``total`` =
+    D + A + B and the backscatter's polarized part on the analyzer's circle, ``q`` = B·p·cos 2χ and
+    ``u`` = B·p·sin 2χ (flat arrays of the components' ``shape``), and the analyzer's principal
+    transmittances k1, k2. A scan keeps one per pattern: its second analyzer angle costs one pass
+    (:func:`through_analyzer`)."""
+
+    total: np.ndarray
+    q: np.ndarray
+    u: np.ndarray
+    k1: float
+    k2: float
+    shape: tuple[int, ...]
+
+
+def analyzer_basis(components, extinction_ratio: float | None = None) -> AnalyzerBasis:
+    """The angle-free part of :func:`analyzer` (docs/physics.md §4.1): B·p·cos 2(φ − χ) = q cos 2φ + u sin 2φ
+    with (q, u) = B·p·(cos 2χ, sin 2χ) = B·p·(Q, U)/√(Q² + U²), (Q, U) the backscatter's Stokes on the
+    analyzer's circle (``components.seen_stokes``), p = ``components.p`` as it is (clipped to [0, 1], 0 where
+    B = 0) and (q, u) = 0 where Q = U = 0. The extinction ratio defaults to the scene's."""
+    er = components.scene.camera.polarizer.extinction_ratio if extinction_ratio is None else extinction_ratio
+    k1, k2 = polarizer_transmittances(er)
+    sq, su = components.seen_stokes()
+    norm = np.hypot(sq, su)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(norm > 0, components.B * components.p / norm, 0.0)
+    flat = [np.ascontiguousarray(a, dtype=float).reshape(-1) for a in
+            (components.D + components.A + components.B, scale * sq, scale * su)]
+    return AnalyzerBasis(*flat, float(k1), float(k2), tuple(np.shape(components.B)))
+
+
+def through_analyzer(basis: AnalyzerBasis, angle_deg: float) -> np.ndarray:
+    """Radiance through the analyzer at ``angle_deg``, shape ``basis.shape``: ½(k1 + k2)·total +
+    ½(k1 − k2)·(q cos 2φ + u sin 2φ), one compiled pass (sim/sensor_kernels.py)."""
+    two_phi = 2.0 * np.radians(float(angle_deg))
+    out = np.empty(basis.total.size)
+    malus(basis.total, basis.q, basis.u, 0.5 * (basis.k1 + basis.k2), 0.5 * (basis.k1 - basis.k2),
+          float(np.cos(two_phi)), float(np.sin(two_phi)), out)
+    return out.reshape(basis.shape)
+
+
 def analyzer(components, angle_deg: float | None, extinction_ratio: float | None = None) -> np.ndarray:
     """Radiance [W sr⁻¹ m⁻²] through a linear analyzer at ``angle_deg`` (Malus; paper eqs. 4–5).
 
@@ -72,16 +117,13 @@ def analyzer(components, angle_deg: float | None, extinction_ratio: float | None
     image up). With a quarter-wave plate at α in front of the analyzer (``camera.polarizer.quarter_wave_deg``)
     p and χ are the effective ones, √(Q_α² + V²)/B and α + ½ atan2(V, Q_α), and this is the Mueller product
     of the plate and the polarizer (docs/physics.md §5.1). ``angle_deg=None`` means no analyzer (nor plate):
-    D + A + B. The extinction ratio defaults to the scene's.
+    D + A + B. The extinction ratio defaults to the scene's. Computed as
+    ``through_analyzer(analyzer_basis(components), angle_deg)``: the cosine expanded, equal to the formula
+    above to rounding (a few ulp of B·p).
     """
-    total = components.D + components.A + components.B
     if angle_deg is None:
-        return total
-    er = components.scene.camera.polarizer.extinction_ratio if extinction_ratio is None else extinction_ratio
-    k1, k2 = polarizer_transmittances(er)
-    phi = np.radians(float(angle_deg))
-    return 0.5 * (k1 + k2) * total + 0.5 * (k1 - k2) * components.B * components.p * np.cos(
-        2.0 * (phi - components.chi_rad))
+        return components.D + components.A + components.B
+    return through_analyzer(analyzer_basis(components, extinction_ratio), angle_deg)
 
 
 def least_backscatter_angle(components, mask: np.ndarray | None = None) -> float:

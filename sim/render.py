@@ -122,7 +122,7 @@ class Components:
         """Object signal S = D + A."""
         return self.D + self.A
 
-    def _seen(self) -> tuple[np.ndarray, np.ndarray]:
+    def seen_stokes(self) -> tuple[np.ndarray, np.ndarray]:
         """The backscatter's Stokes on the analyzer's circle (docs/physics.md §5.1): (Bq, Bu) without a
         quarter-wave plate; with one at α, (Q_α cos 2α − V sin 2α, Q_α sin 2α + V cos 2α) with
         Q_α = Bq cos 2α + Bu sin 2α, so that Malus's law in p and χ holds for the rotating analyzer."""
@@ -137,7 +137,7 @@ class Components:
     def p(self) -> np.ndarray:
         """Per-pixel backscatter DOP as the scene's analyzer sees it (B-weighted over the ray; 0 where
         B = 0): the linear DOP, or with a quarter-wave plate at α √(Q_α² + V²)/B (docs/physics.md §5.1)."""
-        q, u = self._seen()
+        q, u = self.seen_stokes()
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(self.B > 0, np.clip(np.hypot(q, u) / self.B, 0.0, 1.0), 0.0)
 
@@ -145,7 +145,7 @@ class Components:
     def chi_rad(self) -> np.ndarray:
         """Per-pixel analyzer angle [rad, camera frame] that passes the most backscatter: the angle of its
         linear polarization, or with a plate at α, α + ½ atan2(V, Q_α)."""
-        q, u = self._seen()
+        q, u = self.seen_stokes()
         return 0.5 * np.arctan2(u, q)
 
     @property

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.sim.geometry import pinhole_frame, pixel_rays
 from polarstripe.sim.scene import Camera
+from polarstripe.sim.sensor_kernels import digitize, gaussian_dn, mean_electrons
 
 _H = 6.62607015e-34
 _C = 299792458.0
@@ -80,34 +81,26 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     μ_e = L·e_L + μ_dark (capped at 1e12), e = min(Poisson(μ_e), full well) + N(0, σ_r²),
     y = clip(round(e/K + offset), 0, 2^bits − 1). The draws are one ``rng.poisson`` then one ``rng.normal``
     over the frame (Poisson), or one ``rng.standard_normal`` in float32 (Gaussian), so a seed gives the same
-    frame whichever way the electrons map was obtained.
+    frame whichever way the electrons map was obtained. The arithmetic around the draws is one compiled pass
+    each (sim/sensor_kernels.py): the same operations, in the same order, as the numpy expressions above.
     """
     rng = np.random.default_rng(camera.seed if rng is None else rng)
     e_map = electrons_per_radiance(camera, pixels) if electrons is None else electrons
     dark_e = camera.dark_current_e_s * camera.exposure_s
+    shape = np.broadcast_shapes(np.shape(radiance), np.shape(e_map))
+    rad, e_map = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), shape)).reshape(-1)
+                  for a in (radiance, e_map))
+    out = np.empty(rad.size, np.uint16)
     if gaussian:
-        return _expose_gaussian(radiance, e_map, dark_e, camera, rng)
-    lam = np.clip(np.nan_to_num(np.asarray(radiance, float), nan=0.0, posinf=0.0), 0.0, None) * e_map + dark_e
-    np.minimum(lam, 1e12, out=lam)
-    e = np.minimum(rng.poisson(lam).astype(float), camera.full_well_e)
-    e += rng.normal(0.0, camera.read_noise_e, size=e.shape)
-    y = np.round(e / camera.gain_e_per_dn + camera.offset_dn)
-    return np.clip(y, 0, full_scale_dn(camera)).astype(np.uint16)
-
-
-def _expose_gaussian(radiance, e_map, dark_e: float, camera: Camera, rng: np.random.Generator) -> np.ndarray:
-    """:func:`expose` with ``gaussian=True``: float32 in place, far below the noise in precision."""
-    lam = np.multiply(radiance, e_map, dtype=np.float32)
-    np.nan_to_num(lam, copy=False, nan=0.0, posinf=0.0)
-    np.clip(lam, 0.0, 1e12, out=lam)
-    lam += np.float32(dark_e)
-    e = rng.standard_normal(lam.shape, dtype=np.float32)
-    sd = lam + np.float32(camera.read_noise_e ** 2)
-    e *= np.sqrt(sd, out=sd)
-    e += lam
-    np.minimum(e, np.float32(camera.full_well_e), out=e)
-    e *= np.float32(1.0 / camera.gain_e_per_dn)
-    e += np.float32(camera.offset_dn)
-    np.rint(e, out=e)
-    np.clip(e, 0, full_scale_dn(camera), out=e)
-    return e.astype(np.uint16)
+        z = rng.standard_normal(rad.size, dtype=np.float32)
+        gaussian_dn(rad, e_map, np.float32(dark_e), np.float32(camera.read_noise_e ** 2), z,
+                    np.float32(camera.full_well_e), np.float32(1.0 / camera.gain_e_per_dn),
+                    np.float32(camera.offset_dn), np.float32(full_scale_dn(camera)), out)
+        return out.reshape(shape)
+    lam = np.empty(rad.size)
+    mean_electrons(rad, e_map, float(dark_e), lam)
+    shot = rng.poisson(lam)
+    read = rng.normal(0.0, camera.read_noise_e, size=lam.size)
+    digitize(shot, read, float(camera.full_well_e), float(camera.gain_e_per_dn), float(camera.offset_dn),
+             float(full_scale_dn(camera)), out)
+    return out.reshape(shape)

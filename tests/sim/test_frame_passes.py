@@ -1,0 +1,85 @@
+"""A frame's passes after the model: the analyzer's precomputed form equals Malus's law as written in
+docs/physics.md §4.1, and the compiled sensor gives the frame of the numpy expressions of docs/physics.md §7
+bit for bit (both written out here, on random inputs with the edge cases: B = 0, a DOP clipped at 1, no
+linear polarization, NaN and infinite radiance)."""
+
+import numpy as np
+import pytest
+from polarstripe.sim.polarization import analyzer, analyzer_basis, through_analyzer
+from polarstripe.sim.render import Components
+from polarstripe.sim.scene import load_scene
+from polarstripe.sim.sensor import expose, full_scale_dn
+
+
+def _components(rng, scene, n=4000):
+    d, a, b = (rng.uniform(0, 2, n) * 10.0 ** rng.uniform(-3, 2, n) for _ in range(3))
+    q, u, v = (rng.normal(0, 1, n) * b for _ in range(3))        # |(Q, U)| above B in places: p clipped
+    b[::17] = 0.0                                                # no backscatter: p = 0
+    q[::19], u[::19] = 0.0, 0.0                                  # no linear polarization
+    return Components(d.reshape(40, 100), a.reshape(40, 100), b.reshape(40, 100), q.reshape(40, 100),
+                      u.reshape(40, 100), None, scene, None, None, Bv=v.reshape(40, 100))
+
+
+def _malus(c, angle_deg, er):
+    """I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ), k1 = 1, k2 = 1/ER (docs/physics.md §4.1)."""
+    k1, k2 = 1.0, 1.0 / er
+    phi = np.radians(angle_deg)
+    return 0.5 * (k1 + k2) * (c.D + c.A + c.B) + 0.5 * (k1 - k2) * c.B * c.p * np.cos(2 * (phi - c.chi_rad))
+
+
+@pytest.mark.parametrize("plate", [None, 30.0])
+def test_precomputed_analyzer_is_malus_law(plate):
+    """Equal to rounding: B·p·cos 2(φ − χ) against B·p·(Q cos 2φ + U sin 2φ)/√(Q² + U²), a few ulp of B·p."""
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.replace(
+        polarizer=scene.camera.polarizer.replace(quarter_wave_deg=plate)))
+    c = _components(np.random.default_rng(1), scene)
+    assert (c.p == 1.0).mean() > 0.05 and (c.p[c.B > 0] < 1).mean() > 0.3       # both sides of the clip
+    basis = analyzer_basis(c)
+    for angle in (0.0, 22.5, 90.0, 133.7, -61.0):
+        want = _malus(c, angle, scene.camera.polarizer.extinction_ratio)
+        got = analyzer(c, angle)
+        assert got.shape == want.shape
+        assert np.all(np.abs(got - want) <= 1e-12 * (c.D + c.A + c.B))
+        assert np.array_equal(through_analyzer(basis, angle), got)
+    low = analyzer(c, 10.0, extinction_ratio=50.0)
+    assert np.all(np.abs(low - _malus(c, 10.0, 50.0)) <= 1e-12 * (c.D + c.A + c.B))
+    assert np.array_equal(analyzer(c, None), c.D + c.A + c.B)
+
+
+def _numpy_expose(radiance, cam, seed, e_map, gaussian):
+    """The sensor as numpy expressions, in the order of docs/physics.md §7."""
+    rng = np.random.default_rng(seed)
+    dark = cam.dark_current_e_s * cam.exposure_s
+    if gaussian:
+        lam = np.multiply(radiance, e_map, dtype=np.float32)
+        np.nan_to_num(lam, copy=False, nan=0.0, posinf=0.0)
+        np.clip(lam, 0.0, 1e12, out=lam)
+        lam += np.float32(dark)
+        e = rng.standard_normal(lam.shape, dtype=np.float32)
+        e *= np.sqrt(lam + np.float32(cam.read_noise_e ** 2))
+        e += lam
+        np.minimum(e, np.float32(cam.full_well_e), out=e)
+        e *= np.float32(1.0 / cam.gain_e_per_dn)
+        e += np.float32(cam.offset_dn)
+        return np.clip(np.rint(e), 0, full_scale_dn(cam)).astype(np.uint16)
+    lam = np.clip(np.nan_to_num(radiance, nan=0.0, posinf=0.0), 0.0, None) * e_map + dark
+    np.minimum(lam, 1e12, out=lam)
+    e = np.minimum(rng.poisson(lam).astype(float), cam.full_well_e)
+    e += rng.normal(0.0, cam.read_noise_e, size=e.shape)
+    return np.clip(np.round(e / cam.gain_e_per_dn + cam.offset_dn), 0, full_scale_dn(cam)).astype(np.uint16)
+
+
+@pytest.mark.parametrize("gaussian", [False, True])
+def test_compiled_sensor_gives_the_numpy_frame_bit_for_bit(gaussian):
+    rng = np.random.default_rng(2)
+    cam = load_scene(None).camera.replace(resolution=(70, 50))
+    radiance = rng.uniform(-0.2, 1, (50, 70)) * 10.0 ** rng.uniform(-4, 2, (50, 70))
+    radiance.flat[::37], radiance.flat[::41], radiance.flat[::43] = np.nan, np.inf, -np.inf
+    radiance.flat[::47] = 1e30                                   # beyond the 1e12 cap and the full well
+    for e_map in (rng.uniform(1e3, 3e4, (50, 70)), 2e4):
+        got = expose(radiance, cam, 9, electrons=e_map, gaussian=gaussian)
+        want = _numpy_expose(radiance, cam, 9, e_map, gaussian)
+        assert got.dtype == np.uint16 and got.shape == (50, 70)
+        assert len(np.unique(got)) > 100 and got.max() == full_scale_dn(cam)
+        assert np.array_equal(got, want)
