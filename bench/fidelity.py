@@ -25,8 +25,8 @@ frame time, and Mitsuba's time at equal error — in one run.
 ``--render-references`` renders the own scenes with Mitsuba first (``pip install mitsuba``; libLLVM ≥ 17).
 Targets (the issue): standard within 10 % of all orders (20 % at σ_t = 8), preview within 25 %, standard
 ≥ 10 frames/s and preview ≥ 40 frames/s at 640×480 on one core (one model thread). ``--threads N`` adds the
-stripe frame's wall time with N model threads against one (the scaling; the frame is the same for any count,
-:mod:`polarstripe.sim.threads`).
+scaling with N threads against one: one stripe frame, and a scan's frames N at a time (bench/scaling.py;
+the frames are the same for any count, :mod:`polarstripe.sim.threads`).
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from polarstripe.bench.scaling import describe, scaling
 from polarstripe.errors import PolarstripeError
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.render import render_components
@@ -61,8 +62,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="render the own scenes with Mitsuba into --data first (needs mitsuba)")
     parser.add_argument("--quick", action="store_true", help="skip the 'reference' level's frame time")
     parser.add_argument("--threads", type=int, default=1,
-                        help="also time the stripe frames with N model threads (wall clock against one "
-                             "thread: the scaling); the CPU times above are one thread's")
+                        help="also time one stripe frame with N model threads and 2N stripe frames N at "
+                             "a time, against one thread (wall clock: the scaling); the CPU times above are "
+                             "one thread's")
 
 
 def regions(img: np.ndarray) -> np.ndarray:
@@ -186,36 +188,10 @@ def _rel_err(x, r):
     return float(np.median(e)), float(np.max(e))
 
 
-def _wall(fn, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        c = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - c)
-    return best
-
-
-def scaling(scene, threads: int, repeat: int, levels=("preview", "standard")) -> dict:
-    """Wall seconds of the stripe frame (all orders) with one and with ``threads`` model threads, per level,
-    and their ratio (a frame is the same for any count: sim/threads.py)."""
-    out = {}
-    for level in levels:
-        row = {}
-        for n in (1, threads):
-            set_threads(n)
-            render_components(scene, "stripe:14/30", level)
-            row[f"wall_s_{n}"] = _wall(lambda lv=level: render_components(scene, "stripe:14/30", lv), repeat)
-            row[f"cpu_s_{n}"] = _timed(lambda lv=level: render_components(scene, "stripe:14/30", lv), repeat)
-        row["speedup"] = row["wall_s_1"] / row[f"wall_s_{threads}"]
-        out[level] = row
-    set_threads(1)
-    return out
-
-
 def timing(repeat: int, quick: bool, samples: int, threads: int = 1) -> dict:
     """CPU seconds per 640×480 frame of the default tank, all orders and single, on one model thread;
     single-scattering error against the converged reference at sampled pixels; with ``threads`` > 1 the
-    stripe frame's wall time at that many threads against one (:func:`scaling`)."""
+    scaling at that many threads against one (bench/scaling.py)."""
     set_threads(1)
     scene = load_scene(None)
     t0 = time.perf_counter()
@@ -344,14 +320,8 @@ def _table(res: dict) -> str:
     lines.append(f"single scattering ÷ all orders: worst {100 * summ['single_max_err']:.0f} % off; frame "
                  "times are CPU seconds at 640×480 (stripe 14/30 unless noted), first call of this process "
                  f"{tim['first_call_s']:.2f} s")
-    th = tim.get("threads")
-    if th:
-        k = f"_{th['count']}"
-        lines.append(f"threads: {th['count']} (this process may use {th['available']} cores); "
-                     "stripe frame, wall "
-                     "clock, one thread vs N: " + "; ".join(
-                         f"{lv} {r['wall_s_1']:.3f} s vs {r['wall_s' + k]:.3f} s = {r['speedup']:.2f}x (CPU "
-                         f"{r['cpu_s_1']:.3f} vs {r['cpu_s' + k]:.3f} s)" for lv, r in th["levels"].items()))
+    if tim.get("threads"):
+        lines.append(describe(tim["threads"]))
     lines.append("targets: " + ", ".join(f"{k} {'met' if v else 'MISSED'}"
                                          for k, v in summ["targets"].items()))
     return "\n".join(lines)

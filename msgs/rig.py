@@ -72,5 +72,5 @@ FAULT_COMMANDS = {
     "bus_off": "SECONDS: an error frame 'bus-off', silence, then 'restarted'",
     "position_limit": "MIN MAX: the drive's software position limit [counts]",
     "camera_lost": "on|off: simulator/render answers with an error (the camera is gone)",
-    "frame_delay": "SECONDS: each render waits this long first (a hung camera; 0 ends it)",
+    "frame_delay": "SECONDS: each frame is answered this long after its request (a hung camera; 0 ends it)",
 }

@@ -35,12 +35,15 @@ metrics ``separation_m``, ``exposure_s``, ``dark_offset_dn``, ``rig_geometry`` (
 current source pose, as a calibration file holds them: sim/depth_truth.py). One render per source pose,
 cached.
 
-Speed: components are cached per (pattern, source pose), so the second analyzer angle of a scan costs only
-the analyzer and the sensor, and the scan's next pattern is rendered ahead in a worker thread
-(``render_ahead``). With ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels wide)
-the model renders at a lower resolution and the radiance is resized bilinearly to the camera's size before
-the sensor (noise, quantisation and clipping at full size); checker patterns (whose edges the high-frequency
-separation relies on) at twice that resolution, and the ground truth at full size.
+Speed: frames are made on worker threads, ``threads`` at once (nodes/simulator_pipeline.py); the loop
+never waits for one: a request whose frame is not made yet gets a deferred reply, which the ``deliver``
+timer sends once it is, in request order. Each pattern's components are kept per source pose (their
+analyzer basis, sim/polarization.py), so the second analyzer angle of a scan costs only the analyzer pass
+and the sensor, and the scan's next ``threads`` frames are made ahead (``render_ahead``). With
+``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels wide) the model renders at a
+lower resolution and the radiance is resized bilinearly to the camera's size before the sensor (noise,
+quantisation and clipping at full size); checker patterns (whose edges the high-frequency separation relies
+on) at twice that resolution, and the ground truth at full size.
 ``noise = "gaussian"`` (the preview default) draws shot and read noise as one normal variate with the EMVA
 mean and variance instead of Poisson + normal.
 """
@@ -52,13 +55,9 @@ import json
 import math
 import os
 import time
-from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
 
-import numpy as np
 from polarstripe.msgs import Ack, Composite, Empty, Frame, Plan, ScanEvent
-from polarstripe.msgs.patterns import following
 from polarstripe.msgs.rig import RenderRequest, SimFault
 from polarstripe.nodes.drivers.simdrive import SimCia402Drive
 from polarstripe.nodes.simulator_frames import (
@@ -73,22 +72,25 @@ from polarstripe.nodes.simulator_frames import (
     parse_fault,
     parse_resolution,
     rig_scene,
-    timed_render,
     to_camera,
     truth_composite,
 )
 from polarstripe.nodes.simulator_motion import ScanMotion, rig_motion
+from polarstripe.nodes.simulator_pipeline import FrameDone, FrameJob, Frames, Owed, Sources
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
+from polarstripe.runtime.node_bus import Deferred
 from polarstripe.runtime.params import NodeParams, check_frame_size
-from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT, linear_stokes, mosaic_radiance
-from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.mosaic import SONY_EXTINCTION_RATIO, SONY_LAYOUT
+from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_light, with_separation
-from polarstripe.sim.sensor import electrons_per_radiance, expose
+from polarstripe.sim.sensor import electrons_per_radiance
 from polarstripe.sim.threads import set_threads
 
 __all__ = ["Simulator", "SimulatorError"]
+
+DELIVER_PERIOD_S = 0.002  # how often the loop looks for made frames while one is owed
 
 
 class Simulator(Node):
@@ -107,8 +109,8 @@ class Simulator(Node):
         auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
         cache_size: int = 80  # cached component sets (one per pattern and source pose)
-        render_ahead: bool = True  # render the scan's next pattern in a worker thread
-        threads: int = 0  # model threads per render; 0 = the cores of the process's CPU affinity
+        render_ahead: bool = True  # make the scan's next `threads` frames while this one travels
+        threads: int = 0  # frames made at once; 0 = the cores of the process's CPU affinity
         analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
         can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
         can_node_id: int = 5
@@ -156,7 +158,8 @@ class Simulator(Node):
 
     def setup(self):
         p = self.params
-        self.target = self.drive = self.ell14 = self._pool = None  # teardown after a setup cut short
+        self.target = self.drive = self.ell14 = None  # teardown after a setup cut short
+        self.frames = None
         try:
             self.base = rig_scene(p.scene, p.resolution, p.exposure_s, p.medium_sigma_t, p.medium_g)
             self.base = self.base if p.light == "scene" else with_light(self.base, p.light)
@@ -174,15 +177,15 @@ class Simulator(Node):
         self.gaussian = p.noise == "gaussian" or (p.noise == "auto" and self.fidelity.name == "preview")
         if self.fidelity.name == "reference" and p.heartbeat_s > 0:  # its kernels hold the GIL up to ~1.1 s
             self.beat_period_s = max(p.heartbeat_s, 1.0)  # deadline 4 s (runtime/liveness.py)
-        self._cache: OrderedDict = OrderedDict()
-        self._ahead: dict = {}  # (pattern, pose) -> Future of a render ahead
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="render ahead") if p.render_ahead else None
+        self.stats = {"frames": 0, "made_ahead": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0,
+                      "sensor_s": 0.0, "resize_s": 0.0, "busy_s": 0.0}
+        self.sources = Sources(p.cache_size, self.fidelity)
+        self.frames = Frames(self.sources, self.threads, self.stats)
+        self.motion = ScanMotion(p)
         self._truth: dict = {}
         self._e_map_base = electrons_per_radiance(cam)
         self._e_map = self._e_map_base
         self.camera_lost, self.frame_delay_s = False, 0.0
-        self.stats = {"frames": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0, "sensor_s": 0.0,
-                      "resize_s": 0.0, "busy_s": 0.0}
         if p.can_channel:  # kept before it starts: a stop signal mid-start leaves teardown a drive to stop
             self.drive = SimCia402Drive(p.can_channel, p.can_node_id, speed_counts_s=p.drive_speed_counts_s,
                                         settle_s=p.drive_settle_s)
@@ -204,11 +207,10 @@ class Simulator(Node):
         self.serve("simulator/render", self.render)
         self.serve("simulator/render_mosaic", self.render_mosaic)
         self.mosaic = micro_polarizers(p)
-        self.motion = ScanMotion(p)
         self.serve("simulator/move_source", self.move_source)
         self.serve("simulator/fault", self.inject)
         self.serve("simulator/target", self.move_target)
-        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %d model threads, %s noise, drive %s", w,
+        self.log.info("%dx%d camera, fidelity %s, model at 1/%d, %d frames at once, %s noise, drive %s", w,
                       cam.resolution[1], self.fidelity.name, self.scale, self.threads,
                       "gaussian" if self.gaussian else "poisson", p.can_channel or "none (fixed analyzer)")
 
@@ -220,8 +222,8 @@ class Simulator(Node):
             if os.path.islink(self.params.ell14_link):
                 os.unlink(self.params.ell14_link)
             self.ell14 = None
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for owed in self.frames.close() if self.frames is not None else []:
+            owed.reply.fail(SimulatorError(f"node {self.name!r} stopped before the frame was made"))
         if self.drive is not None:
             self.drive.stop()
             self.drive = None
@@ -245,42 +247,11 @@ class Simulator(Node):
     def _truth_key(self) -> tuple:
         return (*self._pose(), self.scene.camera.exposure_s)
 
-    def components(self, pattern: str, scene: Scene | None = None, next_scene: Scene | None = None):
-        """Components of ``pattern`` at the pose of ``scene`` (None: the current one), at the model resolution
-        (cached; the next pattern of a scan is rendered ahead, at ``next_scene``'s pose, in a worker thread
-        while this frame travels)."""
-        scene = self.scene if scene is None else scene
-        key = (pattern, self._pose(scene))
-        comp = self._cache.get(key)
-        if comp is not None:
-            self._cache.move_to_end(key)
-            self.stats["cache_hits"] += 1
-        else:
-            ahead = self._ahead.pop(key, None)
-            if ahead is not None:
-                comp, seconds = ahead.result()
-            else:
-                comp, seconds = timed_render(model_scene(scene, pattern, self.scale, self.target is not None),
-                                             pattern, self.fidelity)
-            self.stats["model_s"] += seconds
-            self.stats["renders"] += 1
-            self._cache[key] = comp
-            while len(self._cache) > self.params.cache_size:
-                self._cache.popitem(last=False)
-        self._render_ahead(following(pattern), scene if next_scene is None else next_scene)
-        return comp
-
-    def _render_ahead(self, pattern: str | None, scene: Scene) -> None:
-        if pattern is None or self._pool is None:
-            return
-        key = (pattern, self._pose(scene))
-        if key in self._cache or key in self._ahead:
-            return
-        for old in [k for k in self._ahead if k[1] != key[1]]:  # renders for a pose that is gone
-            self._ahead.pop(old).cancel()
-        self._ahead[key] = self._pool.submit(timed_render, model_scene(scene, pattern, self.scale,
-                                                                       self.target is not None),
-                                             pattern, self.fidelity)
+    def _where(self, pattern: str, scan_id: int = 0, step: int = 0) -> tuple[tuple, Scene]:
+        """(pose, model scene) of frame ``step`` of scan ``scan_id`` showing ``pattern``: the current scene,
+        or where a moving rig is then (nodes/simulator_motion.py)."""
+        scene = self.motion.scene_at(self.scene, scan_id, step)
+        return self._pose(scene), model_scene(scene, pattern, self.scale, self.target is not None)
 
     def move_to(self, separation_m: float) -> Scene:
         """Move the source to camera–source distance ``separation_m`` [m] (the projector keeps its aim)."""
@@ -298,8 +269,9 @@ class Simulator(Node):
         base = self.base.camera
         factor = 1.0
         if self.params.auto_exposure:
-            comp = self.components("flood")
-            radiance = to_camera(comp.D + comp.A + comp.B, base.resolution)
+            source, seconds = self.sources.get(("flood", self._pose()), self._where("flood")[1], "flood")
+            self.frames.count(FrameDone(None, seconds, 0.0, 0.0))
+            radiance = to_camera(source.total(), base.resolution)
             factor = exposure_factor(radiance, self._e_map_base, base)
         self.scene = self.scene.replace(camera=base.replace(exposure_s=base.exposure_s * factor))
         self._e_map = self._e_map_base * factor
@@ -362,50 +334,68 @@ class Simulator(Node):
         micro-polarizer (sim/mosaic.py, the ``mosaic_*`` params); ``mosaic_deg`` gives the layout."""
         return self._frame(req, mosaic=True)
 
-    def _frame(self, req: RenderRequest, *, mosaic: bool) -> Frame:
+    def _frame(self, req: RenderRequest, *, mosaic: bool) -> Frame | Deferred:
+        """A frame request: its job made on a worker (or taken from the frames made ahead), the scan's next
+        frames started, the reply at once if the frame is there, else deferred (:meth:`_deliver`)."""
         t_start = time.perf_counter()
-        if self.frame_delay_s > 0:
-            time.sleep(self.frame_delay_s)
         if self.camera_lost:
             raise SimulatorError("simulated camera lost (fault 'camera_lost on')")
         cam = self.scene.camera
+        e_map = self._e_map
         if req.exposure_s is not None:
             if not (math.isfinite(req.exposure_s) and req.exposure_s > 0):
                 raise SimulatorError(f"exposure_s={req.exposure_s} must be a positive number of seconds")
             cam = cam.replace(exposure_s=req.exposure_s)
+            if cam.exposure_s != self.scene.camera.exposure_s:
+                e_map = self._e_map * cam.exposure_s / self.scene.camera.exposure_s
         pattern = req.pattern.strip().lower()
-        if pattern == "off":  # nothing lit: a dark frame
-            radiance = np.zeros((cam.resolution[1], cam.resolution[0]))
-            angle = self.analyzer_angle() if req.analyzer and not mosaic else None
-        else:
+        if pattern != "off":
             try:
-                comp = self.components(pattern, self.motion.scene_at(self.scene, req.scan_id, req.step),
-                                       self.motion.scene_at(self.scene, req.scan_id, req.step + 1))
+                parse_pattern(pattern)
             except SceneError as exc:
                 raise SimulatorError(f"pattern {req.pattern!r}: {exc}") from None
-            angle = self.analyzer_angle() if req.analyzer and not mosaic else None
-            t0 = time.perf_counter()
-            if mosaic:
-                radiance = mosaic_radiance(*(to_camera(x, cam.resolution) for x in linear_stokes(comp)),
-                                           self.mosaic)
-            else:
-                radiance = to_camera(analyzer(comp, angle), cam.resolution)
-            self.stats["resize_s"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
         seed = self.params.seed if self.params.seed is not None else cam.seed
-        rng = np.random.default_rng([seed, req.scan_id, req.step, self.stats["frames"]])
-        e_map = self._e_map if cam.exposure_s == self.scene.camera.exposure_s else (
-            self._e_map * cam.exposure_s / self.scene.camera.exposure_s)
-        image = expose(radiance, cam, rng, electrons=e_map, gaussian=self.gaussian)
-        t_end = time.perf_counter()
-        self.stats["sensor_s"] += t_end - t0
+        pose, model = self._where(pattern, req.scan_id, req.step)
+        job = FrameJob(pattern, pose, None if pattern == "off" else model,
+                       self.analyzer_angle() if req.analyzer and not mosaic else None,
+                       self.mosaic if mosaic else None, cam, e_map,
+                       (seed, req.scan_id, req.step, self.stats["frames"]), self.gaussian)
         self.stats["frames"] += 1
-        self.stats["busy_s"] += t_end - t_start
-        self.log.debug("frame scan %d step %d %s: %.4f s (sensor %.4f s)", req.scan_id, req.step, pattern,
-                       t_end - t_start, t_end - t0)
-        return Frame(image=image, exposure_s=cam.exposure_s, bit_depth=cam.bits, pattern=pattern,
-                     polarizer_deg=angle, scan_id=req.scan_id, step=req.step,
-                     mosaic_deg=list(self.mosaic.layout) if mosaic else [])
+        future = self.frames.start(job, self._where if self.params.render_ahead else None)
+        owed = Owed(req, job, future, t_start, mosaic, self.now() + self.frame_delay_s)
+        if not self.frames.owed and future.done() and self.frame_delay_s <= 0:
+            return self._answer(owed)
+        owed.reply = Deferred()
+        self.frames.owed.append(owed)
+        if len(self.frames.owed) == 1:
+            self.every(DELIVER_PERIOD_S, self._deliver, name="deliver")
+        return owed.reply
+
+    def _deliver(self) -> None:
+        """The ``deliver`` timer: answer the owed frames that are made (and delayed as long as the fault
+        ``frame_delay`` asks), in request order."""
+        while (owed := self.frames.ready(self.now())) is not None:
+            try:
+                owed.reply.reply(self._answer(owed))
+            except Exception as exc:  # noqa: BLE001 - the caller gets it, as from a handler
+                owed.reply.fail(exc)
+        if not self.frames.owed:
+            self.cancel("deliver")
+
+    def _answer(self, owed: Owed) -> Frame:
+        try:
+            done = owed.future.result()
+        except SceneError as exc:
+            raise SimulatorError(f"pattern {owed.req.pattern!r}: {exc}") from None
+        self.frames.count(done)
+        t_end = time.perf_counter()
+        self.stats["busy_s"] += t_end - owed.t_start
+        req, job = owed.req, owed.job
+        self.log.debug("frame scan %d step %d %s: %.4f s (sensor %.4f s)", req.scan_id, req.step, job.pattern,
+                       t_end - owed.t_start, done.sensor_s)
+        return Frame(image=done.image, exposure_s=job.camera.exposure_s, bit_depth=job.camera.bits,
+                     pattern=job.pattern, polarizer_deg=job.angle, scan_id=req.scan_id, step=req.step,
+                     mosaic_deg=list(self.mosaic.layout) if owed.mosaic else [])
 
     def truth(self) -> Composite:
         """The ground truth at the current source pose and exposure (cached; ``scan_id`` 0)."""

@@ -1,5 +1,5 @@
 """What the simulator node computes, as plain functions: its scene (with a medium override), the model's
-resolution per pattern, a timed component render, the radiance resized to the camera, the auto-exposure
+resolution per pattern, the radiance resized to the camera, the auto-exposure
 factor; its error type and the ``resolution`` param's parser; the calibration board of its ``target`` params
 (:class:`Target`); the hosted ELL14. (The sensor is :func:`polarstripe.sim.sensor.expose`, given the node's
 precomputed electrons map.)"""
@@ -10,7 +10,6 @@ import math
 import os
 import shutil
 import tempfile
-import time
 
 import cv2
 import numpy as np
@@ -19,7 +18,6 @@ from polarstripe.msgs.rig import FAULT_COMMANDS
 from polarstripe.nodes.drivers.simell14 import SimEll14
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.mosaic import MicroPolarizerArray
-from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Phase, Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.scene_target import (
     board_texture,
@@ -92,13 +90,6 @@ def model_scene(scene: Scene, pattern: str, scale: int, target: bool = False) ->
     w, h = scene.camera.resolution
     small = (max(2, round(w / scale)), max(2, round(h / scale)))
     return scene.replace(camera=scene.camera.replace(resolution=small))
-
-
-def timed_render(scene: Scene, pattern: str, fidelity):
-    """(components of ``pattern``, seconds the render took)."""
-    t0 = time.perf_counter()
-    comp = render_components(scene, pattern, fidelity)
-    return comp, time.perf_counter() - t0
 
 
 def to_camera(radiance: np.ndarray, resolution: tuple[int, int]) -> np.ndarray:

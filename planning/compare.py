@@ -32,7 +32,7 @@ from polarstripe.msgs.methods import Method
 from polarstripe.planning.medium_p import scene_p_model
 from polarstripe.sim import sensor
 from polarstripe.sim.polarization import analyzer
-from polarstripe.sim.render import render_components
+from polarstripe.sim.render import render_components, render_each
 from polarstripe.sim.scene import load_scene, parse_size
 from polarstripe.sim.truth import unscattered_radiance
 
@@ -125,8 +125,8 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
     scene = scene.replace(medium=scene.medium.replace(sigma_t=sigma_t))
     t0 = time.perf_counter()
     flood = render_components(scene, "flood", fidelity, orders=orders)
-    stripes = [render_components(scene, f"stripe:{k}/{n_stripes}", fidelity, orders=orders)
-               for k in range(n_stripes)]
+    stripes = render_each(scene, [f"stripe:{k}/{n_stripes}" for k in range(n_stripes)], fidelity,
+                          orders=orders)
     checker = {c: render_components(scene, f"checker:{c}:0", fidelity, orders=orders) for c in checkers}
     model_s = time.perf_counter() - t0
     surf = flood.surface

@@ -30,6 +30,7 @@ from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_dn
+from polarstripe.sim.threads import each_frame
 from polarstripe.sim.truth import unscattered_object
 
 DEFAULT_WIDTH = 48
@@ -139,7 +140,7 @@ class ImageModel:
         sd = with_separation(self.scene, d_lc_m, aim=True)
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
-        parts = [self._render(sd, str(p)) for p in frames]
+        parts = each_frame(lambda p: self._render(sd, str(p)), frames)            # frames in parallel
         c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
         flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))

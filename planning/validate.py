@@ -61,7 +61,7 @@ from polarstripe.planning.sheets import object_depth_range
 from polarstripe.sim import sensor
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer
-from polarstripe.sim.render import render_components, resolve_fidelity
+from polarstripe.sim.render import render_components, render_each, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.truth import unscattered_object
 
@@ -228,7 +228,7 @@ def score_scans(scene: Scene, separation_m: float, settings: ScanSettings | None
     flood = render_components(sd, "flood", fid, orders=orders)
     stripes = []
     if any("stripes" in m for m in methods):
-        stripes = [render_components(sd, p, fid, orders=orders) for p in stripe_frames(n, k_sheets)]
+        stripes = render_each(sd, list(stripe_frames(n, k_sheets)), fid, orders=orders)
     truth, surf = unscattered_object(sd)
     background = surf.object_id < 0
     background = background if background.any() else None

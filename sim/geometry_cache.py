@@ -24,6 +24,7 @@ import numpy as np
 MAX_SCENES = 4          # scenes kept (the simulator renders stripes and checkers at two resolutions per pose)
 _store: OrderedDict = OrderedDict()       # scene -> {name: value}
 _lock = threading.Lock()
+_making: dict = {}                        # (scene, name) -> Event set once another thread has made it
 _state = {"enabled": True, "hits": 0, "misses": 0}
 
 
@@ -41,24 +42,37 @@ def _freeze(value: Any) -> Any:
 
 def cached(scene, name: tuple | str, make: Callable[[], Any]) -> Any:
     """``make()`` for (``scene``, ``name``), computed once while the scene stays among the last
-    :data:`MAX_SCENES` used; arrays in the value are made read-only."""
+    :data:`MAX_SCENES` used; arrays in the value are made read-only. A value another thread is making is
+    waited for, not made again (frames of one scan render in parallel: sim/threads.py)."""
     if not _state["enabled"]:
         return make()
-    with _lock:
-        entry = _store.get(scene)
-        if entry is not None:
+    key = (scene, name)
+    while True:
+        with _lock:
+            entry = _store.get(scene)
+            if entry is not None:
+                _store.move_to_end(scene)
+                if name in entry:
+                    _state["hits"] += 1
+                    return entry[name]
+            busy = _making.get(key)
+            if busy is None:
+                busy = _making[key] = threading.Event()
+                break
+        busy.wait()
+    try:
+        value = _freeze(make())
+        with _lock:
+            _state["misses"] += 1
+            entry = _store.setdefault(scene, {})
+            entry[name] = value
             _store.move_to_end(scene)
-            if name in entry:
-                _state["hits"] += 1
-                return entry[name]
-    value = _freeze(make())
-    with _lock:
-        _state["misses"] += 1
-        entry = _store.setdefault(scene, {})
-        entry[name] = value
-        _store.move_to_end(scene)
-        while len(_store) > MAX_SCENES:
-            _store.popitem(last=False)
+            while len(_store) > MAX_SCENES:
+                _store.popitem(last=False)
+    finally:
+        with _lock:
+            del _making[key]
+        busy.set()
     return value
 
 

@@ -23,6 +23,7 @@ from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.sensor import expose
 from polarstripe.sim.surface import SurfaceInfo, surface_info
 from polarstripe.sim.surface_field import View, single_parts
+from polarstripe.sim.threads import each_frame
 from polarstripe.sim.transport import make_source
 
 
@@ -249,6 +250,12 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
                                                      surf.chart_high)))
     D, A, B, Bq, Bu, Bv = (a.reshape(shape) for a in (D, A, B, Bq, Bu, Bv))
     return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan, Bv)
+
+
+def render_each(scene: Scene, patterns, fidelity: str | Fidelity = "standard", **kwargs) -> list[Components]:
+    """:func:`render_components` of each of ``patterns`` (same keyword arguments), the frames in parallel on
+    the model's threads (:func:`polarstripe.sim.threads.each_frame`); the same as one after another."""
+    return each_frame(lambda pattern: render_components(scene, pattern, fidelity, **kwargs), patterns)
 
 
 def _camera_geometry(scene: Scene, cam, pixels):

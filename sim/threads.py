@@ -8,19 +8,26 @@ bit-identical whatever the count (``tests/sim/test_threads.py``):
 * the per-pixel compiled kernels (:func:`in_bands`: bands of pixels, rows or a ray's intervals, each in a
   thread of a shared pool; the kernels release the GIL);
 * OpenCV's blurs and resizes (``cv2.setNumThreads``).
+
+Whole frames in parallel (:func:`each_frame`, :func:`submit_frame`) scale better: a scan's frames are
+independent and the model's kernels, numpy's and OpenCV's passes release the GIL, so ``threads`` frames
+render at once on a pool of their own, each with one model thread (:func:`threads` is 1 inside a frame
+worker; a frame is the same either way): :func:`polarstripe.sim.render.render_each`, the simulator node's
+scan and ``polarstripe bench fidelity --threads N``.
 """
 
 from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
 import numpy as np
 
-_state = {"threads": None, "pool": None}
+_state = {"threads": None, "pool": None, "frames": None}
 _lock = threading.Lock()
+_local = threading.local()         # .threads: 1 inside a frame worker
 
 
 def available() -> int:
@@ -32,7 +39,10 @@ def available() -> int:
 
 
 def threads() -> int:
-    """The model's thread count (default :func:`available`)."""
+    """The model's thread count (default :func:`available`; 1 inside a frame worker)."""
+    own = getattr(_local, "threads", None)
+    if own is not None:
+        return own
     if _state["threads"] is None:
         set_threads(None)
     return _state["threads"]
@@ -53,9 +63,10 @@ def set_threads(count: int | None) -> int:
         if _state["threads"] != n:
             _state["threads"] = n
             cv2.setNumThreads(n if n > 1 else 0)   # 0: OpenCV runs its loops in the calling thread
-            old, _state["pool"] = _state["pool"], None
-            if old is not None:
-                old.shutdown(wait=False)
+            for name in ("pool", "frames"):
+                old, _state[name] = _state[name], None
+                if old is not None:
+                    old.shutdown(wait=False)
     return n
 
 
@@ -66,7 +77,7 @@ def fft_workers() -> int:
 
 def _forget_pool() -> None:
     """In a forked child: the parent's pool threads do not exist there; the next band makes a new pool."""
-    _state["pool"] = None
+    _state["pool"] = _state["frames"] = None
 
 
 if hasattr(os, "register_at_fork"):
@@ -97,3 +108,33 @@ def in_bands(count: int, run, min_size: int = 4096, starts: np.ndarray | None = 
     run(edges[0], edges[1])
     for f in futures:
         f.result()
+
+
+def _one_thread(fn, args):
+    _local.threads = 1
+    try:
+        return fn(*args)
+    finally:
+        _local.threads = None
+
+
+def submit_frame(fn, *args) -> Future:
+    """``fn(*args)`` on the frame pool (:func:`threads` workers, first in first out), with one model thread
+    inside; its Future."""
+    n = threads()
+    with _lock:
+        if _state["frames"] is None:
+            _state["frames"] = ThreadPoolExecutor(n, thread_name_prefix="frame")
+        pool = _state["frames"]
+    return pool.submit(_one_thread, fn, args)
+
+
+def each_frame(fn, items) -> list:
+    """``[fn(x) for x in items]`` with the frames in parallel (:func:`submit_frame`); in this thread, with
+    its own thread count, when there is one thread, one item, or this is a frame worker already. ``fn``
+    must not change what another frame reads (the model's caches are safe: sim/geometry_cache.py)."""
+    items = list(items)
+    if threads() <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    futures = [submit_frame(fn, x) for x in items]
+    return [f.result() for f in futures]

@@ -1,9 +1,13 @@
 """The model's threads: a frame is bit-identical whatever the thread count (sim/threads.py)."""
 
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
-from polarstripe.sim import threads
-from polarstripe.sim.render import render_components
+from polarstripe.sim import geometry_cache, threads
+from polarstripe.sim.render import render_components, render_each
 from polarstripe.sim.scene import load_scene
 
 
@@ -66,3 +70,32 @@ def test_a_forked_child_renders_with_its_own_pool(restore_threads):
 
 def _render_b(scene):
     return render_components(scene, "stripe:3/8", "standard").B
+
+
+def test_frames_in_parallel_are_the_frames_one_by_one(restore_threads):
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.resized((96, 72)))
+    patterns = [f"stripe:{k}/6" for k in range(4)]
+    threads.set_threads(1)
+    alone = [render_components(scene, p, "standard") for p in patterns]
+    threads.set_threads(2)
+    together = render_each(scene, patterns, "standard")
+    for a, b in zip(alone, together, strict=True):
+        assert np.array_equal(np.stack([a.D, a.A, a.B, a.Bq, a.Bu]), np.stack([b.D, b.A, b.B, b.Bq, b.Bu]))
+    seen = threads.each_frame(lambda _: (threads.threads(), threading.current_thread().name), range(3))
+    assert all(n == 1 and name.startswith("frame") for n, name in seen)    # one model thread per frame
+
+
+def test_a_cached_value_two_threads_ask_for_is_made_once():
+    made = []
+
+    def make():
+        made.append(1)
+        time.sleep(0.2)
+        return np.arange(3.0)
+
+    scene = load_scene(None)
+    scene = scene.replace(camera=scene.camera.resized((11, 7)))        # a scene no other test caches
+    with ThreadPoolExecutor(2) as pool:
+        a, b = pool.map(lambda _: geometry_cache.cached(scene, "x", make), range(2))
+    assert len(made) == 1 and a is b and not a.flags.writeable

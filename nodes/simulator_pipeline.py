@@ -1,0 +1,229 @@
+"""The simulator's frames, made on worker threads (the model's frame pool, sim/threads.py ``submit_frame``:
+``threads`` frames at once, one model thread each) while the node's loop goes on.
+
+A frame request becomes a :class:`FrameJob` that holds everything its frame depends on: the pattern, the
+source pose, the model's scene, the analyzer angle read at the request, the camera and its exposure, the
+electrons map, the noise seed (the node's seed, scan id, step and frame number). :func:`make_frame` makes
+it: the pattern's :class:`FrameSource` (rendered once per pattern and pose, :class:`Sources`), the analyzer
+(sim/polarization.py ``through_analyzer``), the resize to the camera, the sensor. The same job gives the
+same frame on any thread.
+
+**Ahead.** :func:`next_jobs` predicts the scan's next frames: the pattern that follows
+(msgs/patterns.py ``following``), the next step and frame number, the same angle, exposure and pose. The
+node starts them at once, so that while one frame travels the next ones render on the other cores; a
+request whose job equals a predicted one takes that frame, which is the frame it would have got. A
+prediction that does not come true (the analyzer moved, the scan ended) is cancelled or dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections import OrderedDict, deque
+from concurrent.futures import Future
+
+import numpy as np
+from polarstripe.msgs.patterns import following
+from polarstripe.msgs.rig import RenderRequest
+from polarstripe.nodes.simulator_frames import to_camera
+from polarstripe.sim.mosaic import MicroPolarizerArray, mosaic_radiance
+from polarstripe.sim.polarization import AnalyzerBasis, analyzer_basis, through_analyzer
+from polarstripe.sim.render import render_components
+from polarstripe.sim.scene import Camera, Scene
+from polarstripe.sim.sensor import expose
+from polarstripe.sim.threads import submit_frame
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameSource:
+    """What the frames of one pattern need of its components: the analyzer's angle-free part (``basis``:
+    D + A + B and the polarized backscatter) and the linear Stokes (S1, S2) = (Bq, Bu) for the mosaic,
+    at the model's resolution."""
+
+    basis: AnalyzerBasis
+    s1: np.ndarray
+    s2: np.ndarray
+
+    def total(self) -> np.ndarray:
+        """D + A + B, the radiance without analyzer."""
+        return self.basis.total.reshape(self.basis.shape)
+
+
+def frame_source(scene: Scene, pattern: str, fidelity) -> FrameSource:
+    comp = render_components(scene, pattern, fidelity)
+    return FrameSource(analyzer_basis(comp), comp.Bq, comp.Bu)
+
+
+class Sources:
+    """Each (pattern, pose)'s :class:`FrameSource`, the last ``size`` kept; one that another thread is
+    rendering is waited for, not rendered again."""
+
+    def __init__(self, size: int, fidelity):
+        self.size, self.fidelity = size, fidelity
+        self._kept: OrderedDict = OrderedDict()
+        self._making: dict = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple, scene: Scene, pattern: str) -> tuple[FrameSource, float | None]:
+        """(the source, the seconds its render took here; None when it was kept or made elsewhere)."""
+        while True:
+            with self._lock:
+                if key in self._kept:
+                    self._kept.move_to_end(key)
+                    return self._kept[key], None
+                busy = self._making.get(key)
+                if busy is None:
+                    busy = self._making[key] = threading.Event()
+                    break
+            busy.wait()
+        try:
+            t0 = time.perf_counter()
+            source = frame_source(scene, pattern, self.fidelity)
+            seconds = time.perf_counter() - t0
+            with self._lock:
+                self._kept[key] = source
+                while len(self._kept) > self.size:
+                    self._kept.popitem(last=False)
+        finally:
+            with self._lock:
+                del self._making[key]
+            busy.set()
+        return source, seconds
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameJob:
+    """One frame to make. ``model`` None: the ``off`` pattern, a dark frame; ``angle`` None: no analyzer;
+    ``mosaic``: each pixel through its own micro-polarizer instead; ``seed``: (node seed, scan id, step,
+    frame number); ``e_map``: electrons per unit radiance at the camera's exposure."""
+
+    pattern: str
+    pose: tuple
+    model: Scene | None
+    angle: float | None
+    mosaic: MicroPolarizerArray | None
+    camera: Camera
+    e_map: np.ndarray = dataclasses.field(compare=False)
+    seed: tuple[int, int, int, int]
+    gaussian: bool
+
+    @property
+    def key(self) -> tuple:
+        """What the frame depends on (the electrons map follows the exposure)."""
+        return (self.pattern, self.pose, self.angle, self.mosaic is not None, self.camera.exposure_s,
+                self.seed)
+
+
+@dataclasses.dataclass
+class FrameDone:
+    """A made frame and what it cost: ``model_s`` the render's seconds (None: the source was kept)."""
+
+    image: np.ndarray
+    model_s: float | None
+    resize_s: float
+    sensor_s: float
+
+
+def make_frame(job: FrameJob, sources: Sources) -> FrameDone:
+    """The frame of ``job``: the pattern's source, the analyzer (or the mosaic), the resize to the camera,
+    the EMVA 1288 sensor with the job's seed."""
+    res = job.camera.resolution
+    model_s = None
+    t0 = time.perf_counter()
+    if job.model is None:
+        radiance = np.zeros((res[1], res[0]))
+    else:
+        source, model_s = sources.get((job.pattern, job.pose), job.model, job.pattern)
+        t0 = time.perf_counter()
+        if job.mosaic is not None:
+            radiance = mosaic_radiance(*(to_camera(x, res) for x in (source.total(), source.s1, source.s2)),
+                                       job.mosaic)
+        elif job.angle is None:
+            radiance = to_camera(source.total(), res)
+        else:
+            radiance = to_camera(through_analyzer(source.basis, job.angle), res)
+    t1 = time.perf_counter()
+    image = expose(radiance, job.camera, np.random.default_rng(list(job.seed)), electrons=job.e_map,
+                   gaussian=job.gaussian)
+    return FrameDone(image, model_s, t1 - t0, time.perf_counter() - t1)
+
+
+def next_jobs(job: FrameJob, depth: int, where) -> list[FrameJob]:
+    """The ``depth`` frames a scan asks for after ``job`` if its analyzer, exposure and source stay: each
+    the pattern that follows, the next step and frame number (fewer where the scan's patterns end);
+    ``where(pattern, scan_id, step)`` gives a frame's (pose, model scene): a moving rig's changes by step."""
+    out = []
+    seed, pattern = job.seed, job.pattern
+    for k in range(1, depth + 1):
+        pattern = following(pattern) if pattern != "off" else None
+        if pattern is None:
+            break
+        pose, model = where(pattern, seed[1], seed[2] + k)
+        out.append(dataclasses.replace(job, pattern=pattern, pose=pose, model=model,
+                                       seed=(seed[0], seed[1], seed[2] + k, seed[3] + k)))
+    return out
+
+
+@dataclasses.dataclass
+class Owed:
+    """A frame request not yet answered: its job, the frame's Future, when it came (perf_counter), when it
+    may be answered (the node's clock), the node's deferred reply."""
+
+    req: RenderRequest
+    job: FrameJob
+    future: Future
+    t_start: float
+    mosaic: bool
+    not_before: float
+    reply: object = None
+
+
+class Frames:
+    """The frames in flight: those made ahead (by job key) and those owed, in request order; ``stats`` (the
+    node's) counts frames taken from those made ahead, renders and their seconds, kept sources, the resize
+    and sensor seconds."""
+
+    def __init__(self, sources: Sources, depth: int, stats: dict):
+        self.sources, self.depth, self.stats = sources, depth, stats
+        self.ahead: dict = {}
+        self.owed: deque[Owed] = deque()
+
+    def start(self, job: FrameJob, where=None) -> Future:
+        """The Future of ``job``'s frame (made ahead, or started now); then, with ``where``, the next
+        :attr:`depth` frames started (:func:`next_jobs`) and the other frames made ahead dropped."""
+        future = self.ahead.pop(job.key, None)
+        self.stats["made_ahead"] += future is not None
+        future = future or submit_frame(make_frame, job, self.sources)
+        following_jobs = next_jobs(job, self.depth, where) if where is not None else []
+        for stale in self.ahead.keys() - {j.key for j in following_jobs}:
+            self.ahead.pop(stale).cancel()
+        for j in following_jobs:
+            if j.key not in self.ahead:
+                self.ahead[j.key] = submit_frame(make_frame, j, self.sources)
+        return future
+
+    def count(self, done: FrameDone) -> None:
+        """Add a made frame's costs to :attr:`stats`."""
+        if done.model_s is None:
+            self.stats["cache_hits"] += 1
+        else:
+            self.stats["renders"] += 1
+            self.stats["model_s"] += done.model_s
+        self.stats["resize_s"] += done.resize_s
+        self.stats["sensor_s"] += done.sensor_s
+
+    def ready(self, now: float) -> Owed | None:
+        """The first owed frame if it is made and may be answered at ``now``, taken off the queue."""
+        if self.owed and self.owed[0].future.done() and now >= self.owed[0].not_before:
+            return self.owed.popleft()
+        return None
+
+    def close(self) -> list[Owed]:
+        """Cancel every frame in flight; the owed ones, to be answered with an error."""
+        for future in self.ahead.values():
+            future.cancel()
+        owed, self.owed = list(self.owed), deque()
+        for o in owed:
+            o.future.cancel()
+        return owed

@@ -1,0 +1,61 @@
+"""The simulator's frames on worker threads (nodes/simulator_pipeline.py): the same frames whether they are
+made ahead on two threads or one by one on one, answered in request order, and the loop answers other
+services while a frame is being made."""
+
+import numpy as np
+import pytest
+from polarstripe.msgs import RenderRequest, SimFault
+from polarstripe.nodes.simulator import Simulator
+from polarstripe.runtime.testing import NodeHarness
+from polarstripe.sim import threads
+
+
+@pytest.fixture(autouse=True)
+def restore_threads():
+    before = threads.threads()
+    yield
+    threads.set_threads(before)
+
+
+def sim(**params):
+    return NodeHarness(Simulator, name="simulator", namespace="/rig",
+                       params={"resolution": "48x36", "seed": 3, "fidelity": "standard", **params})
+
+
+def scan(h):
+    """Two passes of four stripes (analyzer, then none; step 6 breaks the second pass's prediction), a dark
+    frame and a mosaic frame: the images."""
+    out = []
+    for step in range(8):
+        tag = f"stripe:{step % 4}/4"
+        req = RenderRequest(pattern=tag, analyzer=step < 4 or step == 6, scan_id=2, step=step)
+        f = h.call("simulator/render", req)
+        assert (f.step, f.pattern, f.polarizer_deg is None) == (step, tag, not req.analyzer)
+        out.append(f.image)
+    out.append(h.call("simulator/render", RenderRequest(pattern="off", scan_id=2, step=8)).image)
+    out.append(h.call("simulator/render_mosaic", RenderRequest(pattern="stripe:1/4", scan_id=3)).image)
+    return out
+
+
+def test_frames_made_ahead_on_two_threads_are_the_frames_made_one_by_one():
+    one = sim(threads=1, render_ahead=False)
+    alone = scan(one)
+    two = sim(threads=2)
+    ahead = scan(two)
+    assert two.node.threads == 2 and one.node.threads == 1
+    assert len({a.tobytes() for a in alone}) == len(alone)          # every frame differs (pattern, noise)
+    for a, b in zip(alone, ahead, strict=True):
+        assert np.array_equal(a, b)
+    assert two.node.stats["renders"] == one.node.stats["renders"] == 5      # flood + 4 stripes, once each
+    assert one.node.stats["made_ahead"] == 0 and two.node.stats["made_ahead"] == 4  # steps 1-3, 5
+
+
+def test_the_loop_answers_other_services_while_a_frame_is_made_and_frames_come_in_order():
+    h = sim(fidelity="preview", faults=["frame_delay 0.4"])
+    first = h.request("simulator/render", RenderRequest(pattern="stripe:0/4", step=0))
+    ack = h.call("simulator/fault", SimFault(command="camera_lost off"))
+    assert ack.ok and not first.done                                  # answered while the frame waits
+    second = h.call("simulator/render", RenderRequest(pattern="flood", step=1))
+    assert first.done and first.result().step == 0 and second.step == 1
+    h.call("simulator/fault", SimFault(command="frame_delay 0"))
+    assert h.call("simulator/render", RenderRequest(pattern="flood", step=2)).step == 2
