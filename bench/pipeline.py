@@ -5,7 +5,8 @@ over the zmq CAN bus, grabber, emitter, compositor when there is one, and a sequ
 scan to warm every process up, then a ``polarized_stripes`` scan (``--stripes`` stripes at two analyzer
 angles), and splits that scan's wall time:
 
-* **simulation** — the simulator's time in its render handler (model, resize, sensor), from its per-frame log;
+* **simulation** — how long the simulator kept each frame request waiting (request to reply: model, resize,
+  sensor, less what was made ahead while the previous frames travelled), from its per-frame log;
 * **transport** — the emitter's camera round trips plus frame waits, minus the simulation: bus, codec,
   service hand-offs, the grabber;
 * **analyzer** — waiting for the stage to turn and settle (physical: 90° at the stage's speed);
@@ -14,6 +15,8 @@ angles), and splits that scan's wall time:
   the critical path);
 
 and the CPU seconds of each node process during the scan (``/proc/PID/stat``), as a share of the rig's total.
+``--threads 1,2`` runs each config with the simulator at each thread count (its ``threads`` param: frames
+made at once) and gives the speedup of the scan (stage moves aside) against the first count.
 The physical limit is a 30 fps camera: 60 frames in 2 s (the target for ``preview`` at 640×480).
 """
 
@@ -47,6 +50,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per run")
     parser.add_argument("--sim-param", action="append", default=[], metavar="KEY=VALUE",
                         help="extra simulator param (TOML value), e.g. render_ahead=false; repeatable")
+    parser.add_argument("--threads", default="0", metavar="N[,N...]",
+                        help="the simulator's threads per run (0: the CPU affinity, default); several, e.g. "
+                             "1,2: each config at each count, the scaling against the first")
 
 
 def _have(module: str) -> bool:
@@ -188,7 +194,20 @@ def main(args: argparse.Namespace) -> int:
         if not re.fullmatch(r"\d+x\d+", size) or fidelity not in ("preview", "standard", "reference"):
             raise PolarstripeError(f"--configs: {item!r} is not SIZE:FIDELITY, e.g. 640x480:preview")
         configs.append((size, fidelity))
-    rows = [run_one(size, fid, args.stripes, args.timeout, args.sim_param) for size, fid in configs]
+    try:
+        counts = [int(n) for n in str(args.threads).split(",")]
+    except ValueError:
+        counts = [-1]
+    if min(counts) < 0:
+        raise PolarstripeError(f"--threads: {args.threads!r} is not a list of counts >= 0, e.g. 1,2")
+    rows = []
+    for size, fid in configs:
+        first = None
+        for n in counts:
+            row = run_one(size, fid, args.stripes, args.timeout, [*args.sim_param, f"threads={n}"])
+            first = first or row
+            row["threads"], row["speedup"] = n, first["camera_only_s"] / row["camera_only_s"]
+            rows.append(row)
     limit_s = 2 * args.stripes / CAMERA_FPS
     for r in rows:
         r["camera_limit_s"] = limit_s
@@ -199,13 +218,15 @@ def main(args: argparse.Namespace) -> int:
         return 0
     print(f"polarized stripe scan: {args.stripes} stripes x 2 analyzer angles; physical limit: a "
           f"{CAMERA_FPS:g} fps camera takes {limit_s:.2f} s for {2 * args.stripes} frames")
-    head = (f"{'size':>10} {'fidelity':>9} {'frames':>6} {'scan s':>7} {'w/o stage':>9} {'x limit':>7} "
-            f"{'sim s':>7} {'transport s':>11} {'stage s':>7} {'composite s':>11}")
+    head = (f"{'size':>10} {'fidelity':>9} {'threads':>7} {'frames':>6} {'scan s':>7} {'w/o stage':>9} "
+            f"{'x limit':>7} {'speedup':>7} {'sim s':>7} {'transport s':>11} {'stage s':>7} "
+            f"{'composite s':>11}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['size']:>10} {r['fidelity']:>9} {r['frames']:>6} {r['scan_s']:>7.2f} "
-              f"{r['camera_only_s']:>9.2f} {r['vs_camera_limit']:>7.2f} {r['simulation_s']:>7.2f} "
+        print(f"{r['size']:>10} {r['fidelity']:>9} {r['threads'] or 'auto':>7} {r['frames']:>6} "
+              f"{r['scan_s']:>7.2f} {r['camera_only_s']:>9.2f} {r['vs_camera_limit']:>7.2f} "
+              f"{r['speedup']:>7.2f} {r['simulation_s']:>7.2f} "
               f"{r['transport_s']:>11.3f} "
               f"{r['analyzer_s']:>7.2f} {r['compositing_s']:>11.3f}")
     print("\nCPU seconds per node during the scan (share of the rig's CPU):")
@@ -213,5 +234,5 @@ def main(args: argparse.Namespace) -> int:
         total = sum(r["cpu_s"].values()) or 1.0
         parts = ", ".join(f"{n} {s:.2f} ({100 * s / total:.0f}%)" for n, s in
                           sorted(r["cpu_s"].items(), key=lambda kv: -kv[1]))
-        print(f"  {r['size']} {r['fidelity']}: {parts}")
+        print(f"  {r['size']} {r['fidelity']} threads {r['threads'] or 'auto'}: {parts}")
     return 0
