@@ -108,7 +108,7 @@ class Simulator(Node):
         light: Literal["scene", "linear", "circular"] = "scene"  # quarter-wave plates (sim with_light)
         auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
         seed: int | None = None  # None: the scene camera's seed
-        cache_size: int = 80  # cached component sets (one per pattern and source pose)
+        cache_size: int = 80  # patterns' components kept (one set per pattern and source pose)
         render_ahead: bool = True  # make the scan's next `threads` frames while this one travels
         threads: int = 0  # frames made at once; 0 = the cores of the process's CPU affinity
         analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]

@@ -52,7 +52,7 @@ class FrameSource:
 
 def frame_source(scene: Scene, pattern: str, fidelity) -> FrameSource:
     comp = render_components(scene, pattern, fidelity)
-    return FrameSource(analyzer_basis(comp), comp.Bq, comp.Bu)
+    return FrameSource(analyzer_basis(comp), comp.Bq.copy(), comp.Bu.copy())    # not the model's B stack
 
 
 class Sources:

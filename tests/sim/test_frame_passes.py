@@ -21,8 +21,8 @@ def _components(rng, scene, n=4000):
 
 
 def _malus(c, angle_deg, er):
-    """I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ), k1 = 1, k2 = 1/ER (physics.md §4.1)."""
-    k1, k2 = 1.0, 1.0 / er
+    """I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ), k2 = 1/ER (docs/physics.md §4.1)."""
+    k1, k2 = 1.0, 1.0 / er                       # k1 = 1
     phi = np.radians(angle_deg)
     return 0.5 * (k1 + k2) * (c.D + c.A + c.B) + 0.5 * (k1 - k2) * c.B * c.p * np.cos(2 * (phi - c.chi_rad))
 
