@@ -12,7 +12,8 @@ fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py score
   move), E_b found from four flood frames at rest (the polarizer node's calibration);
 * polarization camera: polarized flood (1 frame) and polarized stripes (N frames), the ``local`` rule;
 * stripes with K sheets per frame (``stripe:I/N:xK``, ⌈N/K⌉ frames, no analyzer): K = 1, 3 and 5; and the
-  rotating analyzer's polarized stripes with 3 sheets (2⌈N/3⌉ frames and one move).
+  polarized stripes with 3 sheets by the rotating analyzer (2⌈N/3⌉ frames and one move) and by the
+  polarization camera (⌈N/3⌉ frames).
 
 Frame i of a scan draws its sensor noise from the seed and i alone, the same at every speed, so a row's change
 with speed is the motion's, not the noise's. The last column gives, per mode and direction, the speed at
@@ -56,7 +57,8 @@ DIRECTIONS = {"along": (1.0, 0.0, 0.0), "across": (0.0, 1.0, 0.0), "forward": (0
 SCANS = (("rotating analyzer", "polarized_flood", 1), ("rotating analyzer", "polarized_stripes", 1),
          ("polarization camera", "polarized_flood", 1), ("polarization camera", "polarized_stripes", 1),
          ("stripes, K = 1 sheet", "stripes", 1), ("stripes, K = 3 sheets", "stripes", 3),
-         ("stripes, K = 5 sheets", "stripes", 5), ("rotating analyzer, K = 3 sheets", "polarized_stripes", 3))
+         ("stripes, K = 5 sheets", "stripes", 5), ("rotating analyzer, K = 3 sheets", "polarized_stripes", 3),
+         ("polarization camera, K = 3 sheets", "polarized_stripes", 3))
 GROWTH = 0.10  # the error growth the last table reports the speed of
 SPEEDS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # [m/s]
 
