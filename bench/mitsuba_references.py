@@ -250,8 +250,14 @@ so they overstate the cost: unloaded, 4096 spp of a 32×32 all-orders image take
 
 {_HEADER}
 {chr(10).join(rows)}
-{_model_section(out)}{_own_section(out)}"""
+{_model_section(out)}{_own_section(out)}{_port_section(out)}"""
     (out / "README.md").write_text(text)
+
+
+def _port_section(out: Path) -> str:
+    from polarstripe.bench.mitsuba_port_references import readme_section  # it builds on this module
+
+    return readme_section(out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,7 +7,9 @@
   intrinsics ``K_cam``, ``K_proj`` (pixel centres at integer coordinates, so c_x = w/2 − ½), image sizes,
   and the pose ``R``, ``T`` taking camera-frame points to the projector frame (X_p = R·X_c + T, the
   ``cv2.stereoCalibrate`` convention). The OpenCV camera frame is x = image right, y = image down, z =
-  forward, i.e. the scene's (r, −u, f) (docs/physics.md §0.2). No lens distortion.
+  forward, i.e. the scene's (r, −u, f) (docs/physics.md §0.2). No lens distortion. A device behind a port
+  adds ``port_cam`` / ``port_proj``: its normal in the device's own OpenCV frame, d, t, n_a, n_g, n_w (8
+  numbers; :mod:`polarstripe.imaging.refraction` triangulates through them).
 
 Plain arrays only, so :mod:`polarstripe.imaging` (which must not import the model) can take them.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.sim.geometry import PinholeFrame, intersect, pinhole_frame, pixel_rays
+from polarstripe.sim.port import port_geometry, water_rays
 from polarstripe.sim.scene import Scene
 
 
@@ -30,12 +33,16 @@ def projector_frame(scene: Scene) -> PinholeFrame:
 
 
 def depth_truth(scene: Scene) -> np.ndarray:
-    """Depth z [m] (along the camera axis) of the first object each pixel's centre ray hits, (h, w)
-    float64, NaN where it hits none."""
+    """Depth z [m] (along the camera axis, from its pinhole) of the first object each pixel's centre ray
+    hits, (h, w) float64, NaN where it hits none; behind a port along the pixel's water ray (docs/physics.md
+    §11)."""
     cam = camera_frame(scene)
     dirs = pixel_rays(cam)
-    hits = intersect(scene.objects, cam.position, dirs)
-    z = hits.t * (dirs @ cam.f)
+    origins = np.asarray(cam.position, float)
+    if scene.camera.port is not None:
+        origins, dirs, _, _ = water_rays(port_geometry(scene.camera.port, cam.position, cam.f), dirs)
+    hits = intersect(scene.objects, origins, dirs)
+    z = (origins - np.asarray(cam.position, float)) @ cam.f + hits.t * (dirs @ cam.f)
     z[~np.isfinite(hits.t) | (hits.index < 0)] = np.nan
     return z.reshape(cam.h, cam.w)
 
@@ -59,5 +66,11 @@ def rig_geometry(scene: Scene) -> dict:
     a_c, a_p = _axes(cam), _axes(proj)
     R = a_p @ a_c.T  # camera coords -> world directions (a_c.T) -> projector coords (a_p)
     T = a_p @ (np.asarray(cam.position, float) - np.asarray(proj.position, float))
-    return {"K_cam": _intrinsics(cam), "K_proj": _intrinsics(proj), "cam_size": [cam.w, cam.h],
-            "proj_size": [proj.w, proj.h], "R": R, "T": T, "dist_cam": np.zeros(5)}
+    out = {"K_cam": _intrinsics(cam), "K_proj": _intrinsics(proj), "cam_size": [cam.w, cam.h],
+           "proj_size": [proj.w, proj.h], "R": R, "T": T, "dist_cam": np.zeros(5)}
+    for key, part, frame, axes in (("port_cam", scene.camera, cam, a_c),
+                                   ("port_proj", scene.projector, proj, a_p)):
+        if part.port is not None:
+            g = port_geometry(part.port, frame.position, frame.f)
+            out[key] = np.array([*(axes @ g.normal), g.d, g.t, g.n_a, g.n_g, g.n_w])
+    return out

@@ -20,6 +20,10 @@ Mapping (lengths [m], radiance [W sr⁻¹ m⁻²] as :func:`polarstripe.sim.rend
   polarstripe's own albedo on a texel grid (nearest-neighbour), not a mean albedo. Objects inside the medium
   box get the medium on both sides; a plane on a face of the box (the default chart on the back wall) is
   moved 0.1 mm into the box, off the tank's null boundary.
+* a camera port (docs/physics.md §11) → two ``rectangle`` faces (2·PORT_HALF_M square) with ``dielectric``
+  BSDFs, air → glass and glass → water (Fresnel and the n² of radiance included by Mitsuba); single
+  scattering behind it needs ``max_depth`` 4 (two more specular vertices). A projector port is refused: a
+  delta light behind a dielectric is never reached.
 * a camera or light inside the box gets the medium; one *on* a face of the box (the default tank's, z = 0)
   is moved 0.1 mm out of it, orientation kept: Mitsuba misses a boundary crossed at t ≈ 0, and its paths
   would never enter the medium.
@@ -42,6 +46,7 @@ import numpy as np
 from polarstripe.sim.geometry import Hits, pinhole_frame, plane_axes
 from polarstripe.sim.patterns import PatternSpec, gray_lit, parse_pattern, sheet_columns
 from polarstripe.sim.phase import tthg_parameters
+from polarstripe.sim.port import port_geometry
 from polarstripe.sim.scene import BoxObject, PlaneObject, Scene, SceneError, SphereObject
 from polarstripe.sim.surface import surface_info
 
@@ -260,7 +265,38 @@ def to_mitsuba(scene: Scene, pattern: str | PatternSpec = "flood", *, max_depth:
         "light": light,
     }
     out.update(_objects(scene, lo, hi, texels))
+    out.update(_port_faces(scene, cpos))
     return _native(out) if native else out
+
+
+PORT_HALF_M = 0.02     # half the side of a port's faces in Mitsuba (they must cover the camera's view)
+
+
+def _port_faces(scene: Scene, cpos: np.ndarray) -> dict:
+    """A camera port as two ``rectangle`` faces with ``dielectric`` BSDFs (docs/physics.md §11): the inner
+    face air → glass, the outer glass → water; each rectangle's normal faces the camera (its exterior side).
+    A projector port has no Mitsuba counterpart: a point or projector light cannot be reached through a
+    specular interface by next-event estimation, and a path never hits it by chance."""
+    cam, pr = scene.camera, scene.projector
+    if pr.port is not None:
+        raise SceneError("projector.port has no Mitsuba truth: a delta light behind a dielectric is "
+                         "never reached by a path tracer (docs/physics.md §11)")
+    if cam.port is None:
+        return {}
+    frame = pinhole_frame(cam.position, cam.look_at, cam.up, cam.fov_deg, cam.resolution)
+    g = port_geometry(cam.port, cpos, frame.f)
+    e1 = np.cross(g.normal, [0.0, 1.0, 0.0] if abs(g.normal[1]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(e1, g.normal)            # (e1, e2, −n) right-handed: the rectangle's normal is −n
+    out = {}
+    faces = [("port_inner", g.d, g.n_a, g.n_g), ("port_outer", g.d + g.t, g.n_g, g.n_w)]
+    if g.t <= 0.0:
+        faces = [("port_outer", g.d, g.n_a, g.n_w)]
+    for name, dist, n_ext, n_int in faces:
+        m = _affine(e1 * PORT_HALF_M, e2 * PORT_HALF_M, -g.normal, g.apex + dist * g.normal)
+        out[name] = {"type": "rectangle", "to_world": m,
+                     "bsdf": {"type": "dielectric", "int_ior": float(n_int), "ext_ior": float(n_ext)}}
+    return out
 
 
 def _native(tree):
