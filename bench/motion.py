@@ -31,11 +31,13 @@ import time
 import numpy as np
 from polarstripe.imaging.compose import compose, score
 from polarstripe.imaging.composite import RunningComposite
+from polarstripe.imaging.p_map import P_RULES
 from polarstripe.imaging.polarization import least_backscatter_angle
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.msgs import Frame, Method
 from polarstripe.nodes.compositor import Compositor
 from polarstripe.nodes.compositor_mosaic import MosaicViews
+from polarstripe.nodes.compositor_p import MediumModel
 from polarstripe.nodes.simulator import Simulator
 from polarstripe.nodes.simulator_frames import (
     PREVIEW_WIDTH,
@@ -60,6 +62,7 @@ SCANS = (("rotating analyzer", "polarized_flood", 1), ("rotating analyzer", "pol
          ("stripes, K = 5 sheets", "stripes", 5), ("rotating analyzer, K = 3 sheets", "polarized_stripes", 3),
          ("polarization camera, K = 3 sheets", "polarized_stripes", 3))
 GROWTH = 0.10  # the error growth the last table reports the speed of
+P_MIN = Compositor.Params().p_min
 SPEEDS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # [m/s]
 
 
@@ -74,6 +77,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fidelity", default="preview", help="model fidelity (default preview)")
     parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate [1/s] (default 30)")
     parser.add_argument("--seed", type=int, default=1, help="sensor noise seed")
+    parser.add_argument("--p-rule", choices=P_RULES, default="map",
+                        help="eq. 6's p: map (the compositor's default: the medium model's, fitted to the "
+                             "polarized flood pair taken just before, moving alike), median or upper (one p̂)")
     parser.add_argument("--only", nargs="+", type=int, default=None, metavar="ROW",
                         help=f"only these rows of the table (0-{len(SCANS) - 1}: " + ", ".join(
                             f"{i} {m} {k}" for i, (m, k, _) in enumerate(SCANS)) + ")")
@@ -101,7 +107,8 @@ class Rig:
         self.scene = base.replace(camera=base.camera.replace(exposure_s=base.camera.exposure_s * factor))
         self.e_map = e_map * factor
         self.mosaic = micro_polarizers(sim)
-        self.views = MosaicViews(Compositor.Params())
+        compositor = Compositor.Params(p_rule=args.p_rule, p_scene=args.scene or "")
+        self.views, self.medium = MosaicViews(compositor), MediumModel(compositor)
         cam = self.scene.camera
         self.dark, self.saturation = dark_offset_dn(cam), full_scale_dn(cam)
         self.truth = truth_composite(self.scene)
@@ -118,6 +125,14 @@ class Rig:
         rng = np.random.default_rng([self.seed, i])
         return expose(radiance, self.scene.camera, rng, electrons=self.e_map,
                       gaussian=self.fidelity.name == "preview")
+
+    def scan_after_flood(self, mode: str, method: str, motion: RigMotion, sheets: int = 1) -> dict:
+        """:meth:`scan`; a polarized stripe scan after the same rig's polarized flood moving alike, as the
+        demo's sequence takes them: the ``map`` rule fits the medium model to that flood pair
+        (nodes/compositor_p.py)."""
+        if method == "polarized_stripes" and self.medium.rule == "map":
+            self.scan(mode, "polarized_flood", motion)
+        return self.scan(mode, method, motion, sheets)
 
     def scan(self, mode: str, method: str, motion: RigMotion, sheets: int = 1) -> dict:
         """One scan of ``method`` by ``mode`` (``sheets`` per stripe frame) with the rig moving as ``motion``
@@ -146,8 +161,12 @@ class Rig:
             for key, view in views.items():
                 rc = rc or RunningComposite(view.shape, view.dtype, saturation=sat)
                 rc.add(view, key)
+        camera = mode.startswith("polarization")
+        p_model = self.medium.p_model(method, self.truth, self.free, self.dark, rc.saturation, P_MIN,
+                                      crossed=camera) if m.polarized else None
         made = compose(method, {a: rc.result(a) for a in rc.angles}, dark_offset=self.dark,
-                       saturation=rc.saturation, object_free=self.free)
+                       saturation=rc.saturation, object_free=self.free, p_rule=self.medium.rule,
+                       p_model=p_model, p_min=P_MIN)
         band, high = self.truth.images["chart_band"], self.truth.images["chart_high"]
         s = score(made.image, bright=(band >= 0) & high, dark=(band >= 0) & ~high,
                   truth=self.truth.images["S"])
@@ -180,22 +199,24 @@ def run(args) -> dict:
     rows = []
     for index in args.only if args.only is not None else range(len(SCANS)):
         mode, method, sheets = SCANS[index]
-        rest = rig.scan(mode, method, RigMotion(fps=args.fps, stage_deg_s=rig.stage[0],
-                                                stage_settle_s=rig.stage[1]), sheets)
+        rest = rig.scan_after_flood(mode, method, RigMotion(fps=args.fps, stage_deg_s=rig.stage[0],
+                                                            stage_settle_s=rig.stage[1]), sheets)
         row = {"mode": mode, "method": method, "sheets": sheets, "frames": rest["frames"],
                "scan_s": rest["scan_s"], "directions": {}}
         for name in args.directions:
-            results = [rest] + [rig.scan(mode, method, RigMotion(
+            results = [rest] + [rig.scan_after_flood(mode, method, RigMotion(
                 tuple(s * c for c in DIRECTIONS[name]), args.fps, *rig.stage), sheets) for s in speeds[1:]]
             errors = [r["error"] for r in results]
             row["directions"][name] = {
                 "error": errors, "contrast": [r["contrast"] for r in results], "p": [r["p"] for r in results],
                 "error_e_b": [r["error_e_b"] for r in results],
+                "notes": sorted({r["note"] for r in results if r["note"]}),
                 "tolerated_m_s": None if None in errors else tolerated_speed(speeds, errors)}
             if not args.json:
                 print(_line(row, name, speeds), flush=True)
         rows.append(row)
-    return {"speeds_m_s": speeds, "rows": rows, "growth": GROWTH, "e_b_deg": rig.e_b, "fps": args.fps,
+    return {"speeds_m_s": speeds, "rows": rows, "p_rule": args.p_rule, "growth": GROWTH, "e_b_deg": rig.e_b,
+            "fps": args.fps,
             "resolution": list(rig.size), "stripes": args.stripes, "fidelity": args.fidelity,
             "seed": args.seed,
             "exposure_s": rig.scene.camera.exposure_s, "cpu_s": time.process_time() - started,
