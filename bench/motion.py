@@ -5,8 +5,10 @@ the analyzer stage's moves; the rig passes the scene's pose, where the truth is 
 baseline (x) or across it (y). For each speed the scans run as the simulated rig runs them, frame by frame,
 with the simulator node's own pieces (its model resolution, auto exposure, sensor with its preview noise,
 micro-polarizer mosaic, ground truth: nodes/simulator_frames.py) and the compositor's (the running reductions,
-the mosaic views, :func:`~polarstripe.imaging.compose.compose`, the score against T over the frame, gain
-fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py scores a scan):
+the mosaic views, its medium model for eq. 6's p by ``--p-rule`` (``map``, its default: fitted to the same
+rig's polarized flood taken just before each polarized stripe scan, moving alike, as the demo's sequence
+takes them; nodes/compositor_p.py), :func:`~polarstripe.imaging.compose.compose`, the score against T over
+the frame, gain fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py scores a scan):
 
 * rotating analyzer: polarized flood (2 frames and one stage move) and polarized stripes (2N frames and one
   move), E_b found from four flood frames at rest (the polarizer node's calibration);
@@ -18,7 +20,8 @@ fitted, and the chart's bars for the contrast, as nodes/compositor_scan.py score
 Frame i of a scan draws its sensor noise from the seed and i alone, the same at every speed, so a row's change
 with speed is the motion's, not the noise's. The last column gives, per mode and direction, the speed at
 which the error against T grows by 10 % over the rig at rest (linear between the speeds measured); the JSON
-also has p̂ and, for the polarized methods, the error of E_b alone (no eq. 6).
+also has p̂, the scans' notes (e.g. where the map fell back to the frames' own) and, for the polarized
+methods, the error of E_b alone (no eq. 6). docs/planning.md §11 has the table and what it says.
 """
 
 from __future__ import annotations
