@@ -37,6 +37,8 @@ class RigGeometry:
     cam_size: tuple[int, int]
     proj_size: tuple[int, int]
     dist_cam: np.ndarray
+    port_cam: np.ndarray | None = None      # a flat port: normal (device frame), d, t, n_a, n_g, n_w
+    port_proj: np.ndarray | None = None
 
     @classmethod
     def from_dict(cls, d) -> RigGeometry:
@@ -57,12 +59,31 @@ class RigGeometry:
                 out["K_proj"][0, 0] <= 0:
             raise ImagingError("geometry: sizes and focal lengths must be positive")
         dist = np.asarray(d.get("dist_cam", np.zeros(5)), float).ravel()
+        ports = {}
+        for key in ("port_cam", "port_proj"):
+            if d.get(key) is not None:
+                a = np.asarray(d[key], float).ravel()
+                if a.size != 8 or not np.all(np.isfinite(a)) or np.linalg.norm(a[:3]) < 1e-12 or \
+                        min(a[5:]) < 1.0 or min(a[3:5]) < 0.0:
+                    raise ImagingError(f"geometry: {key} must be 8 numbers (normal, d, t, n_a, n_g, n_w), "
+                                       f"got {np.shape(d[key])}")
+                ports[key] = a
         return cls(out["K_cam"], out["K_proj"], out["R"], out["T"],
-                   tuple(int(v) for v in out["cam_size"]), tuple(int(v) for v in out["proj_size"]), dist)
+                   tuple(int(v) for v in out["cam_size"]), tuple(int(v) for v in out["proj_size"]), dist,
+                   **ports)
 
     def to_dict(self) -> dict:
-        return {"K_cam": self.K_cam, "K_proj": self.K_proj, "R": self.R, "T": self.T,
-                "cam_size": list(self.cam_size), "proj_size": list(self.proj_size), "dist_cam": self.dist_cam}
+        out = {"K_cam": self.K_cam, "K_proj": self.K_proj, "R": self.R, "T": self.T,
+               "cam_size": list(self.cam_size), "proj_size": list(self.proj_size), "dist_cam": self.dist_cam}
+        for key in ("port_cam", "port_proj"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        return out
+
+    @property
+    def has_ports(self) -> bool:
+        """True when the camera or the projector looks through a flat port (imaging/refraction.py)."""
+        return self.port_cam is not None or self.port_proj is not None
 
     def for_camera(self, w: int, h: int) -> RigGeometry:
         """The same rig with the camera binned/resized to w×h (the intrinsics scale with the pixel size)."""
@@ -72,7 +93,8 @@ class RigGeometry:
         K = self.K_cam.copy()
         K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
         K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
-        return RigGeometry(K, self.K_proj, self.R, self.T, (int(w), int(h)), self.proj_size, self.dist_cam)
+        return RigGeometry(K, self.K_proj, self.R, self.T, (int(w), int(h)), self.proj_size, self.dist_cam,
+                           self.port_cam, self.port_proj)
 
     @property
     def baseline_m(self) -> float:
@@ -169,7 +191,8 @@ def points_from_depth(geom: RigGeometry, depth: np.ndarray, rays: np.ndarray | N
 class Triangulator:
     """Depth and points of column maps of one geometry and image shape, the per-pixel constants (rays,
     R_x·v, R_z·v) computed once: what the compositor keeps between scans (:func:`depth_from_columns` in one
-    compiled pass)."""
+    compiled pass). A rig with ports triangulates through them
+    (:func:`polarstripe.imaging.refraction.depth_through_ports`) and its points lie on the water rays."""
 
     def __init__(self, geom: RigGeometry, shape: tuple[int, int]):
         h, w = shape
@@ -178,12 +201,24 @@ class Triangulator:
         self.rays = np.ascontiguousarray(camera_rays(self.geom, rr, cc))
         self._rx = np.ascontiguousarray(self.rays @ self.geom.R[0])
         self._rz = np.ascontiguousarray(self.rays @ self.geom.R[2])
+        self._water = None
+        if self.geom.has_ports:
+            from polarstripe.imaging.refraction import port_of, water_rays_of  # it builds on this module
+
+            o, d = water_rays_of(self.geom, port_of(self.geom.port_cam), rr, cc)
+            self._water = (o.reshape(h, w, 3), d.reshape(h, w, 3))
 
     def depth(self, columns: np.ndarray) -> np.ndarray:
         """z [m] (h, w) float32, NaN where the column is NaN or the plane is behind the camera."""
         columns = np.ascontiguousarray(columns, np.float64)
         if columns.shape != self.shape:
             raise ImagingError(f"columns: shape {columns.shape}, the triangulator's is {self.shape}")
+        if self._water is not None:
+            from polarstripe.imaging.refraction import depth_through_ports, port_of
+
+            g = self.geom
+            z = depth_through_ports(g, port_of(g.port_cam), port_of(g.port_proj), columns)
+            return z.astype(np.float32)
         out = np.empty(self.shape, np.float32)
         K, T = self.geom.K_proj, self.geom.T
         _depth(columns, self._rx, self._rz, float(K[0, 2]), float(K[0, 0]), float(T[0]), float(T[2]), out)
@@ -192,6 +227,11 @@ class Triangulator:
     def points(self, depth: np.ndarray) -> np.ndarray:
         """The finite pixels of ``depth`` as camera-frame points (n, 3) float32 [m], row-major."""
         depth = np.ascontiguousarray(depth, np.float32)
+        if self._water is not None:          # on the water ray O + x·w at its depth z
+            ok = np.isfinite(depth)
+            o, d = self._water[0][ok], self._water[1][ok]
+            x = (depth[ok] - o[:, 2]) / d[:, 2]
+            return (o + x[:, None] * d).astype(np.float32)
         return _points(depth, self.rays, int(np.count_nonzero(np.isfinite(depth))))
 
 

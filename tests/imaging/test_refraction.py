@@ -10,7 +10,7 @@ import pytest
 from polarstripe.bench.depth import depth_error, depth_scene, noise_of, scan_votes
 from polarstripe.imaging.delineation import delineate
 from polarstripe.imaging.refraction import depth_through_ports, port_of
-from polarstripe.imaging.triangulation import RigGeometry, depth_from_columns, stripe_edges
+from polarstripe.imaging.triangulation import RigGeometry, Triangulator, depth_from_columns, stripe_edges
 from polarstripe.imaging.validation import ImagingError
 from polarstripe.sim.depth_truth import camera_frame, depth_truth, projector_frame, rig_geometry
 from polarstripe.sim.geometry import intersect, pixel_rays
@@ -55,6 +55,28 @@ def test_no_port_is_the_ray_plane_triangulation():
 def test_a_bad_port_is_one_error():
     with pytest.raises(ImagingError, match="a port is 8 numbers"):
         port_of([0, 0, 1, 0.01])
+    rig = rig_geometry(glass_tank(depth_scene(2.0, 48)))
+    with pytest.raises(ImagingError, match="port_cam must be 8 numbers"):
+        RigGeometry.from_dict({**rig, "port_cam": [0, 0, 1]})
+
+
+def test_the_compositors_triangulator_goes_through_the_ports():
+    """A rig with ports (as the simulator's truth carries it, lists) round-trips and its Triangulator gives
+    the refractive depth, with points on the water rays at that depth."""
+    scene = glass_tank(depth_scene(2.0, 48))
+    rig = {k: np.asarray(v, float).tolist() for k, v in rig_geometry(scene).items()}
+    geom = RigGeometry.from_dict(rig)
+    assert geom.has_ports and RigGeometry.from_dict(geom.to_dict()).has_ports
+    columns = _true_columns(scene)
+    tri = Triangulator(geom, columns.shape)
+    z = tri.depth(columns)
+    truth = depth_truth(scene)
+    both = np.isfinite(truth)
+    np.testing.assert_allclose(z[both], truth[both], atol=1e-5)
+    pts = tri.points(z)
+    assert pts.shape == (int(np.isfinite(z).sum()), 3)
+    np.testing.assert_allclose(pts[:, 2], z[np.isfinite(z)], atol=1e-6)
+    assert not RigGeometry.from_dict(rig_geometry(depth_scene(2.0, 48))).has_ports
 
 
 @pytest.mark.long
