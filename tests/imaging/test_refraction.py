@@ -80,6 +80,7 @@ def test_the_compositors_triangulator_goes_through_the_ports():
 
 
 @pytest.mark.long
+@pytest.mark.timeout(900)  # ~2.5 minutes of CPU (30 frames through the ports); more on a loaded machine
 def test_stripe_scan_through_the_glass_wall():
     """160×120, 30 stripes, σ_t = 2, single scattering: the refractive depth within 2 mm RMS, the pinhole
     pipeline off by the port's bias (docs/depth.md "Through a port")."""
