@@ -104,16 +104,18 @@ class ModalityPlan:
 
 def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_stripes: int = 30,
                orders: str = "all", edge: str = "margin", stripe_step: int = 1, sheets: int = 1,
-               p_rule: str = "map"):
+               p_rule: str = "map", width: int | None = None):
     """The model :func:`plan` sweeps for a measure: the ``error`` measure renders low-resolution whole frames
     (:class:`ImageModel`, ``preview`` unless ``fidelity`` says otherwise; every ``stripe_step``-th frame of a
     stripe scan of ``sheets`` sheets per frame), the ``paper``'s measures evaluate a few observed points
     (:class:`SceneModel`, ``standard`` by default, ``edge`` its stripe measure; one sheet per frame).
     ``p_rule``: eq. 6's p the ``error`` measure predicts the composite with (``map``, the compositor's
-    default, or ``median``)."""
+    default, or ``median``); ``width``: its renders' width [px] (None: :class:`ImageModel`'s default; the
+    camera's own width predicts the aliasing of its stripe composite, docs/planning.md §8)."""
     if measure == "error":
         return ImageModel(scene, fidelity=fidelity or "preview", n_stripes=n_stripes, orders=orders,
-                          stripe_step=stripe_step, sheets=sheets, p_rule=p_rule)
+                          stripe_step=stripe_step, sheets=sheets, p_rule=p_rule,
+                          **({} if width is None else {"width": width}))
     if sheets != 1:
         raise SceneError(f"sheets={sheets}: the paper's measures plan one sheet per frame; several sheets "
                          "need measure 'error' (docs/planning.md §12)")

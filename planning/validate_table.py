@@ -52,17 +52,19 @@ VARIANTS = {"error": ("error", "all"), "all": ("paper", "all"), "single": ("pape
 
 
 def planner_picks(scene: Scene, *, orders: str, fidelity: str | None = None, n_stripes: int = 30,
-                  separations_m=None, exposure: str = "scene", p_rule: str = "map") -> dict[str, dict]:
+                  separations_m=None, exposure: str = "scene", p_rule: str = "map",
+                  width: int | None = None) -> dict[str, dict]:
     """The planner's pick per planner curve key (``flood``, ``flood_polarized``, …): {"separation_m",
     "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults; ``orders``
     names the variant (:data:`VARIANTS`), ``p_rule`` eq. 6's p the error measure predicts with (the
-    judge's)."""
+    judge's), ``width`` its renders' width (the judge's camera: a 30-stripe composite at 3 px per stripe
+    aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8)."""
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     if orders not in VARIANTS:
         raise SceneError(f"planner variant must be one of {', '.join(VARIANTS)}, got {orders!r}")
     measure, model_orders = VARIANTS[orders]
     model = plan_model(scene, measure=measure, fidelity=fidelity, n_stripes=n_stripes, orders=model_orders,
-                       p_rule=p_rule)
+                       p_rule=p_rule, width=width if measure == "error" else None)
     return picks_of(plan(model, seps, exposure=exposure))
 
 
@@ -125,7 +127,8 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     if picks is None:
         seps = default_separations(n_plan, *plan_range)
         picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
-                                  separations_m=seps, p_rule=settings.p_rule) for o in plan_orders}
+                                  separations_m=seps, p_rule=settings.p_rule, width=settings.width)
+                 for o in plan_orders}
     methods = [m for m in METHODS if any(j[0] == m and j[2] in p for j in JUDGED for p in picks.values())]
     jobs: dict[float, set] = {round(d, 9): set(methods) for d in grid}
     for p in picks.values():  # a pick off the grid: only the methods picked there are scanned
