@@ -11,7 +11,8 @@ stamp (``stamp_ns``); sequence numbers are the replayer's own, from 0. How subsc
   ``record`` and ``view`` find it as the newest running launch; ``--pub`` chooses the endpoint.
 
 ZeroMQ drops what is published before a subscriber has connected, so the replayer waits ``delay_s`` (and,
-with ``wait_for``, for a heartbeat of each named node) before the first message.
+with ``wait_for``, for each named node to be ready: a heartbeat that no longer says ``starting``) before the
+first message.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ class Replayer(Node):
         topics: list[str] = []  # full or relative names; empty: every topic of the bag
         start_s: float = 0.0  # skip this much of the bag's beginning [s]
         delay_s: float = 1.0  # wait before the first message, for subscribers to connect [s]
-        wait_for: list[str] = []  # also wait for a heartbeat of each of these nodes
+        wait_for: list[str] = []  # also wait until each of these nodes is ready (set up, not starting)
         linger_s: float = 1.0  # after the last message, stay this long before stopping [s]
         until_composed: bool = False  # stop once every replayed scan's composite is out (linger_s at most)
         exit_when_done: bool = True
@@ -81,7 +82,8 @@ class Replayer(Node):
         self.every(0.002, self._pump, name="pump")
 
     def _on_heartbeat(self, hb: Heartbeat) -> None:
-        self._seen.add(hb.node)
+        if not hb.counters.get("starting"):  # ready: its setup is done (a beat during setup says starting)
+            self._seen.add(hb.node)
 
     def _on_composite(self, c: Composite) -> None:
         self._uncomposed.discard(c.scan_id)

@@ -111,6 +111,28 @@ def test_replayer_publishes_each_message_when_its_log_time_is_due(tmp_path):
     assert h.node.stopping  # linger over: the replay ends by itself
 
 
+def test_replayer_waits_until_the_nodes_it_waits_for_are_set_up(tmp_path):
+    """A heartbeat that says ``starting`` (setup still running, e.g. a compositor loading its kernels) does
+    not count: replaying then would publish into a node that drops what it receives."""
+    from polarstripe.msgs.types import Heartbeat
+    from polarstripe.nodes.replayer import Replayer
+    from polarstripe.runtime.testing import NodeHarness
+
+    bag = _bag(tmp_path / "b.mcap", n=3, spacing_s=0.1)
+    h = NodeHarness(
+        Replayer,
+        namespace="/rig",
+        params={"path": str(bag), "rate": 10, "delay_s": 0.1, "topics": ["camera/frame"],
+                "wait_for": ["compositor"]},
+    )
+    h.deliver("heartbeat", Heartbeat(node="compositor", pid=1, uptime_s=1.0, counters={"starting": 1}))
+    h.advance(1.0)
+    assert h.published("/rig/camera/frame") == []  # alive, not ready: nothing yet
+    h.deliver("heartbeat", Heartbeat(node="compositor", pid=1, uptime_s=2.0, counters={}))
+    h.advance(1.0)
+    assert [m.step for m in h.published("/rig/camera/frame")] == [0, 1, 2]
+
+
 def test_replayer_start_skips_the_beginning(tmp_path):
     from polarstripe.nodes.replayer import Replayer
     from polarstripe.runtime.testing import NodeHarness
