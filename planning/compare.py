@@ -157,7 +157,8 @@ def run_level(scene, sigma_t: float, n_stripes: int, checkers, fidelity: str, rn
     def model(flood_pair=None):
         if p_rule != "map":
             return None
-        return lambda dark, sat: scene_p_model(scene, background, dark, sat, flood=flood_pair, renders=renders)
+        return lambda dark, sat: scene_p_model(scene, background, dark, sat, flood=flood_pair,
+                                               renders=renders)
 
     pair = [analyzer(flood, ang_b), analyzer(flood, ang_w)]
     cam = _Camera(scene.camera, pair, rng)

@@ -6,8 +6,8 @@ For one scene and one camera–source separation d_LC, :func:`score_scans` does 
 across the scan's frames by :mod:`polarstripe.sim.geometry_cache`), exposes it through the scene camera's
 EMVA 1288 sensor (:func:`polarstripe.sim.sensor.expose`, seeded), folds it into the compositor's running
 reductions (:class:`~polarstripe.imaging.composite.RunningComposite`), composes it with the compositor's own
-pipeline (:func:`polarstripe.imaging.compose.compose`: eq. 7, eq. 6 with the compositor's default ``map`` rule,
-p per pixel from the scene's own medium model with κ and ψ fitted to the pose's polarized flood pair as
+pipeline (:func:`polarstripe.imaging.compose.compose`: eq. 7, eq. 6 with the compositor's default ``map``
+rule, p per pixel from the scene's own medium model with κ and ψ fitted to the pose's polarized flood pair as
 the compositor fits them, :func:`polarstripe.planning.medium_p.scene_p_model`; ``p_rule`` chooses another,
 e.g. ``median``, one p̂ on the object-free pixels) and scores the composite as the compositor's
 ``metrics.json`` does (:func:`polarstripe.imaging.compose.score`):

@@ -49,7 +49,8 @@ def _noise_limited_error(scene, exposure_scale: float) -> float:
 
 def test_clear_water_every_composite_is_the_object_up_to_sensor_noise(tank):
     """With sigma_t = 0 the frames hold T (no A, no B): the flood frame, the stripe max (eq. 7) and the
-    polarized flood (no backscatter: the model's p map is not used) differ from T by the sensor's noise alone."""
+    polarized flood (no backscatter: the model's p map is not used) differ from T by the sensor's noise
+    alone."""
     clear = tank.replace(medium=tank.medium.replace(sigma_t=0.0))
     got = curves(clear, [0.1], TINY, methods=("flood", "stripes", "polarized_flood"))
     small = scan_scene(clear, TINY.width)
