@@ -10,9 +10,10 @@ stamp (``stamp_ns``); sequence numbers are the replayer's own, from 0. How subsc
   ``$POLARSTRIPE_RUNS``, or ``--graph FILE``) listing the replayer and the topics it publishes, so ``topic``,
   ``record`` and ``view`` find it as the newest running launch; ``--pub`` chooses the endpoint.
 
-ZeroMQ drops what is published before a subscriber has connected, so the replayer waits ``delay_s`` (and,
-with ``wait_for``, for each named node to be ready: a heartbeat that no longer says ``starting``) before the
-first message.
+ZeroMQ drops what is published before a subscriber has connected, so the replayer waits ``delay_s`` before the
+first message; with ``wait_for``, it waits ``delay_s`` after the last named node is ready (a heartbeat that no
+longer says ``starting``): a node's subscriptions finish connecting in the background after its setup, and
+under load that can take longer than the beat that says it is ready.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ class Replayer(Node):
         topics: list[str] = []  # full or relative names; empty: every topic of the bag
         start_s: float = 0.0  # skip this much of the bag's beginning [s]
         delay_s: float = 1.0  # wait before the first message, for subscribers to connect [s]
-        wait_for: list[str] = []  # also wait until each of these nodes is ready (set up, not starting)
+        wait_for: list[str] = []  # also wait until each of these nodes is ready, then delay_s more
         linger_s: float = 1.0  # after the last message, stay this long before stopping [s]
         until_composed: bool = False  # stop once every replayed scan's composite is out (linger_s at most)
         exit_when_done: bool = True
@@ -82,8 +83,9 @@ class Replayer(Node):
         self.every(0.002, self._pump, name="pump")
 
     def _on_heartbeat(self, hb: Heartbeat) -> None:
-        if not hb.counters.get("starting"):  # ready: its setup is done (a beat during setup says starting)
+        if not hb.counters.get("starting") and hb.node not in self._seen:  # ready: its setup is done
             self._seen.add(hb.node)
+            self._ready_at = max(self._ready_at, self.now() + self.params.delay_s)
 
     def _on_composite(self, c: Composite) -> None:
         self._uncomposed.discard(c.scan_id)

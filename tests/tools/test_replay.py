@@ -129,6 +129,8 @@ def test_replayer_waits_until_the_nodes_it_waits_for_are_set_up(tmp_path):
     h.advance(1.0)
     assert h.published("/rig/camera/frame") == []  # alive, not ready: nothing yet
     h.deliver("heartbeat", Heartbeat(node="compositor", pid=1, uptime_s=2.0, counters={}))
+    h.advance(0.05)  # ready, but its subscriptions may still be connecting: delay_s after readiness
+    assert h.published("/rig/camera/frame") == []
     h.advance(1.0)
     assert [m.step for m in h.published("/rig/camera/frame")] == [0, 1, 2]
 
