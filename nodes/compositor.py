@@ -6,9 +6,11 @@ makes the method's composite, scores it and writes it out.
   scan is folded in; one whose scan's ``start`` has not come yet is held (at most ``early_frames``; dropped,
   counted, if the start never comes). A scan is complete when its ``done`` has come and all its expected
   frames (patterns × analyzer angles) are in, or ``done_grace_s`` after the last frame (fault "n of m frames"
-  in the log and metrics). A complete scan is held up to ``truth_wait_s`` for its ``simulator/truth``
-  message (tagged with the scan id; it can trail the frames in a replay), then composited without (error vs
-  truth None); a topic silent for a whole wait is not waited for again (a rig without a simulator);
+  in the log and metrics); the next scan's ``start``, should it overtake them (another socket), waits for them
+  until then, or until a frame of its own comes (after all of the old scan's). A complete scan is held up to
+  ``truth_wait_s`` for its ``simulator/truth`` message (tagged with the scan id; it can trail the frames in a
+  replay), then composited without (error vs truth None); a topic silent for a whole wait is not waited for
+  again (a rig without a simulator);
 
 * per scan, a :class:`~polarstripe.imaging.composite.RunningComposite` keeps one per-pixel max and min per
   analyzer angle (buffers reused from scan to scan): memory does not grow with the number of stripes;
@@ -43,7 +45,6 @@ from __future__ import annotations
 import json
 import os
 from collections import deque
-from typing import Literal
 
 import numpy as np
 from polarstripe.errors import PolarstripeError
@@ -65,9 +66,9 @@ from polarstripe.nodes.compositor_depth import DepthStage
 from polarstripe.nodes.compositor_mosaic import MosaicViews
 from polarstripe.nodes.compositor_output import PublishedDepth, fmt, write_comparison, write_method
 from polarstripe.nodes.compositor_p import MediumModel
+from polarstripe.nodes.compositor_params import CompositorParams
 from polarstripe.nodes.compositor_scan import Scan, roi, scan_metrics
 from polarstripe.runtime.node import Node
-from polarstripe.runtime.params import NodeParams
 
 _DROPS = ("frames_unexpected", "frames_mismatched", "frames_bad", "frames_duplicate", "frames_bad_pattern",
           "frames_bad_angle")
@@ -78,51 +79,7 @@ TRUTHS_KEPT = 8  # truth messages of scans not finished yet
 class Compositor(Node):
     """Running reductions per scan, the method's composite, its metrics and files (module docstring)."""
 
-    class Params(NodeParams):
-        out: str = ""  # output folder; "" = publish only
-        dark_offset_dn: float | None = None  # None: the simulator truth's, else 0
-        saturation_dn: float | None = None  # None: 2**bit_depth - 1 of the frames
-        angle_tolerance_deg: float = 2.0  # a frame's analyzer angle vs the scan's angles
-        object_free_roi: list[int] = []  # (row0, row1, col0, col1) for p; empty: from truth, else whole frame
-        chart_bright_roi: list[int] = []  # bright bars (row0, row1, col0, col1); empty: from truth
-        chart_dark_roi: list[int] = []  # dark bars
-        lit_fraction: float = 0.5  # of the checker patterns
-        black_level: float = 0.0  # projector "off" relative to "on"
-        p_min: float = 0.05
-        p_rule: Literal["map", "median", "upper"] = "map"  # eq. 6's p: per pixel, or one p̂ (physics.md §4.2)
-        p_scene: str = ""  # the map's medium model: "" the paper's tank, a scene .toml, "none" (the frames')
-        p_fidelity: str = "preview"  # … rendered at this fidelity
-        light: Literal["scene", "linear", "circular"] = "scene"  # the rig's optics, for the model
-        use_truth: bool = True  # score against each scan's simulator/truth message
-        truth_wait_s: float = 1.0  # hold a complete scan this long for its truth (until the topic is silent)
-        done_grace_s: float = 0.3  # after "done", wait this long since the last frame for frames in flight
-        early_frames: int = 16  # frames held ahead of their scan's "start"
-        image_format: Literal["tiff", "npy"] = "tiff"
-        comparison: bool = True
-        geometry: str = ""  # rig for depth: "" the default tank, a scene .toml, a calibration file, or "none"
-        depth_k_sigma: float = 4.0  # a stripe is delineated where its margins exceed this many noise sigma
-        depth_min_contrast: float = 0.15  # and its edges this fraction of the signal
-        depth_noise: list[float] = [1.0, 1.0 / 12.0]  # sensor read noise [DN] and DN per electron
-        depth_range_m: list[float] = []  # objects' [near, far] [m]: tells K sheets apart ([]: truth ±10 %)
-        mosaic_rule: Literal["local", "global", "pixel"] = "local"  # a polarization camera's E_b/E_w angle
-        mosaic_angle_sigma_px: float = 6.0  # the local rule's smoothing of the light's angle [px]
-        mosaic_polarized_sigma_px: float = 0.0  # smooth the polarized part of E_b/E_w [px] (0: not)
-        mosaic_extinction_ratio: float = 300.0  # the camera's calibration: micro-polarizer ER
-        mosaic_crosstalk: list[float] = [0.001, 0.0002]  # … and crosstalk to each edge, diagonal neighbour
-
-        def validate(self):
-            super().validate()
-            for key in ("object_free_roi", "chart_bright_roi", "chart_dark_roi"):
-                if getattr(self, key) and len(getattr(self, key)) != 4:
-                    raise ValueError(f"{key} must be [row0, row1, col0, col1], got {getattr(self, key)}")
-            if bool(self.chart_bright_roi) != bool(self.chart_dark_roi):
-                raise ValueError("give both chart_bright_roi and chart_dark_roi, or neither")
-            if not (self.truth_wait_s > 0 and self.done_grace_s > 0 and self.early_frames >= 0):
-                raise ValueError("truth_wait_s and done_grace_s must be > 0 s, early_frames >= 0")
-            if len(self.mosaic_crosstalk) != 2:
-                raise ValueError(f"mosaic_crosstalk must be [edge, diagonal], got {self.mosaic_crosstalk}")
-            MosaicViews(self)  # ImagingError (a ValueError) names a bad number
-            MediumModel(self)  # a bad p_scene or p_fidelity
+    Params = CompositorParams
 
     PUBLISHES = {"compositor/composite": Composite, "compositor/medium_p": MediumEstimate,
                  "compositor/depth": DepthMap}
@@ -137,6 +94,7 @@ class Compositor(Node):
         self.early: deque[Frame] = deque()  # frames ahead of their scan's start
         self.truths: dict[int, Composite] = {}  # scan id -> its simulator/truth message
         self._last_start = -1  # the newest scan id started
+        self._pending_start: ScanEvent | None = None  # a start held until the running scan's frames are in
         self._truth_heard = self._truth_silent = False
         for key in (*_DROPS, "frames_calibration", "scans_done", "scans_failed"):
             self.counters[key] = 0
@@ -164,6 +122,9 @@ class Compositor(Node):
             self.counters["frames_calibration"] += 1  # the polarizer's, not a scan's
             return
         scan = self.scan
+        if self._pending_start is not None and frame.scan_id >= self._pending_start.scan_id:
+            self._start_pending()  # the running scan's frames came before this one: it ends with them
+            scan = self.scan
         if scan is not None and frame.scan_id == scan.scan_id:
             self._fold(scan, frame)
             self._advance(scan)
@@ -227,7 +188,16 @@ class Compositor(Node):
 
     # ---- scans -----------------------------------------------------------------------------------------
     def on_scan(self, ev: ScanEvent) -> None:
+        if self._pending_start is not None and ev.scan_id >= self._pending_start.scan_id:
+            self._start_pending()  # an event of the held scan or a later one: the old scan cannot wait
         if ev.event == "start":
+            old = self.scan
+            if old is not None and old.done and not old.complete and not old.waiting_truth:
+                # frames and scan events arrive on separate sockets: the old scan's last frames may still be
+                # in flight behind this start. The start is held until they are in, the frames deadline
+                # passes, or a frame of this scan or a later one comes (after all of them).
+                self._pending_start = ev
+                return None
             return self._start(ev)
         scan = self.scan
         if scan is None or ev.scan_id != scan.scan_id:
@@ -236,6 +206,7 @@ class Compositor(Node):
             self.log.error("scan %d (%s) ended on a fault: %s", ev.scan_id, scan.method, ev.detail)
             self.counters["scans_failed"] += 1
             self._close()
+            self._start_pending()
         else:
             scan.done = True
             self._advance(scan)
@@ -329,6 +300,13 @@ class Compositor(Node):
         self.cancel(TRUTH_DEADLINE)
         self.scan = None
 
+    def _start_pending(self) -> None:
+        """The start held while the previous scan waited for its last frames: that scan ends with what it
+        has (if it has not ended), then this one starts."""
+        ev, self._pending_start = self._pending_start, None
+        if ev is not None:
+            self._start(ev)
+
     def _end_scan(self, scan: Scan) -> None:
         """Close the scan and publish its composite, or (nothing to composite) a Composite with
         ``metrics["error"]``."""
@@ -341,6 +319,7 @@ class Compositor(Node):
             m = {"error": str(exc), "frames": scan.frames, **({"fault": scan.fault} if scan.fault else {})}
             self.composite_pub.publish(Composite(images={}, method=scan.method, scan_id=scan.scan_id,
                                                  metrics=m))
+        self._start_pending()
 
     # ---- the composite ---------------------------------------------------------------------------------
     def _truth_of(self, scan: Scan, shape) -> Composite | None:
