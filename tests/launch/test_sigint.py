@@ -157,11 +157,13 @@ def _run_moments(tmp_path, counts, seed):
     return results
 
 
-@pytest.mark.timeout(400)  # ~30 s; more on a loaded machine
-def test_sigint_at_10_random_moments_stops_every_node_by_itself(tmp_path):
-    counts = {"prepare": 2, "start-up": 5, "planning": 1, "calibration": 1, "scans": 1}
+@pytest.mark.timeout(400)  # ~20 s; more on a loaded machine
+def test_sigint_at_6_random_moments_stops_every_node_by_itself(tmp_path):
+    """One moment in each phase, two in start-up (where most processes come and go): the suite's budget;
+    the 40 moments below under --long."""
+    counts = {"prepare": 1, "start-up": 2, "planning": 1, "calibration": 1, "scans": 1}
     results = _run_moments(tmp_path, counts, seed=12)
-    assert len(results) == 10
+    assert len(results) == 6
 
 
 @pytest.mark.long

@@ -42,8 +42,9 @@ def _best(scene, seps):
     return int(np.argmax(c.objective))
 
 
-MEDIA = [(1.0, 0.9), (6.0, 0.7)] + [  # the two ends in the default run (the suite's budget), six --long
-    pytest.param(s, g, marks=pytest.mark.long) for s, g in ((1.0, 0.7), (3.0, 0.7), (3.0, 0.9), (6.0, 0.9))]
+MEDIA = [(6.0, 0.7)] + [  # the murkiest, forward-scattering least in the default run (the suite's budget)
+    pytest.param(s, g, marks=pytest.mark.long)
+    for s, g in ((1.0, 0.9), (1.0, 0.7), (3.0, 0.7), (3.0, 0.9), (6.0, 0.9))]
 
 
 @pytest.mark.parametrize("sigma_t,g", MEDIA)
