@@ -19,7 +19,9 @@
 The plan comes from :func:`polarstripe.planning.planner.plan` on the model of its ``measure``
 (:func:`~polarstripe.planning.planner.plan_model`: ``error``, the composite's expected error against the
 unscattered object from low-resolution whole frames, or ``paper``, the paper's measures at three observed
-points; ``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``):
+points; ``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``; the
+error measure renders at the camera's width, whose pixel grid a stripe composite aliases on, unless
+``width`` asks for a cheaper one, docs/planning.md §8):
 modality ``stripes`` or ``flood``, with or without the polarizer. With a frame budget (``max_frames``) a
 stripe plan takes the fewest sheets per frame that fit it (two analyzer passes with ``analyzer = "stage"``),
 renders those K-sheet frames (their backscatter) and keeps to separations where the sheets stay apart in the
@@ -67,6 +69,7 @@ class Planner(Node):
         max_frames: int = 0  # frame budget of a stripe scan: the fewest sheets per frame that fit (0: one)
         analyzer: Literal["stage", "mosaic"] = "stage"  # polarized scans: two passes (stage) or one (mosaic)
         stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
+        width: int = 0  # error measure: the renders' width [px]; 0 = the camera's, whose pixel grid aliases
         separations: int = 24
         d_min_m: float = 0.02
         d_max_m: float = 0.5
@@ -84,6 +87,8 @@ class Planner(Node):
             if self.separations < 2 or not 0 < self.d_min_m < self.d_max_m:
                 raise ValueError(f"need separations >= 2 and 0 < d_min_m < d_max_m, got {self.separations}, "
                                  f"{self.d_min_m}, {self.d_max_m}")
+            if self.width and self.width < 8:
+                raise ValueError(f"width must be 0 (the camera's) or at least 8 pixels, got {self.width}")
             if self.stripe_step < 1:
                 raise ValueError(f"stripe_step must be at least 1, got {self.stripe_step}")
             if not 0.0 <= self.max_saturated_fraction <= 1.0:
@@ -149,7 +154,7 @@ class Planner(Node):
                              "the depth range of the scene's objects they overlap in the image at every "
                              "separation: allow more frames or scan fewer stripes")
         model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
-                           orders=p.orders, stripe_step=p.stripe_step, sheets=sheets)
+                           orders=p.orders, stripe_step=p.stripe_step, sheets=sheets, width=p.width or None)
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
@@ -157,7 +162,7 @@ class Planner(Node):
         # (the default tank saturates most of a flood frame below d_LC ≈ 0.1 m); every method of a scan
         # uses the one separation: judged on a flood frame without analyzer, the brightest of any method
         frames = model if isinstance(model, ImageModel) else ImageModel(
-            self.scene, fidelity=p.fidelity, n_stripes=1, orders=p.orders)
+            self.scene, fidelity=p.fidelity, n_stripes=1, orders=p.orders, width=p.width or None)
         saturated = (np.zeros(c.separations_m.size) if p.max_saturated_fraction >= 1.0 else
                      np.array([frames.saturated_fraction(d) for d in c.separations_m]))
         order = np.argsort(-c.objective, kind="stable")

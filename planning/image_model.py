@@ -8,6 +8,9 @@ the scene needs (:mod:`polarstripe.sim.orders`), and T, the unscattered object r
 scored against (docs/physics.md §10.8). Values are electrons at the scene's exposure (its ``noise`` converts
 with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the full well apply as they are.
 
+The renders are as wide as the scene's camera unless ``width`` says otherwise: a 30-stripe composite at a
+few pixels per stripe aliases on the camera's pixel grid, and its error with it (docs/planning.md §8).
+
 * flood: one flood frame; one location (group 0).
 * stripes: the scan's frames (the projector aimed as the rig aims it, N stripes, ``sheets`` per frame:
   ⌈N/K⌉ frames ``stripe:I/N:xK`` carrying the backscatter of K sheets each; every ``stripe_step``-th
@@ -33,8 +36,6 @@ from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_d
 from polarstripe.sim.threads import each_frame
 from polarstripe.sim.truth import unscattered_object
 
-DEFAULT_WIDTH = 48
-
 
 class ImageModel:
     """Whole low-resolution frames per separation (module docstring).
@@ -45,7 +46,9 @@ class ImageModel:
     fidelity : model fidelity of the renders (``preview`` by default: the measure compares separations,
         and `bench planner --end-to-end` shows what the level costs in regret).
     n_stripes : stripes per scan.
-    width : camera width [px] of the renders, at least 3 per stripe (the height keeps the aspect, at least 8).
+    width : width [px] of the renders; None (default): the scene camera's, whose pixel grid the stripe
+        composite aliases on; at least 3 px per stripe, at most the camera's (the height keeps the aspect,
+        at least 8).
     fractions : where the observed points sit on the centre row (fractions of the width): their stripes
         are the stripe locations.
     orders : ``all`` (as the scene needs) or ``single``.
@@ -58,7 +61,7 @@ class ImageModel:
     edge = "margin"
 
     def __init__(self, scene: Scene, fidelity: str = "preview", n_stripes: int = 30,
-                 width: int = DEFAULT_WIDTH, fractions=(0.25, 0.5, 0.75), orders: str = "all",
+                 width: int | None = None, fractions=(0.25, 0.5, 0.75), orders: str = "all",
                  stripe_step: int = 1, sheets: int = 1, p_rule: str = "map"):
         if p_rule not in P_RULES:
             raise SceneError(f"p_rule must be one of {', '.join(P_RULES)}, got {p_rule!r}")
@@ -67,9 +70,11 @@ class ImageModel:
             raise SceneError(f"orders must be 'single' or 'all', got {orders!r}")
         if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
             raise SceneError(f"n_stripes must be a positive integer, got {n_stripes!r}")
-        if int(width) < 8:
-            raise SceneError(f"width must be at least 8 pixels, got {width!r}")
         w0, h0 = scene.camera.resolution
+        if width is None:
+            width = w0
+        elif isinstance(width, bool) or int(width) != width or int(width) < 8:
+            raise SceneError(f"width must be an integer of at least 8 pixels, got {width!r}")
         # a stripe at least 3 pixels wide: narrower, which pixels a stripe lights jumps with the separation
         # and the stripe curves with it (bench planner --end-to-end: the same pick on every scene at 48 px)
         w = min(max(int(width), 3 * int(n_stripes)), w0)

@@ -18,8 +18,8 @@ TIE = 0.005          # objectives (1 − expected error) this close: keep the li
 
 def compare_lights(scene: Scene, separations_m: np.ndarray, *, modalities=("flood", "stripes"),
                    fidelity: str | None = None, n_stripes: int = 30, orders: str = "all",
-                   stripe_step: int = 3, progress=None) -> dict:
-    """Plan the polarized modalities with each light.
+                   stripe_step: int = 3, width: int | None = None, progress=None) -> dict:
+    """Plan the polarized modalities with each light (``width``: the renders', None: the camera's).
 
     Returns
     -------
@@ -32,7 +32,7 @@ def compare_lights(scene: Scene, separations_m: np.ndarray, *, modalities=("floo
     for light in LIGHTS:
         lit = with_light(scene, light)
         model = plan_model(lit, measure="error", fidelity=fidelity, n_stripes=n_stripes, orders=orders,
-                           stripe_step=stripe_step)
+                           stripe_step=stripe_step, width=width)
         plans = plan(model, separations_m, modalities=modalities, progress=progress)
         entry = {}
         for key, mp in plans.items():

@@ -2,7 +2,8 @@
 
 Prints the optimum and the curve per modality (default: 1 − the expected error; ``--measure paper``: flood
 CQM·W, stripes margin·W), with and without a polarizer; ``--json`` prints one object keyed ``flood``,
-``flood_polarized``, ``stripes``, ``stripes_polarized``, ``model`` (measure and orders). Unless the plan is
+``flood_polarized``, ``stripes``, ``stripes_polarized``, ``model`` (measure, orders and, for the error
+measure, the renders' ``width``: the scene camera's unless ``--width``). Unless the plan is
 the paper's own (``--measure paper --orders single``), ``--reference``, ``--plot`` and ``--validate`` make the
 same sweep with the paper's measure and single scattering beside it (the JSON's ``reference``; one more
 sweep); Fig. 10's question, rotate, translate or both, is answered for each model made (``scans``).
@@ -131,7 +132,8 @@ _STRIPE_ENTRY = {
 }
 _PLANS = {"flood": _ENTRY, "flood_polarized": _FLOOD_POL_ENTRY, "stripes": _STRIPE_ENTRY,
           "stripes_polarized": _STRIPE_ENTRY}
-_MODEL = {"measure": {"enum": ["error", "paper"]}, "orders": {"enum": ["all", "single"]}}
+_MODEL = {"measure": {"enum": ["error", "paper"]}, "orders": {"enum": ["all", "single"]},
+          "width": {"type": "integer", "minimum": 8}}
 PLAN_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "polarstripe plan",
@@ -182,6 +184,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
                         help="separation range in metres (default 0.01 0.6)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
+    parser.add_argument("--width", type=int, default=None, metavar="W",
+                        help="width [px] of the error measure's renders (default: the scene camera's, whose "
+                        "pixel grid a stripe composite aliases on; at least 3 px per stripe; a smaller one "
+                        "costs less, docs/planning.md §8)")
     parser.add_argument("--max-frames", type=int, default=0, metavar="N",
                         help="frame budget of a polarized stripe scan (two analyzer passes; --analyzer "
                         "mosaic: one): plan the fewest sheets per frame that fit, with their backscatter, at "
@@ -212,8 +218,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         "compositor's pipeline, error vs the unscattered object, regret (planning.md §7)")
     parser.add_argument("--validate-grid", type=int, default=8, metavar="N",
                         help="separations of --validate's grid, log-spaced 2-60 cm (default 8)")
-    parser.add_argument("--validate-width", type=int, default=160, metavar="W",
-                        help="camera width of --validate's scans (default 160)")
+    parser.add_argument("--validate-width", type=int, default=None, metavar="W",
+                        help="camera width of --validate's scans (default: the plan's render width, so the "
+                        "judge's stripes fall on the pixels the plan predicted)")
     parser.add_argument("--validate-exposure", choices=EXPOSURES, default="rig",
                         help="exposure of --validate's scans (default rig: see bench planner --help)")
     parser.add_argument("--light", choices=("scene", *LIGHTS, "both"), default="scene",
@@ -320,12 +327,16 @@ def main(args: argparse.Namespace) -> int:
             break  # the plan is the paper's own, or nothing asks for the comparison (it costs a sweep)
         model = plan_model(scene, measure=measure, fidelity=args.fidelity, n_stripes=args.stripes,
                            edge=args.edge, orders=orders, sheets=sheets if role == "plan" else 1,
-                           p_rule=args.p_rule)
+                           p_rule=args.p_rule, width=args.width)
+        if role == "plan":
+            plan_width = model.shape[1] if measure == "error" else args.width or scene.camera.resolution[0]
         plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
         if role == "plan" and allowed is not None:
             restrict(plans[role], allowed)
         if role == "plan":
             doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders}}
+            if measure == "error":
+                doc["model"]["width"] = plan_width     # the renders' width [px]
         else:
             doc["reference"] = {"measure": measure, "orders": orders, "plans": plan_to_json(plans[role])}
     doc["scans"] = scan_rows(doc)
@@ -335,9 +346,9 @@ def main(args: argparse.Namespace) -> int:
                          "allowed": [bool(a) for a in allowed]}
     if args.light == "both":
         doc["light"] = compare_lights(scene, seps, modalities=modalities, fidelity=args.fidelity,
-                                      n_stripes=args.stripes, orders=args.orders)
+                                      n_stripes=args.stripes, orders=args.orders, width=args.width)
     if args.validate:
-        settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width,
+        settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width or plan_width,
                                 exposure=args.validate_exposure, p_rule=args.p_rule)
         picks = {_variant(args.measure, args.orders): picks_of(plans["plan"])}
         if "reference" in plans:
@@ -357,6 +368,9 @@ def main(args: argparse.Namespace) -> int:
             print(f"sheets: {s['sheets']} per stripe frame ({s['frames']} frames of a polarized scan, budget "
                   f"{s['max_frames']}); they stay apart in the image at "
                   + (f"{ok[0] * 100:.0f}-{ok[-1] * 100:.0f} cm" if ok else "no separation"))
+        m = doc["model"]
+        print(f"model: {m['measure']} measure, {m['orders']} orders"
+              + (f", renders {m['width']} px wide" if "width" in m else ""))
         _print_tables(doc)
         print_scan_rows(doc["scans"])
         if "light" in doc:

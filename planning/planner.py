@@ -110,12 +110,11 @@ def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_
     stripe scan of ``sheets`` sheets per frame), the ``paper``'s measures evaluate a few observed points
     (:class:`SceneModel`, ``standard`` by default, ``edge`` its stripe measure; one sheet per frame).
     ``p_rule``: eq. 6's p the ``error`` measure predicts the composite with (``map``, the compositor's
-    default, or ``median``); ``width``: its renders' width [px] (None: :class:`ImageModel`'s default; the
-    camera's own width predicts the aliasing of its stripe composite, docs/planning.md §8)."""
+    default, or ``median``); ``width``: its renders' width [px] (None: the scene camera's, whose pixel grid
+    the stripe composite aliases on, docs/planning.md §8; a smaller one is cheaper)."""
     if measure == "error":
         return ImageModel(scene, fidelity=fidelity or "preview", n_stripes=n_stripes, orders=orders,
-                          stripe_step=stripe_step, sheets=sheets, p_rule=p_rule,
-                          **({} if width is None else {"width": width}))
+                          stripe_step=stripe_step, sheets=sheets, p_rule=p_rule, width=width)
     if sheets != 1:
         raise SceneError(f"sheets={sheets}: the paper's measures plan one sheet per frame; several sheets "
                          "need measure 'error' (docs/planning.md §12)")

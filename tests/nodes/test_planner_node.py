@@ -13,6 +13,7 @@ from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
 
 FAST = {"fidelity": "preview", "separations": 6, "d_min_m": 0.05, "d_max_m": 0.45, "resolution": "160x120"}
+CHEAP = {**FAST, "width": 96}  # the error measure's renders narrower than the camera: a fifth less CPU
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,8 @@ def test_plan_is_served_and_published(harness):
     # the best separation planning.planner.plan finds for the same scene, modality and polarization
     assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
     assert h.node.params.measure == "error"           # the planner's default measure (docs/planning.md §8)
-    model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"],
+    # rendered at the camera's width (160 px, its resolution): the pixel grid the stripe composite aliases on
+    model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"], width=160,
                        n_stripes=h.node.params.stripes, stripe_step=h.node.params.stripe_step)
     reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",))
     step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
@@ -113,7 +115,7 @@ def test_changed_p_replans_with_the_measured_medium():
 
 
 def test_changed_sigma_replans():
-    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=5.2))  # within 10 %
     assert h.node.counters["replans"] == 0
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=9.0))
@@ -123,7 +125,7 @@ def test_changed_sigma_replans():
 
 
 def test_fitted_medium_replans_with_sigma_and_mean_cosine():
-    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
     cannot = MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=None, reason="no visible sheet")
     h.deliver("medium/estimate", cannot)
     assert h.node.counters["replans"] == 0
@@ -138,12 +140,14 @@ def test_bad_params_are_rejected_before_start():
         NodeHarness(Planner, params={"resolution": "640by480"})
     with pytest.raises(ParamError, match="d_min_m"):
         NodeHarness(Planner, params={"d_min_m": 0.5, "d_max_m": 0.1})
+    with pytest.raises(ParamError, match="width must be 0 .the camera's. or at least 8 pixels, got 4"):
+        NodeHarness(Planner, params={"width": 4})
 
 
 def test_compositor_p_until_a_fit_gives_p_and_nan_p_is_no_p():
     """The compositor's p (compositor/medium_p) re-plans until the estimator's fit has given p; a fit without
     an analyzer pair (p NaN) changes σ_t and g only."""
-    h = NodeHarness(Planner, params={**FAST, "publish_on_start": False})
+    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
     h.deliver("compositor/medium_p", MediumEstimate(p=0.3, scan_id=2))
     assert h.node.counters["replans"] == 1 and h.node.scene.medium.dop.p == pytest.approx(0.3)
     assert not h.node.fitted_p
@@ -160,7 +164,7 @@ def test_compositor_p_until_a_fit_gives_p_and_nan_p_is_no_p():
 def test_a_frame_budget_plans_the_fewest_sheets_that_fit_it():
     """30 stripes in 20 frames of a polarized scan (two analyzer passes): 10 frames a pass, 3 sheets each;
     the separation is one where three sheets stay apart in the image over the chart's depth range."""
-    h = NodeHarness(Planner, name="planner", namespace="/rig", params={**FAST, "max_frames": 20})
+    h = NodeHarness(Planner, name="planner", namespace="/rig", params={**CHEAP, "max_frames": 20})
     plan = h.call("planner/plan", Empty())
     assert plan.sheets == 3
     allowed = plan.curves["sheets_allowed"].astype(bool)

@@ -53,7 +53,7 @@ def test_compare_lights_recommends_by_the_expected_error(small):
 
 def test_plan_command_light_both(capsys):
     assert main(["plan", "--modality", "flood", "--separations", "2", "--stripes", "6", "--light", "both",
-                 "--json"]) == 0
+                 "--width", "48", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     jsonschema.validate(doc, PLAN_SCHEMA)
     assert doc["light"]["recommended"]["flood_polarized"] in ("linear", "circular")

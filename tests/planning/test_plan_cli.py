@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import json
 import struct
+from pathlib import Path
 
 import jsonschema
 import numpy as np
@@ -183,3 +184,23 @@ def test_a_frame_budget_plans_sheets_only_where_they_stay_apart(capsys):
     for key in ("stripes", "stripes_polarized"):
         assert doc[key]["best_separation"] == pytest.approx(0.05)
         assert doc[key]["objective"][1:] == [0.0, 0.0] and doc[key]["objective"][0] > 0
+
+
+@pytest.mark.parametrize("extra, width", [([], 128), (["--width", "100"], 100)])
+def test_the_error_measure_renders_at_the_scene_cameras_width(tmp_path, capsys, extra, width):
+    """A stripe composite aliases on the camera's pixel grid (docs/planning.md §8): by default the plan
+    renders at the scene camera's width, 128 px here; --width asks for another."""
+    scene = tmp_path / "small.toml"
+    chart = Path(__file__).parents[2] / "bench" / "scenes" / "tank_sigma5.toml"
+    scene.write_text(chart.read_text() + "\n[camera]\nresolution = [128, 96]\n")
+    assert main(["plan", str(scene), "--modality", "flood", "--separations", "2", "--range", "0.1", "0.3",
+                 "--stripes", "4", *extra, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    jsonschema.validate(doc, PLAN_SCHEMA)
+    assert doc["model"] == {"measure": "error", "orders": "all", "width": width}
+
+
+def test_a_width_below_eight_pixels_is_one_error_line(capsys):
+    assert main(["plan", "--modality", "flood", "--separations", "2", "--width", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "width must be an integer of at least 8 pixels, got 4" in err[0]

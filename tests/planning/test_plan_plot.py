@@ -21,8 +21,9 @@ from polarstripe.sim.scene import load_scene
 from polarstripe.tools.cli import main
 
 SEPS = (3, 0.05, 0.45)   # separations: n, min, max [m]
+WIDTH = 48               # the error measure's renders (the camera's 640 px by default: much slower)
 SMALL = ["--separations", str(SEPS[0]), "--range", str(SEPS[1]), str(SEPS[2]), "--fidelity", "preview",
-         "--stripes", "8"]
+         "--width", str(WIDTH), "--stripes", "8"]
 
 
 def _run(argv: list[str]) -> dict:
@@ -42,7 +43,7 @@ def drawn(tmp_path_factory):
 def independent():
     """The two plans made directly, not through the command."""
     scene, seps = load_scene(None), default_separations(*SEPS)
-    return {"plan": plan(ImageModel(scene, fidelity="preview", n_stripes=8, orders="all"), seps),
+    return {"plan": plan(ImageModel(scene, fidelity="preview", n_stripes=8, orders="all", width=WIDTH), seps),
             "reference": plan(SceneModel(scene, fidelity="preview", n_stripes=8, orders="single"), seps)}
 
 

@@ -195,7 +195,7 @@ def test_bad_input():
 def test_plan_command_json_and_plot(tmp_path):
     png = tmp_path / "plan.png"
     out = subprocess.run([sys.executable, "-m", "polarstripe", "plan", "--modality", "flood", "--json",
-                          "--separations", "5", "--fidelity", "preview", "--plot", str(png)],
+                          "--separations", "5", "--fidelity", "preview", "--width", "96", "--plot", str(png)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)

@@ -107,6 +107,26 @@ def test_saturated_pixels_are_left_out():
     assert sat == pytest.approx(0.5) and err == pytest.approx(0.0, abs=1e-7)
 
 
+@pytest.mark.parametrize("camera, width, shape", [
+    ((200, 150), None, (150, 200)),     # the camera's own pixel grid by default
+    ((160, 90), None, (90, 160)),
+    ((160, 90), 96, (54, 96)),          # a cheaper width keeps the pixel aspect (16:9 here)
+    ((160, 90), 12, (27, 48)),          # at least 3 px per stripe (16 stripes)
+    ((40, 30), 96, (30, 40)),           # never wider than the camera
+])
+def test_the_renders_follow_the_camera_unless_a_width_is_given(camera, width, shape):
+    base = load_scene(None)
+    scene = base.replace(camera=base.camera.replace(resolution=camera))
+    model = ImageModel(scene, width=width, n_stripes=16)
+    assert model.shape == shape
+    assert plan_model(scene, n_stripes=16, width=width).shape == shape
+    # each pixel collects the scene camera's electrons: exposure × (w / w_camera)²
+    want = base.camera.exposure_s * (shape[1] / camera[0]) ** 2
+    assert model.scene.camera.exposure_s == pytest.approx(want)
+    with pytest.raises(SceneError, match="width must be an integer of at least 8 pixels, got 4"):
+        ImageModel(scene, width=4)
+
+
 def test_planner_with_the_error_measure_on_a_small_scene():
     scene = load_scene(None)
     model = ImageModel(scene, width=16, n_stripes=4)

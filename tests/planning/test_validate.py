@@ -196,13 +196,14 @@ def test_plan_validate_judges_the_plans_own_picks(capsys):
     from polarstripe.planning.plan_cli import PLAN_SCHEMA, _print_validation
 
     args = ["plan", "--modality", "flood", "--separations", "4", "--fidelity", "preview", "--validate",
-            "--validate-grid", "2", "--validate-width", "32", "--json"]
+            "--validate-grid", "2", "--stripes", "4", "--width", "32", "--json"]
     r = subprocess.run([sys.executable, "-m", "polarstripe", *args], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     jsonschema.validate(doc, PLAN_SCHEMA)
     v = doc["validation"]
+    assert v["settings"]["width"] == doc["model"]["width"] == 32  # judged on the pixel grid it planned on
     assert set(v["curves"]) == {"flood", "polarized_flood"}  # no stripe plan: no stripe scans
     assert {(row["method"], row["image"]) for row in v["rows"]} == {
         ("flood", "composite"), ("polarized_flood", "composite"), ("polarized_flood", "E_b")}
