@@ -1,141 +1,248 @@
-"""``polarstripe bench planner``: time per full plan and how far each optimum lands from the reference's.
+"""``polarstripe bench planner``: the planner's ladder, per fidelity level the CPU time of a full plan and the
+regret of its picks against the end-to-end truth.
 
-A full plan is the paper's: 60 separations × (flood + 3 stripe locations), with and without a polarizer
-(every reading shares one model evaluation per separation and modality). With the default stripe margin an
-evaluation of the stripes is one own-sheet call per location (O and its neighbours O′) plus one B-only call
-per other sheet that crosses an observed ray (docs/planning.md §1.3). Measured in one run at each model
-fidelity, beside the alternative that renders whole frames: one full flood frame of the scene timed, times
-the number of model evaluations a plan makes (not for ``reference``, which computes A at every pixel).
-Target: ≤ 1 s per plan on one core, optimum within one grid step of ``reference``. Each planner variant of
-``--plan-orders`` (the planner variants: the error measure, the paper's with all orders or single
-scattering) is timed.
+A full plan is the planner issue's: 60 separations (``--separations``), flood and stripes, each with and
+without a polarizer (one model evaluation per separation and modality serves every reading), every order of
+scattering the scene needs, on one core (one model thread, :mod:`polarstripe.sim.threads`), timed as process
+CPU. Each level's picks are then judged end to end on the default tank at σ_t = 5 m⁻¹
+(``bench/scenes/tank_sigma5.toml``; ``--scenes`` or the positional scene for others): full scans through the
+compositor's pipeline on a log grid of separations, at every pick and one bisection round around each best
+(:mod:`polarstripe.planning.validate_table`), scanned once for every level and kept in ``--end-to-end``'s
+cache, so a second run only plans; the scans keep the scene's exposure, as the plan assumes
+(``--scan-exposure``). ``regret = error at the level's pick / least error seen``, per method on
+the image the compositor publishes. The plans render at the scans' width (``--width``): a stripe plan's pick
+depends on the camera's pixel grid (docs/planning.md §8).
 
-``--end-to-end`` judges the picks instead: full scans through the compositor's pipeline, the regret per method
-and scene (:mod:`polarstripe.bench.planner_e2e`).
+Targets: ≤ 2 s CPU per full plan at ``standard``, regret ≤ 1.05. ``--quick`` plans 12 separations (the time
+scaled to 60) at 96 px against a 4-separation grid without bisection: about a minute instead of several.
+``--end-to-end`` judges the planner variants on every scene instead (:mod:`polarstripe.bench.planner_e2e`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
 from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.planner import default_separations, plan, plan_model
-from polarstripe.planning.validate_table import VARIANTS
-from polarstripe.sim.render import render_components
+from polarstripe.planning.validate import ScanSettings
+from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
+from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import load_scene
+from polarstripe.sim.threads import set_threads, threads
+
+FULL_PLAN = 60                      # separations of the issue's full plan
+TARGET_CPU_S = 2.0                  # per full plan at standard, one core
+DEFAULT_SCENE = "tank_sigma5"
+METHOD_NAMES = ("flood", "polarized_flood", "stripes", "polarized_stripes")
+QUICK = {"separations": 12, "grid": 4, "refine": 0, "width": 96}
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the paper's tank)")
-    parser.add_argument("--separations", type=int, default=60, help="separations per sweep (default 60)")
-    parser.add_argument("--fidelities", default="preview,standard,reference",
-                        help="comma-separated fidelity levels (reference must be among them)")
-    parser.add_argument("--repeats", type=int, default=3, help="plans timed per fidelity; the median is kept")
+    parser.add_argument("scene", nargs="?", default=None,
+                        help="scene TOML (default: the tank at sigma_t 5, bench/scenes/tank_sigma5.toml)")
+    parser.add_argument("--separations", type=int, default=None,
+                        help=f"separations per plan (default {FULL_PLAN}, the full plan; --quick "
+                             f"{QUICK['separations']}, its time scaled to {FULL_PLAN})")
+    parser.add_argument("--fidelities", default="preview,standard",
+                        help="comma-separated fidelity levels of the planner's model (default "
+                             "preview,standard; reference: whole frames with A at every pixel, minutes per "
+                             "separation)")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"a short ladder: {QUICK['separations']} separations at {QUICK['width']} px, "
+                             f"the truth on {QUICK['grid']} separations without bisection")
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="exposure rule of the plan (see `polarstripe plan --help`)")
     planner_e2e.configure(parser)
 
 
-def _optima(plans) -> dict[str, float]:
-    out = {}
-    for key, mp in plans.items():
-        out[key] = mp.curve.best_separation_m
-        for i, c in enumerate(mp.location_curves):
-            out[f"{key}/O{i + 1}"] = c.best_separation_m
+def _levels(text: str) -> list[str]:
+    fids = [f.strip() for f in text.split(",") if f.strip()]
+    if not fids:
+        raise PolarstripeError("--fidelities: no fidelity given")
+    for f in fids:
+        resolve_fidelity(f)             # a bad name: one line naming the choices
+    return fids
+
+
+def _variants(text: str | None) -> list[str]:
+    variants = [v.strip() for v in (text or "error").split(",") if v.strip()]
+    if not variants or any(v not in VARIANTS for v in variants):
+        raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got {text!r}")
+    return variants
+
+
+def _settings(args) -> tuple[ScanSettings, int, int, int]:
+    """The scans' settings, the plan's separations, the grid and the bisection rounds (``--quick``'s where
+    the user left an option at its default)."""
+    quick = args.quick
+    width = QUICK["width"] if quick and args.width is None else args.width or planner_e2e.DEFAULT_WIDTH
+    n_sep = args.separations or (QUICK["separations"] if quick else FULL_PLAN)
+    grid = QUICK["grid"] if quick and args.grid is None else args.grid or planner_e2e.DEFAULT_GRID
+    refine = QUICK["refine"] if quick and args.refine is None else (
+        planner_e2e.DEFAULT_REFINE if args.refine is None else args.refine)
+    settings = ScanSettings(fidelity=args.fidelity, orders=args.orders, n_stripes=args.stripes, width=width,
+                            exposure=args.scan_exposure or "scene", seed=args.seed, p_rule=args.p_rule)
+    settings.check()
+    if n_sep < 2:
+        raise PolarstripeError(f"--separations: need at least 2, got {n_sep}")
+    return settings, n_sep, grid, refine
+
+
+def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps, exposure: str, tick):
+    """The plans and (CPU s, wall s, model evaluations) of one full plan on one model thread."""
+    measure, orders = VARIANTS[variant]
+    model = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders, n_stripes=settings.n_stripes,
+                       p_rule=settings.p_rule, width=settings.width if measure == "error" else None)
+    count = {"n": 0}
+
+    def progress():
+        count["n"] += 1
+        tick()
+
+    before = threads()
+    set_threads(1)
+    try:
+        warm = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders, n_stripes=4,
+                          width=16 if measure == "error" else None)
+        plan(warm, seps[:2])            # load the kernels, warm the caches (phase tables, quadrature nodes)
+        t0, c0 = time.perf_counter(), time.process_time()
+        plans = plan(model, seps, exposure=exposure, progress=progress)
+        cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+    finally:
+        set_threads(before)
+    return plans, cpu, wall, count["n"]
+
+
+def run(args) -> dict:
+    fids, variants = _levels(args.fidelities), _variants(args.plan_orders)
+    settings, n_sep, n_grid, refine = _settings(args)
+    seps = default_separations(n_sep)
+    scale = FULL_PLAN / n_sep
+    paths = planner_e2e.scene_paths(args) if (args.scenes or args.scene) else \
+        planner_e2e.scene_paths(argparse.Namespace(scenes=[DEFAULT_SCENE], scene=None))
+    scenes = [(os.path.splitext(os.path.basename(p))[0], load_scene(p)) for p in paths]
+    levels = [(v, f) for v in variants for f in fids]
+    skipped = [(v, f) for v, f in levels if VARIANTS[v][0] == "error" and f == "reference"]
+    levels = [lv for lv in levels if lv not in skipped]
+    if not levels:
+        raise PolarstripeError("--fidelities: the error measure is not run at reference (whole frames with A "
+                               "at every pixel: minutes per separation); name another level")
+    cache = None if args.no_cache else planner_e2e.ScanCache(args.cache or planner_e2e.default_cache_dir())
+    bar = None
+    if not args.no_progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(levels) * len(scenes) * 2 * n_sep, unit="eval", desc="plans", leave=False)
+
+    def tick():
+        if bar is not None:
+            bar.update(1)
+
+    out = {"separations": n_sep, "full_plan": FULL_PLAN, "time_scale": scale, "threads": 1,
+           "exposure": args.exposure, "settings": vars(settings), "grid_m": default_grid(n_grid).tolist(),
+           "refine": refine, "target_cpu_seconds": TARGET_CPU_S, "target_regret": planner_e2e.TARGET_REGRET,
+           "skipped": [f"{v}/{f}" for v, f in skipped], "load_average_start": list(os.getloadavg()),
+           "truth": {}, "levels": []}
+    rows = {lv: {"variant": lv[0], "fidelity": lv[1], "cpu": [], "wall": [], "evaluations": 0,
+                 "picks_m": {}, "regret": {}} for lv in levels}
+    c_all = time.process_time()
+    try:
+        for name, scene in scenes:
+            picks = {}
+            for lv in levels:
+                if bar is not None:
+                    bar.set_description(f"plan {name} {lv[0]}/{lv[1]}")
+                plans, cpu, wall, evals = _timed_plan(scene, *lv, settings, seps, args.exposure, tick)
+                r = rows[lv]
+                r["cpu"].append(cpu * scale)
+                r["wall"].append(wall * scale)
+                r["evaluations"] = evals
+                picks[f"{lv[0]}/{lv[1]}"] = picks_of(plans)
+            if bar is not None:
+                bar.set_description(f"truth {name}")
+            res = validate(scene, out["grid_m"], settings, picks=picks, cache=cache, refine=refine,
+                           progress=tick, on_total=(lambda n: setattr(bar, "total", bar.total + n))
+                           if bar is not None else None)
+            if cache is not None:
+                cache.save()
+            best = {}
+            for row in res["rows"]:
+                if row["image"] != "composite":
+                    continue
+                lv = tuple(row["plan"].split("/"))
+                rows[lv]["picks_m"].setdefault(name, {})[row["method"]] = row["pick_m"]
+                rows[lv]["regret"].setdefault(name, {})[row["method"]] = row["regret"]
+                best[row["method"]] = {"separation_m": row["best_m"], "error": row["best_error"],
+                                       "at_grid_edge": row["best_at_edge"]}
+            out["truth"][name] = {"best": best, "scanned": res["scanned"], "cached": res["cached"]}
+    finally:
+        if bar is not None:
+            bar.close()
+    for r in rows.values():
+        regrets = [x for sc in r["regret"].values() for x in sc.values() if x is not None]
+        out["levels"].append({
+            "variant": r["variant"], "fidelity": r["fidelity"],
+            "cpu_seconds_per_plan": float(np.median(r["cpu"])),
+            "seconds_per_plan": float(np.median(r["wall"])),
+            "model_evaluations": r["evaluations"], "picks_m": r["picks_m"], "regret": r["regret"],
+            "worst_regret": max(regrets) if regrets else None})
+    out["cpu_seconds"] = time.process_time() - c_all
+    out["load_average_end"] = list(os.getloadavg())
+    out["cache"] = None if cache is None else str(cache.path)
     return out
 
 
-def run(scene_path, n_sep: int, fidelities: list[str], repeats: int, exposure: str,
-        orders: str = "all") -> dict:
+def _f(v, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
 
-    scene = load_scene(scene_path)
-    seps = default_separations(n_sep)
-    step = float(seps[1] - seps[0])
-    rows = {}
-    for fid in fidelities:
-        measure, model_orders = VARIANTS[orders]
-        if measure == "error" and fid == "reference":
-            continue                # whole frames with A at every pixel: minutes per separation
-        model = plan_model(scene, measure=measure, fidelity=fid, orders=model_orders)
-        plan(model, seps[:2])  # warm caches (phase tables, quadrature nodes)
-        counter = {"calls": 0}
 
-        def count(counter=counter):
-            counter["calls"] += 1
-
-        times, cpu = [], []
-        for _ in range(max(1, repeats)):
-            t0, c0 = time.perf_counter(), time.process_time()
-            plans = plan(model, seps, exposure=exposure, progress=count)
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        evaluations = counter["calls"] // max(1, repeats)
-        row = {"seconds_per_plan": float(np.median(times)), "cpu_seconds_per_plan": float(np.median(cpu)),
-               "model_evaluations": evaluations, "optima_m": _optima(plans)}
-        if fid != "reference":  # reference computes A at every pixel: a whole frame takes minutes
-            render_components(scene, "flood", fid, orders=model_orders)
-            t0 = time.perf_counter()
-            render_components(scene, "flood", fid, orders=model_orders)
-            row["whole_frame_seconds_estimate"] = time.perf_counter() - t0
-            row["whole_frame_plan_seconds_estimate"] = row["whole_frame_seconds_estimate"] * evaluations
-        rows[fid] = row
-    if "reference" in rows and rows:
-        ref = rows["reference"]["optima_m"]
-        for r in rows.values():
-            r["steps_from_reference"] = {k: round(abs(v - ref[k]) / step, 3)
-                                         for k, v in r["optima_m"].items()}
-            r["max_steps_from_reference"] = max(r["steps_from_reference"].values())
-    return {"separations": n_sep, "grid_step_m": step, "exposure": exposure, "orders": orders,
-            "target_seconds": 1.0, "fidelities": rows}
+def print_ladder(res: dict) -> None:
+    s = res["settings"]
+    timed = "" if res["time_scale"] == 1 else \
+        f" (timed on {res['separations']}, scaled ×{res['time_scale']:g})"
+    print(f"planner ladder: a full plan = {res['full_plan']} separations{timed} × (flood, stripes) × "
+          f"(with, without polarizer), one core, process CPU; rendered {s['width']} px wide, exposure "
+          f"{res['exposure']}")
+    g = res["grid_m"]
+    print(f"regret vs the end-to-end truth: {len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm "
+          f"+ picks + {res['refine']} bisection(s), scans at {s['fidelity']}, {s['orders']} orders, "
+          f"{s['n_stripes']} stripes, width {s['width']}; composite error vs T at the pick / least seen")
+    for name, t in res["truth"].items():
+        best = ", ".join(f"{m} {b['error']:.3f} at {b['separation_m'] * 100:.1f} cm"
+                         f"{'>' if b['at_grid_edge'] else ''}" for m, b in t["best"].items())
+        print(f"  truth {name}: {t['scanned']} scans made, {t['cached']} from the cache; best {best}")
+    head = "".join(f"{m.replace('polarized_', 'pol. '):>13}" for m in METHOD_NAMES)
+    print(f"\n{'planner':<8} {'level':<9} {'scene':<14} {'CPU s/plan':>10} {'wall s':>7}{head} {'worst':>7}")
+    for lv in res["levels"]:
+        for name, reg in lv["regret"].items():
+            cells = "".join(f"{_f(reg.get(m), '13.3f')}" for m in METHOD_NAMES)
+            print(f"{lv['variant']:<8} {lv['fidelity']:<9} {name:<14} {lv['cpu_seconds_per_plan']:10.1f} "
+                  f"{lv['seconds_per_plan']:7.1f}{cells} {_f(lv['worst_regret'], '7.3f')}")
+    for k in res["skipped"]:
+        print(f"{k}: not run (whole frames with A at every pixel: minutes per separation)")
+    print(f"\ntargets: ≤ {res['target_cpu_seconds']:g} s CPU per full plan at standard, regret ≤ "
+          f"{res['target_regret']}")
+    for lv in res["levels"]:
+        ok_t = lv["cpu_seconds_per_plan"] <= res["target_cpu_seconds"]
+        w = lv["worst_regret"]
+        print(f"  {lv['variant']}/{lv['fidelity']}: {'meets' if ok_t else 'misses'} the time "
+              f"({lv['cpu_seconds_per_plan'] / res['target_cpu_seconds']:.0f}× the target), "
+              f"{'meets' if w is not None and w <= res['target_regret'] else 'misses'} the regret")
+    la, lb = res["load_average_start"], res["load_average_end"]
+    print(f"{res['cpu_seconds']:.0f} s CPU in all; load average {la[0]:.1f} at the start, {lb[0]:.1f} at "
+          "the end")
 
 
 def main(args: argparse.Namespace) -> int:
-
     if args.end_to_end:
         return planner_e2e.main(args)
-    fids = [f.strip() for f in args.fidelities.split(",") if f.strip()]
-    if not fids:
-        raise PolarstripeError("--fidelities: no fidelity given")
-    variants = [v.strip() for v in args.plan_orders.split(",") if v.strip()]
-    if not variants or any(v not in VARIANTS for v in variants):
-        raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got "
-                               f"{args.plan_orders!r}")
-    results = {v: run(args.scene, args.separations, fids, args.repeats, args.exposure, v) for v in variants}
+    res = run(args)
     if args.json:
-        print(json.dumps(results[variants[0]] if len(variants) == 1 else {"orders": results}))
-        return 0
-    for res in results.values():
-        _print_timing(res)
+        print(json.dumps(res))
+    else:
+        print_ladder(res)
     return 0
-
-
-def _print_timing(res: dict) -> None:
-    print(f"planner ({res['orders']} orders): {res['separations']} separations × (flood + 3 stripe "
-          f"locations) × {{unpolarized, polarized}}, grid step {res['grid_step_m'] * 100:.2f} cm, exposure "
-          f"{res['exposure']}, one core")
-    print(f"{'fidelity':<10} {'s/plan':>8} {'cpu s':>7} {'evals':>6} {'whole frames (est.)':>20} "
-          f"{'× slower':>9} {'max steps from ref':>19}")
-    for fid, r in res["fidelities"].items():
-        steps = r.get("max_steps_from_reference")
-        whole = r.get("whole_frame_plan_seconds_estimate")
-        whole_txt = (f"{whole:18.1f} s {whole / r['seconds_per_plan']:9.0f}" if whole
-                     else f"{'-':>20} {'-':>9}")
-        print(f"{fid:<10} {r['seconds_per_plan']:8.3f} {r['cpu_seconds_per_plan']:7.3f} "
-              f"{r['model_evaluations']:6d} {whole_txt} "
-              f"{'-' if steps is None else f'{steps:.1f}':>19}")
-    keys = list(next(iter(res["fidelities"].values()))["optima_m"])
-    print(f"\noptima [cm] {'':<22}" + "".join(f"{fid:>11}" for fid in res["fidelities"]))
-    for k in keys:
-        print(f"  {k:<32}" + "".join(f"{r['optima_m'][k] * 100:11.1f}" for r in res["fidelities"].values()))
-    for fid, r in res["fidelities"].items():
-        ok_t = r["cpu_seconds_per_plan"] <= res["target_seconds"]
-        steps = r.get("max_steps_from_reference")
-        ok_s = steps is not None and steps <= 1.0
-        verdict = "within" if ok_s else "NOT within" if steps is not None else "not compared to"
-        print(f"{fid}: {'meets' if ok_t else 'misses'} the 1 s target (CPU time); optimum {verdict} one "
-              "grid step of reference")
-    print()

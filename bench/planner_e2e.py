@@ -32,6 +32,8 @@ from polarstripe.sim.scene import load_scene
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
 TARGET_REGRET = 1.05
+DEFAULT_GRID, DEFAULT_REFINE, DEFAULT_WIDTH = 8, 1, 160
+DEFAULT_VARIANTS = "error,all,single"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -42,25 +44,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--scenes", nargs="+", default=None, metavar="TOML",
                    help="scene files, or names in bench/scenes (default: every bench/scenes/*.toml; the "
                         "positional scene, if given, alone)")
-    g.add_argument("--grid", type=int, default=8, help="separations of the end-to-end grid (default 8, "
-                   "log-spaced over --grid-range)")
+    g.add_argument("--grid", type=int, default=None, help=f"separations of the end-to-end grid (default "
+                   f"{DEFAULT_GRID}, log-spaced over --grid-range)")
     g.add_argument("--grid-range", nargs=2, type=float, default=(0.02, 0.6), metavar=("MIN_M", "MAX_M"),
                    help="end-to-end grid range in metres (default 0.02 0.6)")
-    g.add_argument("--refine", type=int, default=1, metavar="N",
-                   help="rounds of bisection around each method's best (default 1: its two log-midpoints)")
+    g.add_argument("--refine", type=int, default=None, metavar="N",
+                   help=f"rounds of bisection around each method's best (default {DEFAULT_REFINE}: its two "
+                        "log-midpoints)")
     g.add_argument("--fidelity", default="standard", help="fidelity of the scans' renders (default standard)")
     g.add_argument("--orders", choices=("all", "single"), default="all",
                    help="orders of scattering of the scans' renders (default all: the simulator's)")
-    g.add_argument("--plan-orders", default="error,all,single",
+    g.add_argument("--plan-orders", default=None,
                    help="planner variants, comma-separated: error (the error measure, all orders), all, "
-                        "single (the paper's measures with that model; default error,all,single)")
+                        f"single (the paper's measures with that model; default {DEFAULT_VARIANTS} with "
+                        "--end-to-end, error for the ladder)")
     g.add_argument("--plan-fidelity", default=None,
                    help="the planner's fidelity (default: preview for the error measure, standard for the "
                         "paper's)")
-    g.add_argument("--width", type=int, default=160,
-                   help="camera width of the scans (default 160; exposure scaled per pixel solid angle)")
-    g.add_argument("--scan-exposure", choices=EXPOSURES, default="rig",
-                   help="exposure of the scans: rig (default: the scene's, shortened for every method if the "
+    g.add_argument("--width", type=int, default=None,
+                   help=f"camera width of the scans and of the error measure's renders (default "
+                        f"{DEFAULT_WIDTH}; exposure scaled per pixel solid angle)")
+    g.add_argument("--scan-exposure", choices=EXPOSURES, default=None,
+                   help="exposure of the scans (default rig with --end-to-end, scene for the ladder, the "
+                        "exposure the plan assumes): rig (the scene's, shortened for every method if the "
                         "flood would clip, as the simulator node does), scene (as is), method (each method's "
                         "brightest frame at 90 %%, as `polarstripe compare`)")
     g.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
@@ -143,15 +149,16 @@ def scene_paths(args) -> list[str]:
 
 
 def run(args) -> dict:
-    variants = tuple(v.strip() for v in args.plan_orders.split(",") if v.strip())
+    text = args.plan_orders or DEFAULT_VARIANTS
+    variants = tuple(v.strip() for v in text.split(",") if v.strip())
     if not variants or any(v not in VARIANTS for v in variants):
-        raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got "
-                               f"{args.plan_orders!r}")
+        raise PolarstripeError(f"--plan-orders: comma-separated {', '.join(VARIANTS)}, got {text!r}")
     settings = ScanSettings(fidelity=args.fidelity, orders=args.orders, n_stripes=args.stripes,
-                            width=args.width, exposure=args.scan_exposure, seed=args.seed,
-                            p_rule=args.p_rule)
+                            width=args.width or DEFAULT_WIDTH, exposure=args.scan_exposure or "rig",
+                            seed=args.seed, p_rule=args.p_rule)
     settings.check()
-    grid = default_grid(args.grid, *args.grid_range)
+    refine = DEFAULT_REFINE if args.refine is None else args.refine
+    grid = default_grid(args.grid or DEFAULT_GRID, *args.grid_range)
     paths = scene_paths(args)
     scenes = [(os.path.splitext(os.path.basename(p))[0], load_scene(p)) for p in paths]
     cache = None if args.no_cache else ScanCache(args.cache or default_cache_dir())
@@ -159,7 +166,7 @@ def run(args) -> dict:
     if not args.no_progress:
         from tqdm import tqdm
         bar = tqdm(total=0, unit="sep", desc="end to end", leave=False)
-    out = {"grid_m": grid.tolist(), "refine": args.refine, "settings": vars(settings),
+    out = {"grid_m": grid.tolist(), "refine": refine, "settings": vars(settings),
            "plan_orders": list(variants),
            "plan_fidelity": args.plan_fidelity, "target_regret": TARGET_REGRET, "scenes": {}}
     t0, c0 = time.perf_counter(), time.process_time()
@@ -171,7 +178,7 @@ def run(args) -> dict:
             res = validate(scene, grid, settings, plan_orders=variants, plan_fidelity=args.plan_fidelity,
                            progress=(lambda: bar.update(1)) if bar is not None else None,
                            on_total=(lambda n: setattr(bar, "total", bar.total + n)) if bar is not None
-                           else None, cache=cache, refine=args.refine)
+                           else None, cache=cache, refine=refine)
             res["seconds"] = time.perf_counter() - t
             out["scenes"][name] = res
             if cache is not None:
