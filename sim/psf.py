@@ -134,14 +134,40 @@ def mixture(table: HaloTable, n: float) -> np.ndarray:
     return (1 - t) * table.weights[i0] + t * table.weights[i0 + 1]
 
 
+def blur_levels(rms_px: np.ndarray, mask: np.ndarray | None = None) -> tuple:
+    """The rms levels at which :func:`blur_image` blurs, from the receiving pixels' rms [px] (``mask``: one
+    object's pixels, else all): ((rms, None),) when the smallest and largest are at most 1.4× apart, else
+    ((rms_i, hat_i), …), rms_i spaced evenly in log rms from the smallest to the largest and hat_i (float32
+    (h, w)) each pixel's weight of level i (linear in log rms; levels no pixel weighs are left out). They
+    depend on the rms and the mask alone, so a scan's frames share them. () when no pixel receives."""
+    recv = np.ones(rms_px.shape, bool) if mask is None else mask
+    if not recv.any():
+        return ()
+    r = rms_px[recv]
+    r_lo, r_hi = float(r.min()), float(r.max())
+    if r_hi <= _LEVEL_RATIO * r_lo:
+        return ((math.sqrt(r_lo * r_hi), None),)
+    count = int(math.ceil(math.log(r_hi / r_lo) / math.log(_LEVEL_RATIO))) + 1
+    pos = np.clip(np.log(np.maximum(rms_px, r_lo) / r_lo) / math.log(r_hi / r_lo) * (count - 1), 0,
+                  count - 1).astype(np.float32)
+    levels = []
+    for i in range(count):
+        hat = np.clip(1.0 - np.abs(pos - i), 0.0, 1.0)
+        if hat.any():
+            levels.append((r_lo * (r_hi / r_lo) ** (i / (count - 1)), hat))
+    return tuple(levels)
+
+
 def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
-               mask: np.ndarray | None = None, norms: dict | None = None) -> np.ndarray:
+               mask: np.ndarray | None = None, norms: dict | None = None,
+               levels: tuple | None = None) -> np.ndarray:
     """The halo of an (h, w) image's spread part: Σ_j mix_j·G_{c_j·rms} ⊛ spread_part (float32 (h, w)).
 
     ``spread_part`` is what each pixel spreads (weight·image, 0 where nothing is spread), ``rms_px`` the
     halo's per-axis rms [pixels] of each *receiving* pixel, ``mix`` the mixture weights. The halo is blurred
     at rms levels at most 1.4× apart from the smallest to the largest rms of the receiving pixels and each
-    pixel interpolates between the two around its own in log rms; each Gaussian runs on an image downsampled
+    pixel interpolates between the two around its own in log rms (:func:`blur_levels`; ``levels``: those
+    of this ``rms_px`` and ``mask``, made before); each Gaussian runs on an image downsampled
     to about two pixels per standard deviation, the components summed coarse to fine; the frame's edges
     reflect (the scene goes on beyond them). With ``mask`` (one object's pixels) every Gaussian is normalised
     over the mask — the light that lands beyond the object's edge stands for the light that would arrive from
@@ -149,28 +175,22 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
     (the mask's blurs) for the next call with the same mask, as a scan's frames have it.
     """
     src = np.asarray(spread_part, np.float32)
-    recv = np.ones(src.shape, bool) if mask is None else mask
     if mask is not None:
         src = np.where(mask, src, 0.0).astype(np.float32)          # only the object's own light
-    if not recv.any():
+    if levels is None:
+        levels = blur_levels(rms_px, mask)
+    if not levels:
         return np.zeros(src.shape, np.float32)
-    r = rms_px[recv]
-    r_lo, r_hi = float(r.min()), float(r.max())
     m32 = None if mask is None else mask.astype(np.float32)
     pyramid: dict = {}
     if norms is not None:
         pyramid["norms"] = norms
-    if r_hi <= _LEVEL_RATIO * r_lo:
-        out = _halo(src, m32, math.sqrt(r_lo * r_hi), mix, pyramid)
+    if levels[0][1] is None:
+        out = _halo(src, m32, levels[0][0], mix, pyramid)
     else:
-        count = int(math.ceil(math.log(r_hi / r_lo) / math.log(_LEVEL_RATIO))) + 1
-        pos = np.clip(np.log(np.maximum(rms_px, r_lo) / r_lo) / math.log(r_hi / r_lo) * (count - 1), 0,
-                      count - 1).astype(np.float32)
         out = np.zeros(src.shape, np.float32)
-        for i in range(count):
-            hat = np.clip(1.0 - np.abs(pos - i), 0.0, 1.0)
-            if hat.any():
-                out += hat * _halo(src, m32, r_lo * (r_hi / r_lo) ** (i / (count - 1)), mix, pyramid)
+        for rms, hat in levels:
+            out += hat * _halo(src, m32, rms, mix, pyramid)
     return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
 
 

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 from polarstripe.sim.geometry_cache import cached
-from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, mixture
+from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, blur_levels, mixture
 from polarstripe.sim.threads import in_bands
 
 _LOG_LADDER = np.log(N_LADDER)
@@ -40,21 +40,22 @@ class Ladder(NamedTuple):
     rms: np.ndarray
 
 
-class LegOut(NamedTuple):
-    """Per pixel: what it spreads (float32), its halo rms [px] (float32), what it keeps sharp."""
+class Leg(NamedTuple):
+    """One leg's per-pixel factors, the same for every pattern (kept per scene): the fraction spread
+    w = 1 − e^{−n} and the fraction kept sharp 1 − w (both 0 off the objects), and the halo rms [px]
+    (float32)."""
 
     spread: np.ndarray
-    rms: np.ndarray
     keep: np.ndarray
+    rms: np.ndarray
 
 
 @njit(cache=True, nogil=True)
-def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
+def leg_factors(hit, ell, footprint, f_sigma_s, ladder, spread_out, keep_out, rms_out):
     """Per pixel that sees an object: n = fσ_sℓ, w = 1 − e^{−n}, the halo rms [px] (the table's rms per unit
-    path, interpolated in log n, times ℓ over the pixel's footprint); out.spread = w·value,
-    out.keep = (1 − w)·value. Other pixels: 0 (out.rms left as it is)."""
+    path, interpolated in log n, times ℓ over the pixel's footprint); spread_out = w, keep_out = 1 − w.
+    Other pixels: 0 (rms_out left as it is)."""
     log_ladder, rms_table = ladder
-    spread_out, rms_out, keep_out = out
     m = log_ladder.size
     for i in range(hit.size):
         if not hit[i]:
@@ -75,14 +76,72 @@ def leg_inputs(hit, value, ell, footprint, f_sigma_s, ladder, out):
             t = (ln - log_ladder[j]) / (log_ladder[j + 1] - log_ladder[j])
             r = (1 - t) * rms_table[j] + t * rms_table[j + 1]
         rms_out[i] = r * ell[i] / footprint[i]
-        spread_out[i] = w * value[i]
-        keep_out[i] = (1.0 - w) * value[i]
+        spread_out[i] = w
+        keep_out[i] = 1.0 - w
 
 
-def _legs(hit, value, ell, footprint, f_sigma_s, ladder, out: LegOut) -> None:
-    """:func:`leg_inputs` over bands of pixels (:func:`polarstripe.sim.threads.in_bands`)."""
-    in_bands(hit.size, lambda a, b: leg_inputs(hit[a:b], value[a:b], ell[a:b], footprint[a:b], f_sigma_s,
-                                               ladder, LegOut(*(x[a:b] for x in out))))
+@njit(cache=True, nogil=True)
+def leg_split(spread, keep, value, spread_out, keep_out):
+    """A frame's value split by its leg: spread_out = w·value (float32), keep_out = (1 − w)·value."""
+    for i in range(value.size):
+        spread_out[i] = spread[i] * value[i]
+        keep_out[i] = keep[i] * value[i]
+
+
+@njit(cache=True, nogil=True)
+def camera_input(hit, halo_l, rest_unit, keep_l, albedo, spread_c, extra_out, spread_out):
+    """The camera leg's input: extra = halo_L + Ã/ρ on the objects (0 beside them), the radiance
+    R = ρ·(keep_L + extra) and its spread part w_C·R (float32)."""
+    for i in range(hit.size):
+        e = halo_l[i] + rest_unit[i] if hit[i] else 0.0
+        extra_out[i] = e
+        spread_out[i] = spread_c[i] * (albedo[i] * (keep_l[i] + e))
+
+
+def _leg(hit, ell, footprint, f_sigma_s, ladder) -> Leg:
+    """:func:`leg_factors` over bands of pixels (:func:`polarstripe.sim.threads.in_bands`)."""
+    out = Leg(np.empty(hit.size), np.empty(hit.size), np.zeros(hit.size, np.float32))
+    in_bands(hit.size, lambda a, b: leg_factors(hit[a:b], ell[a:b], footprint[a:b], f_sigma_s, ladder,
+                                                *(x[a:b] for x in out)))
+    return out
+
+
+class Legs(NamedTuple):
+    """What the blurs of a whole frame share with every pattern: both legs' factors, each object's mask
+    and its source-leg halo mixture, the camera leg's mixture and e^{−n_C}; the blur levels of
+    :func:`polarstripe.sim.psf.blur_levels` per object (``levels``) and for the camera leg."""
+
+    source: Leg
+    camera: Leg
+    masks: tuple
+    mixtures: tuple
+    levels: tuple
+    camera_mixture: np.ndarray
+    camera_levels: tuple
+    keep_c: np.ndarray
+
+
+def _legs(view, table: HaloTable, f_sigma_s: float, ells) -> Legs:
+    cam, dirs, hits, surf = view.cam, view.dirs, view.hits, view.surf
+    hit = surf.object_id >= 0
+    shape = (cam.h, cam.w)
+    footprint = np.empty(hit.size)
+    footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), footprint)
+    ladder = Ladder(_LOG_LADDER, np.ascontiguousarray(table.rms, float))
+    source, camera = (_leg(hit, ell, footprint, f_sigma_s, ladder) for ell in ells)
+    masks, mixtures, levels = [], [], []
+    for k in range(len(view.scene.objects)):
+        mask = surf.object_id == k
+        if not mask.any():
+            continue
+        masks.append((k, mask.reshape(shape)))
+        mixtures.append(mixture(table, f_sigma_s * float(np.median(ells[0][mask][::7]))))
+        levels.append(blur_levels(source.rms.reshape(shape), mask.reshape(shape)))
+    if hit.any():
+        camera.rms[~hit] = float(np.median(camera.rms[hit][::7]))      # pixels beside the object receive too
+    n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
+    return Legs(source, camera, tuple(masks), tuple(mixtures), tuple(levels), mixture(table, n_med),
+                blur_levels(camera.rms.reshape(shape)), np.exp(-f_sigma_s * ells[1]))
 
 
 def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray, rest_unit: np.ndarray,
@@ -102,36 +161,22 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
         exactly D/ρ and is left out);
     H : (h·w,) the camera path's halo of the object radiance (albedo included), also beside the objects.
     """
-    cam, dirs, hits, surf = view.cam, view.dirs, view.hits, view.surf
+    cam, surf = view.cam, view.surf
     hit = surf.object_id >= 0
     shape, npx = (cam.h, cam.w), cam.h * cam.w
-    def footprint_of():
-        out = np.empty(npx)
-        footprints(hit, hits.point, dirs, hits.normal, np.asarray(cam.position, float), float(cam.s), out)
-        return out
-
-    footprint = cached(view.scene, ("footprint", cam.w, cam.h), footprint_of)    # the same every pattern
-    ladder = Ladder(_LOG_LADDER, np.ascontiguousarray(table.rms, float))
-    spread_l, rms_l, keep_l = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    _legs(hit, quasi, ells[0], footprint, f_sigma_s, ladder, LegOut(spread_l, rms_l, keep_l))
+    legs = cached(view.scene, ("legs", cam.w, cam.h, f_sigma_s), lambda: _legs(view, table, f_sigma_s, ells))
+    spread_l, keep_l = np.empty(npx, np.float32), np.empty(npx)
+    in_bands(npx, lambda a, b: leg_split(legs.source.spread[a:b], legs.source.keep[a:b], quasi[a:b],
+                                         spread_l[a:b], keep_l[a:b]))
     halo_l = np.zeros(npx)
-    ids = surf.object_id
-    for k in range(len(view.scene.objects)):
-        mask = ids == k
-        if not mask.any():
-            continue
-        n_med = f_sigma_s * float(np.median(ells[0][mask][::7]))
+    for (k, mask), mix, levels in zip(legs.masks, legs.mixtures, legs.levels, strict=True):
         norms = cached(view.scene, ("mask_norms", cam.w, cam.h, k), dict)  # the object's mask, every pattern
-        halo = blur_image(spread_l.reshape(shape), rms_l.reshape(shape), mixture(table, n_med),
-                          mask.reshape(shape), norms)
-        halo_l += halo.ravel()
-    extra = np.where(hit, halo_l + rest_unit, 0.0)
-    rad = surf.albedo * (keep_l + extra)
-    spread_c, rms_c, keep_c = np.zeros(npx, np.float32), np.zeros(npx, np.float32), np.zeros(npx)
-    _legs(hit, rad, ells[1], footprint, f_sigma_s, ladder, LegOut(spread_c, rms_c, keep_c))
-    if hit.any():
-        rms_c[~hit] = float(np.median(rms_c[hit][::7]))                # pixels beside the object receive too
-    n_med = f_sigma_s * float(np.median(ells[1][hit][::7])) if hit.any() else 0.0
-    halo = blur_image(spread_c.reshape(shape), rms_c.reshape(shape), mixture(table, n_med))
-    keep = cached(view.scene, ("keep_c", cam.w, cam.h, f_sigma_s), lambda: np.exp(-f_sigma_s * ells[1]))
-    return keep * extra, halo.ravel().astype(float)
+        halo_l += blur_image(spread_l.reshape(shape), legs.source.rms.reshape(shape), mix, mask, norms,
+                             levels).ravel()
+    extra, spread_c = np.empty(npx), np.empty(npx, np.float32)
+    in_bands(npx, lambda a, b: camera_input(hit[a:b], halo_l[a:b], rest_unit[a:b], keep_l[a:b],
+                                            surf.albedo[a:b], legs.camera.spread[a:b], extra[a:b],
+                                            spread_c[a:b]))
+    halo = blur_image(spread_c.reshape(shape), legs.camera.rms.reshape(shape), legs.camera_mixture,
+                      levels=legs.camera_levels)
+    return legs.keep_c * extra, halo.ravel().astype(float)
