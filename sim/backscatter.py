@@ -18,7 +18,7 @@ import numpy as np
 from polarstripe.sim.frame_kernels import polarized_gain
 from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.geometry_cache import cached
-from polarstripe.sim.grid_kernels import upsample_checked
+from polarstripe.sim.grid_kernels import coarse_silhouettes, upsample_grid
 from polarstripe.sim.grid_sources import source_field
 from polarstripe.sim.multiple import Field, Grid, solve_polarized
 from polarstripe.sim.orders import OrdersPlan
@@ -59,15 +59,20 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     dirs, hits = geo(view, ("coarse", div), lambda: rays(view.scene, cam, px))
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
     parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(4, gh, gw)
-    t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
+
+    def silhouettes():       # the same for every pattern
+        t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
+        bad = np.empty(cam.h * cam.w, bool)
+        own = np.ascontiguousarray(x_end, float)
+        in_bands(own.size, lambda a, b: coarse_silhouettes(t_c, own, cam.w, float(div), bad, a, b))
+        idx = np.nonzero(bad)[0]
+        return idx, view.dirs[idx], take(view.hits, idx)
+
+    idx, sub_dirs, sub_hits = geo(view, ("silhouettes", div), silhouettes)
     out = np.empty((4, cam.h * cam.w))
-    bad = np.empty(cam.h * cam.w, bool)
-    x_end = np.ascontiguousarray(x_end, float)
-    in_bands(x_end.size, lambda a, b: upsample_checked(parts, t_c, x_end, cam.w, float(div), out, bad, a, b))
-    idx = np.nonzero(bad)[0]
-    if idx.size:
-        sub = view._replace(dirs=view.dirs[idx], hits=take(view.hits, idx),
-                            pixels=np.zeros((idx.size, 2), int))
+    in_bands(cam.h, lambda a, b: upsample_grid(parts, cam.w, float(div), out, a, b), min_size=16)
+    if idx.size:       # this frame's pattern on the silhouettes' rays
+        sub = view._replace(dirs=sub_dirs, hits=sub_hits, pixels=np.zeros((idx.size, 2), int))
         out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])
     return out[0], out[1], out[2], out[3]
 

@@ -287,12 +287,11 @@ def segment_lengths(a, points, lo, hi, out):
 
 
 @njit(cache=True, nogil=True)
-def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad, first=0, end=-1):
-    """Bilinear upsampling of coarse (k, gh, gw) fields sampled at every ``step``-th pixel row and column
-    (row a·step, column b·step) to the (h, w) image (flat, ``width`` = w) into out (k, h·w); bad[m] marks
-    pixels whose four coarse neighbours end their rays (t_coarse) more than max(1 cm, 1 %) from their own
+def coarse_silhouettes(t_coarse, t_own, width, step, bad, first=0, end=-1):
+    """bad[m] marks the pixels of the (h, w) image (flat, ``width`` = w) whose four coarse neighbours of
+    :func:`upsample_grid` end their rays (t_coarse (gh, gw)) more than max(1 cm, 1 %) from their own
     (t_own), i.e. silhouettes, to be computed exactly. Pixels [first, end) only (end −1: to the last)."""
-    k, gh, gw = coarse.shape
+    gh, gw = t_coarse.shape
     n = t_own.size if end < 0 else end
     rs = cs = 1.0 / step
     for m in range(first, n):
@@ -300,7 +299,6 @@ def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad, first=0, en
         fc = (m % width) * cs
         r0 = min(int(fr), max(gh - 2, 0))
         c0 = min(int(fc), max(gw - 2, 0))
-        tr, tc = fr - r0, fc - c0
         r1, c1 = min(r0 + 1, gh - 1), min(c0 + 1, gw - 1)
         own = t_own[m]
         tol = max(0.01, 0.01 * abs(own))
@@ -310,9 +308,37 @@ def upsample_checked(coarse, t_coarse, t_own, width, step, out, bad, first=0, en
             if not abs(d) <= tol:
                 b = True
         bad[m] = b
+
+
+@njit(cache=True, nogil=True)
+def upsample_grid(coarse, width, step, out, first=0, end=-1):
+    """Bilinear upsampling of coarse (k, gh, gw) fields sampled at every ``step``-th pixel row and column
+    (row a·step, column b·step) to the (h, w) image (flat, ``width`` = w) into out (k, h·w). Image rows
+    [first, end) only (end −1: to the last)."""
+    k, gh, gw = coarse.shape
+    h = out.shape[1] // width
+    rs = cs = 1.0 / step
+    col0 = np.empty(width, np.int64)
+    tcs = np.empty(width)
+    for j in range(width):
+        fc = j * cs
+        col0[j] = min(int(fc), max(gw - 2, 0))
+        tcs[j] = fc - col0[j]
+    for i in range(first, h if end < 0 else end):
+        fr = i * rs
+        r0 = min(int(fr), max(gh - 2, 0))
+        tr = fr - r0
+        r1 = min(r0 + 1, gh - 1)
         for q in range(k):
-            out[q, m] = ((1 - tr) * ((1 - tc) * coarse[q, r0, c0] + tc * coarse[q, r0, c1])
-                         + tr * ((1 - tc) * coarse[q, r1, c0] + tc * coarse[q, r1, c1]))
+            a = coarse[q, r0]
+            b = coarse[q, r1]
+            o = out[q, i * width:(i + 1) * width]
+            for j in range(width):
+                c0 = col0[j]
+                c1 = min(c0 + 1, gw - 1)
+                tc = tcs[j]
+                o[j] = ((1 - tr) * ((1 - tc) * a[c0] + tc * a[c1])
+                        + tr * ((1 - tc) * b[c0] + tc * b[c1]))
 
 
 @njit(cache=True, nogil=True)
