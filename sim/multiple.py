@@ -184,18 +184,22 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field
     """The field (φ, F) of the emission (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹] of every cell, with extinction σ.
 
     In Fourier space φ̂ = K̂₀ŝ₀ + 3 K̂₁·ŝ₁ and F̂_a = K̂₁ₐŝ₀ + 3 Σ_b K̂₂ₐᵦŝ₁ᵦ: the four inputs go through one
-    batched transform each way (:func:`polarstripe.sim.threads.fft_workers` threads)."""
+    batched transform each way (:func:`polarstripe.sim.threads.fft_workers` threads), one axis at a time."""
     n = tuple(int(m) for m in grid.n)
     shape, f0, f1, f2 = _transforms(n, tuple(float(x) for x in grid.h), float(sigma))
-    sl = (slice(None),) + tuple(slice(m - 1, 2 * m - 1) for m in n)
     src = np.empty((4,) + n)
     src[0] = s0
     src[1:] = np.moveaxis(s1, -1, 0)
-    axes, workers = (1, 2, 3), fft_workers()
-    t = sfft.rfftn(src, shape, axes=axes, workers=workers)
+    workers = fft_workers()
+    # rfftn and irfftn axis by axis in their own order (the same numbers), skipping the lines that are
+    # zero padding on the way in and the ones sliced away on the way out
+    t = sfft.rfft(src, shape[2], axis=3, workers=workers)
+    t = sfft.fft(sfft.fft(t, shape[0], axis=1, workers=workers), shape[1], axis=2, workers=workers)
     out = np.empty_like(t)
     kernel_product(f0, f1, f2, t, out)
-    res = sfft.irfftn(out, shape, axes=axes, workers=workers)[sl]
+    res = sfft.ifft(out, axis=1, workers=workers)[:, n[0] - 1:2 * n[0] - 1]
+    res = sfft.ifft(res, axis=2, workers=workers)[:, :, n[1] - 1:2 * n[1] - 1]
+    res = sfft.irfft(res, shape[2], axis=3, workers=workers)[..., n[2] - 1:2 * n[2] - 1]
     return Field(np.maximum(res[0], 0.0), np.moveaxis(res[1:], 0, -1))
 
 
