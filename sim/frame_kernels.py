@@ -1,5 +1,6 @@
 """Compiled (numba) per-pixel passes of whole frames in :mod:`polarstripe.sim.higher`: the P1 irradiance of
-the grid's field at the pixels' object points, and the orders ≥ 2 added to the backscatter's Stokes. Each
+the grid's field at the pixels' object points, the orders ≥ 2 added to the backscatter's Stokes, and the
+view rays' in-scatter read at each pixel's depth (where it reads kept per scene). Each
 replaces numpy arithmetic with the same operations in the same order, one pass instead of several
 temporaries (a 640×480 frame is 307 200 pixels: each numpy pass over it costs about a millisecond)."""
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 from polarstripe.sim.grid_kernels import _axis
 
@@ -50,3 +52,86 @@ def polarized_gain(bq, bu, seen, dop):
             gain = 1.0 + dop * seen[m] / norm
             bq[m] *= gain
             bu[m] *= gain
+
+
+@njit(cache=True, nogil=True)
+def view_depths(shape, t0, t1, nk, x_end, index, frac, first=0, end=-1):
+    """Where each pixel of a (h, w) image (``shape`` = (h, w, gh, gw)) reads the coarse rays' cumulative
+    in-scatter of :func:`~polarstripe.sim.grid_kernels.view_lookup` at its own depth x_end[m], the same for
+    every pattern: per neighbour ray q (row r0, r0, r1, r1 and column c0, c1, c0, c1 of the coarse grid)
+    index[m, q] = r·(nk + 1) + k, the depth step below the depth, and frac[m, q] the fraction above it; at
+    or beyond the ray's end k = nk − 1 and frac 1 (exactly its last value); where the ray adds nothing
+    (its weight or length 0, the depth before its start) its first value, 0, with frac 0. Rows [first, end)
+    only (end −1: to the last)."""
+    h, w, gh, gw = shape
+    rows_scale = (gh - 1) / max(h - 1, 1)
+    cols_scale = (gw - 1) / max(w - 1, 1)
+    for i in range(first, h if end < 0 else end):
+        fr = i * rows_scale
+        r0 = min(int(fr), max(gh - 2, 0))
+        tr = fr - r0
+        r1 = min(r0 + 1, gh - 1)
+        for j in range(w):
+            fc = j * cols_scale
+            c0 = min(int(fc), max(gw - 2, 0))
+            tc = fc - c0
+            c1 = min(c0 + 1, gw - 1)
+            m = i * w + j
+            x = x_end[m]
+            for q in range(4):
+                r = (r0 if q < 2 else r1) * gw + (c0 if q % 2 == 0 else c1)
+                wq = (tr if q >= 2 else 1 - tr) * (tc if q % 2 == 1 else 1 - tc)
+                length = t1[r] - t0[r]
+                scale = nk / length if length > 0.0 else 0.0
+                u = (x - t0[r]) * scale
+                if wq == 0.0 or scale == 0.0 or u <= 0.0:
+                    index[m, q], frac[m, q] = r * (nk + 1), 0.0
+                elif u >= nk:
+                    index[m, q], frac[m, q] = r * (nk + 1) + nk - 1, 1.0
+                else:
+                    k = int(u)
+                    index[m, q], frac[m, q] = r * (nk + 1) + k, u - k
+
+
+@njit(cache=True, nogil=True)
+def view_gather(shape, cum, index, frac, out, first=0, end=-1):
+    """out[f, m] = Σ_q w_q·((1 − a)·cum[f, k_q] + a·cum[f, k_q + 1]) with (k_q, a) = (index, frac)[m, q] of
+    :func:`view_depths` and w_q the pixel's bilinear weight of neighbour ray q: the operations of
+    :func:`~polarstripe.sim.grid_kernels.view_lookup` in its order, so the same numbers. ``cum`` (nf, rays,
+    nk + 1); four fields at a time. Rows [first, end) only (end −1: to the last)."""
+    h, w, gh, gw = shape
+    nf = cum.shape[0]
+    flat = cum.shape[1] * cum.shape[2]
+    rows_scale = (gh - 1) / max(h - 1, 1)
+    cols_scale = (gw - 1) / max(w - 1, 1)
+    tcs = np.empty(w)
+    for j in range(w):
+        fc = j * cols_scale
+        tcs[j] = fc - min(int(fc), max(gw - 2, 0))
+    wts = np.empty(4)
+    for f0 in range(0, nf, 4):
+        quad = np.zeros((flat, 4))              # the four fields side by side
+        for f in range(f0, min(f0 + 4, nf)):
+            quad[:, f - f0] = cum[f].ravel()
+        for i in range(first, h if end < 0 else end):
+            fr = i * rows_scale
+            tr = fr - min(int(fr), max(gh - 2, 0))
+            for j in range(w):
+                tc = tcs[j]
+                wts[0], wts[1], wts[2], wts[3] = (1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc
+                m = i * w + j
+                a0 = a1 = a2 = a3 = 0.0
+                for q in range(4):
+                    k, a, wq = index[m, q], frac[m, q], wts[q]
+                    b = 1.0 - a
+                    a0 += wq * (b * quad[k, 0] + a * quad[k + 1, 0])
+                    a1 += wq * (b * quad[k, 1] + a * quad[k + 1, 1])
+                    a2 += wq * (b * quad[k, 2] + a * quad[k + 1, 2])
+                    a3 += wq * (b * quad[k, 3] + a * quad[k + 1, 3])
+                out[f0, m] = a0
+                if f0 + 1 < nf:
+                    out[f0 + 1, m] = a1
+                if f0 + 2 < nf:
+                    out[f0 + 2, m] = a2
+                if f0 + 3 < nf:
+                    out[f0 + 3, m] = a3

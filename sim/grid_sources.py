@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
+from polarstripe.sim.frame_kernels import view_depths, view_gather
 from polarstripe.sim.grid_kernels import (
     Beams,
     ViewArgs,
@@ -307,29 +308,60 @@ def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float,
     return Field(phi, flux)
 
 
+class ViewTable(NamedTuple):
+    """The coarse view rays of a whole frame and where each pixel reads them (the same for every pattern):
+    rays (k, 3), their medium entry t0 and exit t1, the coarse grid (gh, gw), and per pixel and neighbour
+    ray ``index``, ``frac`` (h·w, 4) of :func:`~polarstripe.sim.frame_kernels.view_depths`."""
+
+    rays: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+    gh: int
+    gw: int
+    index: np.ndarray
+    frac: np.ndarray
+
+
+def _coarse_rays(grid: Grid, cam, coarse: tuple[int, int]):
+    gw, gh = max(min(coarse[0], cam.w), 2), max(min(coarse[1], cam.h), 2)
+    gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
+    GR, GC = np.meshgrid(gr, gc, indexing="ij")
+    rays = pixel_rays(cam, np.stack([GR.ravel(), GC.ravel()], 1))
+    t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
+    return rays, np.maximum(t0, 0.0), t1, gh, gw
+
+
+def view_table(grid: Grid, cam, x_end: np.ndarray, coarse: tuple[int, int], steps: int) -> ViewTable:
+    """The :class:`ViewTable` of a whole frame of ``cam`` whose pixels' view paths end at ``x_end``."""
+    rays, t0, t1, gh, gw = _coarse_rays(grid, cam, coarse)
+    index, frac = np.empty((cam.h * cam.w, 4), np.int32), np.empty((cam.h * cam.w, 4))
+    x_end = np.ascontiguousarray(x_end, float)
+    in_bands(cam.h, lambda a, b: view_depths((cam.h, cam.w, gh, gw), t0, t1, int(steps), x_end, index, frac,
+                                             a, b), min_size=16)
+    return ViewTable(rays, t0, t1, gh, gw, index, frac)
+
+
 def view_integral(grid: Grid, fields: list[Field], view_args: ViewArgs, cam, pixels, x_end: np.ndarray,
-                  coarse: tuple[int, int], steps: int) -> np.ndarray:
+                  coarse: tuple[int, int], steps: int, table: ViewTable | None = None) -> np.ndarray:
     """∫ J_i(C + x d, −d) e^{−σ(x − x₀)} dx from the medium's entry x₀ to ``x_end`` (per ray, flat) of each
     field i, for every pixel (a coarse grid of ``coarse`` = (w, h) rays, interpolated bilinearly between them
-    at each pixel's own depth) or for the requested ``pixels`` (their own rays). Returns (k, n)."""
+    at each pixel's own depth; ``table``: its :func:`view_table`, kept from an earlier frame) or for the
+    requested ``pixels`` (their own rays). Returns (k, n)."""
     phi = np.ascontiguousarray(np.stack([f.phi for f in fields]))
     flux = np.ascontiguousarray(np.stack([f.flux for f in fields]))
     if pixels is None:
-        gw, gh = max(min(coarse[0], cam.w), 2), max(min(coarse[1], cam.h), 2)
-        gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
-        GR, GC = np.meshgrid(gr, gc, indexing="ij")
-        rays = pixel_rays(cam, np.stack([GR.ravel(), GC.ravel()], 1))
+        table = table or view_table(grid, cam, x_end, coarse, steps)
+        rays, t0, t1 = table.rays, table.t0, table.t1
     else:
         rays = pixel_rays(cam, pixels)
-    t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
-    t0 = np.maximum(t0, 0.0)
+        t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
+        t0 = np.maximum(t0, 0.0)
     cum = np.zeros((len(fields), rays.shape[0], int(steps) + 1))
     view_cumulative(grid.args(), phi, flux, view_args, np.ascontiguousarray(rays), t0, t1, cum)
     out = np.zeros((len(fields), x_end.size))
     if pixels is None:
-        x_end = np.ascontiguousarray(x_end, float)
-        in_bands(cam.h, lambda a, b: view_lookup((cam.h, cam.w, gh, gw), t0, t1, cum, x_end, out, (a, b)),
-                 min_size=16)
+        in_bands(cam.h, lambda a, b: view_gather((cam.h, cam.w, table.gh, table.gw), cum, table.index,
+                                                 table.frac, out, a, b), min_size=16)
     else:
         n = rays.shape[0]
         view_lookup((n, 1, n, 1), t0, t1, cum, np.ascontiguousarray(x_end, float), out)

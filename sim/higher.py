@@ -53,6 +53,7 @@ from polarstripe.sim.grid_sources import (
     source_field,
     surface_irradiance,
     view_integral,
+    view_table,
 )
 from polarstripe.sim.kernel_records import PhaseArgs
 from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders, zero_field
@@ -353,7 +354,9 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     args = ViewArgs(c, np.full(len(fields), sc.g_tilde), np.array(sigmas, float),
                     np.asarray(cam.position, float))
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
-    seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps)
+    table = None if view.pixels is not None else geo(view, ("view_table", grid, coarse, st.view_steps),
+                                                     lambda: view_table(grid, cam, x_end, coarse, st.view_steps))
+    seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps, table)
     if "B" in need:
         B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
         single = (B.copy(), Bq.copy(), Bu.copy()) if pol and abs(lin) < 1.0 else None
