@@ -61,7 +61,8 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(4, gh, gw)
 
     def silhouettes():       # the same for every pattern
-        t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1]).reshape(gh, gw)
+        t_c = np.minimum(hits.t, box_interval(cam.position, dirs, ssrc.box_lo, ssrc.box_hi)[1])
+        t_c = t_c.reshape(gh, gw)
         bad = np.empty(cam.h * cam.w, bool)
         own = np.ascontiguousarray(x_end, float)
         in_bands(own.size, lambda a, b: coarse_silhouettes(t_c, own, cam.w, float(div), bad, a, b))

@@ -20,8 +20,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
 from polarstripe.sim.frame_kernels import view_depths, view_gather
+from polarstripe.sim.geometry import box_interval, intersect, occluded, pixel_rays, projector_coords
 from polarstripe.sim.grid_kernels import (
     Beams,
     ViewArgs,
@@ -276,13 +276,10 @@ def surface_irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np
     return np.maximum(phi / 4.0 - 0.5 * (flux * normals).sum(1), 0.0)
 
 
-def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float, objects,
-               directions: int = 32) -> Field:
-    """First flight of the objects' reflected light: each patch a Lambertian source of exitance M [W/m²]."""
-    phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
-    keep = np.nonzero(exitance * patches.area > 0)[0]
-    if keep.size == 0:
-        return Field(phi, flux)
+def glow_beams(grid: Grid, patches: Patches, keep: np.ndarray, objects, directions: int = 32) -> Beams:
+    """The beams of the patches ``keep`` of :func:`glow_field`, about ``directions`` each (a square number,
+    cosine-weighted, a rotated stratification per patch), in the order of ``keep``, with the power of a
+    unit exitance, area/k [W/m]."""
     k = int(max(4, directions))
     side = int(math.ceil(math.sqrt(k)))
     k = side * side
@@ -298,13 +295,26 @@ def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float,
     r, a = np.sqrt(U)[None, :], 2 * math.pi * V[None, :] + rot[:, None]
     dirs = ((r * np.cos(a))[..., None] * e1[:, None, :] + (r * np.sin(a))[..., None] * e2[:, None, :]
             + np.sqrt(1 - U)[None, :, None] * nrm[:, None, :]).reshape(-1, 3)
-    power = np.repeat(exitance[keep] * patches.area[keep] / k, k)
     orig = np.repeat(patches.point[keep] + 1e-7 * nrm, k, axis=0)
     t0, t1 = box_interval(orig, dirs, grid.lo, grid.hi)
     if len(objects):
         t1 = np.minimum(t1, intersect(objects, orig, dirs).t)
-    deposit_beams(grid.args(), Beams(np.ascontiguousarray(orig), np.ascontiguousarray(dirs), power, t0, t1,
-                                     np.zeros(t0.size)), float(sigma), 0.5 * float(grid.h.min()), phi, flux)
+    return Beams(np.ascontiguousarray(orig), np.ascontiguousarray(dirs),
+                 np.repeat(patches.area[keep] / k, k), t0, t1, np.zeros(t0.size))
+
+
+def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float, objects,
+               directions: int = 32) -> Field:
+    """First flight of the objects' reflected light: each patch a Lambertian source of exitance M [W/m²]."""
+    phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
+    keep = np.nonzero(exitance * patches.area > 0)[0]
+    if keep.size == 0:
+        return Field(phi, flux)
+    beams = glow_beams(grid, patches, keep, objects, directions)
+    k = beams.dirs.shape[0] // keep.size
+    power = np.repeat(exitance[keep] * patches.area[keep] / k, k)
+    deposit_beams(grid.args(), beams._replace(power=power), float(sigma), 0.5 * float(grid.h.min()), phi,
+                  flux)
     return Field(phi, flux)
 
 

@@ -43,26 +43,20 @@ from polarstripe.sim.backscatter import (
     scaled_source,
 )
 from polarstripe.sim.frame_kernels import field_irradiance
-from polarstripe.sim.geometry import Hits, box_interval, occluded, projector_coords, segment_length_in_box
-from polarstripe.sim.grid_kernels import ViewArgs, glow_emission, segment_lengths, upsample_within
+from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
+from polarstripe.sim.glow import glow_fields
+from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths, upsample_within
 from polarstripe.sim.grid_sources import (
-    footprint_lit,
-    glow_field,
-    object_patches,
-    quasi_irradiance,
     source_field,
-    surface_irradiance,
     view_integral,
     view_table,
 )
-from polarstripe.sim.kernel_records import PhaseArgs
-from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders, zero_field
+from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.patterns import pattern_lit
 from polarstripe.sim.psf import halo_table, mixture, spread
 from polarstripe.sim.psf_frame import object_radiance
 from polarstripe.sim.psf_stencil import stencil_blur
-from polarstripe.sim.similarity import truncated_code
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import View, camera_frame_stokes, single_parts
 from polarstripe.sim.threads import in_bands
@@ -155,36 +149,6 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
         quasi[lit] = direct(ssrc, scene.objects, cam.position, hits.point[lit], hits.normal[lit],
                             np.ones(lit.size), ones)
     return d, quasi
-
-
-def _glow_fields(view: View, ssrc: Source, plan: OrdersPlan, st: HigherSettings, grid: Grid,
-                 total: Field) -> tuple[Field, Field]:
-    """The objects' glow on the grid: the field to view (its emission toward the camera) and the scattered
-    glow field (whose irradiance lights the objects again).
-
-    Each object patch is a Lambertian source of exitance M = ρ(E_quasi + E_grid). Its first wide-angle
-    scattering toward the camera is summed over the patches at every cell with the exact P̃ (the glow's first
-    flight is too directional for P1); the orders after it come from the grid."""
-    scene, sc = view.scene, plan.scaled
-    patches = object_patches(scene.objects, grid.lo, grid.hi, st.patch_cells * float(grid.h.min()))
-    if patches.area.size == 0:
-        return zero_field(grid), zero_field(grid)
-    hits = Hits(np.ones(patches.area.size), patches.index, patches.normal, patches.point)
-    albedo = surface_info(scene.objects, hits).albedo
-    lit = footprint_lit(ssrc, patches.point, patches.du, patches.dv) if ssrc.frame is not None else None
-    e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal, lit)   # area-averaged pattern
-    exitance = albedo * (e + surface_irradiance(grid, total, patches.point, patches.normal))
-    packed = np.ascontiguousarray(np.column_stack([patches.point, patches.normal, patches.area,
-                                                   exitance / np.pi]))
-    j1 = np.empty(int(np.prod(grid.n)))
-    cells, eye, phase = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float), \
-        PhaseArgs(*truncated_code(sc.phase))
-    in_bands(j1.size, lambda a, b: glow_emission(cells[a:b], eye, packed, phase, float(sc.sigma_t),
-                                                 float(sc.sigma_s), j1[a:b]), min_size=256)
-    first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)
-    more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.glow_orders)
-    c = sc.sigma_s / (4 * np.pi)
-    return Field(more.total.phi + j1.reshape(grid.n) / c, more.total.flux), more.total
 
 
 def _object_light(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest_unit: np.ndarray,
@@ -346,7 +310,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
             fields.append(polarized_field(psrc, plan, view.scene, st, grid, circular=True))
             sigmas.append(psrc.sigma_pol_v)
     if want_a:
-        seen, glow_scattered = _glow_fields(view, ssrc, plan, st, grid, orders.total)
+        seen, glow_scattered = glow_fields(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
         sigmas.append(sc.sigma_t)
     cam = view.cam
@@ -355,7 +319,8 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
                     np.asarray(cam.position, float))
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     table = None if view.pixels is not None else geo(view, ("view_table", grid, coarse, st.view_steps),
-                                                     lambda: view_table(grid, cam, x_end, coarse, st.view_steps))
+                                                     lambda: view_table(grid, cam, x_end, coarse,
+                                                                        st.view_steps))
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps, table)
     if "B" in need:
         B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
