@@ -15,6 +15,7 @@ import numpy as np
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.higher import HigherSettings, higher_components
+from polarstripe.sim.memory import keep_freed
 from polarstripe.sim.orders import OrdersPlan, plan_orders
 from polarstripe.sim.patterns import PatternSpec, parse_pattern
 from polarstripe.sim.polarization import analyzer
@@ -25,6 +26,8 @@ from polarstripe.sim.surface import SurfaceInfo, surface_info
 from polarstripe.sim.surface_field import View, single_parts
 from polarstripe.sim.threads import each_frame
 from polarstripe.sim.transport import make_source
+
+keep_freed()        # a frame's arrays reuse the last frame's memory (sim/memory.py)
 
 
 @dataclass(frozen=True)
