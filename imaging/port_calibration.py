@@ -1,0 +1,241 @@
+"""A refractive camera model fitted by calibration: the flat ports of camera and projector (docs/depth.md
+"Calibration through a port"; Agrawal, Ramalingam, Taguchi & Chari, "A theory of multi-layer flat refractive
+geometry", CVPR 2012).
+
+Behind a flat port a device is no longer a pinhole (docs/physics.md §11): the pixel of a water point Y (in
+the device's OpenCV frame) is that of the air ray a which reaches Y through the port,
+
+    x = π(K, dist, a),   a = the air ray of :func:`polarstripe.sim.port.light_to` (Snell at both faces),
+
+the port being its unit normal N (device frame), the inner face's distance d from the pinhole, the glass
+thickness t and the indices n_a, n_g, n_w. t and the indices come from the housing's data sheet; the fit
+finds N and d of each device together with the intrinsics (camera K and its distortion, projector K), the
+projector's pose (R, T; X_p = R·X_c + T) and every board pose (R_i, t_i; Y = R_i·X + t_i), by nonlinear
+least squares (``scipy.optimize.least_squares``) on the reprojection error of the camera's and the
+projector's corners (those :mod:`polarstripe.imaging.calibration` measured). A port of indices 1 is the
+pinhole, and its d and N are then not observable.
+
+The start: the pinhole calibration through the port (its K's focal lengths divided by n_w/n_a: the water
+narrows the field of view), each board pose from ``cv2.solvePnP`` with that pinhole, the port on the
+device's axis; the fit runs from each of :data:`START_DISTANCES_M` and keeps the least cost.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from polarstripe.imaging.calibration import Board, Calibration, CalibrationError
+from polarstripe.imaging.refraction import port_of
+from polarstripe.sim.port import light_to
+from scipy.optimize import least_squares
+
+START_DISTANCES_M = (0.005, 0.02, 0.06)
+OUTLIER = 5.0        # a corner whose error exceeds this many times its device's median is left out
+MISS_PX = 1e3        # the residual of a point not beyond the port's outer face (far from any solution)
+
+
+@dataclass(frozen=True)
+class PortSpec:
+    """What a housing's data sheet gives: glass ``thickness_m`` [m] and the indices of air, glass, water."""
+
+    thickness_m: float
+    n_air: float = 1.0
+    n_glass: float = 1.5
+    n_water: float = 1.333
+
+    def numbers(self, normal, distance_m: float) -> np.ndarray:
+        """The 8 numbers of imaging/refraction.py ``port_of``: normal (3), d, t, n_a, n_g, n_w."""
+        n = np.asarray(normal, float)
+        return np.array([*(n / np.linalg.norm(n)), distance_m, self.thickness_m, self.n_air, self.n_glass,
+                         self.n_water])
+
+
+@dataclass
+class PortCalibration:
+    """The refractive rig: intrinsics (in the air behind the ports), pose X_p = R·X_c + T, each port's 8
+    numbers (``port_cam``, ``port_proj``), reprojection RMS [px] per device and together."""
+
+    K_cam: np.ndarray
+    dist_cam: np.ndarray
+    K_proj: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    port_cam: np.ndarray
+    port_proj: np.ndarray
+    cam_size: tuple[int, int]
+    proj_size: tuple[int, int]
+    rms_cam: float
+    rms_proj: float
+    rms: float
+    dropped: int = 0          # corners left out as misplaced (module docstring)
+
+    def geometry(self) -> dict:
+        """The keys of imaging/triangulation.py ``RigGeometry.from_dict`` (with the ports)."""
+        return {"K_cam": self.K_cam, "dist_cam": self.dist_cam, "K_proj": self.K_proj, "R": self.R,
+                "T": self.T.ravel(), "cam_size": list(self.cam_size), "proj_size": list(self.proj_size),
+                "port_cam": self.port_cam, "port_proj": self.port_proj}
+
+
+def project(K: np.ndarray, dist: np.ndarray | None, port, points: np.ndarray) -> np.ndarray:
+    """Pixels (n, 2) (OpenCV coordinates) of device-frame ``points`` (n, 3) [m] seen through ``port`` (8
+    numbers, or None: the pinhole), NaN where a point is not beyond the port's outer face."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    geo = port_of(port)
+    a = points if geo is None else light_to(geo, points).air
+    ok = np.isfinite(a).all(axis=1) & (a[:, 2] > 0)
+    out = np.full((len(points), 2), np.nan)
+    if ok.any():
+        d = np.zeros(5) if dist is None else np.asarray(dist, float).ravel()
+        px, _ = cv2.projectPoints(a[ok].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(K, float), d)
+        out[ok] = px.reshape(-1, 2)
+    return out
+
+
+def _normal(tilt) -> np.ndarray:
+    n = np.array([tilt[0], tilt[1], 1.0])
+    return n / np.linalg.norm(n)
+
+
+def _K(v) -> np.ndarray:
+    return np.array([[v[0], 0.0, v[2]], [0.0, v[1], v[3]], [0.0, 0.0, 1.0]])
+
+
+class _Layout:
+    """The parameter vector: camera K (4), distortion (``n_dist``), projector K (4), each port's tilt (2)
+    and d (1), the projector's pose (rvec 3, T 3), and 6 per board pose (rvec, t)."""
+
+    def __init__(self, n_dist: int, n_poses: int):
+        self.n_dist, self.n_poses = n_dist, n_poses
+        self.size = 4 + n_dist + 4 + 3 + 3 + 6 + 6 * n_poses
+
+    def unpack(self, x):
+        i = 4 + self.n_dist
+        kc, dist, kp = x[:4], x[4:i], x[i:i + 4]
+        i += 4
+        port_c, port_p = x[i:i + 3], x[i + 3:i + 6]
+        i += 6
+        rt = x[i:i + 6]
+        poses = x[i + 6:].reshape(self.n_poses, 6)
+        return kc, dist, kp, port_c, port_p, rt, poses
+
+
+def _dist5(dist) -> np.ndarray:
+    d = np.zeros(5)
+    d[:len(dist)] = dist
+    return d
+
+
+def _residuals(x, layout: _Layout, specs: tuple[PortSpec, PortSpec], data, split: bool = False):
+    """Reprojection residuals (camera's corners, then the projector's) of parameter vector ``x``."""
+    kc, dist, kp, pc, pp, rt, poses = layout.unpack(x)
+    obj, cam, proj, owner = data
+    port_c, port_p = specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])), specs[1].numbers(_normal(pp[:2]), np.exp(pp[2]))
+    R, T = cv2.Rodrigues(rt[:3])[0], rt[3:]
+    Rs = np.stack([cv2.Rodrigues(v)[0] for v in poses[:, :3]])[owner]        # each corner's board pose
+    Y = np.einsum("nij,nj->ni", Rs, obj) + poses[owner, 3:]
+    rc = (project(_K(kc), _dist5(dist), port_c, Y) - cam).ravel()
+    rp = (project(_K(kp), None, port_p, Y @ R.T + T) - proj).ravel()
+    if split:
+        return rc, rp
+    return np.nan_to_num(np.concatenate([rc, rp]), nan=MISS_PX)
+
+
+def _jacobian(x, layout: _Layout, specs, data) -> np.ndarray:
+    """Central differences, the board poses' columns in 6 groups: a corner depends on its own pose only,
+    so one evaluation moves parameter k of every pose at once."""
+    owner = data[3]
+    n = owner.size
+    shared = layout.size - 6 * layout.n_poses
+    point = np.concatenate([np.repeat(np.arange(n), 2)] * 2)            # residual -> corner
+    J = np.zeros((4 * n, layout.size))
+    steps = 1e-6 * np.maximum(np.abs(x), 1e-2)
+    for cols in [[j] for j in range(shared)] + [list(range(shared + k, layout.size, 6)) for k in range(6)]:
+        e = np.zeros_like(x)
+        e[cols] = steps[cols]
+        diff = (_residuals(x + e, layout, specs, data) - _residuals(x - e, layout, specs, data))
+        if len(cols) == 1:
+            J[:, cols[0]] = diff / (2 * steps[cols[0]])
+        else:
+            own = np.asarray(cols)[owner[point]]
+            J[np.arange(4 * n), own] = diff / (2 * steps[own])
+    return J
+
+
+def _board_poses(obj, cam, K, dist) -> np.ndarray:
+    out = []
+    for o, c in zip(obj, cam):
+        ok, rvec, tvec = cv2.solvePnP(o, c, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise CalibrationError("the refractive fit found no start pose of a board (cv2.solvePnP)")
+        out.append(np.concatenate([rvec.ravel(), tvec.ravel()]))
+    return np.array(out)
+
+
+def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: PortSpec, *,
+              distortion: str = "none", start_distances_m=START_DISTANCES_M) -> PortCalibration:
+    """The refractive rig from the corners of a pinhole calibration through the ports (module docstring).
+    ``distortion``: the camera's lens distortion to fit, ``none`` or ``radial`` (k1, k2).
+
+    :raises CalibrationError: too few poses, or a fit that does not converge."""
+    if distortion not in ("none", "radial"):
+        raise CalibrationError(f"the refractive fit takes distortion none or radial, got {distortion!r}")
+    full = board.object_points().astype(float)
+    obj, cam, proj = [], [], []
+    for p in cal.poses:
+        good = np.isfinite(p.proj).all(axis=1)
+        obj.append(full[good])
+        cam.append(p.cam[good].astype(float))
+        proj.append(p.proj[good].astype(float))
+    if len(obj) < 3:
+        raise CalibrationError(f"{len(obj)} poses: the refractive fit needs at least 3")
+    layout = _Layout(2 if distortion == "radial" else 0, len(obj))
+    owner = np.concatenate([np.full(len(o), k) for k, o in enumerate(obj)])
+    data = (np.concatenate(obj), np.concatenate(cam), np.concatenate(proj), owner)
+    scale_c, scale_p = spec_cam.n_air / spec_cam.n_water, spec_proj.n_air / spec_proj.n_water
+    Kc, Kp = np.asarray(cal.K_cam, float), np.asarray(cal.K_proj, float)
+    kc = np.array([Kc[0, 0] * scale_c, Kc[1, 1] * scale_c, Kc[0, 2], Kc[1, 2]])
+    kp = np.array([Kp[0, 0] * scale_p, Kp[1, 1] * scale_p, Kp[0, 2], Kp[1, 2]])
+    poses = _board_poses(obj, cam, Kc, np.asarray(cal.dist_cam, float))
+    rt = np.concatenate([cv2.Rodrigues(np.asarray(cal.R, float))[0].ravel(), np.ravel(cal.T)])
+    specs = (spec_cam, spec_proj)
+    starts = [np.concatenate([kc, np.zeros(layout.n_dist), kp, [0.0, 0.0, np.log(d0)] * 2, rt, poses.ravel()])
+              for d0 in start_distances_m]
+    x = min((_solve(x0, layout, specs, data) for x0 in starts), key=lambda sol: sol.cost).x
+    keep = _inliers(x, layout, specs, data)
+    if not keep.all():        # a corner the detector misplaced: drop it, fit again from here
+        data = tuple(a[keep] for a in data)
+        x = _solve(x, layout, specs, data).x
+    return _result(x, layout, specs, data, cal, int((~keep).sum()))
+
+
+def _solve(x0, layout, specs, data):
+    try:
+        return least_squares(_residuals, x0, args=(layout, specs, data), jac=_jacobian, method="lm",
+                             x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
+    except ValueError as exc:
+        raise CalibrationError(f"the refractive fit did not converge: {exc}") from None
+
+
+def _inliers(x, layout, specs, data) -> np.ndarray:
+    """Corners whose error, in the camera and in the projector, is within :data:`OUTLIER` times that
+    device's median corner error."""
+    keep = np.ones(data[3].size, bool)
+    for r in _residuals(x, layout, specs, data, split=True):
+        e = np.hypot(*r.reshape(-1, 2).T)
+        keep &= np.nan_to_num(e, nan=np.inf) <= OUTLIER * np.nanmedian(e)
+    return keep
+
+
+def _result(x, layout, specs, data, cal, dropped: int) -> PortCalibration:
+    kc, dist, kp, pc, pp, rt, _ = layout.unpack(x)
+    rc, rp = _residuals(x, layout, specs, data, split=True)
+    if not (np.isfinite(rc).all() and np.isfinite(rp).all() and np.isfinite(x).all()):
+        raise CalibrationError("the refractive fit did not converge (a corner outside the port)")
+    rms_c, rms_p = (float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)) for r in (rc, rp))
+    rms = float(np.sqrt(np.mean(np.concatenate([rc, rp]).reshape(-1, 2) ** 2) * 2))
+    return PortCalibration(_K(kc), _dist5(dist), _K(kp), cv2.Rodrigues(rt[:3])[0], rt[3:].copy(),
+                           specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])),
+                           specs[1].numbers(_normal(pp[:2]), np.exp(pp[2])),
+                           tuple(cal.cam_size), tuple(cal.proj_size), rms_c, rms_p, rms, dropped)
