@@ -301,20 +301,23 @@ def coverage_image(poses: list[PoseResult], proj_size: tuple[int, int], *, width
 # ---------------------------------------------------------------------------------------------- the file
 
 FILE_KEYS = ("K_cam", "dist_cam", "K_proj", "dist_proj", "R", "T", "cam_size", "proj_size")
-_COLUMNS = ("T", "dist_cam", "dist_proj", "cam_size", "proj_size")
-_SIZES = {"K_cam": 9, "K_proj": 9, "R": 9, "T": 3, "cam_size": 2, "proj_size": 2}  # numbers per key
+PORT_KEYS = ("port_cam", "port_proj")  # a refractive rig's ports (imaging/port_calibration.py), 8 numbers each
+_COLUMNS = ("T", "dist_cam", "dist_proj", "cam_size", "proj_size", *PORT_KEYS)
+_SIZES = {"K_cam": 9, "K_proj": 9, "R": 9, "T": 3, "cam_size": 2, "proj_size": 2, "port_cam": 8,
+          "port_proj": 8}  # numbers per key
 
 
 def save(path: str, geom: dict, extra: dict | None = None) -> None:
     """Write a calibration as OpenCV ``FileStorage`` YAML (XML/JSON by the name's extension) atomically: a
     temporary file beside ``path``, then a rename, so a failed run leaves the previous file whole.
-    ``geom``: the :data:`FILE_KEYS` (``dist_*`` optional); ``extra``: numbers or strings (RMS, poses…)."""
+    ``geom``: the :data:`FILE_KEYS` (``dist_*`` optional) and, for a rig behind flat ports, the
+    :data:`PORT_KEYS`; ``extra``: numbers or strings (RMS, poses…)."""
     base, ext = os.path.splitext(path)
     tmp = f"{base}.tmp{os.getpid()}{ext or '.yaml'}"
     fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
     try:
-        for key in FILE_KEYS:
-            if key not in geom:
+        for key in FILE_KEYS + PORT_KEYS:
+            if geom.get(key) is None:
                 continue
             a = np.asarray(geom[key], np.float64)
             fs.write(key, a.reshape((-1, 1) if key in _COLUMNS else (3, 3)))
@@ -326,14 +329,20 @@ def save(path: str, geom: dict, extra: dict | None = None) -> None:
 
 
 def load(path: str, *, cam_size=None, proj_size=None) -> dict:
-    """The matrices of a calibration file (``dist_*`` zeros when absent). With ``cam_size``/``proj_size``
+    """The matrices of a calibration file (``dist_*`` zeros when absent, ``port_*`` only when present: a
+    rig behind flat ports, imaging/refraction.py). With ``cam_size``/``proj_size``
     ([w, h]) a file of another rig size is an error (a camera binned by an integer factor is the same rig).
 
     :raises CalibrationError: no such file, not a FileStorage file, a key missing, another rig size."""
     try:
-        out = read_storage(path, FILE_KEYS, optional=("dist_cam", "dist_proj"))
+        out = read_storage(path, FILE_KEYS + PORT_KEYS, optional=("dist_cam", "dist_proj", *PORT_KEYS))
     except ValueError as exc:
         raise CalibrationError(f"calibration {path!r}: {exc}") from None
+    for key in PORT_KEYS:
+        if out[key] is None:  # a pinhole rig
+            del out[key]
+        else:
+            out[key] = out[key].ravel()
     for key, value in out.items():
         if value is None:  # no distortion
             out[key] = np.zeros(5)

@@ -8,12 +8,15 @@ the device's OpenCV frame) is that of the air ray a which reaches Y through the 
     x = π(K, dist, a),   a = the air ray of :func:`polarstripe.sim.port.light_to` (Snell at both faces),
 
 the port being its unit normal N (device frame), the inner face's distance d from the pinhole, the glass
-thickness t and the indices n_a, n_g, n_w. t and the indices come from the housing's data sheet; the fit
-finds N and d of each device together with the intrinsics (camera K and its distortion, projector K), the
+thickness t and the indices n_a, n_g, n_w. t and the indices come from the housing's data sheet, the
+camera lens's distortion from a calibration in air (none in the simulator); the fit finds N and d of each
+device together with the intrinsics (camera and projector K), the
 projector's pose (R, T; X_p = R·X_c + T) and every board pose (R_i, t_i; Y = R_i·X + t_i), by nonlinear
 least squares (``scipy.optimize.least_squares``) on the reprojection error of the camera's and the
 projector's corners (those :mod:`polarstripe.imaging.calibration` measured). A port of indices 1 is the
-pinhole, and its d and N are then not observable.
+pinhole, and its d and N are then not observable. The lens distortion stays fixed: a radial distortion
+and the port's distance change the image nearly alike (in simulation, fitting k1, k2 as well took the
+camera's d from 18.7 mm to 0 and put 6 mm of bias in the depth).
 
 The start: the pinhole calibration through the port (its K's focal lengths divided by n_w/n_a: the water
 narrows the field of view), each board pose from ``cv2.solvePnP`` with that pinhole, the port on the
@@ -31,8 +34,9 @@ from polarstripe.imaging.refraction import port_of
 from polarstripe.sim.port import light_to
 from scipy.optimize import least_squares
 
-START_DISTANCES_M = (0.005, 0.02, 0.06)
-OUTLIER = 5.0        # a corner whose error exceeds this many times its device's median is left out
+START_DISTANCES_M = (0.01, 0.05)  # a start at 5 mm went to d = 0 in simulation; 1 to 8 cm did not
+OUTLIER = 5.0        # a corner whose error exceeds this many times its device's median is left out …
+OUTLIER_MIN_PX = 0.5  # … and this many pixels
 MISS_PX = 1e3        # the residual of a point not beyond the port's outer face (far from any solution)
 
 
@@ -55,7 +59,7 @@ class PortSpec:
 @dataclass
 class PortCalibration:
     """The refractive rig: intrinsics (in the air behind the ports), pose X_p = R·X_c + T, each port's 8
-    numbers (``port_cam``, ``port_proj``), reprojection RMS [px] per device and together."""
+    numbers (``port_cam``, ``port_proj``), reprojection RMS [px] per device and together (``rms_stereo``)."""
 
     K_cam: np.ndarray
     dist_cam: np.ndarray
@@ -68,7 +72,7 @@ class PortCalibration:
     proj_size: tuple[int, int]
     rms_cam: float
     rms_proj: float
-    rms: float
+    rms_stereo: float
     dropped: int = 0          # corners left out as misplaced (module docstring)
 
     def geometry(self) -> dict:
@@ -103,39 +107,28 @@ def _K(v) -> np.ndarray:
 
 
 class _Layout:
-    """The parameter vector: camera K (4), distortion (``n_dist``), projector K (4), each port's tilt (2)
-    and d (1), the projector's pose (rvec 3, T 3), and 6 per board pose (rvec, t)."""
+    """The parameter vector: camera K (4), projector K (4), each port's normal (its tilt, 2) and log d (1),
+    the projector's pose (rvec 3, T 3), and 6 per board pose (rvec, t)."""
 
-    def __init__(self, n_dist: int, n_poses: int):
-        self.n_dist, self.n_poses = n_dist, n_poses
-        self.size = 4 + n_dist + 4 + 3 + 3 + 6 + 6 * n_poses
+    def __init__(self, n_poses: int):
+        self.n_poses = n_poses
+        self.size = 4 + 4 + 3 + 3 + 6 + 6 * n_poses
 
-    def unpack(self, x):
-        i = 4 + self.n_dist
-        kc, dist, kp = x[:4], x[4:i], x[i:i + 4]
-        i += 4
-        port_c, port_p = x[i:i + 3], x[i + 3:i + 6]
-        i += 6
-        rt = x[i:i + 6]
-        poses = x[i + 6:].reshape(self.n_poses, 6)
-        return kc, dist, kp, port_c, port_p, rt, poses
-
-
-def _dist5(dist) -> np.ndarray:
-    d = np.zeros(5)
-    d[:len(dist)] = dist
-    return d
+    @staticmethod
+    def unpack(x):
+        kc, kp, port_c, port_p, rt = x[:4], x[4:8], x[8:11], x[11:14], x[14:20]
+        return kc, kp, port_c, port_p, rt, x[20:].reshape(-1, 6)
 
 
 def _residuals(x, layout: _Layout, specs: tuple[PortSpec, PortSpec], data, split: bool = False):
     """Reprojection residuals (camera's corners, then the projector's) of parameter vector ``x``."""
-    kc, dist, kp, pc, pp, rt, poses = layout.unpack(x)
-    obj, cam, proj, owner = data
+    kc, kp, pc, pp, rt, poses = layout.unpack(x)
+    obj, cam, proj, owner, dist = data
     port_c, port_p = specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])), specs[1].numbers(_normal(pp[:2]), np.exp(pp[2]))
     R, T = cv2.Rodrigues(rt[:3])[0], rt[3:]
     Rs = np.stack([cv2.Rodrigues(v)[0] for v in poses[:, :3]])[owner]        # each corner's board pose
     Y = np.einsum("nij,nj->ni", Rs, obj) + poses[owner, 3:]
-    rc = (project(_K(kc), _dist5(dist), port_c, Y) - cam).ravel()
+    rc = (project(_K(kc), dist, port_c, Y) - cam).ravel()
     rp = (project(_K(kp), None, port_p, Y @ R.T + T) - proj).ravel()
     if split:
         return rc, rp
@@ -174,13 +167,15 @@ def _board_poses(obj, cam, K, dist) -> np.ndarray:
 
 
 def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: PortSpec, *,
-              distortion: str = "none", start_distances_m=START_DISTANCES_M) -> PortCalibration:
+              lens_distortion=None, start_distances_m=START_DISTANCES_M) -> PortCalibration:
     """The refractive rig from the corners of a pinhole calibration through the ports (module docstring).
-    ``distortion``: the camera's lens distortion to fit, ``none`` or ``radial`` (k1, k2).
+    ``lens_distortion``: the camera lens's OpenCV coefficients, from a calibration in air (None: none).
 
     :raises CalibrationError: too few poses, or a fit that does not converge."""
-    if distortion not in ("none", "radial"):
-        raise CalibrationError(f"the refractive fit takes distortion none or radial, got {distortion!r}")
+    dist = np.zeros(5)
+    if lens_distortion is not None:
+        coeffs = np.asarray(lens_distortion, float).ravel()
+        dist[:coeffs.size] = coeffs[:5]
     full = board.object_points().astype(float)
     obj, cam, proj = [], [], []
     for p in cal.poses:
@@ -190,9 +185,9 @@ def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: Por
         proj.append(p.proj[good].astype(float))
     if len(obj) < 3:
         raise CalibrationError(f"{len(obj)} poses: the refractive fit needs at least 3")
-    layout = _Layout(2 if distortion == "radial" else 0, len(obj))
+    layout = _Layout(len(obj))
     owner = np.concatenate([np.full(len(o), k) for k, o in enumerate(obj)])
-    data = (np.concatenate(obj), np.concatenate(cam), np.concatenate(proj), owner)
+    data = (np.concatenate(obj), np.concatenate(cam), np.concatenate(proj), owner, dist)
     scale_c, scale_p = spec_cam.n_air / spec_cam.n_water, spec_proj.n_air / spec_proj.n_water
     Kc, Kp = np.asarray(cal.K_cam, float), np.asarray(cal.K_proj, float)
     kc = np.array([Kc[0, 0] * scale_c, Kc[1, 1] * scale_c, Kc[0, 2], Kc[1, 2]])
@@ -200,12 +195,12 @@ def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: Por
     poses = _board_poses(obj, cam, Kc, np.asarray(cal.dist_cam, float))
     rt = np.concatenate([cv2.Rodrigues(np.asarray(cal.R, float))[0].ravel(), np.ravel(cal.T)])
     specs = (spec_cam, spec_proj)
-    starts = [np.concatenate([kc, np.zeros(layout.n_dist), kp, [0.0, 0.0, np.log(d0)] * 2, rt, poses.ravel()])
+    starts = [np.concatenate([kc, kp, [0.0, 0.0, np.log(d0)] * 2, rt, poses.ravel()])
               for d0 in start_distances_m]
     x = min((_solve(x0, layout, specs, data) for x0 in starts), key=lambda sol: sol.cost).x
     keep = _inliers(x, layout, specs, data)
     if not keep.all():        # a corner the detector misplaced: drop it, fit again from here
-        data = tuple(a[keep] for a in data)
+        data = tuple(a[keep] for a in data[:4]) + (dist,)
         x = _solve(x, layout, specs, data).x
     return _result(x, layout, specs, data, cal, int((~keep).sum()))
 
@@ -220,22 +215,22 @@ def _solve(x0, layout, specs, data):
 
 def _inliers(x, layout, specs, data) -> np.ndarray:
     """Corners whose error, in the camera and in the projector, is within :data:`OUTLIER` times that
-    device's median corner error."""
+    device's median corner error or :data:`OUTLIER_MIN_PX`."""
     keep = np.ones(data[3].size, bool)
     for r in _residuals(x, layout, specs, data, split=True):
         e = np.hypot(*r.reshape(-1, 2).T)
-        keep &= np.nan_to_num(e, nan=np.inf) <= OUTLIER * np.nanmedian(e)
+        keep &= np.nan_to_num(e, nan=np.inf) <= max(OUTLIER * np.nanmedian(e), OUTLIER_MIN_PX)
     return keep
 
 
 def _result(x, layout, specs, data, cal, dropped: int) -> PortCalibration:
-    kc, dist, kp, pc, pp, rt, _ = layout.unpack(x)
+    kc, kp, pc, pp, rt, _ = layout.unpack(x)
     rc, rp = _residuals(x, layout, specs, data, split=True)
     if not (np.isfinite(rc).all() and np.isfinite(rp).all() and np.isfinite(x).all()):
         raise CalibrationError("the refractive fit did not converge (a corner outside the port)")
     rms_c, rms_p = (float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)) for r in (rc, rp))
     rms = float(np.sqrt(np.mean(np.concatenate([rc, rp]).reshape(-1, 2) ** 2) * 2))
-    return PortCalibration(_K(kc), _dist5(dist), _K(kp), cv2.Rodrigues(rt[:3])[0], rt[3:].copy(),
+    return PortCalibration(_K(kc), data[4].copy(), _K(kp), cv2.Rodrigues(rt[:3])[0], rt[3:].copy(),
                            specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])),
                            specs[1].numbers(_normal(pp[:2]), np.exp(pp[2])),
                            tuple(cal.cam_size), tuple(cal.proj_size), rms_c, rms_p, rms, dropped)

@@ -8,6 +8,11 @@ under the white (``flood``) pattern, in the dark, and under every pattern of the
 (E_b, found as the polarizer node finds it: four flood frames of the empty tank; none in clear water); then
 :mod:`polarstripe.imaging.calibration` decodes and calibrates.
 
+A scene whose camera and projector look through flat ports (``port`` keys, ``preset = "glass_tank"``) gets
+the refractive model as well (:mod:`polarstripe.imaging.port_calibration`: each port's distance and normal
+fitted, its thickness and indices taken from the scene as from the housing's data sheet); the file then
+holds that model, the ports included, and the printout both fits (``--pinhole``: the pinhole fit only).
+
 Writes ``rig.yaml`` (OpenCV FileStorage, atomically: a failed run leaves the previous file untouched) and
 ``rig_coverage.png`` beside it (the projector plane with every pose's corners, rewritten after every pose:
 a live view to watch). With ``--sim`` it prints the simulator's truth beside the estimate.
@@ -35,6 +40,7 @@ from polarstripe.imaging.calibration import (
     save,
 )
 from polarstripe.imaging.polarization import least_backscatter_angle
+from polarstripe.imaging.port_calibration import PortSpec, fit_ports
 from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.imaging.validation import ImagingError
@@ -73,6 +79,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--square", type=float, default=0.015, metavar="M", help="square size [m]")
     parser.add_argument("--distortion", default="radial", choices=("none", "radial", "full"),
                         help="camera lens distortion to fit: none, radial (k1, k2; default), full (5)")
+    parser.add_argument("--pinhole", action="store_true",
+                        help="behind ports too, write the pinhole fit (default: the refractive model)")
     parser.add_argument("--fidelity", default="preview",
                         help="model fidelity of the renders (default preview)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -162,8 +170,23 @@ def _board(text: str) -> tuple[int, int]:
     return target.parse_board(text)
 
 
+def port_specs(scene: Scene) -> tuple[PortSpec, PortSpec] | None:
+    """What the housings' data sheets give of the scene's ports (thickness, indices); None without ports.
+
+    :raises CalibrationError: only one of the devices is behind a port."""
+    ports = scene.camera.port, scene.projector.port
+    if ports == (None, None):
+        return None
+    if None in ports:
+        raise CalibrationError("the refractive fit needs both camera and projector behind a port; this "
+                               f"scene has one only on the {'camera' if ports[0] else 'projector'} "
+                               "(--pinhole: the pinhole fit)")
+    return tuple(PortSpec(p.thickness_m, p.n_air, p.n_glass, p.n_water) for p in ports)
+
+
 def calibrate_sim(args: argparse.Namespace, progress: bool):
-    """Render and calibrate (module docstring); returns (Calibration, truth geometry, scene)."""
+    """Render and calibrate (module docstring); returns (Calibration, truth geometry, scene, analyzer
+    angle, PortCalibration or None)."""
     scene = rig_scene(args)
     cols, rows = _board(args.board)
     board = Board(cols, rows, float(args.square))
@@ -193,8 +216,10 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     if len(results) < MIN_POSES:
         raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
                                f"{MIN_POSES}" + (f"; {failed_poses(failures)}" if failures else ""))
+    specs = None if getattr(args, "pinhole", False) else port_specs(scene)
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
-    return cal, rig_geometry(scene), scene, angle
+    fit = None if specs is None else fit_ports(cal, board, *specs)
+    return cal, rig_geometry(scene), scene, angle, fit
 
 
 def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
@@ -204,7 +229,7 @@ def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
     dR = cal.R @ np.asarray(truth["R"]).T
     angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     base_t, base_e = float(np.linalg.norm(truth["T"])), float(np.linalg.norm(cal.T))
-    return [("camera f_x", Tc[0, 0], Kc[0, 0], "px"), ("camera f_y", Tc[1, 1], Kc[1, 1], "px"),
+    rows = [("camera f_x", Tc[0, 0], Kc[0, 0], "px"), ("camera f_y", Tc[1, 1], Kc[1, 1], "px"),
             ("camera c_x", Tc[0, 2], Kc[0, 2], "px"), ("camera c_y", Tc[1, 2], Kc[1, 2], "px"),
             ("projector f_x", Tp[0, 0], Kp[0, 0], "px"),
             ("projector f_y", Tp[1, 1], Kp[1, 1], "px"),
@@ -212,6 +237,13 @@ def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
             ("baseline", 1e3 * base_t, 1e3 * base_e, "mm"), ("rotation error", 0.0, angle, "deg")] + (
         [("RMS camera", 0.0, cal.rms_cam, "px"), ("RMS projector", 0.0, cal.rms_proj, "px"),
          ("RMS stereo", 0.0, cal.rms_stereo, "px")] if hasattr(cal, "rms_cam") else [])
+    for key, name in (("port_cam", "camera"), ("port_proj", "projector")):
+        est, true = getattr(cal, key, None), truth.get(key)
+        if est is not None and true is not None:
+            cos = np.dot(est[:3], true[:3]) / (np.linalg.norm(est[:3]) * np.linalg.norm(true[:3]))
+            rows += [(f"{name} port d", 1e3 * true[3], 1e3 * est[3], "mm"),
+                     (f"{name} port tilt", 0.0, float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), "deg")]
+    return rows
 
 
 def check(args: argparse.Namespace) -> int:
@@ -243,20 +275,29 @@ def main(args: argparse.Namespace) -> int:
     if not os.path.isdir(out_dir):
         raise PolarstripeError(f"-o {args.out!r}: folder {out_dir!r} does not exist")
     t0 = time.perf_counter()
-    cal, truth, scene, angle = calibrate_sim(args, not args.no_progress and sys.stderr.isatty())
+    pinhole, truth, scene, angle, fit = calibrate_sim(args, not args.no_progress and sys.stderr.isatty())
+    cal = pinhole if fit is None else fit
     extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
-             "poses": len(cal.poses), "board": f"{args.board} inner corners, {args.square} m squares",
+             "poses": len(pinhole.poses), "board": f"{args.board} inner corners, {args.square} m squares",
              "analyzer_deg": "none" if angle is None else f"{round(angle, 1) % 180:.1f}",
              "source": "polarstripe calibrate --sim" if args.sim else "polarstripe calibrate"}
-    save(args.out, {**cal.geometry(), "dist_proj": cal.dist_proj}, extra)
+    if fit is not None:
+        extra.update(model="refractive (flat ports)", corners_dropped=fit.dropped,
+                     pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj)
+    save(args.out, {**cal.geometry(), "dist_proj": getattr(cal, "dist_proj", np.zeros(5))}, extra)
     coverage = coverage_path(args.out)
-    write_coverage(coverage, cal.poses, cal.proj_size)
-    print(f"{args.out}: {len(cal.poses)} poses, RMS camera {cal.rms_cam:.3f} px, projector "
+    write_coverage(coverage, pinhole.poses, cal.proj_size)
+    model = "pinhole" if fit is None else f"refractive model ({fit.dropped} corners left out)"
+    print(f"{args.out}: {len(pinhole.poses)} poses, {model}, RMS camera {cal.rms_cam:.3f} px, projector "
           f"{cal.rms_proj:.3f} px, stereo {cal.rms_stereo:.3f} px ({time.perf_counter() - t0:.1f} s; "
           + ("no analyzer" if angle is None else f"analyzer at E_b, {round(angle, 1) % 180:.1f} deg") + ")")
     print(f"coverage: {coverage}")
     if args.sim:
-        print(f"{'':16}{'truth':>12}{'estimate':>12}")
-        for name, t, e, unit in comparison_rows(cal, truth):
-            print(f"{name:16}{t:12.4f}{e:12.4f} {unit}")
+        fits = [("pinhole", pinhole)] + ([] if fit is None else [("refractive", fit)])
+        print(f"{'':22}{'truth':>12}" + "".join(f"{name:>12}" for name, _ in fits))
+        rows = [comparison_rows(c, truth) for _, c in fits]
+        for name, t, _, unit in rows[-1]:
+            values = [dict((r[0], r[2]) for r in rs).get(name) for rs in rows]
+            print(f"{name:22}{t:12.4f}" + "".join(f"{'-':>12}" if v is None else f"{v:12.4f}" for v in values)
+                  + f" {unit}")
     return 0

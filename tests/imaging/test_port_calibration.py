@@ -1,0 +1,157 @@
+"""The refractive rig fitted by calibration (imaging/port_calibration.py): board corners projected through the
+paper's glass wall by the model's own port (sim/port.py ``light_to``, its air ray put through the pinhole's
+K here) give back the port's distance and normal, the intrinsics and the pose; a port of indices 1 is the
+pinhole; a pixel the model projects, traced forward through the port (``water_rays``), meets its point; a
+misplaced corner is left out; the rig file carries the ports to the compositor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from polarstripe.bench.depth import depth_scene
+from polarstripe.imaging.calibration import Board, CalibrationError, PoseResult, calibrate, load, save
+from polarstripe.imaging.port_calibration import PortSpec, fit_ports, project
+from polarstripe.imaging.refraction import port_of
+from polarstripe.imaging.triangulation import RigGeometry
+from polarstripe.nodes.compositor_depth import load_geometry
+from polarstripe.sim.depth_truth import camera_frame, rig_geometry
+from polarstripe.sim.port import light_to, water_rays
+from polarstripe.sim.scene import glass_tank
+from polarstripe.sim.scene_target import target_poses
+
+BOARD = Board(8, 6, 0.012)
+TANK = PortSpec(0.01, 1.0, 1.52, 1.333)       # GLASS_TANK's data sheet (sim/scene_port.py)
+
+
+def _pixels(K, port, points):
+    """The pinhole's pixel of the air ray that reaches each point through ``port`` (sim/port.py)."""
+    a = points if port is None else light_to(port_of(port), points).air
+    return np.stack([K[0, 0] * a[:, 0] / a[:, 2] + K[0, 2], K[1, 1] * a[:, 1] / a[:, 2] + K[1, 2]], axis=1)
+
+
+def _corners(rig, n_poses=6, cam_noise=0.0, proj_noise=0.0, seed=1, ports=True):
+    """PoseResults of the board at the calibration's poses (sim/scene_target.py) in the 320×240 tank."""
+    scene = glass_tank(depth_scene(0.0, 320))
+    cam = camera_frame(scene)
+    axes = np.stack([cam.r, -cam.u, cam.f])
+    obj = BOARD.object_points().astype(float)
+    rng = np.random.default_rng(seed)
+    out = []
+    for pose in target_poses(n_poses, 0, scene):
+        n, u = np.asarray(pose["normal"]), np.asarray(pose["up"])
+        world = np.asarray(pose["point"]) + (obj[:, :1] - obj[:, 0].mean()) * np.cross(u, n) + \
+            (obj[:, 1:2] - obj[:, 1].mean()) * u
+        Y = (world - cam.position) @ axes.T
+        c = _pixels(rig["K_cam"], rig["port_cam"] if ports else None, Y)
+        p = _pixels(rig["K_proj"], rig["port_proj"] if ports else None, Y @ rig["R"].T + rig["T"])
+        out.append(PoseResult(c + rng.normal(0, cam_noise, c.shape), p + rng.normal(0, proj_noise, p.shape)))
+    return out
+
+
+def _tilt_deg(a, b):
+    a, b = np.asarray(a[:3]) / np.linalg.norm(a[:3]), np.asarray(b[:3]) / np.linalg.norm(b[:3])
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return rig_geometry(glass_tank(depth_scene(0.0, 320)))
+
+
+def _pinhole(rig, poses):
+    return calibrate(poses, BOARD, tuple(rig["cam_size"]), tuple(rig["proj_size"]), distortion="radial")
+
+
+def test_a_port_of_indices_one_projects_as_the_pinhole(rig):
+    pts = np.random.default_rng(0).uniform([-0.1, -0.08, 0.2], [0.1, 0.08, 0.5], (50, 3))
+    K = rig["K_cam"]
+    closed = np.stack([K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2], K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]], 1)
+    ones = [0.1, -0.05, 1.0, 0.02, 0.01, 1.0, 1.0, 1.0]
+    np.testing.assert_allclose(project(K, None, ones, pts), closed, atol=1e-9)
+    np.testing.assert_allclose(project(K, None, None, pts), closed, atol=1e-9)
+
+
+def test_a_projected_pixel_traced_forward_through_the_port_meets_its_point(rig):
+    pts = np.random.default_rng(1).uniform([-0.1, -0.08, 0.2], [0.1, 0.08, 0.5], (50, 3))
+    K, port = rig["K_proj"], rig["port_proj"]                               # a tilted port
+    assert _tilt_deg(port, [0, 0, 1]) > 10
+    px = project(K, None, port, pts)
+    air = np.stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))], 1)
+    origins, dirs, _, _ = water_rays(port_of(port), air / np.linalg.norm(air, axis=1, keepdims=True))
+    off = pts - origins
+    miss = np.linalg.norm(off - (off * dirs).sum(axis=1, keepdims=True) * dirs, axis=1)
+    assert miss.max() < 1e-9
+
+
+def test_a_known_port_is_recovered_where_the_pinhole_fails(rig):
+    """Exact corners through the glass wall (the projector's port 27° off its axis): the refractive fit gives
+    back both ports, K, R and T; the pinhole fit through the same ports is off by the port (RMS > 0.3 px)
+    and its focal length is ≈ n_w times the lens's (the water narrows the view)."""
+    poses = _corners(rig)
+    pinhole = _pinhole(rig, poses)
+    assert pinhole.rms_stereo > 0.3
+    assert pinhole.K_cam[0, 0] / (TANK.n_water * rig["K_cam"][0, 0]) == pytest.approx(1.0, abs=0.03)
+    fit = fit_ports(pinhole, BOARD, TANK, TANK, start_distances_m=(0.05,))
+    for key in ("port_cam", "port_proj"):
+        assert getattr(fit, key)[3] == pytest.approx(rig[key][3], abs=1e-6)
+        assert _tilt_deg(getattr(fit, key), rig[key]) < 1e-4
+        np.testing.assert_allclose(getattr(fit, key)[4:], rig[key][4:])
+    np.testing.assert_allclose(fit.K_cam, rig["K_cam"], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(fit.K_proj, rig["K_proj"], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(fit.R, rig["R"], atol=1e-7)
+    np.testing.assert_allclose(fit.T, rig["T"], atol=1e-7)
+    assert fit.rms_stereo < 1e-5 and fit.dropped == 0
+
+
+def test_with_corner_noise_the_port_is_within_a_millimetre_and_half_a_degree(rig):
+    """0.1 px of noise on every corner (the simulator's camera corners; docs/depth.md), 10 poses."""
+    poses = _corners(rig, n_poses=10, cam_noise=0.1, proj_noise=0.1)
+    fit = fit_ports(_pinhole(rig, poses), BOARD, TANK, TANK, start_distances_m=(0.05,))
+    for key in ("port_cam", "port_proj"):
+        assert abs(getattr(fit, key)[3] - rig[key][3]) < 1e-3
+        assert _tilt_deg(getattr(fit, key), rig[key]) < 0.5
+    assert 0.1 < fit.rms_cam < 0.2
+
+
+def test_a_misplaced_corner_is_left_out(rig):
+    poses = _corners(rig, cam_noise=0.02, proj_noise=0.02)
+    poses[2].cam[5] += (4.0, -3.0)                                # the detector's 5 px slip
+    fit = fit_ports(_pinhole(rig, poses), BOARD, TANK, TANK, start_distances_m=(0.05,))
+    assert fit.dropped == 1
+    assert abs(fit.port_cam[3] - rig["port_cam"][3]) < 2e-4 and fit.rms_cam < 0.05
+
+
+def test_a_port_of_indices_one_fits_the_pinhole(rig):
+    """Pinhole corners and a data sheet of indices 1: the fit is the pinhole's (K, R, T exact; the port's d
+    and normal then change nothing)."""
+    poses = _corners(rig, ports=False)
+    air = PortSpec(0.01, 1.0, 1.0, 1.0)
+    fit = fit_ports(_pinhole(rig, poses), BOARD, air, air, start_distances_m=(0.05,))
+    np.testing.assert_allclose(fit.K_cam, rig["K_cam"], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(fit.K_proj, rig["K_proj"], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(fit.T, rig["T"], atol=1e-7)
+    assert fit.rms_stereo < 1e-5
+
+
+def test_too_few_poses_is_one_error(rig):
+    cal = _pinhole(rig, _corners(rig, n_poses=4))
+    cal.poses = cal.poses[:2]
+    with pytest.raises(CalibrationError, match="2 poses: the refractive fit needs at least 3"):
+        fit_ports(cal, BOARD, TANK, TANK)
+
+
+def test_the_rig_file_carries_the_ports_to_the_compositor(rig, tmp_path):
+    path = str(tmp_path / "rig.yaml")
+    save(path, rig)
+    g = load(path, proj_size=rig["proj_size"])
+    np.testing.assert_allclose(g["port_cam"], rig["port_cam"])
+    np.testing.assert_allclose(g["port_proj"], rig["port_proj"])
+    geom = load_geometry(path)
+    assert geom.has_ports
+    np.testing.assert_allclose(geom.port_proj, rig["port_proj"])
+    save(path, {k: v for k, v in rig.items() if not k.startswith("port")})
+    assert "port_cam" not in load(path) and not RigGeometry.from_dict(load(path)).has_ports
+    bad = str(tmp_path / "bad.yaml")
+    save(bad, {**rig, "port_cam": rig["port_cam"][:5]})
+    with pytest.raises(CalibrationError, match="port_cam must be 8 finite numbers, got 5"):
+        load(bad)
