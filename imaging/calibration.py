@@ -301,7 +301,7 @@ def coverage_image(poses: list[PoseResult], proj_size: tuple[int, int], *, width
 # ---------------------------------------------------------------------------------------------- the file
 
 FILE_KEYS = ("K_cam", "dist_cam", "K_proj", "dist_proj", "R", "T", "cam_size", "proj_size")
-PORT_KEYS = ("port_cam", "port_proj")  # a refractive rig's ports (imaging/port_calibration.py), 8 numbers each
+PORT_KEYS = ("port_cam", "port_proj")  # behind flat ports: 8 numbers each (imaging/port_calibration.py)
 _COLUMNS = ("T", "dist_cam", "dist_proj", "cam_size", "proj_size", *PORT_KEYS)
 _SIZES = {"K_cam": 9, "K_proj": 9, "R": 9, "T": 3, "cam_size": 2, "proj_size": 2, "port_cam": 8,
           "port_proj": 8}  # numbers per key

@@ -124,7 +124,8 @@ def _residuals(x, layout: _Layout, specs: tuple[PortSpec, PortSpec], data, split
     """Reprojection residuals (camera's corners, then the projector's) of parameter vector ``x``."""
     kc, kp, pc, pp, rt, poses = layout.unpack(x)
     obj, cam, proj, owner, dist = data
-    port_c, port_p = specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])), specs[1].numbers(_normal(pp[:2]), np.exp(pp[2]))
+    port_c = specs[0].numbers(_normal(pc[:2]), np.exp(pc[2]))
+    port_p = specs[1].numbers(_normal(pp[:2]), np.exp(pp[2]))
     R, T = cv2.Rodrigues(rt[:3])[0], rt[3:]
     Rs = np.stack([cv2.Rodrigues(v)[0] for v in poses[:, :3]])[owner]        # each corner's board pose
     Y = np.einsum("nij,nj->ni", Rs, obj) + poses[owner, 3:]
@@ -158,7 +159,7 @@ def _jacobian(x, layout: _Layout, specs, data) -> np.ndarray:
 
 def _board_poses(obj, cam, K, dist) -> np.ndarray:
     out = []
-    for o, c in zip(obj, cam):
+    for o, c in zip(obj, cam, strict=True):
         ok, rvec, tvec = cv2.solvePnP(o, c, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise CalibrationError("the refractive fit found no start pose of a board (cv2.solvePnP)")

@@ -188,6 +188,7 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     """Render and calibrate (module docstring); returns (Calibration, truth geometry, scene, analyzer
     angle, PortCalibration or None)."""
     scene = rig_scene(args)
+    specs = None if getattr(args, "pinhole", False) else port_specs(scene)
     cols, rows = _board(args.board)
     board = Board(cols, rows, float(args.square))
     proj = tuple(scene.projector.resolution)
@@ -216,7 +217,6 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     if len(results) < MIN_POSES:
         raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
                                f"{MIN_POSES}" + (f"; {failed_poses(failures)}" if failures else ""))
-    specs = None if getattr(args, "pinhole", False) else port_specs(scene)
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
     fit = None if specs is None else fit_ports(cal, board, *specs)
     return cal, rig_geometry(scene), scene, angle, fit

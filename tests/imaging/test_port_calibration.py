@@ -65,7 +65,8 @@ def _pinhole(rig, poses):
 def test_a_port_of_indices_one_projects_as_the_pinhole(rig):
     pts = np.random.default_rng(0).uniform([-0.1, -0.08, 0.2], [0.1, 0.08, 0.5], (50, 3))
     K = rig["K_cam"]
-    closed = np.stack([K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2], K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]], 1)
+    closed = np.stack([K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2], K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]],
+                      axis=1)
     ones = [0.1, -0.05, 1.0, 0.02, 0.01, 1.0, 1.0, 1.0]
     np.testing.assert_allclose(project(K, None, ones, pts), closed, atol=1e-9)
     np.testing.assert_allclose(project(K, None, None, pts), closed, atol=1e-9)

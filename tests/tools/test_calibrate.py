@@ -170,3 +170,40 @@ def test_a_failed_run_leaves_the_previous_file_untouched(tmp_path, capsys):
     assert err.count("\n") >= 1 and "0 usable poses of 3" in err.splitlines()[-1]
     assert out.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["rig.yaml"]                          # no temporary left behind
+
+
+def test_a_port_on_one_device_only_is_one_error_before_any_render(tmp_path, capsys):
+    scene = tmp_path / "one_port.toml"
+    scene.write_text('[camera]\nport = { distance_m = 0.02, thickness_m = 0.01 }\n')
+    out = tmp_path / "rig.yaml"
+    assert cli(["calibrate", "-o", str(out), "--sim", str(scene), "--poses", "3", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs both camera and projector behind a port; this scene has one only on " \
+                              "the camera (--pinhole: the pinhole fit)" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.long
+@pytest.mark.timeout(1200)  # ~40 s of CPU (16 poses of 42 frames through the ports, the fit ~10 s)
+def test_calibration_through_the_glass_tank_fits_the_ports(tmp_path, capsys):
+    """The paper's glass wall (docs/depth.md "Calibration through a port"): the file holds the refractive
+    rig, its ports near the scene's (d within 3 mm, the normal within 1°) and its intrinsics within the
+    clear-water tolerances, where the pinhole fit through the same ports is 25° off in rotation."""
+    scene = tmp_path / "tank.toml"
+    scene.write_text('preset = "glass_tank"\n')
+    out = tmp_path / "rig.yaml"
+    assert cli(["calibrate", "-o", str(out), "--sim", str(scene), "--poses", "16", "--square", "0.012",
+                "--sigma-t", "0", "--resolution", "320x240", "--no-progress"]) == 0
+    assert "refractive model" in capsys.readouterr().out
+    g = load(str(out))
+    parser = argparse.ArgumentParser()
+    calibrate_cli.configure(parser)
+    truth = rig_geometry(calibrate_cli.rig_scene(parser.parse_args([str(scene), "--resolution", "320x240"])))
+    for key in ("port_cam", "port_proj"):
+        assert abs(g[key][3] - truth[key][3]) < 3e-3
+        tilt = np.degrees(np.arccos(np.clip(g[key][:3] @ truth[key][:3], -1, 1)))
+        assert tilt < 1.0
+    assert abs(g["K_cam"][0, 0] / truth["K_cam"][0, 0] - 1) < 0.005
+    assert abs(g["K_proj"][0, 2] - truth["K_proj"][0, 2]) < 2.0
+    assert abs(np.linalg.norm(g["T"]) - 0.2) < 1e-3
+    assert load_geometry(str(out)).has_ports                                      # what the compositor reads
