@@ -239,14 +239,14 @@ def recommend_reading(curves: dict[str, Curve], p: float, *, tie: float = TIE, p
     return {"reading": pick, "reason": f"{READING_NAMES[pick]}: {why}; {at}"}
 
 
-def _readings(samples, noise, modality, readings, edge, measure, **kw):
-    """{reading: (objectives, noise-free objectives)} over the sweep."""
-    out = {}
-    for r in readings:
-        args = dict(modality=modality, reading=r, edge=edge, measure=measure, **kw)
-        out[r] = ([objective(s, noise, **args) for s in samples],
-                  [objective(s, IDEAL_SENSOR, **args) for s in samples])
-    return out
+def _score(scored: dict, p_mean: list, samples: Samples, noise, modality, edge, measure, p_min, **kw) -> None:
+    """Append one separation's objectives and noise-free objectives to ``scored[(polarized, reading)]`` and
+    its mean clipped DOP (the recommendation's p̂) to ``p_mean``."""
+    p_mean.append(float(np.mean(np.clip(samples.dop, p_min, 1.0))))
+    for (_, reading), (objs, ideal) in scored.items():
+        args = dict(modality=modality, reading=reading, edge=edge, measure=measure, p_min=p_min, **kw)
+        objs.append(objective(samples, noise, **args))
+        ideal.append(objective(samples, IDEAL_SENSOR, **args))
 
 
 def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,
@@ -275,22 +275,35 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
     lateral = np.asarray(model.lateral_positions_m(), np.float64)
     out: dict[str, ModalityPlan] = {}
     for modality in modalities:
-        samples = []
-        for d in seps:
-            samples.append(model.flood(float(d)) if modality == "flood" else model.stripes(float(d)))
-            if progress is not None:
-                progress()
-        scale = auto_exposure_scale(samples, model.noise) if exposure == "auto" else 1.0
+        groups = ((False, ("E",)), (True, POLARIZED_READINGS[measure][modality]))
+        scored = {(pol, r): ([], []) for pol, readings in groups for r in readings}
+        p_mean = []                                    # per separation: the mean p̂ of the recommendation
+        evaluate = model.flood if modality == "flood" else model.stripes
+        kw = dict(modality=modality, edge=edge, measure=measure, p_min=p_min, k_detect=k_detect)
+        scale = 1.0
+        if exposure == "auto":   # one exposure for the sweep: every separation's samples are needed first
+            kept = []
+            for d in seps:
+                kept.append(evaluate(float(d)))
+                if progress is not None:
+                    progress()
+            scale = auto_exposure_scale(kept, model.noise)
         noise = dataclasses.replace(model.noise,
                                     electrons_per_radiance=model.noise.electrons_per_radiance * scale)
-        for polarized, readings in ((False, ("E",)), (True, POLARIZED_READINGS[measure][modality])):
-            scored = _readings(samples, noise, modality, readings, edge, measure, k_detect=k_detect,
-                               p_min=p_min)
-            curves = {r: _curve(seps, *scored[r]) for r in readings}
+        if exposure == "auto":
+            for s in kept:
+                _score(scored, p_mean, s, noise, **kw)
+            del kept
+        else:                    # scored as they come: one separation's whole frames in memory at a time
+            for d in seps:
+                _score(scored, p_mean, evaluate(float(d)), noise, **kw)
+                if progress is not None:
+                    progress()
+        for polarized, readings in groups:
+            curves = {r: _curve(seps, *scored[(polarized, r)]) for r in readings}
             rec = None
             if len(readings) > 1:
-                at = samples[curves["S_hat"].best_index]
-                rec = recommend_reading(curves, float(np.mean(np.clip(at.dop, p_min, 1.0))),
+                rec = recommend_reading(curves, p_mean[curves["S_hat"].best_index],
                                         prefer="S_hat" if measure == "error" else "E_b")
             chosen = rec["reading"] if rec else readings[0]
             mp = ModalityPlan(modality, polarized, curves[chosen], reading=chosen,
@@ -298,7 +311,7 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
                               exposure_scale=scale, edge=edge if modality == "stripes" else None,
                               measure=measure)
             if modality == "stripes":
-                objs, ideal = scored[chosen]
+                objs, ideal = scored[(polarized, chosen)]
                 pixels = np.asarray(model.observed_pixels())
                 mp.location_curves = [_curve(seps, objs, ideal, cols=[i]) for i in range(len(pixels))]
                 mp.locations = [{"pixel": [int(r), int(c)], "lateral_position_m": float(x)}

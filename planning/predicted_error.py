@@ -81,21 +81,29 @@ def polarized_frames(s, b, p, chi, chi_bar: float | None = None):
     return half - pol, half + pol
 
 
+#: pixels of distinct draws in :func:`composite`: wider frames reuse them every DRAW_BLOCK pixels (a camera's
+#: 640×480 scan of 30 frames would otherwise hold 0.6 GB of draws per shape)
+DRAW_BLOCK = 1 << 15
+
+
 def composite(frames, variances, draws: int = 8):
     """eq. 7 over a scan's frames (axis 0): the per-pixel maximum's mean and variance [e, e²].
 
     One frame is its own composite. For several, the maximum of noisy frames sits above the maximum of
     their means (dark pixels take the brightest of F noise draws), so both moments come from ``draws``
-    seeded Gaussian draws of every frame (zero variance: the maximum of the means).
+    seeded Gaussian draws of every frame (zero variance: the maximum of the means). Frames of more than
+    :data:`DRAW_BLOCK` pixels reuse one block of draws along the pixels: each pixel's draws are still
+    independent standard normals, pixels a block apart share them.
     """
     if frames.shape[0] == 1:
         return frames[0], variances[0]
     if not np.any(variances > 0):
         return frames.max(axis=0), np.zeros(frames.shape[1:])
-    z = _draws((int(draws),) + frames.shape)
+    n = int(np.prod(frames.shape[1:]))
+    z = _draws((int(draws), frames.shape[0], min(n, DRAW_BLOCK)))
     top = np.empty((z.shape[0],) + frames.shape[1:])
-    noisy_max(frames.reshape(frames.shape[0], -1), np.sqrt(variances).reshape(frames.shape[0], -1),
-              z.reshape(z.shape[0], frames.shape[0], -1), top.reshape(z.shape[0], -1))
+    noisy_max(frames.reshape(frames.shape[0], -1), np.sqrt(variances).reshape(frames.shape[0], -1), z,
+              top.reshape(z.shape[0], -1))
     return top.mean(axis=0), top.var(axis=0, ddof=1)
 
 
@@ -110,12 +118,15 @@ def _draws(shape: tuple[int, ...]) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def noisy_max(frames, sd, z, out):
-    """out[d, x] = max_f (frames[f, x] + sd[f, x]·z[d, f, x]): eq. 7's maximum of each seeded noise draw."""
+    """out[d, x] = max_f (frames[f, x] + sd[f, x]·z[d, f, x mod m]), m = z.shape[2]: eq. 7's maximum of each
+    seeded noise draw."""
+    m = z.shape[2]
     for d in range(z.shape[0]):
         for x in range(frames.shape[1]):
-            best = frames[0, x] + sd[0, x] * z[d, 0, x]
+            k = x % m
+            best = frames[0, x] + sd[0, x] * z[d, 0, k]
             for f in range(1, frames.shape[0]):
-                v = frames[f, x] + sd[f, x] * z[d, f, x]
+                v = frames[f, x] + sd[f, x] * z[d, f, k]
                 if v > best:
                     best = v
             out[d, x] = best

@@ -176,7 +176,7 @@ def test_a_frame_budget_plans_sheets_only_where_they_stay_apart(capsys):
     which only the narrowest baseline keeps apart over the chart's depth range (planning/sheets.py): the pick
     is there, the other separations score 0."""
     assert main(["plan", "--modality", "stripes", "--separations", "3", "--range", "0.05", "0.3",
-                 "--stripes", "30", "--max-frames", "4", "--json"]) == 0
+                 "--stripes", "30", "--max-frames", "4", "--width", "96", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     jsonschema.validate(doc, PLAN_SCHEMA)
     assert doc["sheets"] == {"sheets": 15, "max_frames": 4, "analyzer": "stage", "frames": 4,

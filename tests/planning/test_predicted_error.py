@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from polarstripe.planning.image_model import ImageModel
 from polarstripe.planning.planner import plan, plan_model
-from polarstripe.planning.predicted_error import composite, expected_error, reading_error
+from polarstripe.planning.predicted_error import DRAW_BLOCK, composite, expected_error, reading_error
 from polarstripe.sim.scene import SceneError, load_scene
 
 
@@ -36,10 +36,10 @@ def test_error_limits():
     assert big == pytest.approx(0.4 / math.sqrt(1 + 0.16), rel=1e-6)  # angle to a constant, r/√(1 + r²)
 
 
-def test_eq7_maximum_of_noisy_dark_frames():
+@pytest.mark.parametrize("n", [20000, 2 * DRAW_BLOCK + 7])   # wider frames reuse a block of draws
+def test_eq7_maximum_of_noisy_dark_frames(n):
     """Two frames of equal mean and unit variance: the maximum's mean is 1/√π above it (E max of two
     standard normals), its variance 1 − 1/π."""
-    n = 20000
     m, v = composite(np.full((2, n), 5.0), np.ones((2, n)))
     assert m.mean() == pytest.approx(5.0 + 1 / math.sqrt(math.pi), abs=0.01)
     assert v.mean() == pytest.approx(1 - 1 / math.pi, abs=0.02)
