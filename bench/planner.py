@@ -217,9 +217,12 @@ def print_ladder(res: dict) -> None:
         print(f"  truth {name}: {t['scanned']} scans made, {t['cached']} from the cache; best {best}")
     head = "".join(f"{m.replace('polarized_', 'pol. '):>13}" for m in METHOD_NAMES)
     print(f"\n{'planner':<8} {'level':<9} {'scene':<14} {'CPU s/plan':>10} {'wall s':>7}{head} {'worst':>7}")
+    print(f"{'':<51}regret (pick cm) per method")
     for lv in res["levels"]:
         for name, reg in lv["regret"].items():
-            cells = "".join(f"{_f(reg.get(m), '13.3f')}" for m in METHOD_NAMES)
+            picks = lv["picks_m"][name]
+            cells = "".join(f"{_f(reg.get(m), '7.3f')} ({picks[m] * 100:3.0f})" if reg.get(m) is not None
+                            else f"{'-':>13}" for m in METHOD_NAMES)
             print(f"{lv['variant']:<8} {lv['fidelity']:<9} {name:<14} {lv['cpu_seconds_per_plan']:10.1f} "
                   f"{lv['seconds_per_plan']:7.1f}{cells} {_f(lv['worst_regret'], '7.3f')}")
     for k in res["skipped"]:
