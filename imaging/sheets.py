@@ -8,7 +8,8 @@ between the near and far ends of the depth range [z_n, z_f] the objects lie in, 
 columns between c(z_n) and c(z_f) (its epipolar segment; :func:`ray_columns`). Sheet j can have lit the pixel
 only if its columns [⌊p·W/N⌋, ⌊(p + 1)·W/N⌋) meet that segment (:func:`assign_positions`); a pixel no sheet
 of its frame meets, or (where the sheets are too close) two, gets none (−1) and the delineation leaves it
-invalid.
+invalid. Behind flat ports the segment is that of the pixel's water ray and the columns those of the light
+through the projector's port (docs/physics.md §11).
 
 The sheets of one frame are ⌊F·W/N⌋ columns apart. Two of them can light the same pixel when its segment is
 longer than the gap between them, (F − 1)·W/N columns: then the K sheets overlap in the image and the scan
@@ -20,9 +21,11 @@ fewer sheets. One sheet (K = 1) needs no depth range: every pixel's position is 
 from __future__ import annotations
 
 import numpy as np
+from polarstripe.imaging.refraction import port_of, projector_columns
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.imaging.validation import ImagingError, finite_param
 from polarstripe.msgs.patterns import frames_of
+from polarstripe.sim.port import water_rays
 
 
 class SheetsOverlap(ImagingError):
@@ -42,11 +45,28 @@ def depth_range(values) -> tuple[float, float]:
 def ray_columns(geom: RigGeometry, rays: np.ndarray, z: float) -> np.ndarray:
     """Continuous projector column (msgs/patterns.py: c ∈ [j, j + 1) is column j) of the points z·v of
     camera rays v (..., 3) (z = 1 components, :func:`~.triangulation.camera_rays`): c = f_x·x_p/z_p + c_x + ½
-    with X_p = R·(z v) + T; NaN where the point is behind the projector."""
+    with X_p = R·(z v) + T; NaN where the point is behind the projector. A rig with ports takes the point at
+    depth z on the pixel's water ray and the column of the light reaching it through the projector's port
+    (imaging/refraction.py)."""
+    if geom.has_ports:
+        return _columns_through_ports(geom, rays, z)
     xp = z * (rays @ geom.R.T) + geom.T
     with np.errstate(divide="ignore", invalid="ignore"):
         c = geom.K_proj[0, 0] * xp[..., 0] / xp[..., 2] + geom.K_proj[0, 2] + 0.5
     return np.where(xp[..., 2] > 0, c, np.nan)
+
+
+def _columns_through_ports(geom: RigGeometry, rays: np.ndarray, z: float) -> np.ndarray:
+    v = np.asarray(rays, float).reshape(-1, 3)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    port_cam = port_of(geom.port_cam)
+    if port_cam is None:
+        points = z * v / v[:, 2:3]
+    else:
+        origins, dirs, _, _ = water_rays(port_cam, v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            points = origins + ((z - origins[:, 2]) / dirs[:, 2])[:, None] * dirs
+    return projector_columns(geom, port_of(geom.port_proj), points).reshape(np.shape(rays)[:-1])
 
 
 def epipolar_span(geom: RigGeometry, rays: np.ndarray, near_far: tuple[float, float]):

@@ -2,7 +2,8 @@
 
 * :func:`depth_truth` — per camera pixel, the depth z [m] along the camera's optical axis of the nearest
   object the pixel's centre ray hits (planes, spheres, boxes; :func:`polarstripe.sim.geometry.intersect`),
-  NaN where the ray hits nothing. It is what a stripe scan's triangulation should measure.
+  NaN where the ray hits nothing. It is what a stripe scan's triangulation should measure, and
+  :func:`column_truth` the projector column that lights that point (what the scan should decode).
 * :func:`rig_geometry` — the scene's camera and projector pinholes as a calibration would give them: 3×3
   intrinsics ``K_cam``, ``K_proj`` (pixel centres at integer coordinates, so c_x = w/2 − ½), image sizes,
   and the pose ``R``, ``T`` taking camera-frame points to the projector frame (X_p = R·X_c + T, the
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.sim.geometry import PinholeFrame, intersect, pinhole_frame, pixel_rays
-from polarstripe.sim.port import port_geometry, water_rays
+from polarstripe.sim.port import light_to, port_geometry, water_rays
 from polarstripe.sim.scene import Scene
 
 
@@ -45,6 +46,22 @@ def depth_truth(scene: Scene) -> np.ndarray:
     z = (origins - np.asarray(cam.position, float)) @ cam.f + hits.t * (dirs @ cam.f)
     z[~np.isfinite(hits.t) | (hits.index < 0)] = np.nan
     return z.reshape(cam.h, cam.w)
+
+
+def column_truth(scene: Scene) -> np.ndarray:
+    """Per camera pixel, the continuous projector column (msgs/patterns.py) of the light that reaches the
+    object point its centre ray hits, through the ports where the scene has them; (h, w), NaN where the ray
+    hits nothing: what a perfect stripe scan decodes."""
+    cam, proj = camera_frame(scene), projector_frame(scene)
+    dirs, origins = pixel_rays(cam), np.asarray(cam.position, float)
+    if scene.camera.port is not None:
+        origins, dirs, _, _ = water_rays(port_geometry(scene.camera.port, cam.position, cam.f), dirs)
+    hits = intersect(scene.objects, origins, dirs)
+    air = hits.point - np.asarray(proj.position, float)
+    if scene.projector.port is not None:
+        air = light_to(port_geometry(scene.projector.port, proj.position, proj.f), hits.point).air
+    col = proj.w / 2.0 + (air @ proj.r) / (air @ proj.f) / proj.s
+    return np.where(hits.index >= 0, col, np.nan).reshape(cam.h, cam.w)
 
 
 def _intrinsics(frame: PinholeFrame) -> np.ndarray:

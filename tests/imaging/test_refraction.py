@@ -12,20 +12,8 @@ from polarstripe.imaging.delineation import delineate
 from polarstripe.imaging.refraction import depth_through_ports, port_of
 from polarstripe.imaging.triangulation import RigGeometry, Triangulator, depth_from_columns, stripe_edges
 from polarstripe.imaging.validation import ImagingError
-from polarstripe.sim.depth_truth import camera_frame, depth_truth, projector_frame, rig_geometry
-from polarstripe.sim.geometry import intersect, pixel_rays
-from polarstripe.sim.port import light_to, port_geometry, water_rays
+from polarstripe.sim.depth_truth import column_truth, depth_truth, rig_geometry
 from polarstripe.sim.scene import glass_tank
-
-
-def _true_columns(scene) -> np.ndarray:
-    """Per pixel, the projector column lighting the object point its water ray hits (world frame)."""
-    cam, proj = camera_frame(scene), projector_frame(scene)
-    origins, dirs, _, _ = water_rays(port_geometry(scene.camera.port, cam.position, cam.f), pixel_rays(cam))
-    hits = intersect(scene.objects, origins, dirs)
-    air = light_to(port_geometry(scene.projector.port, proj.position, proj.f), hits.point).air
-    col = proj.w / 2.0 + (air @ proj.r) / (air @ proj.f) / proj.s
-    return np.where(hits.index >= 0, col, np.nan).reshape(cam.h, cam.w)
 
 
 def test_true_columns_give_back_the_true_depth_and_the_pinhole_pipeline_is_biased():
@@ -33,7 +21,7 @@ def test_true_columns_give_back_the_true_depth_and_the_pinhole_pipeline_is_biase
     truth = depth_truth(scene)
     rig = rig_geometry(scene)
     geom = RigGeometry.from_dict(rig)
-    columns = _true_columns(scene)
+    columns = column_truth(scene)
     assert np.isfinite(columns).sum() > 0.5 * columns.size
     z = depth_through_ports(geom, port_of(rig["port_cam"]), port_of(rig["port_proj"]), columns)
     both = np.isfinite(truth)
@@ -67,7 +55,7 @@ def test_the_compositors_triangulator_goes_through_the_ports():
     rig = {k: np.asarray(v, float).tolist() for k, v in rig_geometry(scene).items()}
     geom = RigGeometry.from_dict(rig)
     assert geom.has_ports and RigGeometry.from_dict(geom.to_dict()).has_ports
-    columns = _true_columns(scene)
+    columns = column_truth(scene)
     tri = Triangulator(geom, columns.shape)
     z = tri.depth(columns)
     truth = depth_truth(scene)
