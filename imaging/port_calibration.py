@@ -32,6 +32,7 @@ import numpy as np
 from polarstripe.imaging.calibration import Board, Calibration, CalibrationError
 from polarstripe.imaging.refraction import port_of
 from polarstripe.sim.port import light_to
+from polarstripe.sim.scene_port import PORT_PRESETS
 from scipy.optimize import least_squares
 
 START_DISTANCES_M = (0.01, 0.05)  # a start at 5 mm went to d = 0 in simulation; 1 to 8 cm did not
@@ -54,6 +55,27 @@ class PortSpec:
         n = np.asarray(normal, float)
         return np.array([*(n / np.linalg.norm(n)), distance_m, self.thickness_m, self.n_air, self.n_glass,
                          self.n_water])
+
+
+def parse_port_spec(text: str) -> PortSpec | None:
+    """A data sheet as text: ``""`` none (the pinhole), a preset of sim/scene_port.py (``glass_tank``), or
+    ``THICKNESS_M,N_AIR,N_GLASS,N_WATER``.
+
+    :raises CalibrationError: anything else (one line)."""
+    text = text.strip()
+    if not text:
+        return None
+    if text in PORT_PRESETS:
+        p = PORT_PRESETS[text]
+        return PortSpec(p.thickness_m, p.n_air, p.n_glass, p.n_water)
+    try:
+        t, n_a, n_g, n_w = (float(v) for v in text.split(","))
+    except ValueError:
+        raise CalibrationError(f"port {text!r}: give {', '.join(PORT_PRESETS)} or THICKNESS_M,N_AIR,N_GLASS,"
+                               "N_WATER") from None
+    if not (np.isfinite(t) and t >= 0 and all(1.0 <= n <= 4.0 for n in (n_a, n_g, n_w)) and n_w >= n_a):
+        raise CalibrationError(f"port {text!r}: need a thickness >= 0 m, indices in [1, 4], n_water >= n_air")
+    return PortSpec(t, n_a, n_g, n_w)
 
 
 @dataclass

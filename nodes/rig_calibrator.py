@@ -12,10 +12,12 @@ The calibrator node, per board pose k of ``poses``:
 3. decodes the pose (``decode_pose``; a pose the board or its decoding fails is skipped with its reason)
    and rewrites the live coverage view ``<out>_coverage.png``.
 
-Then ``calibrate`` fits both devices and the stereo pose and ``save`` writes ``out`` atomically (a failed run
-leaves the previous file whole). The analyzer is taken out of the path first (``camera/analyzer``). Exit
-status 0 with a file written, 1 otherwise (the ERROR line says why). Like the sequencer, it is a script: it
-blocks in its own ``run`` and serves nothing.
+Then ``calibrate`` fits both devices and the stereo pose (with ``port``, both behind flat ports of that data
+sheet, :func:`~polarstripe.imaging.port_calibration.fit_ports` then fits the refractive rig, the lens taken
+as undistorted) and ``save`` writes ``out`` atomically (a failed run leaves the previous file whole). The
+analyzer is taken out of the path first (``camera/analyzer``). Exit status 0 with a file written, 1
+otherwise (the ERROR line says why). Like the sequencer, it is a script: it blocks in its own ``run`` and
+serves nothing.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from polarstripe.imaging.calibration import (
     failed_poses,
     save,
 )
+from polarstripe.imaging.port_calibration import fit_ports, parse_port_spec
 from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
 from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
@@ -75,6 +78,7 @@ class RigCalibrator(Node):
         square_m: float = 0.015
         poses: int = 8
         distortion: str = "radial"  # none | radial | full (the camera's lens model)
+        port: str = ""  # both behind flat ports: glass_tank or THICKNESS_M,N_AIR,N_GLASS,N_WATER ("": none)
         target_service: str = "simulator/target"  # moves the board; "" = a person does (pose_wait_s)
         pose_wait_s: float = 10.0
         startup_timeout_s: float = 30.0
@@ -90,6 +94,10 @@ class RigCalibrator(Node):
                 raise ValueError(f"distortion must be none, radial or full, got {self.distortion!r}")
             if not self.square_m > 0:
                 raise ValueError(f"square_m must be > 0, got {self.square_m}")
+            try:
+                parse_port_spec(self.port)
+            except CalibrationError as exc:
+                raise ValueError(str(exc)) from None
 
     SUBSCRIBES = {"camera/frame": Frame, "heartbeat": Heartbeat}
 
@@ -173,14 +181,20 @@ class RigCalibrator(Node):
             raise RigCalibrationError(f"{len(results)} usable poses of {p.poses}: a calibration needs at "
                                       f"least {MIN_POSES}"
                                       + (f"; {failed_poses(failures)}" if failures else ""))
-        cal = calibrate(results, board, cam_size, proj, distortion=p.distortion)
-        save(p.out, {**cal.geometry(), "dist_proj": cal.dist_proj},
-             {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
-              "poses": len(cal.poses), "board": f"{p.board} inner corners, {p.square_m} m squares",
-              "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"})
-        write_coverage(coverage_path(p.out), cal.poses, cal.proj_size)
-        self.log.info("%s: %d poses, RMS camera %.3f px, projector %.3f px, stereo %.3f px; coverage %s",
-                      p.out, len(cal.poses), cal.rms_cam, cal.rms_proj, cal.rms_stereo, coverage_path(p.out))
+        pinhole = calibrate(results, board, cam_size, proj, distortion=p.distortion)
+        spec = parse_port_spec(p.port)
+        cal = pinhole if spec is None else fit_ports(pinhole, board, spec, spec)
+        extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
+                 "poses": len(pinhole.poses), "board": f"{p.board} inner corners, {p.square_m} m squares",
+                 "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"}
+        if spec is not None:
+            extra.update(model="refractive (flat ports)", corners_dropped=cal.dropped,
+                         pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj)
+        save(p.out, {**cal.geometry(), "dist_proj": np.zeros(5) if spec else pinhole.dist_proj}, extra)
+        write_coverage(coverage_path(p.out), pinhole.poses, cal.proj_size)
+        self.log.info("%s: %d poses, %s, RMS camera %.3f px, projector %.3f px, stereo %.3f px; coverage %s",
+                      p.out, len(pinhole.poses), "pinhole" if spec is None else "refractive (flat ports)",
+                      cal.rms_cam, cal.rms_proj, cal.rms_stereo, coverage_path(p.out))
         return True
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from polarstripe.bench.depth import depth_scene
 from polarstripe.imaging.calibration import Board, CalibrationError, PoseResult, calibrate, load, save
-from polarstripe.imaging.port_calibration import PortSpec, fit_ports, project
+from polarstripe.imaging.port_calibration import PortSpec, fit_ports, parse_port_spec, project
 from polarstripe.imaging.refraction import port_of
 from polarstripe.imaging.triangulation import RigGeometry
 from polarstripe.nodes.compositor_depth import load_geometry
@@ -156,3 +156,13 @@ def test_the_rig_file_carries_the_ports_to_the_compositor(rig, tmp_path):
     save(bad, {**rig, "port_cam": rig["port_cam"][:5]})
     with pytest.raises(CalibrationError, match="port_cam must be 8 finite numbers, got 5"):
         load(bad)
+
+
+def test_a_data_sheet_as_text():
+    assert parse_port_spec("") is None
+    assert parse_port_spec("glass_tank") == TANK
+    assert parse_port_spec("0.005, 1.0, 1.49, 1.34") == PortSpec(0.005, 1.0, 1.49, 1.34)
+    for bad, why in (("steel", "give glass_tank or THICKNESS_M"), ("0.01,1,1.5", "give glass_tank"),
+                     ("0.01,1,1.5,0.9", "n_water >= n_air"), ("-1,1,1.5,1.33", "thickness >= 0")):
+        with pytest.raises(CalibrationError, match=why):
+            parse_port_spec(bad)
