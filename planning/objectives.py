@@ -176,11 +176,14 @@ def _check(modality: str, reading: str, edge: str) -> None:
         raise SceneError(f"edge must be one of {EDGES}, got {edge!r}")
 
 
-def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: float = 0.05) -> Objective:
+def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: float = 0.05,
+                    memo: dict | None = None) -> Objective:
     """The ``error`` measure per location: quality = 1 − the reading's expected error against T
     (planning/predicted_error.py), weight 1 (the noise is inside the error), saturated where every pixel of
     the location is. ``samples`` hold electrons at the scene's exposure; ``noise.electrons_per_radiance`` is
-    the exposure's multiplier (inf: the noise-free, unsaturating sensor)."""
+    the exposure's multiplier (inf: the noise-free, unsaturating sensor). ``memo``: one dict per
+    (``samples``, ``noise``) kept by the caller across the readings: the analyzer's composites are made once
+    per location for E_b and Ŝ (:func:`~polarstripe.planning.predicted_error.reading_error`)."""
     if samples.truth is None:
         raise SceneError("the error measure needs whole-image samples with T (planning/image_model.py)")
     scale = float(np.max(noise.electrons_per_radiance))
@@ -196,27 +199,28 @@ def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: f
     quality, saturated = np.zeros(n), np.zeros(n, bool)
     flood = samples.flood_dop
 
-    def scored(at):
+    def scored(at, key):
         err, sat = reading_error(reading, s_e[..., at], b_e[..., at], dop[..., at], chi[..., at],
                                  truth[at] * k, full_well_e=math.inf if ideal else noise.full_well_e,
                                  dark_e=noise.dark_e, read_noise_e=noise.read_noise_e,
                                  quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal,
                                  p_rule=samples.p_rule,
-                                 flood_dop=None if flood is None else tuple(np.asarray(x)[at] for x in flood))
+                                 flood_dop=None if flood is None else tuple(np.asarray(x)[at] for x in flood),
+                                 memo=None if memo is None else memo.setdefault(key, {}))
         return 1.0 - err, sat >= 1.0
 
     for g in range(n):
-        quality[g], saturated[g] = scored(group == g)
+        quality[g], saturated[g] = scored(group == g, g)
     # the image as the end-to-end judge scores it: every composed pixel, one gain (a gain per location
     # forgives the fall-off across the image that one gain cannot: the stripe plans' bias, docs/planning.md)
-    frame = (quality[0], saturated[0]) if n == 1 else scored(group >= 0) if n else (0.0, True)
+    frame = (quality[0], saturated[0]) if n == 1 else scored(group >= 0, "frame") if n else (0.0, True)
     return Objective(quality, np.ones(n), saturated, frame_quality=float(frame[0]),
                      frame_saturated=bool(frame[1]))
 
 
 def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: str = "E",
               edge: str = "margin", k_detect: float = 3.0, p_min: float = 0.05,
-              measure: str = "paper") -> Objective:
+              measure: str = "paper", memo: dict | None = None) -> Objective:
     """The planner's objective per observed point, in log space (module docstring; docs/planning.md).
 
     Parameters
@@ -238,6 +242,8 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: s
         Lower clamp of the p that eq. 6 divides by.
     measure : {"paper", "error"}
         ``paper``: the measures above; ``error``: :func:`error_objective` (whole-image samples).
+    memo : dict, optional
+        The ``error`` measure's store shared by the readings of the same ``samples`` and ``noise``.
 
     Returns
     -------
@@ -247,7 +253,7 @@ def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: s
     if measure == "error":
         if reading not in READINGS["flood"]:
             raise SceneError(f"reading must be one of {READINGS['flood']}, got {reading!r}")
-        return error_objective(samples, noise, reading, p_min)
+        return error_objective(samples, noise, reading, p_min, memo)
     if measure != "paper":
         raise SceneError(f"measure must be one of {MEASURES}, got {measure!r}")
     _check(modality, reading, edge)

@@ -243,10 +243,11 @@ def _score(scored: dict, p_mean: list, samples: Samples, noise, modality, edge, 
     """Append one separation's objectives and noise-free objectives to ``scored[(polarized, reading)]`` and
     its mean clipped DOP (the recommendation's p̂) to ``p_mean``."""
     p_mean.append(float(np.mean(np.clip(samples.dop, p_min, 1.0))))
+    memo, memo_ideal = {}, {}          # the error measure's analyzer composites, shared by E_b and Ŝ
     for (_, reading), (objs, ideal) in scored.items():
         args = dict(modality=modality, reading=reading, edge=edge, measure=measure, p_min=p_min, **kw)
-        objs.append(objective(samples, noise, **args))
-        ideal.append(objective(samples, IDEAL_SENSOR, **args))
+        objs.append(objective(samples, noise, memo=memo, **args))
+        ideal.append(objective(samples, IDEAL_SENSOR, memo=memo_ideal, **args))
 
 
 def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,

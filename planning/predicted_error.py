@@ -154,7 +154,8 @@ def seen_dop(p, chi, chi_bar: float, p_min: float) -> np.ndarray:
 
 def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float, dark_e: float = 0.0,
                   read_noise_e: float = 0.0, quantization_e: float = 0.0, p_min: float = 0.05,
-                  noise: bool = True, p_rule: str = "map", flood_dop=None) -> tuple[float, float]:
+                  noise: bool = True, p_rule: str = "map", flood_dop=None,
+                  memo: dict | None = None) -> tuple[float, float]:
     """(expected error, saturated fraction) of one reading's composite over the given pixels.
 
     ``s_e``, ``b_e``: signal S = D + A and backscatter B in electrons, (n,) for one frame or (F, n) for the
@@ -163,13 +164,13 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
     ``noise=False`` gives the noise-free error (the bias alone). ``p_rule``: eq. 6's p (module docstring);
     ``flood_dop``: (B_f, p_f, χ_f), each (n,), the flood frame's backscatter, its DOP and angle, that the
     ``map`` and the analyzer's axis are read from (None: the frames' own, their B-weighted Stokes mean).
+    ``memo``: a dict kept by the caller between the readings of the same pixels, frames and sensor: the
+    analyzer's frames and their composites are made once for E_b and Ŝ.
     """
     if p_rule not in P_RULES:
         raise ValueError(f"p_rule must be one of {', '.join(P_RULES)}, got {p_rule!r}")
     s_e, b_e = np.atleast_2d(np.asarray(s_e, np.float64)), np.atleast_2d(np.asarray(b_e, np.float64))
     t_e = np.asarray(truth_e, np.float64)
-    p = np.clip(np.nan_to_num(np.atleast_2d(np.asarray(p, np.float64))), 0.0, 1.0)
-    chi = np.atleast_2d(np.asarray(chi, np.float64))
     kw = dict(dark_e=dark_e, read_noise_e=read_noise_e, quantization_e=quantization_e)
 
     def frames(x):
@@ -178,7 +179,11 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
     if reading == "E":
         mean, var = frames(s_e + b_e)
         brightest = mean
+    elif memo is not None and "analyzer" in memo:
+        p_f, chi_f, chi_bar, (e_b, v_b), (e_w, v_w) = memo["analyzer"]
     else:
+        p = np.clip(np.nan_to_num(np.atleast_2d(np.asarray(p, np.float64))), 0.0, 1.0)
+        chi = np.atleast_2d(np.asarray(chi, np.float64))
         if flood_dop is None:   # the frames' own: the B-weighted Stokes mean over a scan's frames
             b_f, q, u = b_e.sum(axis=0), (b_e * p * np.cos(2 * chi)).sum(axis=0), \
                 (b_e * p * np.sin(2 * chi)).sum(axis=0)
@@ -190,6 +195,9 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
             p_f = np.clip(np.nan_to_num(p_f), 0.0, 1.0)
         chi_bar = mean_angle(b_f, p_f, chi_f)  # the analyzer calibrated on the flood, as the rig does
         (e_b, v_b), (e_w, v_w) = (frames(x) for x in polarized_frames(s_e, b_e, p, chi, chi_bar))
+        if memo is not None:
+            memo["analyzer"] = (p_f, chi_f, chi_bar, (e_b, v_b), (e_w, v_w))
+    if reading != "E":
         if reading == "E_b":
             mean, var, brightest = e_b, v_b, e_b
         else:

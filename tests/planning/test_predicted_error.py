@@ -66,6 +66,20 @@ def test_eq6_removes_a_uniformly_polarized_veil_but_not_a_varying_one():
     assert noisy > 0.0                                    # eq. 6's noise is charged
 
 
+def test_a_memo_shares_the_analyzer_frames_between_e_b_and_s_hat():
+    """The planner hands the readings of one separation one memo: E_b's and Ŝ's errors through it are those
+    made without it (a uniform veil of p 0.7 under a chart: Ŝ removes it, E_b keeps B(1 − p)/2)."""
+    t = np.concatenate([_chart(), np.zeros(4000)])
+    s, b, p, chi = np.stack([1000.0 * t] * 3), np.full((3, t.size), 3000.0), np.full((3, t.size), 0.7), \
+        np.zeros((3, t.size))
+    kw = dict(full_well_e=math.inf, read_noise_e=5.0)
+    memo = {}
+    shared = [reading_error(r, s, b, p, chi, t, memo=memo, **kw) for r in ("E_b", "S_hat", "E")]
+    alone = [reading_error(r, s, b, p, chi, t, **kw) for r in ("E_b", "S_hat", "E")]
+    assert shared == alone and set(memo) == {"analyzer"}
+    assert alone[0][0] > 0.05 and alone[1][0] < alone[0][0]
+
+
 def test_eq6_map_noise_gain_per_pixel_matches_the_closed_form():
     """The map rule on a chart T = 1 ± r under a veil B with p(x) in two halves: Ŝ = S, so the error is the
     noise alone, e² = V / (s² Σ T² + V) with V = Σ (1 + 1/p)² E_b + (1 − 1/p)² E_w (shot noise, E_b,w =
