@@ -189,7 +189,7 @@ class RigCalibrator(Node):
                  "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"}
         if spec is not None:
             extra.update(model="refractive (flat ports)", corners_dropped=cal.dropped,
-                         pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj)
+                         pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj, **cal.sigma)
         save(p.out, {**cal.geometry(), "dist_proj": np.zeros(5) if spec else pinhole.dist_proj}, extra)
         write_coverage(coverage_path(p.out), pinhole.poses, cal.proj_size)
         self.log.info("%s: %d poses, %s, RMS camera %.3f px, projector %.3f px, stereo %.3f px; coverage %s",

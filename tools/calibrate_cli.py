@@ -243,6 +243,10 @@ def comparison_rows(cal, truth: dict) -> list[tuple[str, float, float, str]]:
             cos = np.dot(est[:3], true[:3]) / (np.linalg.norm(est[:3]) * np.linalg.norm(true[:3]))
             rows += [(f"{name} port d", 1e3 * true[3], 1e3 * est[3], "mm"),
                      (f"{name} port tilt", 0.0, float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), "deg")]
+            sigma = getattr(cal, "sigma", {})
+            if sigma:      # the fit's own standard errors: no truth to compare
+                rows += [(f"{name} port d σ", np.nan, 1e3 * sigma[f"{key}_d_sigma_m"], "mm"),
+                         (f"{name} port tilt σ", np.nan, sigma[f"{key}_tilt_sigma_deg"], "deg")]
     return rows
 
 
@@ -283,7 +287,7 @@ def main(args: argparse.Namespace) -> int:
              "source": "polarstripe calibrate --sim" if args.sim else "polarstripe calibrate"}
     if fit is not None:
         extra.update(model="refractive (flat ports)", corners_dropped=fit.dropped,
-                     pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj)
+                     pinhole_rms_cam=pinhole.rms_cam, pinhole_rms_proj=pinhole.rms_proj, **fit.sigma)
     save(args.out, {**cal.geometry(), "dist_proj": getattr(cal, "dist_proj", np.zeros(5))}, extra)
     coverage = coverage_path(args.out)
     write_coverage(coverage, pinhole.poses, cal.proj_size)
@@ -298,6 +302,7 @@ def main(args: argparse.Namespace) -> int:
         rows = [comparison_rows(c, truth) for _, c in fits]
         for name, t, _, unit in rows[-1]:
             values = [dict((r[0], r[2]) for r in rs).get(name) for rs in rows]
-            print(f"{name:22}{t:12.4f}" + "".join(f"{'-':>12}" if v is None else f"{v:12.4f}" for v in values)
+            cells = [t if np.isfinite(t) else None, *values]
+            print(f"{name:22}" + "".join(f"{'-':>12}" if v is None else f"{v:12.4f}" for v in cells)
                   + f" {unit}")
     return 0

@@ -1,6 +1,7 @@
 """The refractive rig fitted by calibration (imaging/port_calibration.py): board corners projected through the
 paper's glass wall by the model's own port (sim/port.py ``light_to``, its air ray put through the pinhole's
-K here) give back the port's distance and normal, the intrinsics and the pose; a port of indices 1 is the
+K here) give back the port's distance and normal, the intrinsics and the pose (with noise, within the fit's
+reported standard errors); a port of indices 1 is the
 pinhole; a pixel the model projects, traced forward through the port (``water_rays``), meets its point; a
 misplaced corner is left out; the rig file carries the ports to the compositor."""
 
@@ -104,13 +105,19 @@ def test_a_known_port_is_recovered_where_the_pinhole_fails(rig):
     assert fit.rms_stereo < 1e-5 and fit.dropped == 0
 
 
-def test_with_corner_noise_the_port_is_within_a_millimetre_and_half_a_degree(rig):
-    """0.1 px of noise on every corner (the simulator's camera corners; docs/depth.md), 10 poses."""
+def test_with_corner_noise_the_errors_are_within_the_reported_standard_errors(rig):
+    """0.1 px of noise on every corner (the simulator's camera corners; docs/depth.md), 10 poses: the
+    projector's tilted port within 1 mm and 0.5°; the camera's (square to its axis, weakly observable:
+    docs/depth.md measures a spread of 1.9 mm over 12 noise seeds) within 3 of its reported σ ≈ 2.5 mm."""
     poses = _corners(rig, n_poses=10, cam_noise=0.1, proj_noise=0.1)
     fit = fit_ports(_pinhole(rig, poses), BOARD, TANK, TANK, start_distances_m=(0.05,))
+    err = {key: abs(getattr(fit, key)[3] - rig[key][3]) for key in ("port_cam", "port_proj")}
+    assert err["port_proj"] < 1e-3 and _tilt_deg(fit.port_proj, rig["port_proj"]) < 0.5
     for key in ("port_cam", "port_proj"):
-        assert abs(getattr(fit, key)[3] - rig[key][3]) < 1e-3
-        assert _tilt_deg(getattr(fit, key), rig[key]) < 0.5
+        sd, st = fit.sigma[f"{key}_d_sigma_m"], fit.sigma[f"{key}_tilt_sigma_deg"]
+        assert err[key] < 3 * sd < 9e-3
+        assert _tilt_deg(getattr(fit, key), rig[key]) < 3 * st < 1.5
+    assert fit.sigma["port_proj_d_sigma_m"] < 0.2 * fit.sigma["port_cam_d_sigma_m"]
     assert 0.1 < fit.rms_cam < 0.2
 
 
