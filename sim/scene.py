@@ -241,7 +241,9 @@ def _calibrated(scene: Scene, data: dict, base: Path | None) -> Scene:
     full = Path(path) if Path(path).is_absolute() or base is None else base / path
     stated = {part: getattr(scene, part).resolution if "resolution" in data.get(part, {}) else None
               for part in ("camera", "projector")}
-    return with_calibration(scene, str(full), cam_size=stated["camera"], proj_size=stated["projector"])
+    ports = tuple(part for part in ("camera", "projector") if "port" in data.get(part, {}))
+    return with_calibration(scene, str(full), cam_size=stated["camera"], proj_size=stated["projector"],
+                            stated_ports=ports)
 
 
 def load_scene(path: str | Path | None = None) -> Scene:

@@ -14,6 +14,8 @@ principal point at the image centre and no distortion, so a file sets of each de
 The principal point and f_x ≠ f_y cannot be represented: a file whose principal point is more than
 ``MAX_CENTRE_OFFSET`` of the width (height) from the centre, or whose f_x and f_y differ by more than
 ``MAX_ASPECT`` (relative), is refused (the model would render another rig). The lens distortion is not taken.
+A file written through flat ports (``port_cam``, ``port_proj``) sets each device's ``port`` too, its normal
+turned into the world (the scene's ``coated`` kept).
 A file of another rig size than the scene states is one error.
 """
 
@@ -23,10 +25,12 @@ import numpy as np
 from polarstripe.sim.filestorage import read_storage
 from polarstripe.sim.scene_checks import SceneError
 from polarstripe.sim.scene_parts import Scene
+from polarstripe.sim.scene_port import Port
 
 MAX_CENTRE_OFFSET = 0.05  # of the image width (height): the principal point's distance from the centre
 MAX_ASPECT = 0.01  # relative difference of f_x and f_y
 KEYS = ("K_cam", "K_proj", "R", "T", "cam_size", "proj_size")
+PORT_KEYS = ("port_cam", "port_proj")  # a rig calibrated through flat ports (imaging/port_calibration.py)
 
 
 def read_rig(path: str) -> dict:
@@ -34,7 +38,7 @@ def read_rig(path: str) -> dict:
     ``cam_size``, ``proj_size`` ((w, h) ints). SceneError naming the file and what is wrong with it (a file
     OpenCV cannot parse, a missing key: sim/filestorage.py)."""
     try:
-        out = read_storage(path, KEYS)
+        out = read_storage(path, KEYS + PORT_KEYS, optional=PORT_KEYS)
     except ValueError as exc:
         hint = " (written by polarstripe calibrate?)" if "missing" in str(exc) else ""
         raise SceneError(f"calibration {path!r}: {exc}{hint}") from None
@@ -45,7 +49,19 @@ def read_rig(path: str) -> dict:
         out[key] = out[key].reshape(shape)
     for key in ("cam_size", "proj_size"):
         out[key] = tuple(int(round(v)) for v in out[key])
+    for key in PORT_KEYS:
+        if out[key] is not None and (out[key].size != 8 or not np.all(np.isfinite(out[key]))):
+            raise SceneError(f"calibration {path!r}: {key} must be 8 finite numbers")
     return out
+
+
+def _port(numbers, to_world: np.ndarray, old: Port | None, key: str) -> Port:
+    """A file's port (normal in the device's OpenCV frame, d, t, n_a, n_g, n_w) in the world; the scene's
+    ``coated`` kept (a calibration does not measure the Fresnel loss)."""
+    a = np.ravel(numbers)
+    return Port(distance_m=float(a[3]), thickness_m=float(a[4]), n_air=float(a[5]), n_glass=float(a[6]),
+                n_water=float(a[7]), normal=tuple((to_world @ a[:3]).tolist()),
+                coated=False if old is None else old.coated, key=key)
 
 
 def _fov(K: np.ndarray, size: tuple[int, int], what: str, path: str) -> float:
@@ -62,11 +78,16 @@ def _fov(K: np.ndarray, size: tuple[int, int], what: str, path: str) -> float:
 
 
 def with_calibration(scene: Scene, path: str, *, cam_size: tuple[int, int] | None = None,
-                     proj_size: tuple[int, int] | None = None) -> Scene:
+                     proj_size: tuple[int, int] | None = None, stated_ports: tuple[str, ...] = ()) -> Scene:
     """``scene`` with its camera's resolution and fov and its projector's resolution, fov and pose from the
-    calibration file ``path`` (module docstring). ``cam_size`` / ``proj_size``: the sizes the scene or the
-    launch states (the camera may be binned by an integer factor); another size is one SceneError."""
+    calibration file ``path`` (module docstring), and the ports of a file written through them.
+    ``cam_size`` / ``proj_size``: the sizes the scene or the launch states (the camera may be binned by an
+    integer factor); another size is one SceneError, and so is a port the file has and ``stated_ports``
+    (the sections whose ``port`` the scene sets) too."""
     rig = read_rig(path)
+    for key, part in zip(PORT_KEYS, ("camera", "projector"), strict=True):
+        if rig[key] is not None and part in stated_ports:
+            raise SceneError(f"{part}.port is set by the calibration file {path!r}: give one or the other")
     cw, ch = rig["cam_size"]
     if cam_size is not None:
         w, h = cam_size
@@ -96,4 +117,9 @@ def with_calibration(scene: Scene, path: str, *, cam_size: tuple[int, int] | Non
     proj = scene.projector.replace(resolution=rig["proj_size"], fov_deg=fov_p,
                                    position=tuple(centre.tolist()),
                                    look_at=tuple((centre + reach * forward).tolist()), up=tuple(up.tolist()))
+    if rig["port_cam"] is not None:
+        new_cam = new_cam.replace(port=_port(rig["port_cam"], to_world, cam.port, "camera.port"))
+    if rig["port_proj"] is not None:
+        proj = proj.replace(port=_port(rig["port_proj"], to_world @ R.T, scene.projector.port,
+                                       "projector.port"))
     return scene.replace(camera=new_cam, projector=proj)

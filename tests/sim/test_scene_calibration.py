@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from polarstripe.imaging.calibration import save
 from polarstripe.sim.depth_truth import rig_geometry
-from polarstripe.sim.scene import Scene, SceneError, load_scene, with_separation
+from polarstripe.sim.scene import Scene, SceneError, glass_tank, load_scene, with_separation
 
 
 def known_rig() -> Scene:
@@ -68,3 +68,20 @@ def test_a_missing_file_is_one_clear_error(tmp_path):
     (tmp_path / "scene.toml").write_text('calibration = "nowhere.yaml"\n')
     with pytest.raises(SceneError, match="nowhere.yaml.*no such file"):
         load_scene(tmp_path / "scene.toml")
+
+
+def test_a_file_written_through_ports_gives_the_ports_back(tmp_path):
+    """The glass wall's rig (the projector's port 27° off its axis) through a file: each device's port in its
+    own frame, the intrinsics and the pose as written; the scene's ``coated`` kept; a scene that sets a port
+    the file has is one error."""
+    rig = rig_geometry(glass_tank(Scene()))
+    scene = load_scene(write(tmp_path, rig, 'preset = "glass_tank"\n'))
+    g = rig_geometry(scene)
+    for key in ("K_cam", "K_proj", "R", "T", "port_cam", "port_proj"):
+        assert np.allclose(g[key], rig[key], atol=1e-9), key
+    assert scene.camera.port.coated and scene.projector.port.coated
+    plain = load_scene(write(tmp_path, rig))
+    assert np.allclose(rig_geometry(plain)["port_proj"], rig["port_proj"], atol=1e-9)
+    assert not plain.projector.port.coated                           # no scene port: the Port default
+    with pytest.raises(SceneError, match="camera.port is set by the calibration file"):
+        load_scene(write(tmp_path, rig, "[camera]\nport = \"glass_tank\"\n"))
