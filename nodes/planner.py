@@ -20,8 +20,8 @@ The plan comes from :func:`polarstripe.planning.planner.plan` on the model of it
 (:func:`~polarstripe.planning.planner.plan_model`: ``error``, the composite's expected error against the
 unscattered object from low-resolution whole frames, or ``paper``, the paper's measures at three observed
 points; ``scene``, ``resolution``, ``fidelity``, ``separations`` between ``d_min_m`` and ``d_max_m``; the
-error measure renders at the camera's width, whose pixel grid a stripe composite aliases on, unless
-``width`` asks for a cheaper one, docs/planning.md §8):
+error measure renders at the camera's width (at most 10 px per stripe), whose pixel grid a stripe composite
+aliases on, unless ``width`` asks for a cheaper one, docs/planning.md §8):
 modality ``stripes`` or ``flood``, with or without the polarizer. With a frame budget (``max_frames``) a
 stripe plan takes the fewest sheets per frame that fit it (two analyzer passes with ``analyzer = "stage"``),
 renders those K-sheet frames (their backscatter) and keeps to separations where the sheets stay apart in the
@@ -69,7 +69,7 @@ class Planner(Node):
         max_frames: int = 0  # frame budget of a stripe scan: the fewest sheets per frame that fit (0: one)
         analyzer: Literal["stage", "mosaic"] = "stage"  # polarized scans: two passes (stage) or one (mosaic)
         stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
-        width: int = 0  # error measure: the renders' width [px]; 0 = the camera's, whose pixel grid aliases
+        width: int = 0  # error measure: the renders' width [px]; 0 = the camera's, at most 10 px a stripe
         separations: int = 24
         d_min_m: float = 0.02
         d_max_m: float = 0.5

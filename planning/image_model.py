@@ -8,8 +8,10 @@ the scene needs (:mod:`polarstripe.sim.orders`), and T, the unscattered object r
 scored against (docs/physics.md §10.8). Values are electrons at the scene's exposure (its ``noise`` converts
 with 1), so :func:`~polarstripe.planning.planner.auto_exposure_scale` and the full well apply as they are.
 
-The renders are as wide as the scene's camera unless ``width`` says otherwise: a 30-stripe composite at a
-few pixels per stripe aliases on the camera's pixel grid, and its error with it (docs/planning.md §8).
+The renders are as wide as the scene's camera, at most ``PX_PER_STRIPE`` pixels per stripe, unless ``width``
+says otherwise: a 30-stripe composite at a few pixels per stripe aliases on the camera's pixel grid, and its
+error with it; at 10 pixels per stripe that is small, and a wider render costs time for nothing
+(docs/planning.md §8).
 
 * flood: one flood frame; one location (group 0).
 * stripes: the scan's frames (the projector aimed as the rig aims it, N stripes, ``sheets`` per frame:
@@ -36,6 +38,10 @@ from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_d
 from polarstripe.sim.threads import each_frame
 from polarstripe.sim.truth import unscattered_object
 
+# the default renders' resolution: the camera's, but no finer than this many pixels per stripe (at 10 a
+# stripe composite's aliasing is small; docs/planning.md §8)
+PX_PER_STRIPE = 10
+
 
 class ImageModel:
     """Whole low-resolution frames per separation (module docstring).
@@ -47,8 +53,8 @@ class ImageModel:
         and `bench planner --end-to-end` shows what the level costs in regret).
     n_stripes : stripes per scan.
     width : width [px] of the renders; None (default): the scene camera's, whose pixel grid the stripe
-        composite aliases on; at least 3 px per stripe, at most the camera's (the height keeps the aspect,
-        at least 8).
+        composite aliases on, up to ``PX_PER_STRIPE`` px per stripe; at least 3 px per stripe, at most the
+        camera's (the height keeps the aspect, at least 8).
     fractions : where the observed points sit on the centre row (fractions of the width): their stripes
         are the stripe locations.
     orders : ``all`` (as the scene needs) or ``single``.
@@ -71,8 +77,8 @@ class ImageModel:
         if isinstance(n_stripes, bool) or int(n_stripes) != n_stripes or n_stripes < 1:
             raise SceneError(f"n_stripes must be a positive integer, got {n_stripes!r}")
         w0, h0 = scene.camera.resolution
-        if width is None:
-            width = w0
+        if width is None:  # the camera's grid where a stripe spans few of its pixels (aliasing), else cheaper
+            width = min(w0, PX_PER_STRIPE * int(n_stripes))
         elif isinstance(width, bool) or int(width) != width or int(width) < 8:
             raise SceneError(f"width must be an integer of at least 8 pixels, got {width!r}")
         # a stripe at least 3 pixels wide: narrower, which pixels a stripe lights jumps with the separation

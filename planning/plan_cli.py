@@ -3,11 +3,11 @@
 Prints the optimum and the curve per modality (default: 1 − the expected error; ``--measure paper``: flood
 CQM·W, stripes margin·W), with and without a polarizer; ``--json`` prints one object keyed ``flood``,
 ``flood_polarized``, ``stripes``, ``stripes_polarized``, ``model`` (measure, orders and, for the error
-measure, the renders' ``width``: the scene camera's unless ``--width``). Unless the plan is
-the paper's own (``--measure paper --orders single``), ``--reference``, ``--plot`` and ``--validate`` make the
-same sweep with the paper's measure and single scattering beside it (the JSON's ``reference``; one more
-sweep); Fig. 10's question, rotate, translate or both, is answered for each model made (``scans``).
-``--plot`` draws the paper's Figs. 9a and 10d with both
+measure, the renders' ``width``: the scene camera's, at most 10 px per stripe, unless ``--width``). Unless
+the plan is the paper's own (``--measure paper --orders single``), ``--reference``, ``--plot`` and
+``--validate`` make the same sweep with the paper's measure and single scattering beside it (the JSON's
+``reference``; one more sweep); Fig. 10's question, rotate, translate or both, is answered for each model
+made (``scans``). ``--plot`` draws the paper's Figs. 9a and 10d with both
 (:mod:`polarstripe.planning.plan_plot`; the JSON's ``figure`` is what is drawn); ``--validate`` judges both
 models' picks end to end, full scans through the compositor's pipeline on a grid of separations and at each
 pick (:mod:`polarstripe.planning.validate_table`, docs/planning.md §7; the JSON's ``validation``), drawn on
@@ -186,8 +186,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--width", type=int, default=None, metavar="W",
                         help="width [px] of the error measure's renders (default: the scene camera's, whose "
-                        "pixel grid a stripe composite aliases on; at least 3 px per stripe; a smaller one "
-                        "costs less, docs/planning.md §8)")
+                        "pixel grid a stripe composite aliases on, at most 10 px per stripe; at least 3 px "
+                        "per stripe; a smaller one costs less, docs/planning.md §8)")
     parser.add_argument("--max-frames", type=int, default=0, metavar="N",
                         help="frame budget of a polarized stripe scan (two analyzer passes; --analyzer "
                         "mosaic: one): plan the fewest sheets per frame that fit, with their backscatter, at "

@@ -189,12 +189,12 @@ def test_a_frame_budget_plans_sheets_only_where_they_stay_apart(capsys):
 @pytest.mark.parametrize("extra, width", [([], 128), (["--width", "100"], 100)])
 def test_the_error_measure_renders_at_the_scene_cameras_width(tmp_path, capsys, extra, width):
     """A stripe composite aliases on the camera's pixel grid (docs/planning.md §8): by default the plan
-    renders at the scene camera's width, 128 px here; --width asks for another."""
+    renders at the scene camera's width, 128 px here (under 10 px per stripe); --width asks for another."""
     scene = tmp_path / "small.toml"
     chart = Path(__file__).parents[2] / "bench" / "scenes" / "tank_sigma5.toml"
     scene.write_text(chart.read_text() + "\n[camera]\nresolution = [128, 96]\n")
     assert main(["plan", str(scene), "--modality", "flood", "--separations", "2", "--range", "0.1", "0.3",
-                 "--stripes", "4", *extra, "--json"]) == 0
+                 "--stripes", "16", *extra, "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     jsonschema.validate(doc, PLAN_SCHEMA)
     assert doc["model"] == {"measure": "error", "orders": "all", "width": width}

@@ -122,8 +122,9 @@ def test_saturated_pixels_are_left_out():
 
 
 @pytest.mark.parametrize("camera, width, shape", [
-    ((200, 150), None, (150, 200)),     # the camera's own pixel grid by default
+    ((160, 120), None, (120, 160)),     # the camera's own pixel grid by default
     ((160, 90), None, (90, 160)),
+    ((400, 300), None, (120, 160)),     # … up to 10 px per stripe (16 stripes): wider costs for nothing
     ((160, 90), 96, (54, 96)),          # a cheaper width keeps the pixel aspect (16:9 here)
     ((160, 90), 12, (27, 48)),          # at least 3 px per stripe (16 stripes)
     ((40, 30), 96, (30, 40)),           # never wider than the camera
