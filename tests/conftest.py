@@ -25,7 +25,30 @@ def pytest_addoption(parser):
     group.addoption("--hardware-address", default="0", help="ELLx address of the real device")
 
 
+# The files that take longest (tens of seconds to minutes: whole launches, the murk's renders), longest first.
+# They run first, so that the workers of ``-n auto --dist loadfile`` (pyproject.toml) share out the short
+# files at the end and finish together; in collection order one worker was left with the long ones alone.
+LONGEST_FIRST = (
+    "tests/launch/test_sim_launch.py",
+    "tests/nodes/test_foxglove_bridge.py",
+    "tests/launch/test_soak.py",
+    "tests/tools/test_calibrate.py",
+    "tests/tools/test_replay.py",
+    "tests/launch/test_sigint.py",
+    "tests/launch/",
+    "tests/planning/test_medium_fit.py",
+    "tests/planning/test_sweep.py",
+    "tests/nodes/test_planner_node.py",
+)
+
+
+def _cost_rank(item) -> int:
+    path = item.nodeid.split("::")[0]
+    return next((k for k, prefix in enumerate(LONGEST_FIRST) if path.startswith(prefix)), len(LONGEST_FIRST))
+
+
 def pytest_collection_modifyitems(config, items):
+    items.sort(key=_cost_rank)  # stable: each file's tests keep their order
     if config.getoption("--long"):
         return
     skip = pytest.mark.skip(reason="a long test (minutes): run with --long")
