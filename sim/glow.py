@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 from polarstripe.sim.backscatter import geo
 from polarstripe.sim.geometry import Hits
-from polarstripe.sim.grid_kernels import deposit_beams, glow_emission
+from polarstripe.sim.grid_kernels import deposit_beams, glow_emission, patch_glow
 from polarstripe.sim.grid_sources import (
     footprint_lit,
     glow_beams,
@@ -31,7 +31,6 @@ from polarstripe.sim.grid_sources import (
     surface_irradiance,
 )
 from polarstripe.sim.kernel_records import PhaseArgs
-from polarstripe.sim.kernels import phase_value
 from polarstripe.sim.multiple import Field, Grid, solve_orders, zero_field
 from polarstripe.sim.similarity import truncated_code
 from polarstripe.sim.surface import surface_info
@@ -51,19 +50,7 @@ def glow_weights(points, eye, patches, phase, sigma, out):
         if en > 0.0:
             ex, ey, ez = ex / en, ey / en, ez / en
         for p in range(patches.shape[0]):
-            out[m, p] = 0.0
-            vx, vy, vz = yx - patches[p, 0], yy - patches[p, 1], yz - patches[p, 2]
-            r2 = vx * vx + vy * vy + vz * vz
-            r = math.sqrt(r2)
-            if r <= 0.0:
-                continue
-            cos_p = (vx * patches[p, 3] + vy * patches[p, 4] + vz * patches[p, 5]) / r
-            if cos_p <= 0.0:
-                continue
-            area = patches[p, 6]
-            omega = area * cos_p / (r2 + area / (2.0 * math.pi))
-            mu = (vx * ex + vy * ey + vz * ez) / r
-            out[m, p] = phase_value(phase, 1.0 - mu, 1.0 + mu) * omega * math.exp(-sigma * r)
+            out[m, p] = patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma)
 
 
 @njit(cache=True, nogil=True)

@@ -249,6 +249,24 @@ def view_lookup(shape, t0, t1, cum, x_end, out, rows=(0, -1)):
                     out[f, m] += wq * ((1.0 - a) * cum[f, r, k] + a * cum[f, r, k + 1])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma):
+    """P̃(μ_p) Ω_p e^{−σ̃ r_p} of patch ``p`` at the point (yx, yy, yz), (ex, ey, ez) the unit direction from
+    it to the eye; 0 where the point is on or behind the patch (:func:`glow_emission`)."""
+    vx, vy, vz = yx - patches[p, 0], yy - patches[p, 1], yz - patches[p, 2]
+    r2 = vx * vx + vy * vy + vz * vz
+    r = math.sqrt(r2)
+    if r <= 0.0:
+        return 0.0
+    cos_p = (vx * patches[p, 3] + vy * patches[p, 4] + vz * patches[p, 5]) / r
+    if cos_p <= 0.0:
+        return 0.0
+    area = patches[p, 6]
+    omega = area * cos_p / (r2 + area / (2.0 * math.pi))
+    mu = (vx * ex + vy * ey + vz * ez) / r
+    return phase_value(phase, 1.0 - mu, 1.0 + mu) * omega * math.exp(-sigma * r)
+
+
 @njit(cache=True, nogil=True)
 def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
     """Once-scattered glow toward ``eye`` at ``points`` (m, 3): out[m] = σ̃_s Σ_p P̃(μ_p) R_p Ω_p e^{−σ̃ r_p}
@@ -264,18 +282,7 @@ def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
             ex, ey, ez = ex / en, ey / en, ez / en
         acc = 0.0
         for p in range(patches.shape[0]):
-            vx, vy, vz = yx - patches[p, 0], yy - patches[p, 1], yz - patches[p, 2]
-            r2 = vx * vx + vy * vy + vz * vz
-            r = math.sqrt(r2)
-            if r <= 0.0:
-                continue
-            cos_p = (vx * patches[p, 3] + vy * patches[p, 4] + vz * patches[p, 5]) / r
-            if cos_p <= 0.0:
-                continue
-            area = patches[p, 6]
-            omega = area * cos_p / (r2 + area / (2.0 * math.pi))
-            mu = (vx * ex + vy * ey + vz * ez) / r
-            acc += phase_value(phase, 1.0 - mu, 1.0 + mu) * patches[p, 7] * omega * math.exp(-sigma * r)
+            acc += patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma) * patches[p, 7]
         out[m] = sigma_s * acc
 
 
