@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from polarstripe.bench.mitsuba_references import reference_scene, regions, scene_toml
+from polarstripe.bench.mitsuba_references import reference_scene, regions, render_columns, scene_toml
 from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.scene_port import Port
 
@@ -90,11 +90,7 @@ def readme_section(out: Path) -> str:
         if not f.exists():
             continue
         z = np.load(f)
-        rows.append(f"| `{f.name}` | {WHAT[case]} | {float(z['sigma_t']):g} | {int(z['spp'])} | "
-                    f"{', '.join(str(s) for s in z['seeds'])} | "
-                    f"{' / '.join(f'{s:.0f}' for s in z['seconds'])} | "
-                    f"{' / '.join(f'{v:.4g}' for v in z['regions'].mean(0))} | "
-                    f"{' / '.join(f'{100 * v:.2f}' for v in z['spread'])} |")
+        rows.append(f"| `{f.name}` | {WHAT[case]} | {float(z['sigma_t']):g} | {render_columns(z)} |")
     if not rows:
         return ""
     return _README + "\n".join(rows) + "\n"

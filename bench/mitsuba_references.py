@@ -86,6 +86,15 @@ def regions(img: np.ndarray) -> np.ndarray:
                      img[..., h // 2 - 4: h // 2 + 4, w // 2 - 4: w // 2 + 4].mean()])
 
 
+def render_columns(z) -> str:
+    """A stored reference's render columns of the data README's tables: spp | seeds | seconds per seed |
+    mean of its regions (left / right / centre) | seed spread %."""
+    return (f"{int(z['spp'])} | {', '.join(str(s) for s in z['seeds'])} | "
+            f"{' / '.join(f'{s:.0f}' for s in z['seconds'])} | "
+            f"{' / '.join(f'{v:.4g}' for v in z['regions'].mean(0))} | "
+            f"{' / '.join(f'{100 * v:.2f}' for v in z['spread'])}")
+
+
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -193,11 +202,7 @@ def _own_section(out: Path) -> str:
     rows = []
     for f in files:
         z = np.load(f)
-        rows.append(f"| `{f.name}` | {z['what']} | `{z['pattern']}` | {int(z['spp'])} | "
-                    f"{', '.join(str(s) for s in z['seeds'])} | "
-                    f"{' / '.join(f'{s:.0f}' for s in z['seconds'])} | "
-                    f"{' / '.join(f'{v:.4g}' for v in z['regions'].mean(0))} | "
-                    f"{' / '.join(f'{100 * v:.2f}' for v in z['spread'])} |")
+        rows.append(f"| `{f.name}` | {z['what']} | `{z['pattern']}` | {render_columns(z)} |")
     if not rows:
         return ""
     return ("\n## Own validation scenes of the all-orders model (`sim/validation_scenes.py`)\n\n"
