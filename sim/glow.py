@@ -14,14 +14,13 @@ differently), ``tests/sim/test_glow_basis.py``.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 from polarstripe.sim.backscatter import geo
 from polarstripe.sim.geometry import Hits
-from polarstripe.sim.grid_kernels import deposit_beams, glow_emission, patch_glow
+from polarstripe.sim.grid_kernels import deposit_beams, glow_emission, patch_glow, unit_toward
 from polarstripe.sim.grid_sources import (
     footprint_lit,
     glow_beams,
@@ -45,10 +44,7 @@ def glow_weights(points, eye, patches, phase, sigma, out):
     without the patch's radiance; 0 where it adds nothing), ``patches`` (k, 7): centre, normal, area."""
     for m in range(points.shape[0]):
         yx, yy, yz = points[m, 0], points[m, 1], points[m, 2]
-        ex, ey, ez = eye[0] - yx, eye[1] - yy, eye[2] - yz
-        en = math.sqrt(ex * ex + ey * ey + ez * ez)
-        if en > 0.0:
-            ex, ey, ez = ex / en, ey / en, ez / en
+        ex, ey, ez = unit_toward(eye, yx, yy, yz)
         for p in range(patches.shape[0]):
             out[m, p] = patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma)
 

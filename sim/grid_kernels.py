@@ -250,6 +250,16 @@ def view_lookup(shape, t0, t1, cum, x_end, out, rows=(0, -1)):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def unit_toward(eye, x, y, z):
+    """The unit vector from (x, y, z) to ``eye`` (0 when they coincide)."""
+    ex, ey, ez = eye[0] - x, eye[1] - y, eye[2] - z
+    en = math.sqrt(ex * ex + ey * ey + ez * ez)
+    if en > 0.0:
+        return ex / en, ey / en, ez / en
+    return ex, ey, ez
+
+
+@njit(cache=True, nogil=True, inline="always")
 def patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma):
     """P̃(μ_p) Ω_p e^{−σ̃ r_p} of patch ``p`` at the point (yx, yy, yz), (ex, ey, ez) the unit direction from
     it to the eye; 0 where the point is on or behind the patch (:func:`glow_emission`)."""
@@ -276,10 +286,7 @@ def glow_emission(points, eye, patches, phase, sigma, sigma_s, out):
     direction from the point to ``eye``."""
     for m in range(points.shape[0]):
         yx, yy, yz = points[m, 0], points[m, 1], points[m, 2]
-        ex, ey, ez = eye[0] - yx, eye[1] - yy, eye[2] - yz
-        en = math.sqrt(ex * ex + ey * ey + ez * ez)
-        if en > 0.0:
-            ex, ey, ez = ex / en, ey / en, ez / en
+        ex, ey, ez = unit_toward(eye, yx, yy, yz)
         acc = 0.0
         for p in range(patches.shape[0]):
             acc += patch_glow(patches, p, yx, yy, yz, ex, ey, ez, phase, sigma) * patches[p, 7]
