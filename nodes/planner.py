@@ -161,8 +161,8 @@ class Planner(Node):
         # a source near the camera can fill the frame beyond full scale where the objective does not look
         # (the default tank saturates most of a flood frame below d_LC ≈ 0.1 m); every method of a scan
         # uses the one separation: judged on a flood frame without analyzer, the brightest of any method
-        frames = model if isinstance(model, ImageModel) else ImageModel(
-            self.scene, fidelity=p.fidelity, n_stripes=1, orders=p.orders, width=p.width or None)
+        frames = model if isinstance(model, ImageModel) else ImageModel(   # the error measure's width
+            self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders, width=p.width or None)
         saturated = (np.zeros(c.separations_m.size) if p.max_saturated_fraction >= 1.0 else
                      np.array([frames.saturated_fraction(d) for d in c.separations_m]))
         order = np.argsort(-c.objective, kind="stable")

@@ -21,8 +21,8 @@
 4. With an ``estimator`` node in the launch graph (``rescan``): after a pass over the methods, wait for its
    ``medium/estimate`` of one of the pass's scans and the plan the planner publishes in answer to it
    (``curves["estimate_scan_id"]``); when that
-   plan's separation is more than one step of its grid away from the one scanned, move the source there and
-   scan the methods again (at most ``max_rescans`` times), saying so.
+   plan's separation is more than one step of its grid away from the one scanned and its curve predicts a gain
+   there (``min_gain``), move the source there and scan the methods again (``max_rescans``), saying so.
 5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
@@ -36,6 +36,7 @@ from __future__ import annotations
 import time
 from typing import Literal
 
+import numpy as np
 from polarstripe.msgs import (
     METHOD_NAMES,
     Ack,
@@ -51,6 +52,7 @@ from polarstripe.msgs import (
     ScanEvent,
     ScanRequest,
 )
+from polarstripe.nodes.sequencer_report import scores, summary
 from polarstripe.runtime.bus import BusError, BusTimeout
 from polarstripe.runtime.liveness import STARTING_DEADLINE_S, PeerLost
 from polarstripe.runtime.node import Node
@@ -80,6 +82,7 @@ class Sequencer(Node):
         repeat: int = 1  # passes over methods; 0: scan until stopped (polarstripe bench soak)
         rescan: bool = True  # rescan when an estimate moves the plan by more than one grid step (step 4)
         max_rescans: int = 1
+        min_gain: float = 0.01  # … and the new plan predicts its objective this much higher there (step 4)
         estimator: str = "estimator"  # the node whose medium/estimate a pass waits for, if in the graph
         estimate_timeout_s: float = 300.0  # for the estimate and the plan answering it (fit + re-plan)
         analyzer: Literal["stage", "mosaic"] = "stage"  # mosaic: a polarization camera (no stage to wait for,
@@ -128,7 +131,7 @@ class Sequencer(Node):
             self.log.error("%s", exc)
             ok = False
         if self.results:
-            self.log.info("results:\n%s", self.summary())
+            self.log.info("results:\n%s", summary(self.results))
         if not self.stopping:
             self.stop("sequence finished" if ok else "sequence failed", exit_code=0 if ok else 1)
         for _ in self.events():  # ends with Stop
@@ -227,13 +230,15 @@ class Sequencer(Node):
         except (BusTimeout, PeerLost) as exc:
             self.log.warning("no rescan: no estimate and plan after scans %s: %s", self.pass_scans, exc)
             return False
-        grid = list(self.plan.curves.get("separation_m", [])) or [self.plan.separation_m]
-        step = abs(min(range(len(grid)), key=lambda i: abs(grid[i] - new.separation_m))
-                   - min(range(len(grid)), key=lambda i: abs(grid[i] - self.plan.separation_m)))
+        step, at_new, at_old = _move(new, self.plan.separation_m)
         what = est.reason or f"sigma_t {est.sigma_t_per_m:.3g} /m, g {est.mean_cosine:.3f}, p {est.p:.3f}"
-        self.log.info("estimate of scan %d: %s; plan d_LC = %.3f m (scanned at %.3f m, %d grid steps)",
-                      est.scan_id, what, new.separation_m, self.plan.separation_m, step)
+        gain = "" if at_new is None else f"; objective {at_new:.3f} there, {at_old:.3f} where scanned"
+        self.log.info("estimate of scan %d: %s; plan d_LC = %.3f m (scanned at %.3f m, %d grid steps%s)",
+                      est.scan_id, what, new.separation_m, self.plan.separation_m, step, gain)
         if step <= 1:
+            return False
+        if at_new is not None and at_new < at_old + p.min_gain:
+            self.log.info("no rescan: the re-made plan predicts no gain of %g at its pick", p.min_gain)
             return False
         if p.move_source:
             ack = self.call("simulator/move_source", Plan, Ack, new, timeout_s=30.0)
@@ -371,36 +376,25 @@ class Sequencer(Node):
             self.log.error("%s: scan %d: compositor/composite error: %s", method, sid, comp.metrics["error"])
             self.results[method]["event"] = "composite_error"
             return False
-        self.log.info("%s: %s", method, _scores(shown))
+        self.log.info("%s: %s", method, scores(shown))
         return True
 
-    def summary(self) -> str:
-        """One line per method that reached a composite: frames, sheets, contrast, error vs truth and a
-        stripe scan's depth (valid fraction of the objects' pixels, else of the frame; RMS [mm])."""
-        rows = [f"{'method':<18} {'frames':>6} {'sheets':>6} {'contrast':>9} {'error vs truth':>15} "
-                f"{'depth valid':>11} {'RMS mm':>7}"]
-        for method, r in self.results.items():
-            m = r.get("metrics", {})
-            rows.append(f"{method:<18} {m.get('frames', '-'):>6} {m.get('sheets', '-'):>6} "
-                        f"{_num(m.get('contrast')):>9} {_num(m.get('error_vs_truth')):>15} "
-                        f"{_num(m.get('depth_valid_fraction')):>11} {_num(m.get('depth_rms_mm'), 2):>7}")
-            if m.get("depth_error"):
-                rows.append(f"  {method}: no depth: {m['depth_error']}")
-        return "\n".join(rows)
+
+def _move(new: Plan, scanned_m: float) -> tuple[int, float | None, float | None]:
+    """(grid steps from ``scanned_m`` to ``new``'s pick, ``new``'s objective at its pick and at ``scanned_m``;
+    None without an objective curve), read on ``new``'s separation grid."""
+    grid = np.asarray(new.curves.get("separation_m", [new.separation_m]), float)
+    i, j = (int(np.argmin(np.abs(grid - d))) for d in (new.separation_m, scanned_m))
+    obj = new.curves.get("objective")
+    if obj is None or len(obj) != grid.size:
+        return abs(i - j), None, None
+    return abs(i - j), float(obj[i]), float(obj[j])
 
 
 def _answers(plan: Plan, scan_id: int) -> bool:
     """Whether ``plan`` is the planner's answer to the estimate of scan ``scan_id`` (nodes/planner.py)."""
     sid = plan.curves.get("estimate_scan_id")
     return sid is not None and len(sid) == 1 and int(sid[0]) == scan_id
-
-
-def _num(value, digits: int = 3) -> str:
-    return f"{value:.{digits}f}" if isinstance(value, int | float) else "-"
-
-
-def _scores(metrics: dict) -> str:
-    return f"contrast {_num(metrics.get('contrast'))}, error vs truth {_num(metrics.get('error_vs_truth'))}"
 
 
 class SequenceError(Exception):

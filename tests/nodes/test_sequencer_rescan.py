@@ -10,14 +10,16 @@ from polarstripe.runtime.testing import NodeHarness
 GRID = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
 
 
-def _plan(sep, answers=None):
+def _plan(sep, answers=None, objective=None):
     curves = {"separation_m": GRID}
+    if objective is not None:
+        curves["objective"] = np.asarray(objective, float)
     if answers is not None:
         curves["estimate_scan_id"] = np.array([float(answers)])
     return Plan(modality="stripes", separation_m=sep, curves=curves)
 
 
-def rig(replan_to: float | None, graph=("estimator", "planner"), **params):
+def rig(replan_to: float | None, graph=("estimator", "planner"), objective=None, **params):
     """Scans end at once; after each stripes scan the estimator's estimate and then (if ``replan_to``) the
     planner's plan at ``replan_to`` in answer to it arrive, after plans that answer something else."""
     h = NodeHarness(Sequencer, name="sequencer", namespace="/rig",
@@ -41,7 +43,7 @@ def rig(replan_to: float | None, graph=("estimator", "planner"), **params):
             h.queue("planner/plan", _plan(0.1))
             h.queue("planner/plan", _plan(0.1, answers=sid - 1))
             if replan_to is not None:
-                h.queue("planner/plan", _plan(replan_to, answers=sid))
+                h.queue("planner/plan", _plan(replan_to, answers=sid, objective=objective))
         return ScanEvent(scan_id=sid, event="start", method=req.method)
 
     h.on_call("emitter/start_scan", start)
@@ -76,3 +78,23 @@ def test_without_an_estimator_in_the_graph_nothing_is_waited_for():
     h = rig(0.5, graph=("planner",))
     h.node.run()
     assert h.node.exit_code == 0 and h.calls == ["plan", "move 0.3", "scan flood 1", "scan stripes 2"]
+
+
+def test_a_pick_the_replanned_curve_predicts_no_better_is_no_rescan():
+    """The re-made plan moved two steps (its saturation guard, say), but its own curve scores the separation
+    scanned higher: rescanning there would cost every method (docs/planning.md §6.1)."""
+    h = rig(0.5, objective=[0.5, 0.6, 0.83, 0.82, 0.80])
+    h.node.run()
+    assert h.node.exit_code == 0
+    assert h.calls == ["plan", "move 0.3", "scan flood 1", "scan stripes 2"]
+    assert any("objective 0.800 there, 0.830 where scanned" in t for _, t in h.logs)
+    assert any("no rescan: the re-made plan predicts no gain" in t for _, t in h.logs)
+
+
+def test_a_predicted_gain_of_min_gain_or_more_rescans():
+    h = rig(0.5, objective=[0.5, 0.6, 0.80, 0.82, 0.82])
+    h.node.run()
+    assert h.node.exit_code == 0 and "move 0.5" in h.calls
+    h = rig(0.5, objective=[0.5, 0.6, 0.80, 0.82, 0.805])   # a gain below the default 0.01
+    h.node.run()
+    assert "move 0.5" not in h.calls
