@@ -30,7 +30,7 @@ from polarstripe.msgs import Frame, Header
 from polarstripe.nodes.rig_views import Image
 from polarstripe.nodes.ros2_bridge import Ros2Bridge
 from polarstripe.nodes.ros2_zenoh import data_key
-from polarstripe.runtime.testing import MockBus
+from polarstripe.runtime.mock_bus import MockBus
 
 IMAGE = "sensor_msgs/msg/Image"
 

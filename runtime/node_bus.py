@@ -5,7 +5,7 @@ A node never builds sockets or reads a clock itself; it is given a bus when it i
 
 * :class:`~polarstripe.runtime.runner.ZmqNodeBus`, the real one: one PUB socket, one ROUTER socket for the
   node's services, SUB sockets and DEALER clients pointed by the launch graph, ``time.monotonic`` as clock;
-* :class:`~polarstripe.runtime.testing.MockBus`, the harness's: no sockets, every message through the codec,
+* :class:`~polarstripe.runtime.mock_bus.MockBus`, the harness's: no sockets, every message through the codec,
   a virtual clock that only moves when the node waits.
 
 The bus owns the sockets and the clock; the node owns the loop (:meth:`Node.events`), the timers, the

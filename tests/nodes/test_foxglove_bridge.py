@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from polarstripe.msgs import Composite, Frame, Header, Log, PolarizerState
-from polarstripe.runtime.testing import MockBus
+from polarstripe.runtime.mock_bus import MockBus
 
 pytest.importorskip("foxglove", reason="CI installs the test extra (foxglove-sdk)")
 pytest.importorskip("google.protobuf", reason="CI installs the test extra (protobuf)")

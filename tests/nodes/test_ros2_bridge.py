@@ -24,8 +24,8 @@ import zenoh  # the test extra: a missing package fails here, it is not skipped
 from polarstripe.msgs import DepthMap, Frame, Header, Log, Plan, ScanEvent, ScanRequest
 from polarstripe.nodes.ros2_bridge import Ros2Bridge
 from polarstripe.nodes.ros2_zenoh import parse_attachment
+from polarstripe.runtime.mock_bus import MockBus
 from polarstripe.runtime.node import NodeError
-from polarstripe.runtime.testing import MockBus
 
 CLIENT = Path(__file__).with_name("ros2_sdk_client.py")
 IMAGE_KEY = ("0/rig/camera/frame/image/sensor_msgs::msg::dds_::Image_/"

@@ -8,8 +8,8 @@ import signal
 import pytest
 from polarstripe.msgs import Log
 from polarstripe.nodes.demo import Talker
+from polarstripe.runtime.mock_bus import MockBus
 from polarstripe.runtime.process import install_logging, install_signals
-from polarstripe.runtime.testing import MockBus
 
 
 def _talker(**params):

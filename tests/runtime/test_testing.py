@@ -6,9 +6,10 @@ import time
 import pytest
 from polarstripe.msgs import Ack, Empty, Log, MessageError, PolarizerCommand
 from polarstripe.runtime.bus import ServiceTimeout
+from polarstripe.runtime.mock_bus import MockBus, Paused
 from polarstripe.runtime.node import Node, Received, Stop, Tick
 from polarstripe.runtime.node_bus import NodeBus
-from polarstripe.runtime.testing import MockBus, NodeHarness, Paused
+from polarstripe.runtime.testing import NodeHarness
 
 
 class _Loop(Node):
