@@ -168,12 +168,15 @@ class Node(Watching):
         *,
         msg_type: type[Message] | None = None,
         mode: str = "latest",
+        queue: int | None = None,
     ) -> None:
         """Receive ``topic`` (declared in ``SUBSCRIBES``, or give ``msg_type``).
 
         ``callback(msg)`` is called by the default :meth:`run`; a loop-style node gets
         :class:`Received` events instead. ``mode`` is ``"latest"`` (newest only) or ``"all"`` (every message,
-        sequence gaps counted).
+        sequence gaps counted). ``queue``: messages received ahead of the loop (default 4 for ``latest``,
+        unlimited for ``all``); beyond it a backlog waits in the publisher's queue (its ``hwm``, where a
+        message costs no copy) and what overflows that is lost upstream and counted as a gap.
         """
         msg_type = msg_type or self.SUBSCRIBES.get(topic)
         if msg_type is None:
@@ -183,7 +186,7 @@ class Node(Watching):
         if topic in self._subs:
             raise NodeError(f"node {self.name!r}: already subscribed to {topic!r}")
         full = self.resolve(topic)
-        source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes)
+        source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes, queue)
         self._subs[topic] = _Sub(topic, full, msg_type, callback, mode, source)
 
     def serve(self, service: str, handler: Handler) -> None:

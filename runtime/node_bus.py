@@ -105,7 +105,11 @@ class NodeBus(Protocol):
 
     def publisher(self, topic: str, msg_type: type[Message]) -> BusPublisher: ...
 
-    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> BusSource: ...
+    def subscribe(
+        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None
+    ) -> BusSource:
+        """Receive ``topic``; ``queue``: messages received ahead of the node (None: the mode's default)."""
+        ...
 
     def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:
         """Answer ``service`` with ``handler``; requests are answered inside :meth:`poll`, or later when

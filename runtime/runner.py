@@ -92,10 +92,14 @@ class ZmqNodeBus:
     def publisher(self, topic: str, msg_type: type[Message]):
         return _LockedPublisher(self.pub_socket.publisher(topic, msg_type), self.pub_lock)
 
-    def subscribe(self, topic: str, msg_type: type[Message], mode: str, max_bytes: int) -> zbus.Subscriber:
+    def subscribe(
+        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None
+    ) -> zbus.Subscriber:
         endpoints = pub_endpoints(self.graph, topic) + self.connect
         client_curve = self.curve.client() if self.curve else None  # this host's own key pair
-        sub = zbus.Subscriber(endpoints, topic, msg_type, mode=mode, max_bytes=max_bytes, curve=client_curve)
+        sub = zbus.Subscriber(
+            endpoints, topic, msg_type, mode=mode, hwm=queue, max_bytes=max_bytes, curve=client_curve
+        )
         self.subscribers.append(sub)
         self.poller.register(sub.socket, zmq.POLLIN)
         return sub

@@ -219,3 +219,24 @@ def test_wire_layout_is_topic_header_buffers(ipc):
         assert h[:2] == ["frame", Frame.VERSION] and h[4] == "" and h[5] == [0, "<u2", [2, 3]] and h[6] == 0.5
         assert buf == img.tobytes()
         raw.close(0)
+
+
+def test_a_bounded_receive_queue_leaves_the_backlog_with_the_publisher_and_loses_nothing(ipc):
+    """A subscriber whose receive queue holds 2 messages, behind by a burst of 60 frames of 0.6 MB: ZeroMQ
+    stops reading its socket instead of dropping, the burst waits in the publisher's queue (hwm 100)."""
+    img = np.arange(480 * 640, dtype=np.uint16).reshape(480, 640)
+    with (
+        PubSocket(ipc("a.pub"), hwm=100) as ps,
+        Subscriber([ps.endpoint], "/t/f", Frame, mode="all", hwm=2) as sub,
+    ):
+        pub = ps.publisher("/t/f", Frame)
+        _joined(pub, sub, make=lambda i: Frame(image=img, exposure_s=0.01, step=0))
+        assert sub.socket.rcvhwm == 2
+        first = pub.seq
+        for i in range(60):
+            pub.publish(Frame(image=img + i, exposure_s=0.01, step=i))
+        time.sleep(0.3)  # the receive queue is full long before this
+        got = [sub.recv(timeout_s=2) for _ in range(60)]
+        assert [m.header.seq - first for m in got] == list(range(60))
+        assert all(np.array_equal(m.image, img + m.step) for m in got)
+        assert sub.stats.gaps == 0 and sub.stats.bad == 0

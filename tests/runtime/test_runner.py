@@ -72,6 +72,10 @@ def test_the_zmq_bus_keeps_the_node_contract_and_finds_services_in_the_graph(tmp
         assert client.endpoint == f"ipc://{tmp_path}/g.srv"
         with pytest.raises(BusError, match=r"'/rig/x' is not served .*\(known: /rig/camera/trigger\)"):
             bus.client("/rig/x", Empty, Ack, 0.5)
+        # a node's subscription: the mode's receive queue, or the one asked for
+        assert bus.subscribe("/rig/a", Ack, "latest", 1 << 20).socket.rcvhwm == 4
+        assert bus.subscribe("/rig/b", Ack, "all", 1 << 20).socket.rcvhwm == 0  # unlimited
+        assert bus.subscribe("/rig/c", Ack, "all", 1 << 20, 8).socket.rcvhwm == 8
     finally:
         bus.close()
 
