@@ -7,6 +7,11 @@ metadata). Each message is written as it arrives (log time = receive time, publi
 ``stamp_ns``) without copying its arrays (:class:`~polarstripe.runtime.bag.BagWriter`). Small chunks
 closed by size and age, and optional rotation by size or duration, bound what a SIGKILL can lose to the open
 chunk; SIGINT/SIGTERM finish the file cleanly.
+
+Receive buffers are reused: each topic's receive queue holds ``receive_queue`` messages (a backlog beyond
+waits in the publisher's queue, where a message costs no copy; what overflows that is lost upstream and
+counted as a gap), and freed buffers stay in the process (``runtime.heap.keep_freed_buffers``), so frames
+arrive in pages already mapped instead of fresh ones (docs/architecture.md, "Throughput").
 """
 
 from __future__ import annotations
@@ -23,8 +28,11 @@ from polarstripe import __version__
 from polarstripe.msgs import REGISTRY, Message
 from polarstripe.runtime.bag import BagError, BagWriter
 from polarstripe.runtime.graph import load_graph, pid_alive, resolve
+from polarstripe.runtime.heap import keep_freed_buffers
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
+
+KEEP_FREED_BYTES = 256 << 20  # freed receive buffers kept for reuse (the queue and a chunk of frames fit)
 
 
 def versions() -> dict[str, str]:
@@ -85,6 +93,7 @@ class Recorder(Node):
         chunk_age_s: float = 1.0  # a chunk older than this goes to disk [s]
         split_size: int = 0  # start a new file beyond this many bytes (0: never)
         split_duration_s: float = 0.0  # start a new file after this many seconds (0: never)
+        receive_queue: int = 8  # messages per topic received ahead of writing; more wait upstream (0: no cap)
 
         def validate(self):
             super().validate()
@@ -92,8 +101,8 @@ class Recorder(Node):
                 raise ValueError(
                     f"chunk_size and chunk_age_s must be > 0, got {self.chunk_size}, {self.chunk_age_s}"
                 )
-            if self.split_size < 0 or self.split_duration_s < 0:
-                raise ValueError("split_size and split_duration_s must be >= 0")
+            if self.split_size < 0 or self.split_duration_s < 0 or self.receive_queue < 0:
+                raise ValueError("split_size, split_duration_s and receive_queue must be >= 0")
 
     def setup(self):
         p = self.params
@@ -113,7 +122,9 @@ class Recorder(Node):
                 )
                 continue
             self.types[topic] = cls
-            self.subscribe(topic, lambda m, t=topic: self.write(t, m), msg_type=cls, mode="all")
+            self.subscribe(
+                topic, lambda m, t=topic: self.write(t, m), msg_type=cls, mode="all", queue=p.receive_queue
+            )
         if not self.types:
             raise BagError(
                 f"recorder: nothing to record (topics {wanted or 'none'} of graph "
@@ -129,6 +140,7 @@ class Recorder(Node):
         self._split = bool(p.split_size or p.split_duration_s)
         self.writer: BagWriter | None = None
         self._launcher_pid = int(graph.get("pid") or 0) if p.graph else 0  # a standalone recorder follows it
+        keep_freed_buffers(KEEP_FREED_BYTES)
         self._open()
         self.every(min(0.25, p.chunk_age_s / 2), self._housekeeping)
         self.log.info("recording %d topics to %s", len(self.types), self.writer.path)

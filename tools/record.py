@@ -57,6 +57,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="close a chunk this many seconds after its first message (default 1)",
     )
+    parser.add_argument(
+        "--queue",
+        type=int,
+        default=8,
+        metavar="N",
+        help="messages per topic received ahead of the writes; a backlog beyond waits in the publisher's "
+        "queue (default 8; 0: unlimited)",
+    )
     split = parser.add_mutually_exclusive_group()
     split.add_argument(
         "--split-size",
@@ -85,6 +93,7 @@ def main(args: argparse.Namespace) -> int:
         "compression": args.compression,
         "chunk_size": parse_bytes(args.chunk_size),
         "chunk_age_s": args.chunk_age,
+        "receive_queue": args.queue,
         "split_size": parse_bytes(args.split_size),
         "split_duration_s": args.split_duration,
         "heartbeat_s": 0.0,
