@@ -2,12 +2,15 @@
 
 Measured in one run, on the file system of ``--dir`` (default: the system temp dir):
 
-* **plain write** — the same payload bytes (the frames' packed messages) with ``f.write``, then ``fsync``: the
-  limit of this disk (its page cache, really, for a short run; the ``fsync`` time is reported apart);
+* **plain write** — the same payload bytes (the frames' packed messages) with the recorder's file API (an
+  unbuffered file, one ``os.writev`` per ``--chunk-size`` bytes of whole payloads, as ``BagWriter`` writes a
+  chunk), then ``fsync``: the limit of this disk (its page cache, really, for a short run; the ``fsync``
+  time is reported apart);
 * **BagWriter** — :class:`~polarstripe.runtime.bag.BagWriter` in this process (no bus), uncompressed
   and zstd, beside the peer, ``mcap.Writer`` with the same payloads (it copies each payload three times);
-* **recorder over the bus** — ``polarstripe record`` in its own process (a fresh one per run; the median of
-  ``--repeats`` runs for the two uncompressed as-fast-as-sent rows), subscribed (``mode="all"``) to a
+* **recorder over the bus** (bench/record_bus.py) — ``polarstripe record`` in its own process (a fresh one
+  per run, ``--chunk-size`` and ``--queue`` passed on; the median of ``--repeats`` runs for the two
+  uncompressed as-fast-as-sent rows), subscribed (``mode="all"``) to a
   publisher in this process over ipc (an XPUB socket: nothing is sent before the subscription has arrived):
   frames sent as fast as the publisher can (the recorder's sustained rate is the count over its
   first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no gap, every frame written,
@@ -43,22 +46,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import zmq
 from mcap.writer import CompressionType, Writer
-from polarstripe.bench.proc_cpu import process_cpu, thread_cpu
+from polarstripe.bench.proc_cpu import thread_cpu
+from polarstripe.bench.record_bus import over_bus
 from polarstripe.bench.record_export import export_rows
 from polarstripe.msgs import Frame, decode, encode, json_schema, pack
-from polarstripe.runtime.bag import BagWriter
-from polarstripe.runtime.bag_reader import BagReader
-from polarstripe.runtime.bus import PubSocket
+from polarstripe.runtime.bag import BagWriter, write_buffers
+from polarstripe.tools.record import parse_bytes
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -74,6 +73,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--cold-pause", type=float, default=3.0, help="idle time before a cold measurement [s] (default 3)"
+    )
+    parser.add_argument(
+        "--chunk-size", default="1M", metavar="SIZE",
+        help="the recorder's and BagWriter's chunk size, the plain write's bytes per writev (default 1M)",
+    )
+    parser.add_argument(
+        "--queue", type=int, default=None, metavar="N", help="the recorder's receive queue (default: its own)"
     )
 
 
@@ -110,41 +116,30 @@ def _warm(directory: Path, nbytes: int) -> None:
         path.unlink()
 
 
-class _WatchedPub(PubSocket):
-    """The bench's publisher socket, an XPUB: it sees the recorder's subscription arrive, so no frame is
-    sent before (ZeroMQ drops those) however long the recorder takes to start."""
-
-    def __init__(self, endpoint: str):  # PubSocket's, with XPUB for PUB
-        self.socket = zmq.Context.instance().socket(zmq.XPUB)
-        self.socket.linger = 0
-        self.socket.sndhwm = 100_000
-        self.socket.bind(endpoint)
-        self.endpoint, self._topics = endpoint, {}
-
-    def wait_subscribed(self, topic: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and proc.poll() is None:
-            if self.socket.poll(100) and self.socket.recv() == b"\x01" + topic.encode():
-                return
-        raise RuntimeError(f"the recorder did not subscribe to {topic} (exit code {proc.poll()})")
-
-
-def _plain(path: Path, blobs: list[bytes]) -> dict:
+def _plain(path: Path, blobs: list[bytes], chunk_size: int) -> dict:
+    """The same bytes with BagWriter's file API: an unbuffered file, one ``os.writev`` per ``chunk_size``
+    bytes of whole payloads (as the recorder writes its chunks: a payload past the size closes one)."""
     c0, t0 = thread_cpu(), time.perf_counter()
-    with open(path, "wb") as f:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        group, size = [], 0
         for b in blobs:
-            f.write(b)
-        f.flush()
+            group.append(b)
+            size += len(b)
+            if size >= chunk_size:
+                write_buffers(fd, group)
+                group, size = [], 0
+        write_buffers(fd, group)
         t1, cpu = time.perf_counter(), thread_cpu(c0)
-        os.fsync(f.fileno())
-    t2 = time.perf_counter()
-    return {"s": t1 - t0, "fsync_s": t2 - t1, "bytes": os.path.getsize(path), **cpu}
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path), **cpu}
 
 
-def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
-
+def _bagwriter(path: Path, frames: list[Frame], compression: str, chunk_size: int) -> dict:
     c0, t0 = thread_cpu(), time.perf_counter()
-    w = BagWriter(path, compression=compression).start()
+    w = BagWriter(path, compression=compression, chunk_size=chunk_size).start()
     for f in frames:
         w.add_message("/rig/camera/frame", f)
     w.finish(fsync=False)
@@ -156,7 +151,6 @@ def _bagwriter(path: Path, frames: list[Frame], compression: str) -> dict:
 
 
 def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
-
     c0, t0 = thread_cpu(), time.perf_counter()
     with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.NONE, chunk_size=1 << 20)
@@ -172,94 +166,6 @@ def _mcap_writer(path: Path, frames: list[Frame], blobs: list[bytes]) -> dict:
     return {"s": t1 - t0, "fsync_s": time.perf_counter() - t1, "bytes": os.path.getsize(path), **cpu}
 
 
-def _over_bus(
-    tmp: Path,
-    frames: list[Frame],
-    compression: str,
-    rate: float | None,
-    warm_bytes: int = 0,
-    cold_pause_s: float = 3.0,
-) -> dict:
-    """``polarstripe record`` in its own process; once it has subscribed, this process publishes ``frames``
-    (paced at ``rate``) right after :func:`_warm` of ``warm_bytes`` if given, else after ``cold_pause_s``
-    of idle (memory cold)."""
-
-    ep = f"ipc://{tmp}/bench-cam.pub"
-    graph = {
-        "launch": "bench",
-        "namespace": "/rig",
-        "pid": os.getpid(),
-        "run_dir": str(tmp),
-        "nodes": {"cam": {"module": "bench", "pub": ep, "srv": ""}},
-        "topics": {"/rig/camera/frame": {"type": "frame", "publishers": ["cam"], "subscribers": []}},
-    }
-    (tmp / "graph.json").write_text(json.dumps(graph))
-    bag = tmp / f"bus-{compression}.mcap"
-    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs")}
-    with _WatchedPub(ep) as ps:
-        pub = ps.publisher("/rig/camera/frame", Frame)
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "polarstripe",
-                "record",
-                "-o",
-                str(bag),
-                "--graph",
-                str(tmp / "graph.json"),
-                "--compression",
-                compression,
-            ],
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        ps.wait_subscribed("/rig/camera/frame", proc)
-        time.sleep(0.5 if warm_bytes else cold_pause_s)  # the recorder's start-up is over; cold: idle
-        if warm_bytes:
-            _warm(tmp, warm_bytes)
-        (rec0, flt0), (io0, _) = process_cpu(proc.pid), process_cpu(prefix="ZMQbg")
-        t0 = time.perf_counter()
-        for k, f in enumerate(frames):
-            if rate:
-                wait = t0 + k / rate - time.perf_counter()
-                if wait > 0:
-                    time.sleep(wait)
-            pub.publish(f, stamp_ns=time.time_ns())
-        sent_s = time.perf_counter() - t0
-        last = -1
-        while (size := bag.stat().st_size if bag.exists() else 0) != last:  # until the recorder has caught up
-            last = size
-            time.sleep(1.0)
-        (rec1, flt1), (io1, _) = process_cpu(proc.pid), process_cpu(prefix="ZMQbg")
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=300)
-    if proc.returncode:
-        raise RuntimeError(f"recorder failed: {err.strip().splitlines()[-1:]}")
-    with BagReader(bag) as b:
-        t = b.topics["/rig/camera/frame"]
-        gaps = int(b.metadata["recording"]["gaps"])
-        lags = [(log - m.header.stamp_ns) / 1e9 for _, log, m in b.messages()] if rate else [0.0]
-        size = b.size
-    bag.unlink()
-    return {
-        "recorded": t.count,
-        "sent": len(frames),
-        "gaps": gaps,
-        "s": (t.last_ns - t.first_ns) / 1e9,
-        "fps": (t.count - 1) / max((t.last_ns - t.first_ns) / 1e9, 1e-9),
-        "offered_fps": len(frames) / sent_s,
-        "lag_p99_s": float(np.percentile(lags, 99)),
-        "lag_max_s": float(max(lags)),
-        "bytes": size,
-        "cpu_s": rec1 - rec0 + io1 - io0,  # the recorder's threads and the sender's I/O thread
-        "cpu_recorder_s": rec1 - rec0,
-        "faults": flt1 - flt0,
-    }
-
-
 def run(
     n: int,
     h: int,
@@ -271,22 +177,25 @@ def run(
     repeats: int = 3,
     cold_pause_s: float = 3.0,
     export: bool = True,
+    chunk_size: int = 1 << 20,
+    queue: int | None = None,
 ) -> dict:
     frames = _frames(n, h, w)
     blobs = [pack(f) for f in frames]
     total = sum(len(b) for b in blobs)
     out: dict = {"frames": n, "frame_bytes": len(blobs[0]), "width": w, "height": h, "rows": {}}
+    out["chunk_size"] = chunk_size
     with tempfile.TemporaryDirectory(dir=directory) as d:
         tmp = Path(d)
         rows = out["rows"]
         warm = lambda: _warm(tmp, 2 * total)  # noqa: E731
         cold = lambda: time.sleep(cold_pause_s)  # noqa: E731
         in_process = (
-            ("plain write", "warm", warm, lambda p: _plain(p, blobs)),
-            ("plain write", "cold", cold, lambda p: _plain(p, blobs)),
-            ("BagWriter none", "warm", warm, lambda p: _bagwriter(p, frames, "none")),
-            ("BagWriter none", "cold", cold, lambda p: _bagwriter(p, frames, "none")),
-            ("BagWriter zstd", "warm", warm, lambda p: _bagwriter(p, frames, "zstd")),
+            ("plain write", "warm", warm, lambda p: _plain(p, blobs, chunk_size)),
+            ("plain write", "cold", cold, lambda p: _plain(p, blobs, chunk_size)),
+            ("BagWriter none", "warm", warm, lambda p: _bagwriter(p, frames, "none", chunk_size)),
+            ("BagWriter none", "cold", cold, lambda p: _bagwriter(p, frames, "none", chunk_size)),
+            ("BagWriter zstd", "warm", warm, lambda p: _bagwriter(p, frames, "zstd", chunk_size)),
             ("mcap.Writer none (peer)", "warm", warm, lambda p: _mcap_writer(p, frames, blobs)),
         )
         for name, memory, prepare, fn in in_process:  # the median of `repeats` runs
@@ -299,15 +208,19 @@ def run(
             row["memory"], row["fps"], row["fps_runs"] = memory, n / row["s"], [n / r["s"] for r in runs]
         if export:
             out["export"] = export_rows(tmp, frames, repeats, warm)
+        args = ("--chunk-size", str(chunk_size), *(() if queue is None else ("--queue", str(queue))))
         if bus:  # the two target rows: the median of `repeats` recorders (a busy machine's spread printed)
-            for name, comp, pace, warm_bytes, runs in (
-                ("recorder over bus, none, max", "none", None, 2 * total, repeats),
-                ("recorder over bus, none, max", "none", None, 0, repeats),
-                ("recorder over bus, zstd, max", "zstd", None, 2 * total, 1),
-                (f"recorder over bus, none, {rate:g}/s", "none", rate, 0, 1),
+            for name, comp, pace, memory, runs in (
+                ("recorder over bus, none, max", "none", None, "warm", repeats),
+                ("recorder over bus, none, max", "none", None, "cold", repeats),
+                ("recorder over bus, zstd, max", "zstd", None, "warm", 1),
+                (f"recorder over bus, none, {rate:g}/s", "none", rate, "cold", 1),
             ):
-                memory = "warm" if warm_bytes else "cold"
-                got = [_over_bus(tmp, frames, comp, pace, warm_bytes, cold_pause_s) for _ in range(runs)]
+                prepare = warm if memory == "warm" else cold
+                got = [
+                    over_bus(tmp, frames, prepare, compression=comp, rate=pace, recorder_args=args)
+                    for _ in range(runs)
+                ]
                 rows[f"{name} ({memory})"] = {
                     **sorted(got, key=lambda r: r["fps"])[len(got) // 2],
                     "gaps": max(r["gaps"] for r in got),
@@ -353,13 +266,16 @@ def main(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         cold_pause_s=args.cold_pause,
         export=not args.no_export,
+        chunk_size=parse_bytes(args.chunk_size),
+        queue=args.queue,
     )
     if args.json:
         print(json.dumps(res))
         return 0
     print(
         f"recording {res['frames']} frames {res['width']}×{res['height']} uint16 "
-        f"({res['frame_bytes'] / 1e6:.2f} MB each, {res['payload_MB']:.0f} MB)"
+        f"({res['frame_bytes'] / 1e6:.2f} MB each, {res['payload_MB']:.0f} MB), chunks of "
+        f"{res['chunk_size'] / 2**20:g} MiB"
     )
     print(
         f"{'writer (memory)':<41} {'frames/s':>9} {'MB/s':>8} {'vs plain':>9} {'size/raw':>9} "

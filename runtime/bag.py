@@ -60,7 +60,7 @@ __all__ = [  # the writer, and the layout's names from bag_format (importable fr
 _IOV_MAX = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 1024
 
 
-def _writev(fd: int, bufs) -> int:
+def write_buffers(fd: int, bufs) -> int:
     """Write ``bufs`` in order with as few ``writev`` calls as the kernel takes (no join: the payloads go
     from the received frames to the page cache in one copy); returns the bytes written."""
     views = [v if v.format == "B" and v.ndim == 1 else v.cast("B") for v in map(memoryview, bufs) if v.nbytes]
@@ -338,7 +338,7 @@ class BagWriter:
         if self._f is None:
             raise BagError(f"bag {self.path}: not started (or already finished)")
         try:
-            self._pos += _writev(self._f.fileno(), bufs)
+            self._pos += write_buffers(self._f.fileno(), bufs)
         except OSError as exc:
             raise BagError(f"bag {self.path}: write failed at byte {self._pos}: {exc.strerror}") from None
 

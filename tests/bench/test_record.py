@@ -1,0 +1,27 @@
+"""``polarstripe bench record`` on tiny frames: the in-process rows, the plain write of the payload's bytes,
+and one recorder over the bus (bench/record_bus.py, its own process) that writes every frame."""
+
+import json
+
+from polarstripe.bench.record import _frames
+from polarstripe.bench.record_bus import over_bus
+from polarstripe.msgs import pack
+from polarstripe.tools.cli import main
+
+
+def test_bench_record_in_process_rows(capsys):
+    assert main(["bench", "record", "--frames", "4", "--width", "64", "--height", "48", "--repeats", "1",
+                 "--cold-pause", "0", "--no-export", "--no-bus", "--chunk-size", "16K", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    rows = doc["rows"]
+    assert doc["chunk_size"] == 16384 and len(rows) == 6
+    payload = 1e6 * doc["payload_MB"]
+    assert rows["plain write (warm)"]["bytes"] == rows["plain write (cold)"]["bytes"] == payload
+
+
+def test_the_recorder_over_the_bus_writes_every_frame(tmp_path):
+    frames = _frames(5, 48, 64)
+    calls = []
+    row = over_bus(tmp_path, frames, lambda: calls.append(1), recorder_args=("--queue", "2"))
+    assert calls == [1] and row["recorded"] == row["sent"] == 5 and row["gaps"] == 0
+    assert row["bytes"] > sum(len(pack(f)) for f in frames) and row["cpu_recorder_s"] > 0
