@@ -6,7 +6,8 @@ i.e. messages lost upstream, are counted per topic and reported at the end and i
 metadata). Each message is written as it arrives (log time = receive time, publish time = the header's
 ``stamp_ns``) without copying its arrays (:class:`~polarstripe.runtime.bag.BagWriter`). Small chunks
 closed by size and age, and optional rotation by size or duration, bound what a SIGKILL can lose to the open
-chunk; SIGINT/SIGTERM finish the file cleanly.
+chunk; SIGINT/SIGTERM finish the file cleanly. A rotated file is flushed to disk (``fsync``) on a thread, so
+the loop never stops receiving for longer than a write.
 
 Receive buffers are reused: each topic's receive queue holds ``receive_queue`` messages (a backlog beyond
 waits in the publisher's queue, where a message costs no copy; what overflows that is lost upstream and
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import platform
+import threading
 import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -33,6 +36,14 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
 KEEP_FREED_BYTES = 256 << 20  # freed receive buffers kept for reuse (the queue and a chunk of frames fit)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def versions() -> dict[str, str]:
@@ -139,6 +150,7 @@ class Recorder(Node):
         self.started_ns = time.time_ns()
         self._split = bool(p.split_size or p.split_duration_s)
         self.writer: BagWriter | None = None
+        self._syncing: list[threading.Thread] = []  # fsyncs of rotated files
         self._launcher_pid = int(graph.get("pid") or 0) if p.graph else 0  # a standalone recorder follows it
         keep_freed_buffers(KEEP_FREED_BYTES)
         self._open()
@@ -155,11 +167,17 @@ class Recorder(Node):
         self.writer.add_metadata("launch", launch_metadata(self.recorded_graph))
         self.writer.add_metadata("versions", versions())
 
-    def _close(self) -> None:
+    def _close(self, *, wait: bool = True) -> None:
+        """Finish the file; its ``fsync`` now (``wait``, the last file) or on a thread (a rotation: the loop
+        goes on receiving while the kernel writes the finished file out)."""
         w, self.writer = self.writer, None
         if w is not None:
             w.add_metadata("recording", self.report())
-            w.finish(fsync=True)
+            w.finish(fsync=wait)
+            if not wait:
+                t = threading.Thread(target=_fsync, args=(w.path,), name="recorder-fsync", daemon=True)
+                t.start()
+                self._syncing.append(t)
 
     def write(self, topic: str, msg: Message) -> None:
         """Append one received message (called for every message of every recorded topic)."""
@@ -192,7 +210,7 @@ class Recorder(Node):
             self.stop("the launch ended")
 
     def _rotate(self) -> None:
-        self._close()
+        self._close(wait=False)
         self._open()
 
     def report(self) -> dict[str, str]:
@@ -221,6 +239,8 @@ class Recorder(Node):
     def teardown(self):
         self._drain()
         self._close()
+        for t in self._syncing:  # the rotated files are on disk too before the recorder ends
+            t.join()
         total, gaps = sum(self.counts.values()), sum(self.gaps.values())
         for t in self.types:
             if self.counts[t] or self.gaps[t]:
