@@ -11,7 +11,7 @@ the loop never stops receiving for longer than a write.
 
 Receive buffers are reused: each topic's receive queue holds ``receive_queue`` messages (a backlog beyond
 waits in the publisher's queue, where a message costs no copy; what overflows that is lost upstream and
-counted as a gap), and freed buffers stay in the process (``runtime.heap.keep_freed_buffers``), so frames
+counted as a gap), and freed buffers stay in the process (``polarstripe.heap.keep_freed``), so frames
 arrive in pages already mapped instead of fresh ones (docs/architecture.md, "Throughput").
 """
 
@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Literal
 
 from polarstripe import __version__
+from polarstripe.heap import keep_freed
 from polarstripe.msgs import REGISTRY, Message
 from polarstripe.runtime.bag import BagError, BagWriter
 from polarstripe.runtime.graph import load_graph, pid_alive, resolve
-from polarstripe.runtime.heap import keep_freed_buffers
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -152,7 +152,7 @@ class Recorder(Node):
         self.writer: BagWriter | None = None
         self._syncing: list[threading.Thread] = []  # fsyncs of rotated files
         self._launcher_pid = int(graph.get("pid") or 0) if p.graph else 0  # a standalone recorder follows it
-        keep_freed_buffers(KEEP_FREED_BYTES)
+        keep_freed(KEEP_FREED_BYTES)
         self._open()
         self.every(min(0.25, p.chunk_age_s / 2), self._housekeeping)
         self.log.info("recording %d topics to %s", len(self.types), self.writer.path)

@@ -12,10 +12,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from polarstripe.heap import keep_freed
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.higher import HigherSettings, higher_components
-from polarstripe.sim.memory import keep_freed
 from polarstripe.sim.orders import OrdersPlan, plan_orders
 from polarstripe.sim.patterns import PatternSpec, parse_pattern
 from polarstripe.sim.polarization import analyzer
@@ -27,7 +27,7 @@ from polarstripe.sim.surface_field import View, single_parts
 from polarstripe.sim.threads import each_frame
 from polarstripe.sim.transport import make_source
 
-keep_freed()        # a frame's arrays reuse the last frame's memory (sim/memory.py)
+keep_freed()        # a frame's arrays reuse the last frame's memory (heap.py)
 
 
 @dataclass(frozen=True)

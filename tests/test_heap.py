@@ -1,4 +1,4 @@
-"""runtime/heap.py: with keep_freed_buffers, large buffers freed together are reused (no page faults the
+"""heap.py: with keep_freed, large buffers freed together are reused (no page faults the
 second time round); glibc's defaults give the freed memory back and fault it in again. Each case runs in a
 fresh interpreter: the setting is process-wide."""
 
@@ -10,9 +10,9 @@ import pytest
 PROBE = """
 import resource, sys
 import numpy as np
-from polarstripe.runtime.heap import keep_freed_buffers
+from polarstripe.heap import keep_freed
 if sys.argv[1] == "keep":
-    assert keep_freed_buffers(256 << 20)
+    assert keep_freed(256 << 20)
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 def burst():  # 8 frames of 2.6 MB alive at once, written to, then freed together

@@ -1,0 +1,37 @@
+"""Freed memory kept in the process (glibc malloc), for code that allocates and frees the same large buffers
+over and over: the model's few-MB arrays frame after frame (docs/physics.md §10.6), the recorder's receive
+buffers message after message (docs/architecture.md, "Throughput").
+
+glibc serves a block above its mmap threshold with a fresh mapping, and gives the free top of its heap back to
+the kernel beyond its trim threshold (by default twice the largest block freed so far). Either way the next
+buffer's pages are faulted in again: 3000–4600 minor faults and 13–17 ms of system time per 640×480 model
+frame, one fault per page of every received frame. :func:`keep_freed` serves blocks up to 32 MB (the largest
+mmap threshold glibc takes on 64-bit) from the heap and keeps up to ``keep_bytes`` of freed heap.
+
+Process-wide and Linux/glibc only; elsewhere it does nothing and returns False.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+_M_TRIM_THRESHOLD = -1  # malloc.h
+_M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD_MAX = 32 << 20
+KEEP_BYTES = 256 << 20
+
+try:
+    _mallopt = ctypes.CDLL(ctypes.util.find_library("c") or None).mallopt
+    _mallopt.argtypes, _mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to tune
+    _mallopt = None
+
+
+def keep_freed(keep_bytes: int = KEEP_BYTES) -> bool:
+    """Serve buffers up to 32 MB from the heap and keep up to ``keep_bytes`` of freed heap in the process
+    (``mallopt(M_MMAP_THRESHOLD)``, ``mallopt(M_TRIM_THRESHOLD)``); True if the C library took both."""
+    if _mallopt is None:
+        return False
+    keep = max(0, min(int(keep_bytes), 2**31 - 1))
+    return bool(_mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX)) and bool(_mallopt(_M_TRIM_THRESHOLD, keep))
