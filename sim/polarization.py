@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from polarstripe.sim.sensor_kernels import malus
+from polarstripe.sim.sensor_kernels import malus, malus_basis
 
 
 def rayleigh_mueller(one_minus_mu, one_plus_mu, depolarization: float):
@@ -90,13 +90,11 @@ def analyzer_basis(components, extinction_ratio: float | None = None) -> Analyze
     B = 0) and (q, u) = 0 where Q = U = 0. The extinction ratio defaults to the scene's."""
     er = components.scene.camera.polarizer.extinction_ratio if extinction_ratio is None else extinction_ratio
     k1, k2 = polarizer_transmittances(er)
-    sq, su = components.seen_stokes()
-    norm = np.hypot(sq, su)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(norm > 0, components.B * components.p / norm, 0.0)
     flat = [np.ascontiguousarray(a, dtype=float).reshape(-1) for a in
-            (components.D + components.A + components.B, scale * sq, scale * su)]
-    return AnalyzerBasis(*flat, float(k1), float(k2), tuple(np.shape(components.B)))
+            (components.D, components.A, components.B, *components.seen_stokes())]
+    total, q, u = (np.empty(flat[0].size) for _ in range(3))
+    malus_basis(*flat, total, q, u)          # one compiled pass (sim/sensor_kernels.py)
+    return AnalyzerBasis(total, q, u, float(k1), float(k2), tuple(np.shape(components.B)))
 
 
 def through_analyzer(basis: AnalyzerBasis, angle_deg: float) -> np.ndarray:

@@ -8,6 +8,7 @@ with Ω_px = s² the solid angle of a pixel on the optical axis (s from the came
 off-axis angle (cos⁴ falloff: cos α projected aperture, cos³ α pixel solid angle), η the QE.
 Then μ_y = (μ_e + μ_dark)/K + offset, σ_y² = (σ_read² + μ_e + μ_dark)/K² + 1/12 (K = gain in e⁻/DN),
 shot noise Poisson, read noise Gaussian, electrons capped at the full well, y = clip(round(·), 0, 2^bits − 1).
+The draws: sim/counter_rng.py, the pass: sim/sensor_kernels.py.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.sim.geometry import pinhole_frame, pixel_rays
 from polarstripe.sim.scene import Camera
-from polarstripe.sim.sensor_kernels import digitize, gaussian_dn, mean_electrons
+from polarstripe.sim.sensor_kernels import expose_pixels
+from polarstripe.sim.threads import in_bands
 
 _H = 6.62607015e-34
 _C = 299792458.0
@@ -63,14 +65,14 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     radiance : (h, w) or (n,) radiance [W sr⁻¹ m⁻²] reaching the sensor (after the analyzer), ≥ 0
         (NaN and +inf count as 0).
     camera : Camera (exposure, QE, full well, read noise, dark current, gain, bits, offset).
-    rng : Generator or seed (reproducible); None uses ``camera.seed``.
+    rng : Generator or seed (reproducible; one 64-bit key is drawn from it); None uses ``camera.seed``.
     pixels : (n, 2) pixel coordinates for an (n,) ``radiance``; None: the whole (h, w) grid.
     electrons : mean photo-electrons per unit radiance, broadcastable to ``radiance``, precomputed
         (:func:`electrons_per_radiance` of ``camera``, scaled to its exposure); None computes it. A node that
         exposes many frames of one camera computes it once.
     gaussian : draw shot + read noise as one normal variate of the EMVA 1288 variance σ_r² + μ_e (mean and
-        variance exact, shape approximate below ~20 e⁻; float32, about twice as fast) instead of Poisson
-        shot noise plus normal read noise (float64).
+        variance exact, shape approximate below ~20 e⁻, no whole electrons) instead of Poisson shot noise
+        plus normal read noise.
 
     Returns
     -------
@@ -79,28 +81,25 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     Notes
     -----
     μ_e = L·e_L + μ_dark (capped at 1e12), e = min(Poisson(μ_e), full well) + N(0, σ_r²),
-    y = clip(round(e/K + offset), 0, 2^bits − 1). The draws are one ``rng.poisson`` then one ``rng.normal``
-    over the frame (Poisson), or one ``rng.standard_normal`` in float32 (Gaussian), so a seed gives the same
-    frame whichever way the electrons map was obtained. The arithmetic around the draws is one compiled pass
-    each (sim/sensor_kernels.py): the same operations, in the same order, as the numpy expressions above.
+    y = clip(round(e/K + offset), 0, 2^bits − 1): one compiled pass (sim/sensor_kernels.py), in bands of
+    pixels on the model's threads (sim/threads.py). Each pixel draws from its own window of a counter-based
+    stream keyed by the generator (sim/counter_rng.py), so a seed gives the same frame on any number of
+    threads. Poisson counts are exact below μ_e = 30 and a Cornish–Fisher expansion above
+    (docs/physics.md §7: within 10⁻⁴ of Poisson in total variation).
     """
     rng = np.random.default_rng(camera.seed if rng is None else rng)
+    key = rng.integers(0, 2 ** 64, dtype=np.uint64)
     e_map = electrons_per_radiance(camera, pixels) if electrons is None else electrons
-    dark_e = camera.dark_current_e_s * camera.exposure_s
     shape = np.broadcast_shapes(np.shape(radiance), np.shape(e_map))
     rad, e_map = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), shape)).reshape(-1)
                   for a in (radiance, e_map))
     out = np.empty(rad.size, np.uint16)
-    if gaussian:
-        z = rng.standard_normal(rad.size, dtype=np.float32)
-        gaussian_dn(rad, e_map, np.float32(dark_e), np.float32(camera.read_noise_e ** 2), z,
-                    np.float32(camera.full_well_e), np.float32(1.0 / camera.gain_e_per_dn),
-                    np.float32(camera.offset_dn), np.float32(full_scale_dn(camera)), out)
-        return out.reshape(shape)
-    lam = np.empty(rad.size)
-    mean_electrons(rad, e_map, float(dark_e), lam)
-    shot = rng.poisson(lam)
-    read = rng.normal(0.0, camera.read_noise_e, size=lam.size)
-    digitize(shot, read, float(camera.full_well_e), float(camera.gain_e_per_dn), float(camera.offset_dn),
-             float(full_scale_dn(camera)), out)
+    args = (float(camera.dark_current_e_s * camera.exposure_s), key)
+    adc = (float(camera.read_noise_e), float(camera.full_well_e), 1.0 / camera.gain_e_per_dn,
+           float(camera.offset_dn), float(full_scale_dn(camera)), bool(gaussian))
+
+    def band(first: int, end: int) -> None:
+        expose_pixels(rad[first:end], e_map[first:end], *args, first, *adc, out[first:end])
+
+    in_bands(rad.size, band, min_size=1 << 16)
     return out.reshape(shape)
