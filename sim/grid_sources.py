@@ -366,9 +366,9 @@ def view_integral(grid: Grid, fields: list[Field], view_args: ViewArgs, cam, pix
         rays = pixel_rays(cam, pixels)
         t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
         t0 = np.maximum(t0, 0.0)
-    cum = np.zeros((len(fields), rays.shape[0], int(steps) + 1))
+    cum = np.empty((len(fields), rays.shape[0], int(steps) + 1))         # every entry written
     view_cumulative(grid.args(), phi, flux, view_args, np.ascontiguousarray(rays), t0, t1, cum)
-    out = np.zeros((len(fields), x_end.size))
+    out = (np.empty if pixels is None else np.zeros)((len(fields), x_end.size))   # a frame: every pixel
     if pixels is None:
         in_bands(cam.h, lambda a, b: view_gather((cam.h, cam.w, table.gh, table.gw), cum, table.index,
                                                  table.frac, out, a, b), min_size=16)

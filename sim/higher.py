@@ -238,7 +238,7 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     size = (cam.w, cam.h)
     up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel() if x.any()
           else np.zeros(cam.w * cam.h) for x in (h_half, b, bq, bu, bv)]      # (V is 0 for linear light)
-    p_full = np.zeros(cam.w * cam.h)
+    p_full = np.empty(cam.w * cam.h)                                     # every pixel written
     args = (p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
             view.surf.object_id.reshape(cam.h, cam.w), p_full)
     in_bands(cam.h, lambda a, b: upsample_within(*args, a, b), min_size=16)
@@ -286,10 +286,13 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     ssrc = scaled_source(src, plan)
     n = view.dirs.shape[0]
     D, quasi = _direct_pair(view, src, ssrc, need if not parts else tuple(k for k in need if k != "D"))
-    A, B, Bq, Bu, Bv = (np.zeros(n) for _ in range(5))
     hit = view.surf.object_id >= 0
     want_a = "A" in need and bool(hit.any())
+    b_made = "B" in need and sc.sigma_s > 0
+    A = None if want_a else np.zeros(n)                                  # None: made below
+    B, Bq, Bu, Bv = (None,) * 4 if b_made else tuple(np.zeros(n) for _ in range(4))
     if not (want_a or "B" in need) or sc.sigma_s <= 0:
+        A = np.zeros(n) if A is None else A
         return (D, np.zeros(n), A, B, Bq, Bu, Bv) if parts else (D, A, B, Bq, Bu, Bv)
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
