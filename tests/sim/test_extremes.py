@@ -60,7 +60,7 @@ def test_grazing_rays_parallel_to_stripe_planes_sum_to_flood():
     parts = sum(render_components(sc, f"stripe:{k}/8", "xi=32,theta=2,phi=4,side=0,grid=none", need=("B",)).B
                 for k in range(8))
     assert np.isfinite(parts).all()
-    np.testing.assert_allclose(parts, flood, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(parts, flood, rtol=1e-6, atol=1e-14)   # the grid's FFTs: float32
 
 
 vec = st.tuples(st.floats(-0.25, 0.25), st.floats(-0.25, 0.25))
