@@ -2,9 +2,10 @@
 frame's noise is the same whichever thread draws which pixel (docs/physics.md §7).
 
 The stream is SplitMix64 (Steele, Lea & Flood 2014; Java's ``SplittableRandom``): output n of seed ``key``
-is mix64(key + (n + 1)·γ) with γ = 0x9E3779B97F4A7C15, a sequence that passes BigCrush. Pixel i draws from
-its own SplitMix64 sequence, seeded with output i of the key's (``SplittableRandom.split``): two pixels'
-draws could only meet if their seeds fell within a few γ-steps of each other (odds ~10⁻⁸ a frame). (Windows
+is mix64(key + (n + 1)·γ) with γ = 0x9E3779B97F4A7C15, a sequence that passes BigCrush. A frame has two
+keys. Pixel i's first word is output i of the first key's sequence; its further words come from its own
+SplitMix64 sequence, seeded with output i of the second key's (``SplittableRandom.split``): two pixels'
+words could only meet if their seeds fell within a few γ-steps of each other (odds ~10⁻⁸ a frame). (Windows
 of one sequence, n = i·2³² + j, are not used: that stride has 32 low zero bits, a weak γ whose far normal
 tail came out 50 % too heavy.)
 
@@ -60,31 +61,28 @@ def splitmix(key, n):
 
 
 @njit(inline="always")
-def pixel_key(key, i):
-    """The seed of pixel ``i``'s own sequence: output ``i`` of ``key``'s."""
-    return splitmix(key, np.uint64(i))
-
-
-@njit(inline="always")
 def unit(h):
     """A uniform in (0, 1] from the 53 high bits of ``h``."""
     return (float(np.int64(h >> np.uint64(11))) + 1.0) * 1.1102230246251565e-16   # via int64: a faster cast
 
 
 @njit(inline="always")
-def normal(key, n):
-    """A standard normal from the draws ``n``, ``n + 1``, … of ``key``; (the normal, the next free n)."""
+def _layer(h):
+    """The ziggurat's step on the 64-bit word ``h``: (x, its layer, negative, x inside the layer's safe
+    rectangle — then ±x is the normal, 99.3 %)."""
+    idx = h & _LOW8
+    h >>= np.uint64(8)
+    mag = (h >> _ONE) & _LOW52
+    return float(np.int64(mag)) * _ZW[idx], idx, (h & _ONE) == _ONE, mag < _ZK[idx]
+
+
+@njit(nogil=True)
+def _ziggurat_rejected(x, idx, negative, key, n):
+    """The ziggurat's rare path (0.7 %, a call of its own that keeps the callers' loops small): the tail
+    beyond r (Marsaglia 1964) for layer 0, else the wedge test, and on rejection new words ``n``, … of
+    ``key``; (the normal, the next free n)."""
     while True:
-        h = splitmix(key, n)
-        n += _ONE
-        idx = h & _LOW8
-        h >>= np.uint64(8)
-        negative = (h & _ONE) == _ONE
-        mag = (h >> _ONE) & _LOW52
-        x = float(np.int64(mag)) * _ZW[idx]
-        if mag < _ZK[idx]:                          # inside the layer's safe rectangle: 99.3 %
-            return (-x if negative else x), n
-        if idx == 0:                                # the tail beyond r (Marsaglia 1964)
+        if idx == 0:
             while True:
                 xx = -math.log(unit(splitmix(key, n))) / _ZR
                 yy = -math.log(unit(splitmix(key, n + _ONE)))
@@ -95,10 +93,46 @@ def normal(key, n):
         n += _ONE
         if (_ZF[idx - 1] - _ZF[idx]) * u + _ZF[idx] < math.exp(-0.5 * x * x):
             return (-x if negative else x), n
+        x, idx, negative, inside = _layer(splitmix(key, n))
+        n += _ONE
+        if inside:
+            return (-x if negative else x), n
+
+
+@njit(inline="always")
+def ziggurat(h, key, n):
+    """A standard normal from the 64-bit word ``h``, with the words ``n``, ``n + 1``, … of ``key`` drawn
+    only when ``h`` falls outside its layer's safe rectangle; (the normal, the next free n)."""
+    x, idx, negative, inside = _layer(h)
+    if inside:
+        return (-x if negative else x), n
+    return _ziggurat_rejected(x, idx, negative, key, n)
+
+
+@njit(inline="always")
+def normal(key, n):
+    """A standard normal from the words ``n``, ``n + 1``, … of ``key``; (the normal, the next free n)."""
+    return ziggurat(splitmix(key, n), key, n + _ONE)
+
+
+@njit(inline="always")
+def own_seed(keys, i):
+    """The seed of pixel ``i``'s own sequence: word i of ``keys[1]``'s."""
+    return splitmix(keys[1], np.uint64(i))
+
+
+@njit(inline="always")
+def pixel_normal(keys, i):
+    """Pixel ``i``'s first normal, from word i of ``keys[0]``'s sequence and, on a ziggurat rejection, the
+    words 0, 1, … of its own sequence (:func:`own_seed`); (the normal, the next free word of its own)."""
+    x, idx, negative, inside = _layer(splitmix(keys[0], np.uint64(i)))
+    if inside:
+        return (-x if negative else x), np.uint64(0)
+    return _ziggurat_rejected(x, idx, negative, own_seed(keys, i), np.uint64(0))
 
 
 @njit(cache=True, nogil=True)
-def normals(key, first, out):
+def normals(keys, first, out):
     """``out[j]`` = the first normal of pixel ``first + j`` (for tests and benches)."""
     for j in range(out.size):
-        out[j] = normal(pixel_key(key, first + j), np.uint64(0))[0]
+        out[j] = pixel_normal(keys, first + j)[0]

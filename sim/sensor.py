@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from polarstripe.sim.geometry import pinhole_frame, pixel_rays
 from polarstripe.sim.scene import Camera
-from polarstripe.sim.sensor_kernels import expose_pixels
+from polarstripe.sim.sensor_kernels import expose_gaussian, expose_poisson
 from polarstripe.sim.threads import in_bands
 
 _H = 6.62607015e-34
@@ -65,7 +65,7 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     radiance : (h, w) or (n,) radiance [W sr⁻¹ m⁻²] reaching the sensor (after the analyzer), ≥ 0
         (NaN and +inf count as 0).
     camera : Camera (exposure, QE, full well, read noise, dark current, gain, bits, offset).
-    rng : Generator or seed (reproducible; one 64-bit key is drawn from it); None uses ``camera.seed``.
+    rng : Generator or seed (reproducible; two 64-bit keys are drawn from it); None uses ``camera.seed``.
     pixels : (n, 2) pixel coordinates for an (n,) ``radiance``; None: the whole (h, w) grid.
     electrons : mean photo-electrons per unit radiance, broadcastable to ``radiance``, precomputed
         (:func:`electrons_per_radiance` of ``camera``, scaled to its exposure); None computes it. A node that
@@ -88,18 +88,19 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     (docs/physics.md §7: within 10⁻⁴ of Poisson in total variation).
     """
     rng = np.random.default_rng(camera.seed if rng is None else rng)
-    key = rng.integers(0, 2 ** 64, dtype=np.uint64)
+    keys = rng.integers(0, 2 ** 64, size=2, dtype=np.uint64)
     e_map = electrons_per_radiance(camera, pixels) if electrons is None else electrons
     shape = np.broadcast_shapes(np.shape(radiance), np.shape(e_map))
     rad, e_map = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), shape)).reshape(-1)
                   for a in (radiance, e_map))
     out = np.empty(rad.size, np.uint16)
-    args = (float(camera.dark_current_e_s * camera.exposure_s), key)
+    args = (float(camera.dark_current_e_s * camera.exposure_s), keys)
     adc = (float(camera.read_noise_e), float(camera.full_well_e), 1.0 / camera.gain_e_per_dn,
-           float(camera.offset_dn), float(full_scale_dn(camera)), bool(gaussian))
+           float(camera.offset_dn), float(full_scale_dn(camera)))
+    kernel = expose_gaussian if gaussian else expose_poisson
 
     def band(first: int, end: int) -> None:
-        expose_pixels(rad[first:end], e_map[first:end], *args, first, *adc, out[first:end])
+        kernel(rad[first:end], e_map[first:end], *args, first, *adc, out[first:end])
 
     in_bands(rad.size, band, min_size=1 << 16)
     return out.reshape(shape)

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 from numba import njit
-from polarstripe.sim.counter_rng import normal, pixel_key, splitmix, unit
+from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix, unit
 
 POISSON_EXACT_BELOW = 30.0   # mean electrons below which shot noise is drawn by inversion (docs/physics.md §7)
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
@@ -45,43 +45,70 @@ def malus_basis(d, a, b, sq, su, total, q, u):
         u[i] = scale * su[i]
 
 
+@njit(nogil=True)
+def _poisson_inversion(lam, key, n):
+    """An exact Poisson(λ) count by inversion from the word ``n`` of ``key`` (λ < 30; a call of its own)."""
+    u = unit(splitmix(key, n))
+    p = math.exp(-lam)
+    f, k = p, 0
+    while u > f and p > 1e-17 and k < 127:       # past the mode, terms below 1e-17 cannot move f
+        k += 1
+        p *= lam * _RECIPROCALS[k]
+        f += p
+    return float(k)
+
+
 @njit(inline="always")
 def poisson_count(lam, key, n):
     """A Poisson(λ) count as a float, from the draws ``n``, ``n + 1``, … of ``key``: inversion below
     :data:`POISSON_EXACT_BELOW` (exact), above it a normal z through the rounded Cornish–Fisher expansion
     λ + √λ·z + (z² − 1)/6 − z(2 + z²)/(72√λ) (docs/physics.md §7)."""
     if lam < POISSON_EXACT_BELOW:
-        u = unit(splitmix(key, n))
-        p = math.exp(-lam)
-        f, k = p, 0
-        while u > f and p > 1e-17 and k < 127:   # past the mode, terms below 1e-17 cannot move f
-            k += 1
-            p *= lam * _RECIPROCALS[k]
-            f += p
-        return float(k)
+        return _poisson_inversion(lam, key, n)
     z = normal(key, n)[0]
     r = math.sqrt(lam)
     x = lam + r * z + (z * z - 1.0) * (1.0 / 6.0) - z * (2.0 + z * z) / (72.0 * r)
-    return max(math.floor(x + 0.5), 0.0)
+    return max(np.rint(x), 0.0)                   # rint: ties (probability 0) to even
+
+
+_CHUNK = 1024        # pixels whose mean electrons are computed in one vectorizable loop before their draws
+
+
+@njit(inline="always")
+def _mean_electrons(radiance, e_map, dark_e, start, buf):
+    """buf[k] = min(max(L, 0)·e + μ_dark, 1e12) for the pixels start + k (NaN and +inf radiance read as 0);
+    how many (up to the buffer's size)."""
+    m = min(buf.size, radiance.size - start)
+    for k in range(m):
+        x = radiance[start + k]
+        buf[k] = min((x if 0.0 < x < np.inf else 0.0) * e_map[start + k] + dark_e, 1e12)
+    return m
 
 
 @njit(cache=True, nogil=True)
-def expose_pixels(radiance, e_map, dark_e, key, first, read_e, full_well, inv_gain, offset, top, gaussian,
-                  out):
-    """The EMVA 1288 sensor over flat arrays whose item j is pixel ``first + j`` (uint16 ``out``):
-    μ = min(max(L, 0)·e + μ_dark, 1e12) (NaN and +inf radiance read as 0); electrons Poisson(μ) capped at the
-    full well plus σ_r·z (``gaussian``: μ + √(μ + σ_r²)·z capped at the full well); y = clip(rint(e/K +
-    offset), 0, top) with ``inv_gain`` = 1/K. Draws: the read noise's normal, then the shot noise's, from the
-    pixel's own sequence."""
-    for j in range(out.size):
-        x = radiance[j]
-        if not x > 0.0 or x == np.inf:
-            x = 0.0
-        lam = min(x * e_map[j] + dark_e, 1e12)
-        own = pixel_key(key, first + j)
-        z, n = normal(own, np.uint64(0))
-        if gaussian:
-            e = min(lam + math.sqrt(lam + read_e * read_e) * z, full_well)
-        else:
-            e = min(poisson_count(lam, own, n), full_well) + read_e * z
-        out[j] = min(max(np.rint(e * inv_gain + offset), 0.0), top)
+def expose_poisson(radiance, e_map, dark_e, keys, first, read_e, full_well, inv_gain, offset, top, out):
+    """The EMVA 1288 sensor over flat arrays whose item j is pixel ``first + j`` (uint16 ``out``): μ of
+    :func:`_mean_electrons`, electrons min(Poisson(μ), full well) + σ_r·z, y = clip(rint(e/K + offset), 0,
+    top) with ``inv_gain`` = 1/K. Draws (``keys``: the frame's two, sim/counter_rng.py): the read noise's
+    normal (the pixel's first word), then the shot noise's count from the pixel's own sequence."""
+    buf = np.empty(_CHUNK)
+    for start in range(0, out.size, _CHUNK):
+        for k in range(_mean_electrons(radiance, e_map, dark_e, start, buf)):
+            i = first + start + k
+            z, n = pixel_normal(keys, i)
+            e = min(poisson_count(buf[k], own_seed(keys, i), n), full_well) + read_e * z
+            out[start + k] = min(max(np.rint(e * inv_gain + offset), 0.0), top)
+
+
+@njit(cache=True, nogil=True)
+def expose_gaussian(radiance, e_map, dark_e, keys, first, read_e, full_well, inv_gain, offset, top, out):
+    """As :func:`expose_poisson` with shot and read noise as one normal: e = min(μ + √(μ + σ_r²)·z, full
+    well), z the pixel's first normal."""
+    buf = np.empty(_CHUNK)
+    read_var = read_e * read_e
+    for start in range(0, out.size, _CHUNK):
+        for k in range(_mean_electrons(radiance, e_map, dark_e, start, buf)):
+            lam = buf[k]
+            z = pixel_normal(keys, first + start + k)[0]
+            e = min(lam + math.sqrt(lam + read_var) * z, full_well)
+            out[start + k] = min(max(np.rint(e * inv_gain + offset), 0.0), top)
