@@ -28,10 +28,10 @@ import time
 import numpy as np
 from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
+from polarstripe.planning.image_model import plan_fidelity
 from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.planning.validate import ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
-from polarstripe.sim.render import resolve_fidelity
 from polarstripe.sim.scene import load_scene
 from polarstripe.sim.threads import set_threads, threads
 
@@ -48,10 +48,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--separations", type=int, default=None,
                         help=f"separations per plan (default {FULL_PLAN}, the full plan; --quick "
                              f"{QUICK['separations']}, its time scaled to {FULL_PLAN})")
-    parser.add_argument("--fidelities", default="preview,standard",
+    parser.add_argument("--fidelities", default="draft,preview,standard",
                         help="comma-separated fidelity levels of the planner's model (default "
-                             "preview,standard; reference: whole frames with A at every pixel, minutes per "
-                             "separation)")
+                             "draft,preview,standard; draft: the planner's own, below preview; reference: "
+                             "whole frames with A at every pixel, minutes per separation)")
     parser.add_argument("--quick", action="store_true",
                         help=f"a short ladder: {QUICK['separations']} separations at {QUICK['width']} px, "
                              f"the truth on {QUICK['grid']} separations without bisection")
@@ -65,7 +65,7 @@ def _levels(text: str) -> list[str]:
     if not fids:
         raise PolarstripeError("--fidelities: no fidelity given")
     for f in fids:
-        resolve_fidelity(f)             # a bad name: one line naming the choices
+        plan_fidelity(f)                # a bad name: one line naming the choices
     return fids
 
 

@@ -32,7 +32,8 @@ from polarstripe.planning.objectives import Samples, SensorNoise
 from polarstripe.planning.predicted_error import P_RULES
 from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
-from polarstripe.sim.render import render_components
+from polarstripe.sim.higher import HigherSettings
+from polarstripe.sim.render import Fidelity, render_components, resolve_fidelity
 from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_dn
 from polarstripe.sim.threads import each_frame
@@ -42,6 +43,29 @@ from polarstripe.sim.truth import unscattered_object
 # stripe composite's aliasing is small; docs/planning.md §8)
 PX_PER_STRIPE = 10
 
+# the planner's own level below the simulator's preview (docs/planning.md §8, the ladder): the higher orders
+# on a grid of 8 cells along the tank, 2 orders and one of the glow, the single-scattering backscatter at a
+# quarter of the resolution, fewer quadrature nodes; the picks it gives are judged end to end by
+# `polarstripe bench planner` (regret per scene), not its pixels
+PLAN_FIDELITY = {
+    "draft": Fidelity("draft", 3, 2, 6, (8, 4), 3,
+                      HigherSettings(cells=8, orders=2, glow_orders=1, view_div=16, view_steps=12,
+                                     patch_cells=2.0, glow_dirs=12, oversample=0.5, b_div=4,
+                                     a1_exact=False, half_res=True)),
+}
+
+
+def plan_fidelity(fidelity: str | Fidelity) -> Fidelity:
+    """The planner's fidelity: ``draft`` (:data:`PLAN_FIDELITY`) or any of the simulator's
+    (:func:`polarstripe.sim.render.resolve_fidelity`; a bad name is one error naming them)."""
+    if isinstance(fidelity, str) and fidelity in PLAN_FIDELITY:
+        return PLAN_FIDELITY[fidelity]
+    try:
+        return resolve_fidelity(fidelity)
+    except SceneError:
+        raise SceneError(f"fidelity {fidelity!r} is not draft (the planner's), preview, standard, reference "
+                         "or 'xi=N,theta=N,phi=N,side=N,grid=WxH|none,cells=N'") from None
+
 
 class ImageModel:
     """Whole low-resolution frames per separation (module docstring).
@@ -50,7 +74,8 @@ class ImageModel:
     ----------
     scene : Scene
     fidelity : model fidelity of the renders (``preview`` by default: the measure compares separations,
-        and `bench planner --end-to-end` shows what the level costs in regret).
+        and `bench planner` shows what the level costs in regret), or the planner's ``draft``
+        (:data:`PLAN_FIDELITY`).
     n_stripes : stripes per scan.
     width : width [px] of the renders; None (default): the scene camera's, whose pixel grid the stripe
         composite aliases on, up to ``PX_PER_STRIPE`` px per stripe; at least 3 px per stripe, at most the
@@ -89,7 +114,7 @@ class ImageModel:
         self.scene = scene.replace(camera=cam)
         if isinstance(stripe_step, bool) or int(stripe_step) != stripe_step or not 1 <= stripe_step:
             raise SceneError(f"stripe_step must be a positive integer, got {stripe_step!r}")
-        self.fidelity, self.n_stripes, self.orders = fidelity, int(n_stripes), orders
+        self.fidelity, self.n_stripes, self.orders = plan_fidelity(fidelity), int(n_stripes), orders
         self.stripe_step = int(stripe_step)
         if isinstance(sheets, bool) or int(sheets) != sheets or not 1 <= sheets <= n_stripes:
             raise SceneError(f"sheets must be an integer 1..n_stripes ({n_stripes}), got {sheets!r}")

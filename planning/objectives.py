@@ -46,7 +46,7 @@ from polarstripe.imaging.quality import (
     log_snr_weight,
     recovered_signal_noise_e,
 )
-from polarstripe.planning.predicted_error import reading_error
+from polarstripe.planning.predicted_error import image_error, reading_image
 from polarstripe.sim.scene import SceneError
 
 MODALITIES = ("flood", "stripes")
@@ -183,7 +183,7 @@ def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: f
     the location is. ``samples`` hold electrons at the scene's exposure; ``noise.electrons_per_radiance`` is
     the exposure's multiplier (inf: the noise-free, unsaturating sensor). ``memo``: one dict per
     (``samples``, ``noise``) kept by the caller across the readings: the analyzer's composites are made once
-    per location for E_b and Ŝ (:func:`~polarstripe.planning.predicted_error.reading_error`)."""
+    for E_b and Ŝ (:func:`~polarstripe.planning.predicted_error.reading_image`)."""
     if samples.truth is None:
         raise SceneError("the error measure needs whole-image samples with T (planning/image_model.py)")
     scale = float(np.max(noise.electrons_per_radiance))
@@ -199,21 +199,30 @@ def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: f
     quality, saturated = np.zeros(n), np.zeros(n, bool)
     flood = samples.flood_dop
 
-    def scored(at, key):
-        err, sat = reading_error(reading, s_e[..., at], b_e[..., at], dop[..., at], chi[..., at],
-                                 truth[at] * k, full_well_e=math.inf if ideal else noise.full_well_e,
-                                 dark_e=noise.dark_e, read_noise_e=noise.read_noise_e,
-                                 quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal,
-                                 p_rule=samples.p_rule,
-                                 flood_dop=None if flood is None else tuple(np.asarray(x)[at] for x in flood),
-                                 memo=None if memo is None else memo.setdefault(key, {}))
+    # the image as the end-to-end judge scores it: every composed pixel, one gain (a gain per location
+    # forgives the fall-off across the image that one gain cannot: the stripe plans' bias, docs/planning.md);
+    # the analyzer is calibrated once on the whole flood, as the rig does, so each location's composite is
+    # the frame's at its pixels (one pass over the frames serves them all)
+    if n == 0:
+        return Objective(quality, np.ones(n), saturated, frame_quality=0.0, frame_saturated=True)
+    at = group >= 0
+    if at.all():
+        at = slice(None)                      # every pixel composed: no copies
+    mean, var, valid = reading_image(
+        reading, s_e[..., at], b_e[..., at], dop[..., at], chi[..., at], truth[at] * k,
+        full_well_e=math.inf if ideal else noise.full_well_e, dark_e=noise.dark_e,
+        read_noise_e=noise.read_noise_e, quantization_e=noise.quantization_e, p_min=p_min, noise=not ideal,
+        p_rule=samples.p_rule, flood_dop=None if flood is None else tuple(np.asarray(x)[at] for x in flood),
+        memo=memo)
+    t_at, g_at = truth[at] * k, group[at]
+
+    def scored(sub):
+        err, sat = image_error(mean[sub], var[sub], t_at[sub], valid[sub])
         return 1.0 - err, sat >= 1.0
 
     for g in range(n):
-        quality[g], saturated[g] = scored(group == g, g)
-    # the image as the end-to-end judge scores it: every composed pixel, one gain (a gain per location
-    # forgives the fall-off across the image that one gain cannot: the stripe plans' bias, docs/planning.md)
-    frame = (quality[0], saturated[0]) if n == 1 else scored(group >= 0, "frame") if n else (0.0, True)
+        quality[g], saturated[g] = scored(g_at == g) if n > 1 else scored(slice(None))
+    frame = (quality[0], saturated[0]) if n == 1 else scored(slice(None))
     return Objective(quality, np.ones(n), saturated, frame_quality=float(frame[0]),
                      frame_saturated=bool(frame[1]))
 

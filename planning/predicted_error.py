@@ -152,11 +152,23 @@ def seen_dop(p, chi, chi_bar: float, p_min: float) -> np.ndarray:
                    p_min, 1.0)
 
 
-def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float, dark_e: float = 0.0,
+def reading_error(reading: str, s_e, b_e, p, chi, truth_e, **kw) -> tuple[float, float]:
+    """(expected error, saturated fraction) of one reading's composite over the given pixels (the arguments
+    of :func:`reading_image`)."""
+    mean, var, valid = reading_image(reading, s_e, b_e, p, chi, truth_e, **kw)
+    return image_error(mean, var, truth_e, valid)
+
+
+def image_error(mean, var, truth_e, valid) -> tuple[float, float]:
+    """(expected error, saturated fraction) of a composite's per-pixel mean, variance and validity."""
+    return expected_error(mean, var, truth_e, valid), float(1.0 - np.mean(valid)) if np.size(valid) else 1.0
+
+
+def reading_image(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float, dark_e: float = 0.0,
                   read_noise_e: float = 0.0, quantization_e: float = 0.0, p_min: float = 0.05,
-                  noise: bool = True, p_rule: str = "map", flood_dop=None,
-                  memo: dict | None = None) -> tuple[float, float]:
-    """(expected error, saturated fraction) of one reading's composite over the given pixels.
+                  noise: bool = True, p_rule: str = "map", flood_dop=None, memo: dict | None = None):
+    """(mean, variance, valid) per pixel of one reading's composite over the given pixels, in electrons:
+    what :func:`reading_error` scores (a subset of the pixels is scored by indexing all three).
 
     ``s_e``, ``b_e``: signal S = D + A and backscatter B in electrons, (n,) for one frame or (F, n) for the
     F frames of a scan (composed by eq. 7 at each analyzer angle, :func:`composite`); ``p``, ``chi``: the
@@ -211,4 +223,4 @@ def reading_error(reading: str, s_e, b_e, p, chi, truth_e, *, full_well_e: float
             var = (1.0 + 1.0 / ph) ** 2 * v_b + (1.0 - 1.0 / ph) ** 2 * v_w
     if reading != "S_hat":
         valid = brightest + dark_e < full_well_e
-    return expected_error(mean, var, t_e, valid), float(1.0 - np.mean(valid)) if valid.size else 1.0
+    return mean, var, valid

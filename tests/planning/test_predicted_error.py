@@ -4,7 +4,8 @@ import math
 
 import numpy as np
 import pytest
-from polarstripe.planning.image_model import ImageModel
+from polarstripe.planning.image_model import PLAN_FIDELITY, ImageModel
+from polarstripe.planning.objectives import IDEAL_SENSOR, Samples, objective
 from polarstripe.planning.planner import plan, plan_model
 from polarstripe.planning.predicted_error import DRAW_BLOCK, composite, expected_error, reading_error
 from polarstripe.sim.scene import SceneError, load_scene
@@ -114,6 +115,25 @@ def test_a_stripe_composite_divided_by_the_flood_map_keeps_its_own_residual():
     assert own == pytest.approx(0.0, abs=1e-7)            # its own DOP as the map: removed
 
 
+def test_every_location_is_scored_through_the_one_analyzer_calibrated_on_the_whole_frame():
+    """Two locations whose backscatter (p = 1) is polarized at 0 and at θ: the rig calibrates one analyzer on
+    the whole flood, at χ̄ = θ/2, so each location's E_b keeps the veil c = ½B(1 − cos θ) over ½S (an analyzer
+    per location would remove it: error 0); with the gain fitted on S = 1 ± r, by hand,
+    e² = 1 − ((1 + r²)/2 + c)² / (((1 + r²)/4 + c + c²)(1 + r²))."""
+    r, theta, b0 = 0.4, 0.8, 0.3
+    t = _chart(r=r)
+    n = t.size
+    group = (np.arange(n) >= n // 2).astype(np.int64)
+    chi = np.where(group == 0, 0.0, theta)
+    b, p = np.full(n, b0), np.ones(n)
+    samples = Samples(t, np.zeros(n), b, p, chi=chi, truth=t, group=group, flood_dop=(b, p, chi))
+    obj = objective(samples, IDEAL_SENSOR, modality="stripes", reading="E_b", measure="error")
+    c, q = 0.5 * b0 * (1 - math.cos(theta)), 1 + r * r
+    want = math.sqrt(1 - (q / 2 + c) ** 2 / ((q / 4 + c + c * c) * q))
+    assert obj.quality == pytest.approx([1 - want, 1 - want], rel=1e-9)
+    assert obj.frame_quality == pytest.approx(1 - want, rel=1e-9)
+
+
 def test_saturated_pixels_are_left_out():
     t = _chart()
     s, b = 1000.0 * t, np.where(np.arange(t.size) < t.size // 2, 1e6, 0.0)
@@ -153,3 +173,13 @@ def test_planner_with_the_error_measure_on_a_small_scene():
     assert set(plans["stripes_polarized"].readings) == {"E_b", "S_hat"}
     with pytest.raises(SceneError, match="measure"):
         plan_model(scene, measure="cqm")
+
+
+def test_the_planner_s_draft_level_is_a_named_fidelity():
+    """``draft`` (the planner's level below preview) is one name among the simulator's; a bad name is one
+    error naming them."""
+    scene = load_scene(None)
+    assert plan_model(scene, fidelity="draft", width=16, n_stripes=4).fidelity is PLAN_FIDELITY["draft"]
+    assert plan_model(scene, fidelity="preview", width=16, n_stripes=4).fidelity.name == "preview"
+    with pytest.raises(SceneError, match="not draft .*preview, standard, reference"):
+        plan_model(scene, fidelity="rough", width=16)
