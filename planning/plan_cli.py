@@ -177,7 +177,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "against the unscattered object, from low-resolution whole frames) or 'paper' "
                              "(CQM·W, the delineation margin or eq. 9 ·W at three observed points)")
     parser.add_argument("--fidelity", default=None,
-                        help="model fidelity: preview, standard, reference (default: preview for the error "
+                        help="model fidelity: draft (the error measure's cheapest), preview, standard, "
+                             "reference (default: preview for the error "
                              "measure, standard for the paper's)")
     parser.add_argument("--separations", type=int, default=60,
                         help="number of separations swept (default 60)")

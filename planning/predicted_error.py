@@ -102,31 +102,32 @@ def composite(frames, variances, draws: int = 8):
     n = int(np.prod(frames.shape[1:]))
     z = _draws((int(draws), frames.shape[0], min(n, DRAW_BLOCK)))
     top = np.empty((z.shape[0],) + frames.shape[1:])
-    noisy_max(frames.reshape(frames.shape[0], -1), np.sqrt(variances).reshape(frames.shape[0], -1), z,
-              top.reshape(z.shape[0], -1))
+    per_pixel = [np.ascontiguousarray(x.reshape(x.shape[0], -1).T) for x in (frames, np.sqrt(variances))]
+    noisy_max(*per_pixel, z, top.reshape(z.shape[0], -1))
     return top.mean(axis=0), top.var(axis=0, ddof=1)
 
 
 @lru_cache(maxsize=8)
 def _draws(shape: tuple[int, ...]) -> np.ndarray:
-    """The seeded standard normal draws of :func:`composite` (seed 0; the same for every call of a shape,
-    kept read-only)."""
-    z = np.random.default_rng(0).standard_normal(shape)
+    """The seeded standard normal draws of :func:`composite` for ``shape`` (draws, frames, pixels) (seed 0;
+    the same for every call of a shape), kept read-only as (draws, pixels, frames): a pixel's frames side by
+    side in memory, as :func:`noisy_max` reads them."""
+    z = np.ascontiguousarray(np.random.default_rng(0).standard_normal(shape).transpose(0, 2, 1))
     z.flags.writeable = False
     return z
 
 
 @njit(cache=True, nogil=True)
 def noisy_max(frames, sd, z, out):
-    """out[d, x] = max_f (frames[f, x] + sd[f, x]·z[d, f, x mod m]), m = z.shape[2]: eq. 7's maximum of each
-    seeded noise draw."""
-    m = z.shape[2]
-    for d in range(z.shape[0]):
-        for x in range(frames.shape[1]):
-            k = x % m
-            best = frames[0, x] + sd[0, x] * z[d, 0, k]
-            for f in range(1, frames.shape[0]):
-                v = frames[f, x] + sd[f, x] * z[d, f, k]
+    """out[d, x] = max_f (frames[x, f] + sd[x, f]·z[d, x mod m, f]), m = z.shape[1]: eq. 7's maximum of each
+    seeded noise draw (frames and their standard deviations per pixel (n, F), the draws (D, m, F))."""
+    m = z.shape[1]
+    for x in range(frames.shape[0]):
+        k = x % m
+        for d in range(z.shape[0]):
+            best = frames[x, 0] + sd[x, 0] * z[d, k, 0]
+            for f in range(1, frames.shape[1]):
+                v = frames[x, f] + sd[x, f] * z[d, k, f]
                 if v > best:
                     best = v
             out[d, x] = best
