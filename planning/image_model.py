@@ -63,7 +63,7 @@ def plan_fidelity(fidelity: str | Fidelity) -> Fidelity:
     try:
         return resolve_fidelity(fidelity)
     except SceneError:
-        raise SceneError(f"fidelity {fidelity!r} is not draft (the planner's), preview, standard, reference "
+        raise SceneError(f"fidelity {fidelity!r} is not preview, standard, reference, draft (the planner's) "
                          "or 'xi=N,theta=N,phi=N,side=N,grid=WxH|none,cells=N'") from None
 
 

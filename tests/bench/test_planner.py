@@ -23,13 +23,13 @@ def ladder():
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["bench", "planner", *TINY, "--fidelities", "preview,standard", "--json"]) == 0
+        assert main(["bench", "planner", *TINY, "--fidelities", "draft,preview,standard", "--json"]) == 0
     return json.loads(out.getvalue())
 
 
 def test_every_level_has_its_time_and_regret(ladder):
-    assert [(lv["variant"], lv["fidelity"]) for lv in ladder["levels"]] == [("error", "preview"),
-                                                                            ("error", "standard")]
+    assert [(lv["variant"], lv["fidelity"]) for lv in ladder["levels"]] == [
+        ("error", "draft"), ("error", "preview"), ("error", "standard")]
     assert ladder["time_scale"] == 20 and ladder["full_plan"] == 60       # 3 separations timed, scaled to 60
     truth = ladder["truth"]["tank_sigma5"]["best"]                          # the default scene: σ_t 5
     assert set(truth) == set(METHOD_NAMES)
@@ -51,7 +51,7 @@ def test_the_table_names_every_level(ladder, capsys):
     print_ladder(ladder)
     out = capsys.readouterr().out
     assert "timed on 3, scaled ×20" in out
-    for fid in ("preview", "standard"):
+    for fid in ("draft", "preview", "standard"):
         assert f"error    {fid:<9} tank_sigma5" in out
 
 
