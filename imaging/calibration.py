@@ -8,11 +8,13 @@ Per pose of a planar checkerboard of ``cols``×``rows`` inner corners (squares `
    :func:`polarstripe.imaging.structured_light.calibration_code`), each bit from a pattern against its
    inverse (:func:`polarstripe.imaging.structured_light.decode`), kept where white − black exceeds
    ``black_threshold`` (shadow mask);
-3. the projector's corners by local homographies: in each window (±1 square) a homography H (RANSAC at
-   2 projector pixels, then least squares on its inliers) maps camera pixels to decoded projector pixels,
-   and the corner x_p = H·x_c (homogeneous). A plane seen by two pinholes is a homography, so H is exact up
-   to lens distortion, and the window's decoding noise averages down while the pixels whose bits the
-   medium's noise flipped fall out as outliers;
+3. the projector's corners by local maps (after Moreno & Taubin's local homographies): in each window
+   (±1 square) a homography (RANSAC at 2 projector pixels) picks the decoded pixels that fit it, and a
+   quadratic in the camera pixel, fitted to those by least squares, maps the corner into the projector. A
+   plane seen by two pinholes is a homography, but seen through flat ports it is not: there the
+   homography's corner is off by ~0.14 px (in simulation, noise-free; the quadratic's by < 0.01 px). The
+   window's decoding noise averages down while the pixels whose bits the medium's noise flipped fall out
+   as outliers;
 4. ``cv2.calibrateCamera`` for the camera (distortion per ``distortion``) and for the projector (no
    distortion: the light sheets of imaging/triangulation.py assume none), ``cv2.stereoCalibrate`` with
    both intrinsics fixed for the pose X_p = R·X_c + T, then (``joint``) one ``stereoCalibrateExtended``
@@ -91,11 +93,13 @@ class Board:
 
 @dataclass
 class PoseResult:
-    """One pose: camera corners (n, 2), projector corners (n, 2) (NaN where the window did not decode)."""
+    """One pose: camera corners (n, 2), projector corners (n, 2) (NaN where the window did not decode), the
+    decoded pixels used, and the local maps' derivatives (n, 2, 2) at the corners (None: not measured)."""
 
     cam: np.ndarray
     proj: np.ndarray
     decoded: int = 0
+    proj_jac: np.ndarray | None = None
 
 
 @dataclass
@@ -145,11 +149,14 @@ def refine_corners(white8: np.ndarray, corners: np.ndarray, spacing: float) -> n
 
 
 def projector_corners(corners: np.ndarray, decoded: Decoded, *, half: int, min_points: int = 12,
-                      ransac_px: float = 2.0) -> tuple[np.ndarray, int]:
-    """Projector corners (n, 2) by local homographies (module docstring, step 3), NaN where a window has
-    fewer than ``min_points`` decoded pixels; and the number of pixels the homographies kept (inliers)."""
+                      ransac_px: float = 2.0) -> tuple[np.ndarray, int, np.ndarray]:
+    """Projector corners (n, 2) by local maps (module docstring, step 3), NaN where a window has fewer than
+    ``min_points`` decoded pixels; the number of pixels the homographies kept (inliers); and each local
+    map's derivative at its corner (n, 2, 2), d(projector pixel)/d(camera pixel): a projector corner carries
+    its camera corner's error multiplied by it (imaging/port_calibration.py takes it out)."""
     h, w = decoded.valid.shape
     out, total = np.full((len(corners), 2), np.nan), 0
+    jac = np.full((len(corners), 2, 2), np.nan)
     for k, (x, y) in enumerate(corners):
         x0, x1 = max(int(round(x)) - half, 0), min(int(round(x)) + half + 1, w)
         y0, y1 = max(int(round(y)) - half, 0), min(int(round(y)) + half + 1, h)
@@ -165,13 +172,18 @@ def projector_corners(corners: np.ndarray, decoded: Decoded, *, half: int, min_p
         inl = inl.ravel().astype(bool)
         if inl.sum() < min_points:
             continue
-        H, _ = cv2.findHomography(cam[inl], proj[inl], 0)
-        if H is None:
-            continue
         total += int(inl.sum())
-        q = H @ np.array([x, y, 1.0])
-        out[k] = q[:2] / q[2]
-    return out, total
+        out[k], jac[k] = _local_quadratic(cam[inl] - (x, y), proj[inl], half)
+    return out, total, jac
+
+
+def _local_quadratic(offsets: np.ndarray, proj: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """The value (2,) and derivative (2, 2) at offset 0 of the least-squares quadratic x_p = a + B·u + u·C·u
+    in u = offset/``half`` (each projector coordinate; 6 coefficients)."""
+    u, v = (offsets / half).T
+    A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    coef, *_ = np.linalg.lstsq(A, proj, rcond=None)
+    return coef[0], coef[1:3].T / half
 
 
 def camera_corners(white: np.ndarray, black: np.ndarray, board: Board, *, pose: int = 0):
@@ -220,7 +232,7 @@ def decode_pose(white: np.ndarray, black: np.ndarray, frames: list[np.ndarray], 
             raise
         raise PoseError(pose, f"{exc.reason}: the code's contrast over the lit image is {100 * c:.1f} % of "
                               f"the light ({MURK})", c) from None
-    proj, total = projector_corners(corners, decoded, half=half)
+    proj, total, jac = projector_corners(corners, decoded, half=half)
     good = np.isfinite(proj).all(axis=1)
     if good.mean() < 0.9:
         head = f"only {int(good.sum())} of {len(corners)} corners decode in the projector"
@@ -235,7 +247,7 @@ def decode_pose(white: np.ndarray, black: np.ndarray, frames: list[np.ndarray], 
         why = MURK if c < MURK_CONTRAST else "saturated or out of focus?"
         raise PoseError(pose, f"{head}: the code's contrast on the board is {100 * c:.1f} % of the light "
                               f"({why})", c)
-    return PoseResult(corners, proj, total)
+    return PoseResult(corners, proj, total, jac)
 
 
 def calibrate(poses: list[PoseResult], board: Board, cam_size: tuple[int, int], proj_size: tuple[int, int],

@@ -13,8 +13,15 @@ camera lens's distortion from a calibration in air (none in the simulator); the 
 device together with the intrinsics (camera and projector K), the
 projector's pose (R, T; X_p = R·X_c + T) and every board pose (R_i, t_i; Y = R_i·X + t_i), by nonlinear
 least squares (``scipy.optimize.least_squares``) on the reprojection error of the camera's and the
-projector's corners (those :mod:`polarstripe.imaging.calibration` measured). A port of indices 1 is the
-pinhole, and its d and N are then not observable. The lens distortion stays fixed: a radial distortion
+projector's corners (those :mod:`polarstripe.imaging.calibration` measured). A projector corner is its
+camera corner carried into the projector by the decoded map, x_p = M(x_c), so it carries the camera
+corner's error e_c as J·e_c (J = dM/dx_c, ~3 times larger at 320 camera to 1024 projector pixels): the
+projector's residual is taken as r_p − J·r_c, the map's own (decoding) error, where J is measured with
+the corner (``PoseResult.proj_jac``; none: zero). Fitted as independent errors, that shared error put the
+camera's d 1.6 mm off at a standard error of 0.8 mm; with it taken out, 0.1–0.2 mm at 0.2 mm. A port of
+indices 1 is the pinhole, and its d and N are then not observable. When both devices look through one flat
+wall (``one_wall``: a tank's) the camera's port is the projector's wall seen from the camera, three
+parameters fewer. The lens distortion stays fixed: a radial distortion
 and the port's distance change the image nearly alike (in simulation, fitting k1, k2 as well took the
 camera's d from 18.7 mm to 0 and put 6 mm of bias in the depth).
 
@@ -22,8 +29,9 @@ The start: the pinhole calibration through the port (its K's focal lengths divid
 narrows the field of view), each board pose from ``cv2.solvePnP`` with that pinhole, the port on the
 device's axis; the fit runs from each of :data:`START_DISTANCES_M` and keeps the least cost, then leaves out
 the misplaced corners (:data:`OUTLIER`) and fits again. It reports each port's standard errors
-(:func:`standard_errors`): a port square to its device's axis is nearly a pinhole of longer focal length,
-and its d is observed weakly (±2.5 mm for the simulated camera at 0.1 px, a tilted one ±0.2 mm).
+(:func:`standard_errors`): a port square to its device's axis is nearly a pinhole of longer focal length
+whose centre moves along the axis with d, which the projector's pose T takes up, so its d is observed
+through the port's higher-order bending only (docs/depth.md "Calibration through a port").
 """
 
 from __future__ import annotations
@@ -134,30 +142,50 @@ def _K(v) -> np.ndarray:
 
 
 class _Layout:
-    """The parameter vector: camera K (4), projector K (4), each port's normal (its tilt, 2) and log d (1),
-    the projector's pose (rvec 3, T 3), and 6 per board pose (rvec, t)."""
+    """The parameter vector: camera K (4), projector K (4), the camera's port (its normal's tilt, 2, and
+    log d, 1; not there for ``one_wall``), the projector's port (3), the projector's pose (rvec 3, T 3), and
+    6 per board pose (rvec, t)."""
 
-    def __init__(self, n_poses: int):
-        self.n_poses = n_poses
-        self.size = 4 + 4 + 3 + 3 + 6 + 6 * n_poses
+    def __init__(self, n_poses: int, one_wall: bool = False):
+        self.n_poses, self.one_wall = n_poses, one_wall
+        self.shared = 4 + 4 + (0 if one_wall else 3) + 3 + 6
+        self.size = self.shared + 6 * n_poses
 
-    @staticmethod
-    def unpack(x):
-        kc, kp, port_c, port_p, rt = x[:4], x[4:8], x[8:11], x[11:14], x[14:20]
-        return kc, kp, port_c, port_p, rt, x[20:].reshape(-1, 6)
+    def unpack(self, x):
+        """kc, kp, the camera's port's 3 numbers (None for ``one_wall``), the projector's, rt, poses."""
+        i = 8 if self.one_wall else 11
+        pc = None if self.one_wall else x[8:11]
+        return x[:4], x[4:8], pc, x[i:i + 3], x[i + 3:i + 9], x[i + 9:].reshape(-1, 6)
+
+    def ports(self, x, specs) -> tuple[np.ndarray, np.ndarray]:
+        """Both ports' 8 numbers. For ``one_wall`` the camera's is the projector's wall seen from the camera:
+        with X_p = R·X_c + T the plane N_p·X_p = d_p is N_c·X_c = d_c, N_c = Rᵀ·N_p, d_c = d_p − N_p·T."""
+        _, _, pc, pp, rt, _ = self.unpack(x)
+        n_p, d_p = _normal(pp[:2]), np.exp(pp[2])
+        if pc is None:
+            R = cv2.Rodrigues(rt[:3])[0]
+            n_c, d_c = R.T @ n_p, d_p - n_p @ rt[3:]
+        else:
+            n_c, d_c = _normal(pc[:2]), np.exp(pc[2])
+        return specs[0].numbers(n_c, d_c), specs[1].numbers(n_p, d_p)
 
 
 def _residuals(x, layout: _Layout, specs: tuple[PortSpec, PortSpec], data, split: bool = False):
-    """Reprojection residuals (camera's corners, then the projector's) of parameter vector ``x``."""
-    kc, kp, pc, pp, rt, poses = layout.unpack(x)
-    obj, cam, proj, owner, dist = data
-    port_c = specs[0].numbers(_normal(pc[:2]), np.exp(pc[2]))
-    port_p = specs[1].numbers(_normal(pp[:2]), np.exp(pp[2]))
+    """Reprojection residuals of parameter vector ``x``: the camera's corners, then the projector's less
+    the camera's residual carried by the decoded map's derivative (module docstring)."""
+    kc, kp, _, _, rt, poses = layout.unpack(x)
+    obj, cam, proj, owner, dist, jac = data
+    port_c, port_p = layout.ports(x, specs)
+    if port_c[3] < 0:            # a shared wall behind the camera's pinhole: far from any solution
+        n = 2 * owner.size
+        return (np.full(n, np.nan), np.full(n, np.nan)) if split else np.full(2 * n, MISS_PX)
     R, T = cv2.Rodrigues(rt[:3])[0], rt[3:]
     Rs = np.stack([cv2.Rodrigues(v)[0] for v in poses[:, :3]])[owner]        # each corner's board pose
     Y = np.einsum("nij,nj->ni", Rs, obj) + poses[owner, 3:]
-    rc = (project(_K(kc), dist, port_c, Y) - cam).ravel()
-    rp = (project(_K(kp), None, port_p, Y @ R.T + T) - proj).ravel()
+    rc = project(_K(kc), dist, port_c, Y) - cam
+    # the projector's corner is the camera's carried by the decoded map: take the camera's error out
+    rp = (project(_K(kp), None, port_p, Y @ R.T + T) - proj - np.einsum("nij,nj->ni", jac, rc)).ravel()
+    rc = rc.ravel()
     if split:
         return rc, rp
     return np.nan_to_num(np.concatenate([rc, rp]), nan=MISS_PX)
@@ -168,7 +196,7 @@ def _jacobian(x, layout: _Layout, specs, data) -> np.ndarray:
     so one evaluation moves parameter k of every pose at once."""
     owner = data[3]
     n = owner.size
-    shared = layout.size - 6 * layout.n_poses
+    shared = layout.shared
     point = np.concatenate([np.repeat(np.arange(n), 2)] * 2)            # residual -> corner
     J = np.zeros((4 * n, layout.size))
     steps = 1e-6 * np.maximum(np.abs(x), 1e-2)
@@ -195,27 +223,36 @@ def _board_poses(obj, cam, K, dist) -> np.ndarray:
 
 
 def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: PortSpec, *,
-              lens_distortion=None, start_distances_m=START_DISTANCES_M) -> PortCalibration:
+              lens_distortion=None, start_distances_m=START_DISTANCES_M, one_wall: bool = False
+              ) -> PortCalibration:
     """The refractive rig from the corners of a pinhole calibration through the ports (module docstring).
     ``lens_distortion``: the camera lens's OpenCV coefficients, from a calibration in air (None: none).
+    ``one_wall``: both devices look through one flat wall (a tank's, ``glass_tank``): the camera's port is
+    the projector's seen from the camera (:class:`_Layout` ``ports``), which ties the camera's weakly
+    observed d to the projector's tilted port and the pose (module docstring).
 
-    :raises CalibrationError: too few poses, or a fit that does not converge."""
+    :raises CalibrationError: too few poses, a fit that does not converge, or ``one_wall`` with two data
+        sheets."""
+    if one_wall and spec_cam != spec_proj:
+        raise CalibrationError("one wall before both devices needs one data sheet; got two different ones")
     dist = np.zeros(5)
     if lens_distortion is not None:
         coeffs = np.asarray(lens_distortion, float).ravel()
         dist[:coeffs.size] = coeffs[:5]
     full = board.object_points().astype(float)
-    obj, cam, proj = [], [], []
+    obj, cam, proj, jac = [], [], [], []
     for p in cal.poses:
         good = np.isfinite(p.proj).all(axis=1)
         obj.append(full[good])
         cam.append(p.cam[good].astype(float))
         proj.append(p.proj[good].astype(float))
+        maps = np.zeros((len(good), 2, 2)) if p.proj_jac is None else np.asarray(p.proj_jac, float)
+        jac.append(np.nan_to_num(maps[good]))
     if len(obj) < 3:
         raise CalibrationError(f"{len(obj)} poses: the refractive fit needs at least 3")
-    layout = _Layout(len(obj))
+    layout = _Layout(len(obj), one_wall)
     owner = np.concatenate([np.full(len(o), k) for k, o in enumerate(obj)])
-    data = (np.concatenate(obj), np.concatenate(cam), np.concatenate(proj), owner, dist)
+    data = (np.concatenate(obj), np.concatenate(cam), np.concatenate(proj), owner, dist, np.concatenate(jac))
     scale_c, scale_p = spec_cam.n_air / spec_cam.n_water, spec_proj.n_air / spec_proj.n_water
     Kc, Kp = np.asarray(cal.K_cam, float), np.asarray(cal.K_proj, float)
     kc = np.array([Kc[0, 0] * scale_c, Kc[1, 1] * scale_c, Kc[0, 2], Kc[1, 2]])
@@ -223,12 +260,12 @@ def fit_ports(cal: Calibration, board: Board, spec_cam: PortSpec, spec_proj: Por
     poses = _board_poses(obj, cam, Kc, np.asarray(cal.dist_cam, float))
     rt = np.concatenate([cv2.Rodrigues(np.asarray(cal.R, float))[0].ravel(), np.ravel(cal.T)])
     specs = (spec_cam, spec_proj)
-    starts = [np.concatenate([kc, kp, [0.0, 0.0, np.log(d0)] * 2, rt, poses.ravel()])
+    starts = [np.concatenate([kc, kp, [0.0, 0.0, np.log(d0)] * (1 if one_wall else 2), rt, poses.ravel()])
               for d0 in start_distances_m]
     x = min((_solve(x0, layout, specs, data) for x0 in starts), key=lambda sol: sol.cost).x
     keep = _inliers(x, layout, specs, data)
     if not keep.all():        # a corner the detector misplaced: drop it, fit again from here
-        data = tuple(a[keep] for a in data[:4]) + (dist,)
+        data = tuple(a[keep] for a in data[:4]) + (dist, data[5][keep])
         x = _solve(x, layout, specs, data).x
     return _result(x, layout, specs, data, cal, int((~keep).sum()))
 
@@ -252,33 +289,39 @@ def _inliers(x, layout, specs, data) -> np.ndarray:
 
 
 def _result(x, layout, specs, data, cal, dropped: int) -> PortCalibration:
-    kc, kp, pc, pp, rt, _ = layout.unpack(x)
+    kc, kp, _, _, rt, _ = layout.unpack(x)
     rc, rp = _residuals(x, layout, specs, data, split=True)
     if not (np.isfinite(rc).all() and np.isfinite(rp).all() and np.isfinite(x).all()):
         raise CalibrationError("the refractive fit did not converge (a corner outside the port)")
-    rms_c, rms_p = (float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)) for r in (rc, rp))
-    rms = float(np.sqrt(np.mean(np.concatenate([rc, rp]).reshape(-1, 2) ** 2) * 2))
-    return PortCalibration(_K(kc), data[4].copy(), _K(kp), cv2.Rodrigues(rt[:3])[0], rt[3:].copy(),
-                           specs[0].numbers(_normal(pc[:2]), np.exp(pc[2])),
-                           specs[1].numbers(_normal(pp[:2]), np.exp(pp[2])),
-                           tuple(cal.cam_size), tuple(cal.proj_size), rms_c, rms_p, rms, dropped,
+    plain = rp + np.einsum("nij,nj->ni", data[5], rc.reshape(-1, 2)).ravel()   # the projector's own error
+    rms_c, rms_p = (float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)) for r in (rc, plain))
+    rms = float(np.sqrt(np.mean(np.concatenate([rc, plain]).reshape(-1, 2) ** 2) * 2))
+    port_c, port_p = layout.ports(x, specs)
+    return PortCalibration(_K(kc), data[4].copy(), _K(kp), cv2.Rodrigues(rt[:3])[0], rt[3:].copy(), port_c,
+                           port_p, tuple(cal.cam_size), tuple(cal.proj_size), rms_c, rms_p, rms, dropped,
                            standard_errors(x, layout, specs, data, rc, rp))
 
 
 def standard_errors(x, layout, specs, data, rc, rp) -> dict:
-    """Each port's d [m] and normal [deg] standard errors from the fit: the covariance (JᵀWJ)⁻¹ of the
-    parameters with each device's residuals weighted by its own RMS (W = 1/σ²), d = e^u so σ_d = d·σ_u, the
-    normal's angle σ = √trace(G·C·Gᵀ) with G its derivative in its two tilt parameters."""
+    """Each port's d [m] and normal [deg] standard errors from the fit: the covariance C = (JᵀWJ)⁻¹ of the
+    parameters with each device's residuals weighted by its own RMS (W = 1/σ²), carried to each port's d and
+    unit normal N by their derivatives G in the shared parameters (σ_d² = G_d·C·G_dᵀ, the normal's angle
+    σ = √trace(G_N·C·G_Nᵀ))."""
     w = np.concatenate([np.full(rc.size, 1.0 / max(np.sqrt(np.mean(rc ** 2)), 1e-12)),
                         np.full(rp.size, 1.0 / max(np.sqrt(np.mean(rp ** 2)), 1e-12))])
     Jw = _jacobian(x, layout, specs, data) * w[:, None]
-    cov = np.linalg.pinv(Jw.T @ Jw)
+    cov = np.linalg.pinv(Jw.T @ Jw)[:layout.shared, :layout.shared]
+    G = np.zeros((2, 4, layout.shared))        # (camera, projector) x (N, d) x parameter
+    for j in range(layout.shared):
+        h = 1e-7 * max(abs(x[j]), 1.0)
+        e = np.zeros_like(x)
+        e[j] = h
+        up, down = layout.ports(x + e, specs), layout.ports(x - e, specs)
+        for k in (0, 1):
+            G[k, :, j] = (up[k][:4] - down[k][:4]) / (2 * h)
     out = {}
-    for name, i in (("port_cam", 8), ("port_proj", 11)):
-        tilt, h = x[i:i + 2], 1e-7
-        G = np.stack([(_normal(tilt + e) - _normal(tilt - e)) / (2 * h) for e in (np.array([h, 0.0]),
-                                                                               np.array([0.0, h]))], axis=1)
-        out[f"{name}_d_sigma_m"] = float(np.exp(x[i + 2]) * np.sqrt(max(cov[i + 2, i + 2], 0.0)))
-        var = np.trace(G @ cov[i:i + 2, i:i + 2] @ G.T)
+    for k, name in enumerate(("port_cam", "port_proj")):
+        out[f"{name}_d_sigma_m"] = float(np.sqrt(max(G[k, 3] @ cov @ G[k, 3], 0.0)))
+        var = np.trace(G[k, :3] @ cov @ G[k, :3].T)
         out[f"{name}_tilt_sigma_deg"] = float(np.degrees(np.sqrt(max(var, 0.0))))
     return out

@@ -130,7 +130,7 @@ class Target:
         self.folder = tempfile.mkdtemp(prefix="polarstripe-target-")
         self.texture = os.path.join(self.folder, "board.png")
         self.size = board_texture(cols, rows, square_m, self.texture)
-        self.poses = target_poses(poses, seed, scene)
+        self.poses = target_poses(poses, seed, scene, cols, rows, square_m)
         self.lit = lit_for_target(scene, self.poses[0], self.texture, self.size, fidelity)
         self.index = 0
         self.calls = 0

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from polarstripe.sim.geometry import pinhole_frame
+from polarstripe.sim.port import light_to, port_geometry
 from polarstripe.sim.render import render_frame
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
 
@@ -25,9 +27,14 @@ def parse_board(text: str, what: str = "--board") -> tuple[int, int]:
     return cols, rows
 
 
+def board_size(cols: int, rows: int, square_m: float) -> tuple[float, float]:
+    """The size (w, h) [m] of the board of :func:`board_texture`: its squares and a one-square margin."""
+    return (cols + 3) * square_m, (rows + 3) * square_m
+
+
 def board_texture(cols: int, rows: int, square_m: float, path: str, dark: int = 64) -> tuple[float, float]:
     """Write the checkerboard PNG of ``cols``×``rows`` inner corners (one texel per square, dark squares at
-    ``dark``/255 of white, a one-square white margin); return its size [m]."""
+    ``dark``/255 of white, a one-square white margin); return its size [m] (:func:`board_size`)."""
     nx, ny = cols + 3, rows + 3
     img = np.full((ny, nx), 255, np.uint8)
     for i in range(rows + 1):
@@ -36,19 +43,29 @@ def board_texture(cols: int, rows: int, square_m: float, path: str, dark: int = 
                 img[1 + i, 1 + j] = dark
     if not cv2.imwrite(path, img):
         raise SceneError(f"cannot write the board texture {path!r}")
-    return nx * square_m, ny * square_m
+    return board_size(cols, rows, square_m)
 
 
-def target_poses(n: int, seed: int, scene: Scene) -> list[dict]:
-    """Board poses (plane ``point``, ``normal``, ``up``) where camera and projector both see it: around the
-    point where the camera's axis and the projector's pass nearest each other, 8–30 % nearer than it, shifted
-    ±10 % of its distance, tilted 15–40° either way about two axes and turned up to ±15° in its plane."""
+MAX_VIEW_DEG = 80.0      # a device sees the board at most this far from its normal (not edge-on)
+EDGE = 0.02              # the board's squares stay this fraction of the image inside its edges
+TRIES = 400              # draws per pose before giving up
+
+
+def target_poses(n: int, seed: int, scene: Scene, cols: int, rows: int, square_m: float) -> list[dict]:
+    """Board poses (plane ``point``, ``normal``, ``up``) where camera and projector both see the whole
+    checkerboard of ``cols``×``rows`` inner corners (its (cols + 1)×(rows + 1) squares of ``square_m``):
+    around the point where the camera's axis and the projector's pass nearest each other, 8–30 % nearer than
+    it, shifted ±10 % of its distance, tilted 15–40° either way about two axes and turned up to ±15° in its
+    plane. A draw is kept when the board faces each device within :data:`MAX_VIEW_DEG` and its squares'
+    outer corners reach each device's image (:data:`EDGE` inside) — through the device's port where it has
+    one (sim/port.py ``light_to``: a port narrows the view) — and drawn again otherwise (a scene where every
+    draw is seen gets the poses it always got).
+
+    :raises SceneError: no draw of a pose is seen whole in :data:`TRIES` (a board too large for the common
+        view)."""
     rng = np.random.default_rng(seed)
     c, p = np.asarray(scene.camera.position, float), np.asarray(scene.projector.position, float)
-    fc = np.subtract(scene.camera.look_at, c)
-    fc /= np.linalg.norm(fc)
-    fp = np.subtract(scene.projector.look_at, p)
-    fp /= np.linalg.norm(fp)
+    fc, fp = _forward(scene.camera), _forward(scene.projector)
     # closest points of the two axes: the middle of the common view
     w0, b = c - p, fc @ fp
     den = max(1.0 - b * b, 1e-9)
@@ -60,19 +77,69 @@ def target_poses(n: int, seed: int, scene: Scene) -> list[dict]:
     right = np.cross(fc, up0)
     right /= np.linalg.norm(right)
     up = np.cross(right, fc)
+    views = [_View(scene.camera), _View(scene.projector)]
+    half = 0.5 * square_m * np.array([cols + 1, rows + 1])
     poses = []
-    for _ in range(n):
-        a, bb = np.radians(rng.uniform(15, 40, 2) * rng.choice([-1, 1], 2))
-        roll = np.radians(rng.uniform(-15, 15))
-        normal = -fc * np.cos(a) * np.cos(bb) + right * np.sin(bb) + up * np.sin(a) * np.cos(bb)
-        normal /= np.linalg.norm(normal)
-        u = up * np.cos(roll) + right * np.sin(roll)
-        u -= normal * (u @ normal)
-        shift = rng.uniform(-0.1, 0.1, 2) * dist
-        depth = rng.uniform(-0.3, -0.08) * dist
-        point = centre + right * shift[0] + up * shift[1] + fc * depth
-        poses.append({"point": tuple(point), "normal": tuple(normal), "up": tuple(u / np.linalg.norm(u))})
+    for k in range(n):
+        for _ in range(TRIES):
+            pose = _draw(rng, centre, dist, fc, right, up)
+            if _seen(pose, half, views):
+                poses.append(pose)
+                break
+        else:
+            raise SceneError(f"the {cols}x{rows} board of {square_m} m squares is not seen whole by camera "
+                             f"and projector at pose {k} in {TRIES} draws: a smaller board (fewer or smaller "
+                             "squares)")
     return poses
+
+
+def _forward(device) -> np.ndarray:
+    f = np.subtract(device.look_at, device.position)
+    return f / np.linalg.norm(f)
+
+
+def _draw(rng, centre, dist, fc, right, up) -> dict:
+    """A board near ``centre`` (:func:`target_poses`) facing the camera (axis ``fc``), tilted and turned."""
+    a, bb = np.radians(rng.uniform(15, 40, 2) * rng.choice([-1, 1], 2))
+    roll = np.radians(rng.uniform(-15, 15))
+    normal = -fc * np.cos(a) * np.cos(bb) + right * np.sin(bb) + up * np.sin(a) * np.cos(bb)
+    normal /= np.linalg.norm(normal)
+    u = up * np.cos(roll) + right * np.sin(roll)
+    u -= normal * (u @ normal)
+    shift = rng.uniform(-0.1, 0.1, 2) * dist
+    depth = rng.uniform(-0.3, -0.08) * dist
+    point = centre + right * shift[0] + up * shift[1] + fc * depth
+    return {"point": tuple(point), "normal": tuple(normal), "up": tuple(u / np.linalg.norm(u))}
+
+
+class _View:
+    """A device's image as seen from the water: pixel of a world point through its port."""
+
+    def __init__(self, device):
+        self.frame = pinhole_frame(device.position, device.look_at, device.up, device.fov_deg,
+                                   device.resolution)
+        self.port = None if device.port is None else port_geometry(device.port, self.frame.position,
+                                                                    self.frame.f)
+
+    def sees(self, points: np.ndarray, normal: np.ndarray) -> bool:
+        fr = self.frame
+        to_dev = fr.position - points.mean(axis=0)
+        if normal @ to_dev < np.cos(np.radians(MAX_VIEW_DEG)) * np.linalg.norm(to_dev):
+            return False
+        a = points - fr.position if self.port is None else light_to(self.port, points).air
+        z = a @ fr.f
+        if not (np.isfinite(a).all() and (z > 0).all()):
+            return False
+        x, y = fr.w / 2 + (a @ fr.r) / z / fr.s, fr.h / 2 - (a @ fr.u) / z / fr.s
+        inside = (np.minimum(x, fr.w - x) > EDGE * fr.w) & (np.minimum(y, fr.h - y) > EDGE * fr.h)
+        return bool(inside.all())
+
+
+def _seen(pose: dict, half, views) -> bool:
+    n, u = np.asarray(pose["normal"]), np.asarray(pose["up"])
+    r = np.cross(u, n)
+    corners = np.array([pose["point"] + i * half[0] * r + j * half[1] * u for i in (-1, 1) for j in (-1, 1)])
+    return all(v.sees(corners, n) for v in views)
 
 
 def with_target(scene: Scene, pose: dict, texture: str, size) -> Scene:

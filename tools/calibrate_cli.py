@@ -48,6 +48,7 @@ from polarstripe.nodes.rig_calibrator import coverage_path, write_coverage
 from polarstripe.sim import scene_target as target
 from polarstripe.sim.depth_truth import rig_geometry
 from polarstripe.sim.polarization import analyzer
+from polarstripe.sim.port import port_geometry
 from polarstripe.sim.render import render_components, render_frame
 from polarstripe.sim.scene import Scene, SceneError, load_scene, parse_size
 from polarstripe.sim.sensor import expose
@@ -181,7 +182,26 @@ def port_specs(scene: Scene) -> tuple[PortSpec, PortSpec] | None:
         raise CalibrationError("the refractive fit needs both camera and projector behind a port; this "
                                f"scene has one only on the {'camera' if ports[0] else 'projector'} "
                                "(--pinhole: the pinhole fit)")
-    return tuple(PortSpec(p.thickness_m, p.n_air, p.n_glass, p.n_water) for p in ports)
+    return tuple(PortSpec(*_sheet(p)) for p in ports)
+
+
+def one_wall(scene: Scene) -> bool:
+    """Whether camera and projector look through one flat wall (a tank's, ``preset = "glass_tank"``): the
+    same data sheet and both ports' inner faces in one plane of the world (the refractive fit then ties
+    them together, imaging/port_calibration.py)."""
+    ports = scene.camera.port, scene.projector.port
+    if None in ports or PortSpec(*_sheet(ports[0])) != PortSpec(*_sheet(ports[1])):
+        return False
+    faces = []
+    for dev in (scene.camera, scene.projector):
+        g = port_geometry(dev.port, dev.position, np.subtract(dev.look_at, dev.position))
+        faces.append((g.normal, g.normal @ g.apex + g.d))
+    (n0, c0), (n1, c1) = faces
+    return bool(n0 @ n1 > 1 - 1e-9 and abs(c0 - c1) < 1e-9)
+
+
+def _sheet(port) -> tuple[float, float, float, float]:
+    return port.thickness_m, port.n_air, port.n_glass, port.n_water
 
 
 def calibrate_sim(args: argparse.Namespace, progress: bool):
@@ -192,7 +212,7 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     cols, rows = _board(args.board)
     board = Board(cols, rows, float(args.square))
     proj = tuple(scene.projector.resolution)
-    poses = random_poses(args.poses, args.seed, scene)
+    poses = random_poses(args.poses, args.seed, scene, cols, rows, board.square_m)
     rng = np.random.default_rng(args.seed)
     n_frames = len(calibration_code(*proj)) + 2
     results, failures = [], []
@@ -200,11 +220,11 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
     with tempfile.TemporaryDirectory(prefix="polarstripe-calib-") as tmp:
         tex = os.path.join(tmp, "board.png")
         size = board_texture(board, tex)
-        scene = exposed(scene, poses[0], tex, size, args.fidelity, polarizer_deg=angle)
         bar = tqdm(total=args.poses * n_frames, desc="calibrate", unit="frame", disable=not progress,
                    file=sys.stderr)
         for k, pose in enumerate(poses):
-            white, black, frames = render_pose(scene, pose, tex, size, rng, args.fidelity, bar.update, angle)
+            lit = exposed(scene, pose, tex, size, args.fidelity, polarizer_deg=angle)   # each pose its own
+            white, black, frames = render_pose(lit, pose, tex, size, rng, args.fidelity, bar.update, angle)
             bar.update(2)
             try:
                 results.append(decode_pose(white, black, frames, board, proj, pose=k))
@@ -218,7 +238,7 @@ def calibrate_sim(args: argparse.Namespace, progress: bool):
         raise CalibrationError(f"{len(results)} usable poses of {args.poses}: a calibration needs at least "
                                f"{MIN_POSES}" + (f"; {failed_poses(failures)}" if failures else ""))
     cal = calibrate(results, board, tuple(scene.camera.resolution), proj, distortion=args.distortion)
-    fit = None if specs is None else fit_ports(cal, board, *specs)
+    fit = None if specs is None else fit_ports(cal, board, *specs, one_wall=one_wall(scene))
     return cal, rig_geometry(scene), scene, angle, fit
 
 
