@@ -89,6 +89,12 @@ def parse_port_spec(text: str) -> PortSpec | None:
     return PortSpec(t, n_a, n_g, n_w)
 
 
+def names_a_wall(text: str) -> bool:
+    """Whether a data sheet as text names a tank's wall (``glass_tank``): one flat wall before both devices
+    (:func:`fit_ports` ``one_wall``), not a port on each."""
+    return text.strip() == "glass_tank"
+
+
 @dataclass
 class PortCalibration:
     """The refractive rig: intrinsics (in the air behind the ports), pose X_p = R·X_c + T, each port's 8

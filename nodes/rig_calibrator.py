@@ -14,10 +14,10 @@ The calibrator node, per board pose k of ``poses``:
 
 Then ``calibrate`` fits both devices and the stereo pose (with ``port``, both behind flat ports of that data
 sheet, :func:`~polarstripe.imaging.port_calibration.fit_ports` then fits the refractive rig, the lens taken
-as undistorted) and ``save`` writes ``out`` atomically (a failed run leaves the previous file whole). The
-analyzer is taken out of the path first (``camera/analyzer``). Exit status 0 with a file written, 1
-otherwise (the ERROR line says why). Like the sequencer, it is a script: it blocks in its own ``run`` and
-serves nothing.
+as undistorted; ``glass_tank`` is one tank wall before both devices) and ``save`` writes ``out`` atomically
+(a failed run leaves the previous file whole). The analyzer is taken out of the path first
+(``camera/analyzer``). Exit status 0 with a file written, 1 otherwise (the ERROR line says why). Like the
+sequencer, it is a script: it blocks in its own ``run`` and serves nothing.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from polarstripe.imaging.calibration import (
     failed_poses,
     save,
 )
-from polarstripe.imaging.port_calibration import fit_ports, parse_port_spec
+from polarstripe.imaging.port_calibration import fit_ports, names_a_wall, parse_port_spec
 from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
 from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
@@ -78,7 +78,7 @@ class RigCalibrator(Node):
         square_m: float = 0.015
         poses: int = 8
         distortion: str = "radial"  # none | radial | full (the camera's lens model)
-        port: str = ""  # both behind flat ports: glass_tank or THICKNESS_M,N_AIR,N_GLASS,N_WATER ("": none)
+        port: str = ""  # flat ports: glass_tank (one tank wall before both) or T,N_AIR,N_GLASS,N_WATER (each)
         target_service: str = "simulator/target"  # moves the board; "" = a person does (pose_wait_s)
         pose_wait_s: float = 10.0
         startup_timeout_s: float = 30.0
@@ -183,7 +183,8 @@ class RigCalibrator(Node):
                                       + (f"; {failed_poses(failures)}" if failures else ""))
         pinhole = calibrate(results, board, cam_size, proj, distortion=p.distortion)
         spec = parse_port_spec(p.port)
-        cal = pinhole if spec is None else fit_ports(pinhole, board, spec, spec)
+        wall = names_a_wall(p.port)
+        cal = pinhole if spec is None else fit_ports(pinhole, board, spec, spec, one_wall=wall)
         extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
                  "poses": len(pinhole.poses), "board": f"{p.board} inner corners, {p.square_m} m squares",
                  "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"}
