@@ -14,10 +14,10 @@ The calibrator node, per board pose k of ``poses``:
 
 Then ``calibrate`` fits both devices and the stereo pose (with ``port``, both behind flat ports of that data
 sheet, :func:`~polarstripe.imaging.port_calibration.fit_ports` then fits the refractive rig, the lens taken
-as undistorted; ``glass_tank`` is one tank wall before both devices) and ``save`` writes ``out`` atomically
-(a failed run leaves the previous file whole). The analyzer is taken out of the path first
-(``camera/analyzer``). Exit status 0 with a file written, 1 otherwise (the ERROR line says why). Like the
-sequencer, it is a script: it blocks in its own ``run`` and serves nothing.
+as undistorted unless ``lens_distortion`` gives it; ``glass_tank`` is one tank wall before both devices)
+and ``save`` writes ``out`` atomically (a failed run leaves the previous file whole). The analyzer is taken
+out of the path first (``camera/analyzer``). Exit status 0 with a file written, 1 otherwise (the ERROR line
+says why). Like the sequencer, it is a script: it blocks in its own ``run`` and serves nothing.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from polarstripe.imaging.calibration import (
     failed_poses,
     save,
 )
-from polarstripe.imaging.port_calibration import fit_ports, names_a_wall, parse_port_spec
+from polarstripe.imaging.port_calibration import fit_ports, names_a_wall, parse_distortion, parse_port_spec
 from polarstripe.imaging.structured_light import calibration_code
 from polarstripe.msgs import Ack, Empty, Frame, FrameRequest, Heartbeat, Pattern
 from polarstripe.msgs.rig import CALIBRATION_SCAN_ID, AnalyzerMount
@@ -79,6 +79,7 @@ class RigCalibrator(Node):
         poses: int = 8
         distortion: str = "radial"  # none | radial | full (the camera's lens model)
         port: str = ""  # flat ports: glass_tank (one tank wall before both) or T,N_AIR,N_GLASS,N_WATER (each)
+        lens_distortion: str = ""  # behind ports: the camera lens's K1,K2[,P1,P2[,K3]], calibrated in air
         target_service: str = "simulator/target"  # moves the board; "" = a person does (pose_wait_s)
         pose_wait_s: float = 10.0
         startup_timeout_s: float = 30.0
@@ -96,6 +97,7 @@ class RigCalibrator(Node):
                 raise ValueError(f"square_m must be > 0, got {self.square_m}")
             try:
                 parse_port_spec(self.port)
+                parse_distortion(self.lens_distortion)
             except CalibrationError as exc:
                 raise ValueError(str(exc)) from None
 
@@ -184,7 +186,8 @@ class RigCalibrator(Node):
         pinhole = calibrate(results, board, cam_size, proj, distortion=p.distortion)
         spec = parse_port_spec(p.port)
         wall = names_a_wall(p.port)
-        cal = pinhole if spec is None else fit_ports(pinhole, board, spec, spec, one_wall=wall)
+        cal = pinhole if spec is None else fit_ports(pinhole, board, spec, spec, one_wall=wall,
+                                                     lens_distortion=parse_distortion(p.lens_distortion))
         extra = {"rms_cam": cal.rms_cam, "rms_proj": cal.rms_proj, "rms_stereo": cal.rms_stereo,
                  "poses": len(pinhole.poses), "board": f"{p.board} inner corners, {p.square_m} m squares",
                  "source": f"polarstripe launch launch/calibrate.toml (node {self.name})"}

@@ -7,6 +7,7 @@ misplaced corner is left out; the rig file carries the ports to the compositor."
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from polarstripe.bench.depth import depth_scene
@@ -19,7 +20,13 @@ from polarstripe.imaging.calibration import (
     projector_corners,
     save,
 )
-from polarstripe.imaging.port_calibration import PortSpec, fit_ports, parse_port_spec, project
+from polarstripe.imaging.port_calibration import (
+    PortSpec,
+    fit_ports,
+    parse_distortion,
+    parse_port_spec,
+    project,
+)
 from polarstripe.imaging.refraction import port_of
 from polarstripe.imaging.structured_light import Decoded
 from polarstripe.imaging.triangulation import RigGeometry
@@ -220,6 +227,34 @@ def test_a_port_of_indices_one_fits_the_pinhole(rig):
     np.testing.assert_allclose(fit.K_proj, rig["K_proj"], rtol=1e-6, atol=1e-5)
     np.testing.assert_allclose(fit.T, rig["T"], atol=1e-7)
     assert fit.rms_stereo < 1e-5
+
+
+def test_a_lens_distortion_calibrated_in_air_is_held_fixed(rig):
+    """A camera lens with barrel distortion behind the port (its pixels: OpenCV's ``projectPoints`` of the
+    air ray sim/port.py gives): told the distortion, the fit gives back the ports and K exactly; taking the
+    lens as undistorted, it cannot (the camera's RMS over 0.1 px)."""
+    dist = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
+    poses = []
+    for Y, *_ in _boards(6):
+        air = light_to(port_of(rig["port_cam"]), Y).air
+        cam, _ = cv2.projectPoints(air.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig["K_cam"], dist)
+        poses.append(PoseResult(cam.reshape(-1, 2), _pixels(rig["K_proj"], rig["port_proj"],
+                                                              Y @ rig["R"].T + rig["T"])))
+    pinhole = _pinhole(rig, poses)
+    fit = fit_ports(pinhole, BOARD, TANK, TANK, start_distances_m=(0.05,), one_wall=True,
+                    lens_distortion=parse_distortion("-0.12, 0.05"))
+    _assert_exact(fit, rig)
+    np.testing.assert_allclose(fit.dist_cam, dist)
+    blind = fit_ports(pinhole, BOARD, TANK, TANK, start_distances_m=(0.05,), one_wall=True)
+    assert blind.rms_cam > 0.1
+
+
+def test_a_lens_distortion_as_text():
+    assert parse_distortion("") is None
+    np.testing.assert_allclose(parse_distortion("0.1,-0.2,0.001,0.002"), [0.1, -0.2, 0.001, 0.002, 0.0])
+    for bad in ("0.1", "0.1,0.2,0.3", "a,b", "0.1,nan"):
+        with pytest.raises(CalibrationError, match="give K1,K2 or K1,K2,P1,P2 or K1,K2,P1,P2,K3"):
+            parse_distortion(bad)
 
 
 def test_too_few_poses_is_one_error(rig):
