@@ -40,7 +40,7 @@ from typing import Literal
 
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
-from polarstripe.planning.image_model import ImageModel
+from polarstripe.planning.image_model import ImageModel, plan_fidelity
 from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
@@ -59,7 +59,7 @@ class Planner(Node):
         scene: str = ""  # scene TOML; "" = the paper's tank
         calibration: str = ""  # rig calibration file: the camera's and projector's pinholes (docs/depth.md)
         resolution: str = ""  # camera "WxH"; "" = the scene's
-        fidelity: str = "preview"
+        fidelity: str = "preview"  # the simulator's levels; the error measure also "draft" (planning.md §8)
         orders: Literal["all", "single"] = "all"  # the model's: as the scene needs (sim/orders.py) | paper's
         measure: Literal["error", "paper"] = "error"  # expected error vs T | CQM, margin (docs/planning.md)
         modality: Literal["stripes", "flood"] = "stripes"
@@ -103,7 +103,8 @@ class Planner(Node):
             if self.max_frames and (self.modality != "stripes" or self.measure != "error"):
                 raise ValueError("max_frames plans sheets per stripe frame: modality 'stripes', measure "
                                  "'error'")
-            resolve_fidelity(self.fidelity)  # e.g. "ultra": one line naming the choices
+            # e.g. "ultra": one line naming the choices; the error measure also has the planner's "draft"
+            (plan_fidelity if self.measure == "error" else resolve_fidelity)(self.fidelity)
             if self.resolution:
                 check_frame_size(*parse_size(self.resolution), what="resolution")
 

@@ -84,6 +84,9 @@ def test_bad_fidelity_and_oversized_resolution_are_param_errors():
         NodeHarness(Planner, name="planner", params={**FAST, "fidelity": "ultra"})
     with pytest.raises(ParamError, match=r"resolution 100000x100000 is .* beyond the limit"):
         NodeHarness(Planner, name="planner", params={**FAST, "resolution": "100000x100000"})
+    # the planner's own level is the error measure's: the paper's measure renders with the simulator's
+    with pytest.raises(ParamError, match="fidelity 'draft' is not preview, standard, reference"):
+        NodeHarness(Planner, name="planner", params={**FAST, "fidelity": "draft", "measure": "paper"})
 
 
 def test_small_change_of_p_does_not_replan(harness):
@@ -172,3 +175,11 @@ def test_a_frame_budget_plans_the_fewest_sheets_that_fit_it():
     with pytest.raises(ParamError, match="max_frames"):
         NodeHarness(Planner, name="planner", namespace="/rig", params={**FAST, "max_frames": 20,
                                                                        "modality": "flood"})
+
+
+def test_the_error_measure_plans_at_the_planners_draft_level():
+    h = NodeHarness(Planner, name="planner", namespace="/rig",
+                    params={**CHEAP, "fidelity": "draft", "publish_on_start": False})
+    plan = h.call("planner/plan", Empty())
+    assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
+    assert h.node.params.fidelity == "draft" and np.all(np.isfinite(plan.curves["objective"]))
