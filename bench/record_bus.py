@@ -3,7 +3,6 @@ to a publisher in this process over ipc (bench/record.py says what is measured a
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -18,6 +17,7 @@ from polarstripe.bench.proc_cpu import process_cpu
 from polarstripe.msgs import Frame
 from polarstripe.runtime.bag_reader import BagReader
 from polarstripe.runtime.bus import PubSocket
+from polarstripe.runtime.graph import write_graph
 
 
 class _WatchedPub(PubSocket):
@@ -61,7 +61,7 @@ def over_bus(
         "nodes": {"cam": {"module": "bench", "pub": ep, "srv": ""}},
         "topics": {"/rig/camera/frame": {"type": "frame", "publishers": ["cam"], "subscribers": []}},
     }
-    (tmp / "graph.json").write_text(json.dumps(graph))
+    write_graph(tmp / "graph.json", graph)
     bag = tmp / f"bus-{compression}.mcap"
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs")}
     command = [sys.executable, "-m", "polarstripe", "record", "-o", str(bag), "--graph"]
