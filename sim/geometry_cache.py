@@ -13,6 +13,7 @@ independently, so a cached frame is bit-identical to an uncached one (``tests/si
 
 from __future__ import annotations
 
+import os
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -91,6 +92,18 @@ def stats() -> dict:
     """{"hits", "misses", "scenes"} since the process started."""
     with _lock:
         return {"hits": _state["hits"], "misses": _state["misses"], "scenes": len(_store)}
+
+
+def _after_fork_in_child() -> None:
+    """A forked child has one thread: values the parent's other threads were making will never come, and a
+    lock one of them held stays held. Both are forgotten (the made values stay)."""
+    global _lock
+    _lock = threading.Lock()
+    _making.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 @contextmanager

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix, unit
 
-POISSON_EXACT_BELOW = 30.0   # mean electrons below which shot noise is drawn by inversion (docs/physics.md §7)
+POISSON_EXACT_BELOW = 30.0   # mean e- below which shot noise is drawn by inversion (docs/physics.md §7)
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
 
 

@@ -76,7 +76,10 @@ def fft_workers() -> int:
 
 
 def _forget_pool() -> None:
-    """In a forked child: the parent's pool threads do not exist there; the next band makes a new pool."""
+    """In a forked child: the parent's pool threads do not exist there; the next band makes a new pool. The
+    lock is new too (a parent thread may have held it at the fork)."""
+    global _lock
+    _lock = threading.Lock()
     _state["pool"] = _state["frames"] = None
 
 

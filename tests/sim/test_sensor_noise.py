@@ -48,7 +48,7 @@ def test_normals_have_the_normal_moments_and_tails():
         want = 2 * stats.norm.sf(t) * n
         assert abs((np.abs(z) > t).sum() - want) < 5 * np.sqrt(want)
     later = np.empty(1000)
-    normals(np.array([2024, 7], np.uint64), 1000, later)             # pixel j's normal does not depend on the band
+    normals(np.array([2024, 7], np.uint64), 1000, later)    # pixel j's normal does not depend on the band
     assert np.array_equal(later, z[1000:2000])
 
 
