@@ -179,7 +179,8 @@ def score(image, *, bright=None, dark=None, truth=None, region=None, fit_gain: b
     Parameters
     ----------
     image : array (h, w), may be masked
-        The estimate (masked pixels are left out of both measures).
+        The estimate, masked where saturated: left out of the contrast, lost (all their truth is error) in
+        the error (:func:`~.metrics.signal_error`).
     bright, dark : (row0, row1, col0, col1) or bool mask (h, w), optional
         The chart's bright and dark bars; no contrast without them.
     truth : array (h, w), optional

@@ -74,7 +74,7 @@ class Planner(Node):
         d_min_m: float = 0.02
         d_max_m: float = 0.5
         exposure: Literal["scene", "auto"] = "scene"
-        max_saturated_fraction: float = 0.02  # of a flood frame at the chosen separation; 1 = no check
+        max_saturated_fraction: float = 1.0  # of a flood frame at the plan's separation; 1 = no check
         publish_on_start: bool = True
         publish_delay_s: float = 1.0
         replan: bool = True
@@ -159,16 +159,17 @@ class Planner(Node):
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
-        # a source near the camera can fill the frame beyond full scale where the objective does not look
-        # (the default tank saturates most of a flood frame below d_LC ≈ 0.1 m); every method of a scan
-        # uses the one separation: judged on a flood frame without analyzer, the brightest of any method
-        frames = model if isinstance(model, ImageModel) else ImageModel(   # the error measure's width
-            self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders, width=p.width or None)
-        saturated = (np.zeros(c.separations_m.size) if p.max_saturated_fraction >= 1.0 else
-                     np.array([frames.saturated_fraction(d) for d in c.separations_m]))
-        order = np.argsort(-c.objective, kind="stable")
-        order = [i for i in order if allowed[i]]   # where the sheets stay apart in the image
-        usable = [i for i in order if saturated[i] <= p.max_saturated_fraction]
+        # the objective counts the planned method's saturated pixels as lost (planning/predicted_error.py);
+        # a user may also keep a flood frame at the plan's separation (the brightest of any method, every
+        # method of a scan uses it) below full scale: max_saturated_fraction < 1
+        guard = p.max_saturated_fraction < 1.0
+        order = [i for i in np.argsort(-c.objective, kind="stable") if allowed[i]]  # sheets apart
+        saturated = None
+        if guard:
+            frames = model if isinstance(model, ImageModel) else ImageModel(   # the error measure's width
+                self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders, width=p.width or None)
+            saturated = np.array([frames.saturated_fraction(d) for d in c.separations_m])
+        usable = [i for i in order if not guard or saturated[i] <= p.max_saturated_fraction]
         best = float(c.separations_m[usable[0] if usable else order[0]])
         if not usable:
             self.log.warning("every separation saturates more than %.0f %% of a flood frame: the plan keeps "
@@ -184,7 +185,9 @@ class Planner(Node):
         self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
                   "objective_noise_free": c.objective_noise_free, "quality": c.quality, "weight": c.weight,
-                  "flood_saturated_fraction": saturated, "sheets_allowed": allowed.astype(float)}
+                  "sheets_allowed": allowed.astype(float)}
+        if guard:
+            curves["flood_saturated_fraction"] = saturated
         for i, lc in enumerate(mp.location_curves):
             curves[f"objective_O{i + 1}"] = lc.objective
         result = Plan(modality=p.modality, separation_m=best, scan_type=mp.scan["winner"] if mp.scan else "",

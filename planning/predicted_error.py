@@ -23,12 +23,13 @@ components (:mod:`polarstripe.planning.image_model`), per pixel x, in electrons:
   quantization; eq. 6 carries (1 + 1/p̂)² v_b + (1 − 1/p̂)² v_w, per pixel with the map); a scan's eq. 7
   maximum over noisy frames
   has its mean and variance from seeded draws (the brightest of many dark frames is not their mean);
-* pixels whose frame (either frame, for eq. 6) reaches the full well are left out, as the compositor masks
-  them; no pixel left scores e = 1.
+* pixels whose frame (either frame, for eq. 6) reaches the full well are lost, as the compositor masks
+  them: their truth counts as error (the composite has nothing there); no pixel left scores e = 1.
 
 With the gain fitted over the noisy image, the expected error is
 
-    e² = 1 − ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T‖²)
+    e² = 1 − ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T‖²)    over the unsaturated pixels, ‖T‖ over them; with the lost
+                                              ones, e² = 1 − (1 − e²_kept) ‖T_kept‖² / ‖T_all‖²
 
 (noise is independent of T and adds Σ v to ‖Ŝ‖² on average). Everything the water does to the image is
 in m: the forward-scattered light and the blur (in A), the multiply scattered backscatter, its DOP and
@@ -50,14 +51,20 @@ P_RULES = ("map", "median")
 
 
 def expected_error(mean, variance, truth, valid) -> float:
-    """e = sqrt(1 − ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T‖²)) over ``valid`` pixels; 1 when none is valid or T = 0."""
+    """e = sqrt(1 − c · ‖T_valid‖²/‖T‖²), c = ⟨m, T⟩² / ((‖m‖² + Σ v) ‖T_valid‖²) over the ``valid`` pixels.
+
+    A pixel that is not valid (saturated) is lost: the composite has nothing there, so all its truth is
+    error (as :func:`polarstripe.imaging.metrics.signal_error` scores a masked pixel); 1 when none is valid
+    or T = 0."""
+    t_all = np.asarray(truth, np.float64)
     m, v, t = (np.asarray(x, np.float64)[valid] for x in (mean, variance, truth))
+    tt_all = float(np.sum(t_all * t_all))
     tt = float(np.sum(t * t))
     mm = float(np.sum(m * m) + np.sum(v))
-    if m.size == 0 or tt <= 0.0 or mm <= 0.0:
+    if m.size == 0 or tt <= 0.0 or mm <= 0.0 or tt_all <= 0.0:
         return 1.0
     c = float(np.sum(m * t)) ** 2 / (mm * tt)
-    return math.sqrt(max(0.0, 1.0 - min(c, 1.0)))
+    return math.sqrt(max(0.0, 1.0 - min(c, 1.0) * tt / tt_all))
 
 
 def frame_variance(frame_e, *, dark_e: float, read_noise_e: float, quantization_e: float):

@@ -37,3 +37,16 @@ def test_roi_outside_and_shape_mismatch():
         signal_error(np.ones((2, 2)), np.ones((3, 2)))
     with pytest.raises(ImagingError, match="image: dtype"):
         michelson_contrast(np.array([["a"]]), (0, 1, 0, 1), (0, 1, 0, 1))
+
+
+def test_a_masked_pixel_is_lost_not_skipped():
+    """Masked (saturated) pixels: ``lost`` counts their truth as error, by hand ‖T_masked‖/‖T‖ when the rest
+    is exact; ``skip`` leaves them out (error 0); every pixel masked is error 1."""
+    truth = np.array([[1.0, 2.0], [3.0, 4.0]])
+    est = np.ma.masked_array(truth.copy(), mask=[[False, False], [False, True]])
+    assert signal_error(est, truth, fit_gain=True) == pytest.approx(4.0 / np.sqrt(30.0))
+    assert signal_error(est, truth, masked="skip") == 0.0
+    every = np.ma.masked_array(truth, mask=np.ones((2, 2), bool))
+    assert signal_error(every, truth) == 1.0
+    with pytest.raises(ImagingError, match="masked"):
+        signal_error(est, truth, masked="ignore")

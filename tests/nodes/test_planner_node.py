@@ -43,21 +43,27 @@ def test_plan_is_served_and_published(harness):
     best = reference["stripes_polarized"].curve
     assert abs(plan.separation_m - best.best_separation_m) <= step + 1e-12
     np.testing.assert_allclose(plan.curves["objective"], best.objective)
-    # the best objective among the separations that do not saturate a flood frame
-    ok = plan.curves["flood_saturated_fraction"] <= 0.02
-    assert ok.any() and plan.separation_m == seps[ok][int(np.argmax(plan.curves["objective"][ok]))]
+    # the best objective (its saturated pixels lost): the node plans as `polarstripe plan` does
+    assert plan.separation_m == seps[int(np.argmax(plan.curves["objective"]))]
+    assert "flood_saturated_fraction" not in plan.curves        # no flood check unless one is asked for
     assert plan.scan_type in ("rotate", "translate", "both")
     assert len(plan.stripe_optima) == 3 and all(0.05 <= d <= 0.45 for d in plan.stripe_optima)
     assert len(h.published("planner/plan")) == 2  # the call publishes it too (the simulator moves the source)
 
 
-def test_the_chosen_separation_does_not_saturate_a_flood_frame(harness):
-    """The default tank saturates most of a flood frame with the source next to the camera; the plan must
-    move to a separation where a full flood frame (rendered here, independently) stays below full scale."""
+def test_asked_to_the_chosen_separation_does_not_saturate_a_flood_frame():
+    """The default tank saturates most of a flood frame with the source next to the camera; with
+    ``max_saturated_fraction`` the plan moves to a separation where a full flood frame (rendered here,
+    independently) stays below full scale."""
     from polarstripe.sim.render import render_frame
     from polarstripe.sim.scene import with_separation
 
+    harness = NodeHarness(Planner, name="planner", namespace="/rig",
+                          params={**FAST, "max_saturated_fraction": 0.02, "publish_on_start": False})
     plan = harness.call("planner/plan", Empty())
+    ok = plan.curves["flood_saturated_fraction"] <= 0.02
+    assert ok.any() and plan.separation_m == plan.curves["separation_m"][ok][
+        int(np.argmax(plan.curves["objective"][ok]))]
     scene = with_separation(harness.node.scene, plan.separation_m)
     dn, _ = render_frame(scene, "flood", polarizer_deg=None, fidelity="preview", seed=3)
     assert np.mean(dn >= 4095) < 0.05

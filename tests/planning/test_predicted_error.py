@@ -134,11 +134,15 @@ def test_every_location_is_scored_through_the_one_analyzer_calibrated_on_the_who
     assert obj.frame_quality == pytest.approx(1 - want, rel=1e-9)
 
 
-def test_saturated_pixels_are_left_out():
+def test_saturated_pixels_are_lost():
+    """The first half saturates: the rest is exact, the lost half's truth is all error (the composite has
+    nothing there), e = ‖T_lost‖/‖T‖, as the compositor's score counts a masked pixel."""
     t = _chart()
-    s, b = 1000.0 * t, np.where(np.arange(t.size) < t.size // 2, 1e6, 0.0)
+    lost = np.arange(t.size) < t.size // 2
+    s, b = 1000.0 * t, np.where(lost, 1e6, 0.0)
     err, sat = reading_error("E", s, b, np.zeros(t.size), np.zeros(t.size), t, full_well_e=5e4, noise=False)
-    assert sat == pytest.approx(0.5) and err == pytest.approx(0.0, abs=1e-7)
+    want = math.sqrt(np.sum(t[lost] ** 2) / np.sum(t ** 2))
+    assert sat == pytest.approx(0.5) and 0.3 < want < 0.9 and err == pytest.approx(want, rel=1e-9)
 
 
 @pytest.mark.parametrize("camera, width, shape", [
