@@ -5,9 +5,9 @@ and a loop that reads top to bottom.
 params=…)``: a :class:`~polarstripe.runtime.node_bus.NodeBus` that is built first (the real ZeroMQ bus by
 :func:`~polarstripe.runtime.runner.run_node`, the mock bus by
 :class:`~polarstripe.runtime.testing.NodeHarness`) and never swapped. The node uses only its own public
-calls: ``publisher``, ``subscribe``, ``serve``, ``client``, ``every``/``cancel``, ``wait_for``, ``take``,
-``now()`` (the bus clock: monotonic, virtual in the harness), ``graph`` (the launch graph), ``resolve``,
-``stop``/``stopping``/``stop_reason``.
+calls: ``publisher``, ``subscribe``, ``serve``, ``client``, ``every``/``cancel``, ``wait_for``, ``take``
+(runtime/subscription_reads.py), ``now()`` (the bus clock: monotonic, virtual in the harness), ``graph`` (the
+launch graph), ``resolve``, ``stop``/``stopping``/``stop_reason``.
 
 A node declares its interface as class attributes (the launcher reads them to write the graph), then wires
 handlers in :meth:`Node.setup`::
@@ -50,19 +50,15 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from polarstripe.msgs import Heartbeat, Message, MessageError
-from polarstripe.runtime.bus import BusTimeout
 from polarstripe.runtime.client import Client
 from polarstripe.runtime.events import Event, NodeError, NodeStopping, Received, Stop, Tick
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.liveness import PeerLost, Watching
 from polarstripe.runtime.node_bus import BusPublisher, BusSource, Handler, NodeBus
 from polarstripe.runtime.params import NodeParams, build_params
+from polarstripe.runtime.subscription_reads import SubscriptionReads
 
-__all__ = ["STOP_CHECK_S", "Event", "Node", "NodeError", "NodeStopping", "PeerLost", "Received", "Stop",
-           "Tick"]
-
-STOP_CHECK_S = 0.05
-"""How often a blocking :meth:`Node.wait_for` looks whether the node was told to stop [s]."""
+__all__ = ["Event", "Node", "NodeError", "NodeStopping", "PeerLost", "Received", "Stop", "Tick"]
 
 _COUNTERS = ("published", "received", "bad", "gaps", "skipped", "restarts", "requests", "service_errors")
 
@@ -85,7 +81,7 @@ class _Sub:
     source: BusSource
 
 
-class Node(Watching):
+class Node(SubscriptionReads, Watching):
     """Base class of every node. See the module docstring; the public API is listed in
     docs/architecture.md."""
 
@@ -231,63 +227,6 @@ class Node(Watching):
 
     def cancel(self, timer: str) -> None:
         self._timers.pop(timer, None)
-
-    # ---- reading subscriptions outside the loop ------------------------------------------------------------
-    def wait_for(self, topic: str, match: Callable[[Message], bool] = lambda m: True, timeout_s: float = 1.0,
-                 *, peers: tuple[str, ...] | list[str] = ()):
-        """Block until a message on subscribed ``topic`` satisfies ``match``; non-matching messages before it
-        are dropped, those after it stay queued for the next call or the loop. Nothing else is handled
-        meanwhile (no service is answered): keep it for scripts and short waits.
-
-        Raises :class:`~polarstripe.runtime.bus.BusTimeout` (a ``TimeoutError``) naming the topic
-        after ``timeout_s``, or :class:`NodeStopping` within ~``STOP_CHECK_S`` of the node being told to
-        stop (SIGINT, SIGTERM, :meth:`stop`; also at once if it already was). With ``peers`` (node names,
-        after :meth:`watch`) it raises :class:`PeerLost` naming the first of them that is lost.
-        """
-        sub = self._sub(topic, "wait_for")
-        if peers and self.liveness is None:
-            raise NodeError(f"node {self.name!r}: wait_for(peers=...) needs watch() first")
-        deadline = self.now() + timeout_s
-        while True:
-            if self._stop_reason is not None:
-                raise NodeStopping(self.name, sub.full, self._stop_reason)
-            # short slices: a signal does not cut a zmq poll short (pyzmq resumes it after the handler)
-            for item in self._bus.take(sub.source, min(max(0.0, deadline - self.now()), STOP_CHECK_S)):
-                if isinstance(item, MessageError):
-                    self._bad(topic, item)
-                    continue
-                self._feed(topic, item)
-                if match(item):
-                    return item
-            if peers:
-                self.check_peers(peers, topic)
-            if self.now() >= deadline:
-                raise BusTimeout(
-                    f"node {self.name!r}: no matching message on {sub.full!r} within {timeout_s} s"
-                )
-
-    def take(self, topic: str, timeout_s: float = 0.0) -> list[Message]:
-        """Every message that has arrived on subscribed ``topic`` and the loop has not handled yet (in
-        ``latest`` mode the newest), waiting up to ``timeout_s`` for the first; bad ones are logged and
-        counted. Unlike :meth:`wait_for`, nothing is dropped."""
-        sub = self._sub(topic, "take")
-        out: list[Message] = []
-        wait = timeout_s
-        while items := self._bus.take(sub.source, wait):
-            wait = 0.0
-            for item in items:
-                if isinstance(item, MessageError):
-                    self._bad(topic, item)
-                else:
-                    self._feed(topic, item)
-                    out.append(item)
-        return out
-
-    def _sub(self, topic: str, what: str) -> _Sub:
-        sub = self._subs.get(topic)
-        if sub is None:
-            raise NodeError(f"node {self.name!r}: {what}({topic!r}) needs a subscription first")
-        return sub
 
     # ---- stopping ------------------------------------------------------------------------------------------
     def stop(self, reason: str = "stop() called", exit_code: int | None = None) -> None:
