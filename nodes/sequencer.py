@@ -18,11 +18,11 @@
    periods, 1 s by default), exits or is respawned ends the wait at once with a line naming it. If the launch
    respawns it, the sequencer waits (``respawn_wait_s``) until it beats again with a new incarnation and the
    interrupted scan has ended, then retries the scan once and says so; otherwise the sequence ends there.
-4. With an ``estimator`` node in the launch graph (``rescan``): after a pass over the methods, wait for its
-   ``medium/estimate`` of one of the pass's scans and the plan the planner publishes in answer to it
-   (``curves["estimate_scan_id"]``); when that
-   plan's separation is more than one step of its grid away from the one scanned and its curve predicts a gain
-   there (``min_gain``), move the source there and scan the methods again (``max_rescans``), saying so.
+4. With an ``estimator`` node in the launch graph (``rescan``; nodes/sequencer_rescan.py): after a pass over
+   the methods, wait for its ``medium/estimate`` of one of the pass's scans and the plan the planner publishes
+   in answer to it (``curves["estimate_scan_id"]``); when that plan's separation is more than one step of its
+   grid away from the one scanned and its curve predicts a gain there (``min_gain``), move the source there
+   and scan the methods again (``max_rescans``), saying so.
 5. Stop with exit status 0 when every scan was done (and composited without a ``metrics["error"]``), 1
    otherwise — so ``polarstripe launch launch/sim.toml --once`` ends (the sequencer is its ``required`` node).
 
@@ -36,7 +36,6 @@ from __future__ import annotations
 import time
 from typing import Literal
 
-import numpy as np
 from polarstripe.msgs import (
     METHOD_NAMES,
     Ack,
@@ -53,13 +52,14 @@ from polarstripe.msgs import (
     ScanRequest,
 )
 from polarstripe.nodes.sequencer_report import scores, summary
+from polarstripe.nodes.sequencer_rescan import Rescanning
 from polarstripe.runtime.bus import BusError, BusTimeout
 from polarstripe.runtime.liveness import STARTING_DEADLINE_S, PeerLost
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
 
-class Sequencer(Node):
+class Sequencer(Rescanning, Node):
     """Runs a fixed list of scans once (see the module docstring)."""
 
     class Params(NodeParams):
@@ -150,6 +150,13 @@ class Sequencer(Node):
         except BusError as exc:
             raise SequenceError(f"{service}: {exc}") from None
 
+    def move_source_to(self, plan: Plan) -> None:
+        """Have the simulator move its source to ``plan`` (``simulator/move_source``: it replies after the
+        move)."""
+        ack = self.call("simulator/move_source", Plan, Ack, plan, timeout_s=30.0)
+        if not ack.ok:
+            raise SequenceError(f"simulator/move_source: {ack.detail}")
+
     def wait_graph_ready(self) -> None:
         """Wait until every other node of the launch graph has been heard (its heartbeat), then one more beat
         period: a message published before a subscriber has connected is lost (ZeroMQ's slow joiner), and the
@@ -188,9 +195,7 @@ class Sequencer(Node):
             self.log.info("plan: %s, d_LC = %.3f m, scan %s", plan.modality, plan.separation_m,
                           plan.scan_type or "-")
             if p.move_source:
-                ack = self.call("simulator/move_source", Plan, Ack, plan, timeout_s=30.0)
-                if not ack.ok:
-                    raise SequenceError(f"simulator/move_source: {ack.detail}")
+                self.move_source_to(plan)
         self.eb_deg = p.eb_deg
         stage = p.analyzer == "stage"
         if stage and (p.calibrate or any(Method(m).polarized for m in p.methods)):
@@ -214,40 +219,6 @@ class Sequencer(Node):
             if rescans < p.max_rescans and self.plan_moved():
                 rescans += 1
         return ok
-
-    def plan_moved(self) -> bool:
-        """Step 4: True when the plan answering this pass's estimate moved the source by more than one grid
-        step (the source is moved then)."""
-        p, est_node = self.params, self.params.estimator
-        if not (p.rescan and self.plan is not None and est_node in self.graph.get("nodes", {})
-                and any(Method(m).striped for m in p.methods)):
-            return False
-        try:
-            est = self.wait_for("medium/estimate", lambda e: e.scan_id in self.pass_scans,
-                                p.estimate_timeout_s, peers=[est_node])
-            new = self.wait_for("planner/plan", lambda q: _answers(q, est.scan_id), p.estimate_timeout_s,
-                                peers=["planner"])
-        except (BusTimeout, PeerLost) as exc:
-            self.log.warning("no rescan: no estimate and plan after scans %s: %s", self.pass_scans, exc)
-            return False
-        step, at_new, at_old = _move(new, self.plan.separation_m)
-        what = est.reason or f"sigma_t {est.sigma_t_per_m:.3g} /m, g {est.mean_cosine:.3f}, p {est.p:.3f}"
-        gain = "" if at_new is None else f"; objective {at_new:.3f} there, {at_old:.3f} where scanned"
-        self.log.info("estimate of scan %d: %s; plan d_LC = %.3f m (scanned at %.3f m, %d grid steps%s)",
-                      est.scan_id, what, new.separation_m, self.plan.separation_m, step, gain)
-        if step <= 1:
-            return False
-        if at_new is not None and at_new < at_old + p.min_gain:
-            self.log.info("no rescan: the re-made plan predicts no gain of %g at its pick", p.min_gain)
-            return False
-        if p.move_source:
-            ack = self.call("simulator/move_source", Plan, Ack, new, timeout_s=30.0)
-            if not ack.ok:
-                raise SequenceError(f"simulator/move_source: {ack.detail}")
-        self.log.info("rescanning at d_LC = %.3f m (the optimum moved by %d grid steps)", new.separation_m,
-                      step)
-        self.plan = new
-        return True
 
     def wait_stage_ready(self) -> None:
         """Wait until the polarizer reports a state without a fault (it may still be connecting)."""
@@ -378,23 +349,6 @@ class Sequencer(Node):
             return False
         self.log.info("%s: %s", method, scores(shown))
         return True
-
-
-def _move(new: Plan, scanned_m: float) -> tuple[int, float | None, float | None]:
-    """(grid steps from ``scanned_m`` to ``new``'s pick, ``new``'s objective at its pick and at ``scanned_m``;
-    None without an objective curve), read on ``new``'s separation grid."""
-    grid = np.asarray(new.curves.get("separation_m", [new.separation_m]), float)
-    i, j = (int(np.argmin(np.abs(grid - d))) for d in (new.separation_m, scanned_m))
-    obj = new.curves.get("objective")
-    if obj is None or len(obj) != grid.size:
-        return abs(i - j), None, None
-    return abs(i - j), float(obj[i]), float(obj[j])
-
-
-def _answers(plan: Plan, scan_id: int) -> bool:
-    """Whether ``plan`` is the planner's answer to the estimate of scan ``scan_id`` (nodes/planner.py)."""
-    sid = plan.curves.get("estimate_scan_id")
-    return sid is not None and len(sid) == 1 and int(sid[0]) == scan_id
 
 
 class SequenceError(Exception):

@@ -1,6 +1,7 @@
-"""The sequencer's rescan (nodes/sequencer.py step 4) through the harness: with an estimator in the launch
-graph, a pass waits for the estimate of one of its scans and the plan answering it; a plan more than
-one grid step away moves the source and scans the methods again, once; one step or less does not."""
+"""The sequencer's rescan (nodes/sequencer.py step 4, nodes/sequencer_rescan.py) through the harness: with an
+estimator in the launch graph, a pass waits for the estimate of one of its scans and the plan answering it; a
+plan more than one grid step away moves the source and scans the methods again, once; one step or less does
+not."""
 
 import numpy as np
 from polarstripe.msgs import Ack, Composite, Heartbeat, MediumEstimate, Plan, ScanEvent
