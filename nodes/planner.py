@@ -41,6 +41,7 @@ from typing import Literal
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel, plan_fidelity
+from polarstripe.planning.medium_dop import weighted_dop, with_measured_p
 from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
@@ -48,7 +49,7 @@ from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams, check_frame_size
 from polarstripe.runtime.process import interruptible
 from polarstripe.sim.render import render_frame, resolve_fidelity
-from polarstripe.sim.scene import DopModel, Phase, SceneError, load_scene, parse_size, with_light
+from polarstripe.sim.scene import Phase, SceneError, load_scene, parse_size, with_light
 from polarstripe.sim.scene_calibration import with_calibration
 
 
@@ -126,9 +127,9 @@ class Planner(Node):
         self.scene = scene if self.params.light == "scene" else with_light(scene, self.params.light)
         self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
         if "medium_p" in self.run_state:
-            state = self.run_state
+            state, p_at_default = self.run_state, self.params.d_max_m
             self.scene = self.with_medium(state.get("medium_p"), state.get("medium_sigma_t"),
-                                          state.get("medium_g"))
+                                          state.get("medium_g"), state.get("medium_at_m", p_at_default))
             self.log.info("medium restored from the run state: p %.3f, sigma_t %.3g /m",
                           self.run_state.get("medium_p"), self.scene.medium.sigma_t)
         self.counters["replans"] = 0
@@ -165,9 +166,9 @@ class Planner(Node):
         guard = p.max_saturated_fraction < 1.0
         order = [i for i in np.argsort(-c.objective, kind="stable") if allowed[i]]  # sheets apart
         saturated = None
+        frames = model if isinstance(model, ImageModel) else ImageModel(   # the error measure's width
+            self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders, width=p.width or None)
         if guard:
-            frames = model if isinstance(model, ImageModel) else ImageModel(   # the error measure's width
-                self.scene, fidelity=p.fidelity, n_stripes=p.stripes, orders=p.orders, width=p.width or None)
             saturated = np.array([frames.saturated_fraction(d) for d in c.separations_m])
         usable = [i for i in order if not guard or saturated[i] <= p.max_saturated_fraction]
         best = float(c.separations_m[usable[0] if usable else order[0]])
@@ -177,10 +178,8 @@ class Planner(Node):
         elif usable[0] != order[0]:
             self.log.info("the best objective (d_LC = %.3f m) saturates %.0f %% of a flood frame: "
                           "using %.3f m", c.separations_m[order[0]], 100 * saturated[order[0]], best)
-        samples = model.stripes(best) if p.modality == "stripes" else model.flood(best)
-        b = np.asarray(samples.backscatter, float)          # the backscatter-weighted DOP the plan assumed
-        self.p_assumed = float(np.sum(b * samples.dop) / np.sum(b)) if np.sum(b) > 0 else float(
-            np.mean(samples.dop))
+        # the p an estimate reports (the flood's backscatter-weighted DOP, planning/medium_p.py) for this plan
+        self.p_assumed = weighted_dop(frames.flood(best))
         self.sigma_assumed = float(self.scene.medium.sigma_t)
         self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,
@@ -207,17 +206,23 @@ class Planner(Node):
         self.plan_pub.publish(self.plan)
         return self.plan
 
-    def with_medium(self, p: float, sigma_t: float | None, mean_cosine: float | None = None):
-        """The scene with a constant DOP ``p`` (clamped to [0, 1]) and, when given, ``sigma_t`` [1/m] and the
-        TTHG ``mean_cosine``."""
+    def with_medium(self, p: float, sigma_t: float | None, mean_cosine: float | None, at_m: float):
+        """The scene with, when given, ``sigma_t`` [1/m], the TTHG ``mean_cosine`` and the DOP model that
+        gives the measured ``p`` with the source at ``at_m`` [m], where it was measured
+        (planning/medium_dop.py: the Rayleigh model's δ, so the DOP still varies across the image; a
+        constant model: p)."""
         medium = self.scene.medium
-        if p is not None and math.isfinite(p):
-            medium = medium.replace(dop=DopModel(model="constant", p=min(max(float(p), 0.0), 1.0)))
         if sigma_t is not None:
             medium = medium.replace(sigma_t=float(sigma_t))
         if mean_cosine is not None:
             medium = medium.replace(phase=Phase("tthg", min(max(float(mean_cosine), 0.0), 0.999)))
-        return self.scene.replace(medium=medium)
+        scene = self.scene.replace(medium=medium)
+        if p is not None and math.isfinite(p):
+            scene = with_measured_p(scene, p, at_m, fidelity=self.params.fidelity)
+            if scene.medium.dop.model == "rayleigh":
+                self.log.info("DOP model: depolarization %.3f gives p %.3f at d_LC = %.3f m",
+                              scene.medium.dop.depolarization, p, at_m)
+        return scene
 
     def on_estimate(self, est: MediumEstimate) -> None:
         """The estimator's fit: re-plan if it moved, and publish the plan either way, as the answer to that
@@ -244,9 +249,11 @@ class Planner(Node):
         self.log.info("medium estimate of scan %d (p %.3f, sigma_t %s) differs from the plan's (p %.3f, "
                       "sigma_t %.3g): re-planning", est.scan_id, est.p, sigma, self.p_assumed,
                       self.sigma_assumed)
-        self.scene = self.with_medium(est.p, sigma, g)
+        at_m = self.plan.separation_m                    # where the estimate's scan was made
+        self.scene = self.with_medium(est.p, sigma, g, at_m)
         medium_p = est.p if math.isfinite(est.p) else self.p_assumed
-        self.run_state.save(medium_p=medium_p, medium_sigma_t=sigma, medium_g=g)  # for a respawned planner
+        self.run_state.save(medium_p=medium_p, medium_sigma_t=sigma, medium_g=g,  # for a respawned planner
+                            medium_at_m=at_m)
         with interruptible("re-planning"):  # seconds of pure computation: a Ctrl-C need not wait for it
             self.plan = self.make_plan()
         self.counters["replans"] += 1
