@@ -259,7 +259,8 @@ class Simulator(Node):
         if self.target is None:
             return Ack(ok=False, detail="simulator/target: no target (param 'target')")
         self.base = self.target.place(self.base, self.target.advance())
-        self.scene = self.scene.replace(objects=self.base.objects)
+        self.scene = self.scene.replace(objects=self.base.objects, projector=self.scene.projector.replace(
+            intensity_w_sr=self.base.projector.intensity_w_sr))     # the pose's light (Target)
         self._expose_for_flood()
         self.log.info("%s", self.target.describe())
         return Ack(ok=True, detail=self.target.describe())

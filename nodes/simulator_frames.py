@@ -120,8 +120,10 @@ def exposure_factor(radiance: np.ndarray, e_map: np.ndarray, camera, *, fill: fl
 class Target:
     """The calibration board of the simulator's ``target`` params: a ``board`` ("COLSxROWS" inner corners)
     checkerboard of ``square_m`` squares (its PNG in a temporary folder) at ``poses`` seeded poses
-    (sim/scene_target.py), replacing the scene's objects. The projector's intensity is set once, at pose 0,
-    so that the lit board reaches 60 % of full scale. ``index`` is the pose shown."""
+    (sim/scene_target.py), replacing the scene's objects. The projector's intensity is set at each pose
+    (one probe render, the first time it is shown) so that the lit board reaches 60 % of full scale, as
+    ``polarstripe calibrate --sim`` sets it: a far or tilted pose in the murk gets the light it needs.
+    ``index`` is the pose shown."""
 
     def __init__(self, board: str, square_m: float, poses: int, seed: int, scene: Scene, fidelity):
         cols, rows = parse_board(board, "param 'target'")
@@ -131,7 +133,8 @@ class Target:
         self.texture = os.path.join(self.folder, "board.png")
         self.size = board_texture(cols, rows, square_m, self.texture)
         self.poses = target_poses(poses, seed, scene, cols, rows, square_m)
-        self.lit = lit_for_target(scene, self.poses[0], self.texture, self.size, fidelity)
+        self.scene, self.fidelity = scene, fidelity
+        self.intensity: dict[int, float] = {}           # pose -> the projector's intensity [W/sr]
         self.index = 0
         self.calls = 0
 
@@ -151,8 +154,11 @@ class Target:
     def place(self, scene: Scene, index: int) -> Scene:
         """``scene`` with the board at pose ``index`` as its only object and the projector's intensity."""
         self.index = index
+        if index not in self.intensity:
+            lit = lit_for_target(self.scene, self.poses[index], self.texture, self.size, self.fidelity)
+            self.intensity[index] = lit.projector.intensity_w_sr
         return with_target(scene, self.poses[index], self.texture, self.size).replace(
-            projector=scene.projector.replace(intensity_w_sr=self.lit.projector.intensity_w_sr))
+            projector=scene.projector.replace(intensity_w_sr=self.intensity[index]))
 
     def describe(self) -> str:
         pose = self.poses[self.index]

@@ -11,9 +11,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from polarstripe.sim.geometry import pinhole_frame
+from polarstripe.sim.polarization import analyzer
 from polarstripe.sim.port import light_to, port_geometry
-from polarstripe.sim.render import render_frame
+from polarstripe.sim.render import render_components
 from polarstripe.sim.scene import PlaneObject, Scene, SceneError
+from polarstripe.sim.sensor import dark_offset_dn, mean_dn
 
 
 def parse_board(text: str, what: str = "--board") -> tuple[int, int]:
@@ -153,13 +155,15 @@ def lit_for_target(scene: Scene, pose: dict, texture: str, size, fidelity, level
                    polarizer_deg: float | None = None) -> Scene:
     """``scene`` with the projector's intensity set so that the white board's brightest pixels (99.5th
     percentile), seen through the analyzer at ``polarizer_deg`` (None: none), reach ``level`` of the
-    camera's full scale above the dark offset (the radiance is linear in the intensity: one probe render at
-    1 mW/sr scales it)."""
+    camera's full scale above the dark offset. The radiance is linear in the intensity: one probe render at
+    1 mW/sr scales it, read as the sensor's mean DN (noise-free and unquantized: a probe this dim gives a few
+    DN, and its rounded, noisy percentile set every pose alike, 40-50 % of full scale instead of 60 %)."""
     probe = 1e-3
-    sc = scene.replace(projector=scene.projector.replace(intensity_w_sr=probe))
-    white, _ = render_frame(with_target(sc, pose, texture, size), "flood", polarizer_deg, fidelity, seed=0)
-    signal = float(np.percentile(white, 99.5)) - sc.camera.offset_dn
+    sc = with_target(scene.replace(projector=scene.projector.replace(intensity_w_sr=probe)), pose, texture,
+                     size)
+    radiance = analyzer(render_components(sc, "flood", fidelity), polarizer_deg)
+    signal = float(np.percentile(mean_dn(radiance, sc.camera), 99.5)) - dark_offset_dn(sc.camera)
     full = 2 ** sc.camera.bits - 1 - sc.camera.offset_dn
-    if signal <= 0:
+    if not signal > 0:
         raise SceneError("the board is dark even at full exposure: the projector does not light it")
     return scene.replace(projector=scene.projector.replace(intensity_w_sr=probe * level * full / signal))

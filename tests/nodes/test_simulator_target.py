@@ -76,3 +76,18 @@ def test_a_targets_white_frame_is_supersampled_and_area_averaged():
     fine = np.random.default_rng(0).random((30 * k, 40 * k))
     block_mean = fine.reshape(30, k, 40, k).mean(axis=(1, 3))
     assert np.allclose(to_camera(fine, (40, 30)), block_mean, atol=1e-12)
+
+
+def test_each_pose_is_lit_to_sixty_percent_of_full_scale_in_the_murk():
+    """In the murk a nearer or farther pose needs another intensity: at each pose the white frame's 99.5th
+    percentile (dark offset subtracted) is 60 % of the range, as ``calibrate --sim`` lights it."""
+    h = make(target="5x4", target_square_m=0.02, target_poses=2, target_seed=0, medium_sigma_t=5.0)
+    full = 4095 - 64                                    # 12 bits above the dark offset of 64 DN
+    levels, intensities = [], []
+    for _ in range(2):
+        h.call("simulator/target", Empty())            # pose 0, then pose 1
+        white = frame(h, "flood").astype(float) - 64
+        levels.append(np.percentile(white, 99.5) / full)
+        intensities.append(h.node.scene.projector.intensity_w_sr)
+    assert levels == pytest.approx([0.6, 0.6], abs=0.03)
+    assert abs(intensities[1] / intensities[0] - 1) > 0.05     # the poses did need different light
