@@ -26,10 +26,14 @@ error with it; at 10 pixels per stripe that is small, and a wider render costs t
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 from polarstripe.msgs.patterns import stripes
+from polarstripe.planning.medium_p import p_map_with_model
 from polarstripe.planning.objectives import Samples, SensorNoise
-from polarstripe.planning.predicted_error import P_RULES
+from polarstripe.planning.predicted_error import P_RULES, mean_angle, polarized_frames
 from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.higher import HigherSettings
@@ -42,6 +46,7 @@ from polarstripe.sim.truth import unscattered_object
 # the default renders' resolution: the camera's, but no finer than this many pixels per stripe (at 10 a
 # stripe composite's aliasing is small; docs/planning.md §8)
 PX_PER_STRIPE = 10
+MAP_FIDELITY = "preview"   # the compositor's p map is rendered at this level (nodes/compositor_params.py)
 
 # the planner's own level below the simulator's preview (docs/planning.md §8, the ladder): the higher orders
 # on a grid of 8 cells along the tank, 2 orders and one of the glow, the single-scattering backscatter at a
@@ -158,8 +163,27 @@ class ImageModel:
         sd = with_separation(self.scene, d_lc_m, aim=True)
         parts = self._render(sd, "flood")
         keep = np.ones(parts[0].size, bool)
-        return self._samples(unscattered_object(sd)[0].reshape(-1), parts, keep,
-                             np.zeros(keep.size, np.int64))
+        samples = self._samples(unscattered_object(sd)[0].reshape(-1), parts, keep,
+                                np.zeros(keep.size, np.int64))
+        if self.fidelity.name == MAP_FIDELITY:
+            return samples                  # the map is the frame's own DOP
+        return dataclasses.replace(samples, flood_dop=self._map(sd, parts))
+
+    def _map(self, sd: Scene, parts) -> tuple:
+        """(B_f, p̂, χ̄) eq. 6's map and the analyzer's axis are read from, as the compositor makes them at
+        another level than the plan's: the noise-free flood pair through the analyzer at the flood's mean
+        angle χ̄, fitted by the compositor's own function (planning/medium_p.py ``p_map_with_model``, its model
+        rendered at :data:`MAP_FIDELITY`); p̂ is the DOP that fit says the pair sees at each pixel, so χ̂ = χ̄
+        everywhere. The map's scale comes from the model's B/(S + B) at that level, not the plan's: the
+        difference stays in Ŝ, as it does on the rig."""
+        _, s, b, p, chi = (np.nan_to_num(np.asarray(x, np.float64)) for x in parts)
+        chi_bar = mean_angle(b, p, chi)
+        h, w = self.shape
+        pair = tuple(x.reshape(h, w) for x in polarized_frames(s, b, p, chi, chi_bar))
+        free = (unscattered_object(sd)[0] <= 0).reshape(h, w)
+        est = p_map_with_model(pair, free if free.any() else None, 0.0, math.inf, sd, MAP_FIDELITY)
+        eq6 = np.broadcast_to(np.asarray(est.eq6, np.float64), (h, w)).reshape(-1)
+        return b, eq6, np.full(b.size, chi_bar)
 
     def saturated_fraction(self, d_lc_m: float) -> float:
         """The fraction of a flood frame without analyzer (the brightest frame of any method) at or beyond
@@ -177,8 +201,11 @@ class ImageModel:
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
         parts = each_frame(lambda p: self._render(sd, str(p)), frames)            # frames in parallel
-        c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
-        flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
+        if self.fidelity.name == MAP_FIDELITY:
+            c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
+            flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
+        else:
+            flood = self._map(sd, self._render(sd, "flood"))
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
         group = self._columns
         if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)

@@ -187,3 +187,35 @@ def test_the_planner_s_draft_level_is_a_named_fidelity():
     assert plan_model(scene, fidelity="preview", width=16, n_stripes=4).fidelity.name == "preview"
     with pytest.raises(SceneError, match="is not preview, standard, reference, draft"):
         plan_model(scene, fidelity="rough", width=16)
+
+
+def test_at_standard_eq6_divides_by_the_compositors_preview_map():
+    """The compositor's p map is its model rendered at ``preview``, fitted to the flood pair
+    (planning/medium_p.py). A plan at ``standard`` predicts Ŝ with that map, not with the standard frame's
+    own DOP: its noise-free Ŝ error is the error of eq. 6 computed by hand from the standard flood pair and
+    the compositor's map, scored by the compositor's score (imaging/metrics.py). With the frame's own DOP
+    Ŝ would be S itself, a different number (HG 0.5, where the two levels' B/(S + B) differ)."""
+    from polarstripe.imaging.metrics import signal_error
+    from polarstripe.planning.medium_p import p_map_with_model
+    from polarstripe.planning.predicted_error import mean_angle, polarized_frames
+    from polarstripe.sim.render import render_components
+    from polarstripe.sim.scene import with_separation
+    from polarstripe.sim.sensor import electrons_per_radiance
+    from polarstripe.sim.truth import unscattered_object
+
+    scene = load_scene("bench/scenes/tank_hg05.toml")
+    model = ImageModel(scene, fidelity="standard", width=48)
+    d = 0.17
+    got = objective(model.flood(d), IDEAL_SENSOR, modality="flood", reading="S_hat", measure="error")
+    sd = with_separation(model.scene, d, aim=True)
+    c = render_components(sd, "flood", "standard")
+    s, b, p, chi = c.D + c.A, c.B, np.nan_to_num(c.p), c.chi_rad
+    e_b, e_w = polarized_frames(s, b, p, chi, mean_angle(b.ravel(), p.ravel(), chi.ravel()))
+    truth = unscattered_object(sd)[0]
+    est = p_map_with_model((e_b, e_w), truth <= 0, 0.0, math.inf, sd, "preview")
+    e = electrons_per_radiance(sd.camera)                     # scored in electrons, as in DN: cos⁴ in
+    s_hat = (e_b * (1 + 1 / est.eq6) + e_w * (1 - 1 / est.eq6)) * e
+    want = signal_error(s_hat, truth * e, fit_gain=True)
+    exact = signal_error(s * e, truth * e, fit_gain=True)    # Ŝ = S: the frame's own DOP as the map
+    assert abs(want - exact) > 0.01                           # the map matters here
+    assert got.frame_quality == pytest.approx(1 - want, abs=2e-3)
