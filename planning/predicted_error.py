@@ -16,7 +16,9 @@ components (:mod:`polarstripe.planning.image_model`), per pixel x, in electrons:
     its model to the flood pair, and divides a stripe composite by the same map), clamped to [p_min, 1].
     Where p_e is the pixel's own (flood), Ŝ = S wherever p_e ≥ p_min; a stripe composite keeps
     B(1 − p_e,stripe/p_e). The model's map is exact here: the scale κ the compositor fits to the pair
-    (planning/medium_p.py) has a standard error of ~1e-3 over thousands of pixels, and is not charged;
+    (planning/medium_p.py) has a standard error of ~1e-3 over thousands of pixels, and is not charged (at
+    another level than the compositor's map's, the caller passes the compositor's map as ``flood_dop``:
+    planning/image_model.py);
   - ``median``: one p̂, the ratio of medians over object-free pixels (else over all), so where
     p_e(x) ≠ p̂ the backscatter is under- or over-subtracted, B(1 − p_e/p̂);
 * its noise variance v(x) (EMVA 1288: shot noise of the frame's own electrons, dark, read and
