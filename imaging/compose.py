@@ -195,15 +195,21 @@ def score(image, *, bright=None, dark=None, truth=None, region=None, fit_gain: b
     dict
         ``contrast``: Michelson contrast (I_bright − I_dark)/(I_bright + I_dark) of the bar means, or None;
         ``error_vs_truth``: ‖g Ŝ − S‖ / ‖S‖ over ``region`` (g = 1 unless ``fit_gain``), or None; and
-        ``metrics_error`` (the reason) when a measure cannot be taken, e.g. every bar pixel saturated: then
-        that measure and the ones after it (contrast, then error) are None rather than wrong.
+        ``metrics_error`` (the reasons) when a measure cannot be taken, e.g. every bar pixel saturated: then
+        that measure is None rather than wrong, and the other is still taken.
     """
     out: dict = {"contrast": None, "error_vs_truth": None}
-    try:
-        if bright is not None:
+    reasons = []
+    if bright is not None:
+        try:
             out["contrast"] = michelson_contrast(image, bright, dark)
-        if truth is not None:
+        except ImagingError as exc:
+            reasons.append(f"contrast: {exc}")
+    if truth is not None:
+        try:       # saturated bars leave no contrast, but their pixels still count in the error (lost)
             out["error_vs_truth"] = signal_error(image, truth, region, fit_gain=fit_gain)
-    except ImagingError as exc:
-        out["metrics_error"] = str(exc)
+        except ImagingError as exc:
+            reasons.append(f"error: {exc}")
+    if reasons:
+        out["metrics_error"] = "; ".join(reasons)
     return out

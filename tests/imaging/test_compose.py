@@ -94,9 +94,11 @@ def test_score_gives_michelson_contrast_and_the_gain_fitted_error():
     assert plain["error_vs_truth"] == pytest.approx(np.hypot(297, 99) / np.hypot(3, 1))
 
 
-def test_score_with_every_bar_saturated_is_none_with_the_reason():
+def test_score_with_every_bar_saturated_has_no_contrast_but_an_error():
+    """The bars (top row) saturated: no contrast, with the reason; the error still counts them as lost:
+    the bottom row exact, ‖T_top‖/‖T‖ = √(2/4)."""
     img = np.ma.MaskedArray(np.ones((2, 2)), [[True, True], [False, False]])
     got = score(img, bright=(0, 1, 0, 1), dark=(0, 1, 1, 2), truth=np.ones((2, 2)))
-    assert got["contrast"] is None and got["error_vs_truth"] is None
-    assert "masked" in got["metrics_error"]
+    assert got["contrast"] is None and got["error_vs_truth"] == pytest.approx(np.sqrt(0.5))
+    assert got["metrics_error"].startswith("contrast: ") and "masked" in got["metrics_error"]
     assert score(img) == {"contrast": None, "error_vs_truth": None}
