@@ -47,6 +47,8 @@ from polarstripe.sim.truth import unscattered_object
 # stripe composite's aliasing is small; docs/planning.md §8)
 PX_PER_STRIPE = 10
 MAP_FIDELITY = "preview"   # the compositor's p map is rendered at this level (nodes/compositor_params.py)
+OWN_MAP = (MAP_FIDELITY, "draft")   # levels that divide by their own flood's DOP (draft: the map's preview
+                                    # render would make it dearer than preview, 34-37 s against 19-25 a plan)
 
 # the planner's own level below the simulator's preview (docs/planning.md §8, the ladder): the higher orders
 # on a grid of 8 cells along the tank, 2 orders and one of the glow, the single-scattering backscatter at a
@@ -165,7 +167,7 @@ class ImageModel:
         keep = np.ones(parts[0].size, bool)
         samples = self._samples(unscattered_object(sd)[0].reshape(-1), parts, keep,
                                 np.zeros(keep.size, np.int64))
-        if self.fidelity.name == MAP_FIDELITY:
+        if self.fidelity.name in OWN_MAP:
             return samples                  # the map is the frame's own DOP
         return dataclasses.replace(samples, flood_dop=self._map(sd, parts))
 
@@ -201,7 +203,7 @@ class ImageModel:
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
         parts = each_frame(lambda p: self._render(sd, str(p)), frames)            # frames in parallel
-        if self.fidelity.name == MAP_FIDELITY:
+        if self.fidelity.name in OWN_MAP:
             c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
             flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
         else:
