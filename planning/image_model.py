@@ -172,12 +172,12 @@ class ImageModel:
         return dataclasses.replace(samples, flood_dop=self._map(sd, parts))
 
     def _map(self, sd: Scene, parts) -> tuple:
-        """(B_f, p̂, χ̄) eq. 6's map and the analyzer's axis are read from, as the compositor makes them at
-        another level than the plan's: the noise-free flood pair through the analyzer at the flood's mean
-        angle χ̄, fitted by the compositor's own function (planning/medium_p.py ``p_map_with_model``, its model
-        rendered at :data:`MAP_FIDELITY`); p̂ is the DOP that fit says the pair sees at each pixel, so χ̂ = χ̄
-        everywhere. The map's scale comes from the model's B/(S + B) at that level, not the plan's: the
-        difference stays in Ŝ, as it does on the rig."""
+        """(B_f, p̂, χ̄) eq. 6's map and the analyzer's axis are read from, as the compositor makes them, for a
+        plan at a level finer than the map's (not :data:`OWN_MAP`): the noise-free flood pair through the
+        analyzer at the flood's mean angle χ̄, fitted by the compositor's own function (planning/medium_p.py
+        ``p_map_with_model``, its model rendered at :data:`MAP_FIDELITY`); p̂ is the DOP that fit says the
+        pair sees at each pixel, so χ̂ = χ̄ everywhere. The map's scale comes from the model's B/(S + B) at
+        that level, not the plan's: the difference stays in Ŝ, as it does on the rig."""
         _, s, b, p, chi = (np.nan_to_num(np.asarray(x, np.float64)) for x in parts)
         chi_bar = mean_angle(b, p, chi)
         h, w = self.shape
