@@ -167,12 +167,25 @@ def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: 
                                                    logs["simulator"]))
         cpu = {n: max(0.0, last_cpu.get(n, start_cpu.get(n, 0.0)) - start_cpu.get(n, 0.0)) for n in start_cpu}
         w, h = (int(v) for v in size.split("x"))
+        scale = re.search(r"model at 1/(\d+)", logs.get("simulator", ""))
         return {"size": size, "fidelity": fidelity, "frames": int(frames), "scan_s": scan_s,
                 "simulation_s": sim_s, "transport_s": max(0.0, camera_s + wait_s - sim_s),
                 "analyzer_s": analyzer_s, "compositing_s": _compositing_s(w, h, int(frames)),
-                "camera_only_s": scan_s - analyzer_s, "cpu_s": cpu}
+                "camera_only_s": scan_s - analyzer_s, "cpu_s": cpu,
+                "render_scale": int(scale.group(1)) if scale else None,
+                "error_vs_truth": _error_vs_truth(folder / "out" / "metrics.json")}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def _error_vs_truth(path: Path) -> float | None:
+    """The polarized stripe composite's error vs T from the compositor's metrics.json (None without it):
+    what the simulator's model scale costs in the image (docs/planning.md §6.1)."""
+    try:
+        value = json.loads(path.read_text())["polarized_stripes"]["error_vs_truth"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return float(value) if value is not None else None
 
 
 def _compositing_s(w: int, h: int, frames: int) -> float:
@@ -218,17 +231,21 @@ def main(args: argparse.Namespace) -> int:
         return 0
     print(f"polarized stripe scan: {args.stripes} stripes x 2 analyzer angles; physical limit: a "
           f"{CAMERA_FPS:g} fps camera takes {limit_s:.2f} s for {2 * args.stripes} frames")
-    head = (f"{'size':>10} {'fidelity':>9} {'threads':>7} {'frames':>6} {'scan s':>7} {'w/o stage':>9} "
-            f"{'x limit':>7} {'speedup':>7} {'sim s':>7} {'transport s':>11} {'stage s':>7} "
-            f"{'composite s':>11}")
+    head = (f"{'size':>10} {'fidelity':>9} {'model':>5} {'threads':>7} {'frames':>6} {'scan s':>7} "
+            f"{'w/o stage':>9} {'x limit':>7} {'speedup':>7} {'sim s':>7} {'transport s':>11} {'stage s':>7} "
+            f"{'composite s':>11} {'error vs T':>10}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['size']:>10} {r['fidelity']:>9} {r['threads'] or 'auto':>7} {r['frames']:>6} "
+        model = f"1/{r['render_scale']}" if r["render_scale"] else "?"
+        err = f"{r['error_vs_truth']:.3f}" if r["error_vs_truth"] is not None else "-"
+        print(f"{r['size']:>10} {r['fidelity']:>9} {model:>5} {r['threads'] or 'auto':>7} {r['frames']:>6} "
               f"{r['scan_s']:>7.2f} {r['camera_only_s']:>9.2f} {r['vs_camera_limit']:>7.2f} "
               f"{r['speedup']:>7.2f} {r['simulation_s']:>7.2f} "
               f"{r['transport_s']:>11.3f} "
-              f"{r['analyzer_s']:>7.2f} {r['compositing_s']:>11.3f}")
+              f"{r['analyzer_s']:>7.2f} {r['compositing_s']:>11.3f} {err:>10}")
+    print("model: the simulator's model resolution (1/k of the camera's, resized up; --sim-param "
+          "render_scale=1 for none); error vs T: the polarized stripe composite's (docs/planning.md §6.1)")
     print("\nCPU seconds per node during the scan (share of the rig's CPU):")
     for r in rows:
         total = sum(r["cpu_s"].values()) or 1.0
