@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel, plan_fidelity
-from polarstripe.planning.medium_dop import weighted_dop, with_measured_p
+from polarstripe.planning.medium_dop import with_measured_p
 from polarstripe.planning.planner import default_separations, plan, plan_model
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
@@ -127,9 +127,9 @@ class Planner(Node):
         self.scene = scene if self.params.light == "scene" else with_light(scene, self.params.light)
         self.run_state = RunState.of(self.graph, self.name)  # a re-plan's medium outlives a respawn
         if "medium_p" in self.run_state:
-            state, p_at_default = self.run_state, self.params.d_max_m
+            state, d_max = self.run_state, self.params.d_max_m  # at_m: where p was measured
             self.scene = self.with_medium(state.get("medium_p"), state.get("medium_sigma_t"),
-                                          state.get("medium_g"), state.get("medium_at_m", p_at_default))
+                                          state.get("medium_g"), state.get("medium_at_m", d_max))
             self.log.info("medium restored from the run state: p %.3f, sigma_t %.3g /m",
                           self.run_state.get("medium_p"), self.scene.medium.sigma_t)
         self.counters["replans"] = 0
@@ -179,7 +179,7 @@ class Planner(Node):
             self.log.info("the best objective (d_LC = %.3f m) saturates %.0f %% of a flood frame: "
                           "using %.3f m", c.separations_m[order[0]], 100 * saturated[order[0]], best)
         # the p an estimate reports (the flood's backscatter-weighted DOP, planning/medium_p.py) for this plan
-        self.p_assumed = weighted_dop(frames.flood(best))
+        self.p_assumed = frames.backscatter_dop(best)
         self.sigma_assumed = float(self.scene.medium.sigma_t)
         self.g_assumed = float(self.scene.medium.phase.g)
         curves = {"separation_m": c.separations_m, "objective": c.objective,

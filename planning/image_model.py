@@ -165,13 +165,21 @@ class ImageModel:
         sd = with_separation(self.scene, d_lc_m, aim=True)
         parts = self._render(sd, "flood")
         keep = np.ones(parts[0].size, bool)
-        samples = self._samples(unscattered_object(sd)[0].reshape(-1), parts, keep,
-                                np.zeros(keep.size, np.int64))
+        truth = unscattered_object(sd)[0].reshape(-1)
+        samples = self._samples(truth, parts, keep, np.zeros(keep.size, np.int64))
         if self.fidelity.name in OWN_MAP:
             return samples                  # the map is the frame's own DOP
-        return dataclasses.replace(samples, flood_dop=self._map(sd, parts))
+        return dataclasses.replace(samples, flood_dop=self._map(sd, parts, truth))
 
-    def _map(self, sd: Scene, parts) -> tuple:
+    def backscatter_dop(self, d_lc_m: float) -> float:
+        """Σ p B / Σ B over a flood frame at ``d_lc_m`` (the mean DOP where B is 0 everywhere): the medium's p
+        as an estimate reports it (planning/medium_p.py), from B and its DOP alone."""
+        sd = with_separation(self.scene, d_lc_m, aim=True)
+        c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
+        b, p = np.asarray(c.B, np.float64).reshape(-1), np.nan_to_num(np.asarray(c.p, np.float64)).reshape(-1)
+        return float(np.sum(b * p) / np.sum(b)) if np.sum(b) > 0 else float(np.mean(p))
+
+    def _map(self, sd: Scene, parts, truth) -> tuple:
         """(B_f, p̂, χ̄) eq. 6's map and the analyzer's axis are read from, as the compositor makes them, for a
         plan at a level finer than the map's (not :data:`OWN_MAP`): the noise-free flood pair through the
         analyzer at the flood's mean angle χ̄, fitted by the compositor's own function (planning/medium_p.py
@@ -182,7 +190,7 @@ class ImageModel:
         chi_bar = mean_angle(b, p, chi)
         h, w = self.shape
         pair = tuple(x.reshape(h, w) for x in polarized_frames(s, b, p, chi, chi_bar))
-        free = (unscattered_object(sd)[0] <= 0).reshape(h, w)
+        free = (np.asarray(truth) <= 0).reshape(h, w)
         est = p_map_with_model(pair, free if free.any() else None, 0.0, math.inf, sd, MAP_FIDELITY)
         eq6 = np.broadcast_to(np.asarray(est.eq6, np.float64), (h, w)).reshape(-1)
         return b, eq6, np.full(b.size, chi_bar)
@@ -207,7 +215,7 @@ class ImageModel:
             c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
             flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
         else:
-            flood = self._map(sd, self._render(sd, "flood"))
+            flood = self._map(sd, self._render(sd, "flood"), truth)
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
         group = self._columns
         if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)

@@ -16,9 +16,6 @@ with a ``constant`` DOP model gets p itself.
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 from polarstripe.planning.image_model import ImageModel
 from polarstripe.sim.scene import DopModel, Scene
 from scipy.optimize import brentq
@@ -26,16 +23,9 @@ from scipy.optimize import brentq
 DELTA_MAX = 0.499          # the Rayleigh model's depolarization stays below 0.5 (sim/scene_parts.py)
 
 
-def weighted_dop(samples) -> float:
-    """Σ p B / Σ B of a model's samples (their mean DOP where B is 0 everywhere)."""
-    b = np.asarray(samples.backscatter, float)
-    dop = np.asarray(samples.dop, float)
-    return float(np.sum(b * dop) / np.sum(b)) if np.sum(b) > 0 else float(np.mean(dop))
-
-
 def model_p(scene: Scene, d_lc_m: float, *, fidelity: str = "preview", width: int | None = None) -> float:
     """The scene's backscatter-weighted DOP over a flood frame with the source at ``d_lc_m`` [m]."""
-    return weighted_dop(ImageModel(scene, fidelity=fidelity, width=width).flood(d_lc_m))
+    return ImageModel(scene, fidelity=fidelity, width=width).backscatter_dop(d_lc_m)
 
 
 def with_measured_p(scene: Scene, p: float, d_lc_m: float, *, fidelity: str = "preview",
@@ -58,5 +48,4 @@ def with_measured_p(scene: Scene, p: float, d_lc_m: float, *, fidelity: str = "p
         return at(0.0)
     if hi >= 0.0:
         return at(DELTA_MAX)
-    delta = brentq(gap, 0.0, DELTA_MAX, xtol=1e-4)
-    return at(float(delta)) if math.isfinite(delta) else scene
+    return at(float(brentq(gap, 0.0, DELTA_MAX, xtol=1e-4)))    # a root: gap changes sign in between
