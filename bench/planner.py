@@ -29,7 +29,7 @@ import numpy as np
 from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.image_model import plan_fidelity
-from polarstripe.planning.planner import default_separations, plan, plan_model
+from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
 from polarstripe.planning.validate import ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
@@ -111,7 +111,7 @@ def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps
                           width=16 if measure == "error" else None)
         plan(warm, seps[:2])            # load the kernels, warm the caches (phase tables, quadrature nodes)
         t0, c0 = time.perf_counter(), time.process_time()
-        plans = plan(model, seps, exposure=exposure, progress=progress)
+        plans = plan(model, seps, exposure=exposure, refine=REFINE, progress=progress)
         cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     finally:
         set_threads(before)

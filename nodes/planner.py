@@ -42,7 +42,7 @@ import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel, plan_fidelity
 from polarstripe.planning.medium_dop import with_measured_p
-from polarstripe.planning.planner import default_separations, plan, plan_model
+from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
@@ -74,6 +74,7 @@ class Planner(Node):
         separations: int = 24
         d_min_m: float = 0.02
         d_max_m: float = 0.5
+        refine: int = REFINE  # rounds of bisection around the curve's best (docs/planning.md §8)
         exposure: Literal["scene", "auto"] = "scene"
         max_saturated_fraction: float = 1.0  # of a flood frame at the plan's separation; 1 = no check
         publish_on_start: bool = True
@@ -90,6 +91,8 @@ class Planner(Node):
                                  f"{self.d_min_m}, {self.d_max_m}")
             if self.width and self.width < 8:
                 raise ValueError(f"width must be 0 (the camera's) or at least 8 pixels, got {self.width}")
+            if self.refine < 0:
+                raise ValueError(f"refine must be >= 0 rounds, got {self.refine}")
             if self.stripe_step < 1:
                 raise ValueError(f"stripe_step must be at least 1, got {self.stripe_step}")
             if not 0.0 <= self.max_saturated_fraction <= 1.0:
@@ -157,7 +160,7 @@ class Planner(Node):
                              "separation: allow more frames or scan fewer stripes")
         model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
                            orders=p.orders, stripe_step=p.stripe_step, sheets=sheets, width=p.width or None)
-        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure)
+        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=p.refine)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
         # the objective counts the planned method's saturated pixels as lost (planning/predicted_error.py);

@@ -34,6 +34,7 @@ from polarstripe.planning.plan_plot import (
 from polarstripe.planning.planner import (
     EDGES,
     MODALITIES,
+    REFINE,
     SCAN_TYPES,
     Curve,
     default_separations,
@@ -184,6 +185,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="number of separations swept (default 60)")
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
                         help="separation range in metres (default 0.01 0.6)")
+    parser.add_argument("--refine", type=int, default=REFINE, metavar="N",
+                        help=f"rounds of bisection around each curve's best (default {REFINE}; 0: the grid "
+                             "alone); the stripe composite's error ripples between the grid's points")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--width", type=int, default=None, metavar="W",
                         help="width [px] of the error measure's renders (default: the scene camera's, whose "
@@ -317,10 +321,9 @@ def main(args: argparse.Namespace) -> int:
     seps = default_separations(args.separations, args.range[0], args.range[1])
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans, doc = {}, {}
-    sheets, allowed = 1, None
+    sheets, allowed, sheet_seps = 1, None, seps
     if args.max_frames:
         sheets = sheets_for_budget(args.stripes, args.max_frames, 2 if args.analyzer == "stage" else 1)
-        allowed = feasible(sheet_limits(scene, args.stripes, seps), sheets)
     for role, measure, orders in (("plan", args.measure, args.orders),
                                   ("reference", REFERENCE["measure"], REFERENCE["orders"])):
         if role == "reference" and ((args.measure, args.orders) == (measure, orders) or
@@ -331,8 +334,11 @@ def main(args: argparse.Namespace) -> int:
                            p_rule=args.p_rule, width=args.width)
         if role == "plan":
             plan_width = model.shape[1] if measure == "error" else args.width or scene.camera.resolution[0]
-        plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure)
-        if role == "plan" and allowed is not None:
+        plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure,
+                           refine=args.refine)
+        if role == "plan" and args.max_frames:     # at the stripe curves' own separations (bisections too)
+            sheet_seps = plans[role]["stripes"].curve.separations_m if "stripes" in plans[role] else seps
+            allowed = feasible(sheet_limits(scene, args.stripes, sheet_seps), sheets)
             restrict(plans[role], allowed)
         if role == "plan":
             doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders}}
@@ -365,7 +371,7 @@ def main(args: argparse.Namespace) -> int:
     else:
         if "sheets" in doc:
             s = doc["sheets"]
-            ok = [d for d, a in zip(seps, s["allowed"], strict=True) if a]
+            ok = [d for d, a in zip(sheet_seps, s["allowed"], strict=True) if a]
             print(f"sheets: {s['sheets']} per stripe frame ({s['frames']} frames of a polarized scan, budget "
                   f"{s['max_frames']}); they stay apart in the image at "
                   + (f"{ok[0] * 100:.0f}-{ok[-1] * 100:.0f} cm" if ok else "no separation"))

@@ -42,6 +42,7 @@ SCAN_TYPES = ("rotate", "translate", "both")
 POLARIZED_READINGS = {"paper": {"flood": ("E_b", "S_hat"), "stripes": ("E_b",)},
                       "error": {"flood": ("E_b", "S_hat"), "stripes": ("E_b", "S_hat")}}
 TIE = 0.02  # relative: E_b wins a tie with Ŝ (one frame, no post-processing)
+REFINE = 2  # bisection rounds around each curve's best (docs/planning.md §8, "Between the grid's points")
 
 
 class PlanModel(Protocol):
@@ -171,7 +172,7 @@ def compare_scans(seps: np.ndarray, curves: list[Curve], lateral_m: np.ndarray, 
     i_rot = int(np.argmax(rotate_curve))
     scores = {"rotate": float(rotate_curve[i_rot])}
     per_location = {"rotate": [float(seps[i_rot])] * len(curves)}
-    step = float(seps[1] - seps[0])
+    step = float(np.min(np.diff(seps)))
     lo, hi = seps[0] - lateral_m.min(), seps[-1] - lateral_m.max()
     if hi >= lo:
         deltas = np.arange(lo, hi + 0.5 * step, step)
@@ -250,8 +251,26 @@ def _score(scored: dict, p_mean: list, samples: Samples, noise, modality, edge, 
         ideal.append(objective(samples, IDEAL_SENSOR, memo=memo_ideal, **args))
 
 
+def _bisections(seps: list[float], scored: dict) -> list[float]:
+    """The midpoints between each curve's best separation and its neighbours among ``seps`` (in the order
+    they were evaluated) that are not evaluated yet."""
+    order = np.argsort(seps)
+    ordered = np.asarray(seps)[order]
+    done = {round(d, 9) for d in seps}
+    out = []
+    for objs, ideal in scored.values():
+        i = int(np.argmax(_curve(ordered, [objs[k] for k in order], [ideal[k] for k in order]).objective))
+        for j in (i - 1, i + 1):
+            if 0 <= j < ordered.size:
+                mid = round(0.5 * float(ordered[i] + ordered[j]), 9)
+                if mid not in done:
+                    done.add(mid)
+                    out.append(mid)
+    return out
+
+
 def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,
-         k_detect: float = 3.0, p_min: float = 0.05, exposure: str = "scene",
+         k_detect: float = 3.0, p_min: float = 0.05, exposure: str = "scene", refine: int = 0,
          progress=None) -> dict[str, ModalityPlan]:
     """Sweep the separations and build the plans keyed ``flood``, ``flood_polarized``, ``stripes``,
     ``stripes_polarized`` (only the requested modalities). One model evaluation per separation and
@@ -261,9 +280,15 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
     E_b; the polarized flood is scored both as E_b and as Ŝ (eq. 6), its ``curve`` is the recommended one
     (:func:`recommend_reading`) and ``readings`` holds both. ``exposure="auto"`` sets one exposure per
     modality so that no observed point saturates anywhere in the sweep (:func:`auto_exposure_scale`);
-    ``"scene"`` keeps the camera's exposure, and saturated points score 0."""
+    ``"scene"`` keeps the camera's exposure, and saturated points score 0. ``refine`` rounds of bisection
+    then evaluate the midpoints between each curve's best and its neighbours (the curves hold them too): a
+    stripe composite's error ripples by a few per cent between the grid's points, where the stripes' phase
+    on the pixel grid changes (docs/planning.md §8); ``progress`` is called once per evaluation, the grid's
+    first."""
     if exposure not in ("auto", "scene"):
         raise SceneError(f"exposure must be 'auto' or 'scene', got {exposure!r}")
+    if isinstance(refine, bool) or int(refine) != refine or refine < 0:
+        raise SceneError(f"refine must be a whole number of bisection rounds >= 0, got {refine!r}")
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     if seps.ndim != 1 or seps.size < 2 or np.any(~np.isfinite(seps)) or np.any(seps <= 0) or \
             np.any(np.diff(seps) <= 0):
@@ -300,8 +325,20 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
                 _score(scored, p_mean, evaluate(float(d)), noise, **kw)
                 if progress is not None:
                     progress()
+        done = [float(d) for d in seps]
+        for _ in range(int(refine)):
+            for d in _bisections(done, scored):
+                _score(scored, p_mean, evaluate(d), noise, **kw)
+                done.append(d)
+                if progress is not None:
+                    progress()
+        order = np.argsort(done)
+        mseps = np.asarray(done)[order]
+        p_mean = [p_mean[k] for k in order]
+        for key, (objs, ideal) in scored.items():
+            scored[key] = ([objs[k] for k in order], [ideal[k] for k in order])
         for polarized, readings in groups:
-            curves = {r: _curve(seps, *scored[(polarized, r)]) for r in readings}
+            curves = {r: _curve(mseps, *scored[(polarized, r)]) for r in readings}
             rec = None
             if len(readings) > 1:
                 rec = recommend_reading(curves, p_mean[curves["S_hat"].best_index],
@@ -314,9 +351,9 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
             if modality == "stripes":
                 objs, ideal = scored[(polarized, chosen)]
                 pixels = np.asarray(model.observed_pixels())
-                mp.location_curves = [_curve(seps, objs, ideal, cols=[i]) for i in range(len(pixels))]
+                mp.location_curves = [_curve(mseps, objs, ideal, cols=[i]) for i in range(len(pixels))]
                 mp.locations = [{"pixel": [int(r), int(c)], "lateral_position_m": float(x)}
                                 for (r, c), x in zip(pixels, lateral, strict=True)]
-                mp.scan = compare_scans(seps, mp.location_curves, lateral)
+                mp.scan = compare_scans(mseps, mp.location_curves, lateral)
             out[modality + ("_polarized" if polarized else "")] = mp
     return out

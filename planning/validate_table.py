@@ -22,7 +22,7 @@ import json
 import math
 
 import numpy as np
-from polarstripe.planning.planner import default_separations, plan, plan_model
+from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
 from polarstripe.planning.validate import METHODS, ScanSettings, scan_scene, score_scans
 from polarstripe.sim.scene import Scene, SceneError, scene_to_dict
 
@@ -53,19 +53,20 @@ VARIANTS = {"error": ("error", "all"), "all": ("paper", "all"), "single": ("pape
 
 def planner_picks(scene: Scene, *, orders: str, fidelity: str | None = None, n_stripes: int = 30,
                   separations_m=None, exposure: str = "scene", p_rule: str = "map",
-                  width: int | None = None) -> dict[str, dict]:
+                  width: int | None = None, refine: int = REFINE) -> dict[str, dict]:
     """The planner's pick per planner curve key (``flood``, ``flood_polarized``, …): {"separation_m",
     "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults; ``orders``
     names the variant (:data:`VARIANTS`), ``p_rule`` eq. 6's p the error measure predicts with (the
     judge's), ``width`` its renders' width (the judge's camera: a 30-stripe composite at 3 px per stripe
-    aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8)."""
+    aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8), ``refine`` the
+    planner's bisection rounds."""
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     if orders not in VARIANTS:
         raise SceneError(f"planner variant must be one of {', '.join(VARIANTS)}, got {orders!r}")
     measure, model_orders = VARIANTS[orders]
     model = plan_model(scene, measure=measure, fidelity=fidelity, n_stripes=n_stripes, orders=model_orders,
                        p_rule=p_rule, width=width if measure == "error" else None)
-    return picks_of(plan(model, seps, exposure=exposure))
+    return picks_of(plan(model, seps, exposure=exposure, refine=refine))
 
 
 def picks_of(plans: dict) -> dict[str, dict]:

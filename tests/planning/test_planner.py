@@ -84,6 +84,34 @@ def test_fig8_sensor_noise_gives_an_interior_maximum_stable_under_refinement(fig
     assert abs(f.best_separation_m - c.best_separation_m) <= (coarse[1] - coarse[0]) + 1e-12
 
 
+def test_bisection_rounds_refine_the_pick_between_the_grids_points(paper_geometry):
+    """refine: the grid's points keep their values, each round adds the midpoints either side of a curve's
+    best, and the best cannot get worse (the stripe composite's ripple between grid points, planning.md §8)."""
+    w, h = paper_geometry.camera.resolution
+    model = SceneModel(paper_geometry, fidelity="preview", pixels=[[h // 2, w // 2]], orders="single")
+    coarse = default_separations(8, 0.02, 0.6)
+    grid = plan(model, coarse, modalities=("flood",), exposure="auto", refine=0)
+    refined = plan(model, coarse, modalities=("flood",), exposure="auto", refine=2)
+    step = coarse[1] - coarse[0]
+    for key in ("flood", "flood_polarized"):
+        for reading, c0 in (grid[key].readings or {"E": grid[key].curve}).items():
+            c2 = (refined[key].readings or {"E": refined[key].curve})[reading]
+            assert np.all(np.diff(c2.separations_m) > 0)
+            on = np.isin(np.round(c2.separations_m, 9), np.round(coarse, 9))
+            assert on.sum() == coarse.size
+            np.testing.assert_array_equal(c2.objective[on], c0.objective)
+            extra = np.round(c2.separations_m[~on], 9)
+            i = c0.best_index
+            first = [round(0.5 * (coarse[i] + coarse[j]), 9) for j in (i - 1, i + 1) if 0 <= j < coarse.size]
+            assert set(first) <= set(extra.tolist()), reading
+            assert 2 <= extra.size <= 2 * 2 * 3         # two rounds, at most two midpoints per curve's best
+            assert np.all(np.abs(np.subtract.outer(extra, coarse)).min(axis=1) <= step / 2 + 1e-9)
+            assert c2.objective.max() >= c0.objective.max()
+            assert abs(c2.best_separation_m - c0.best_separation_m) <= step / 2 + step / 4 + 1e-9
+    with pytest.raises(SceneError, match="refine"):
+        plan(model, coarse, modalities=("flood",), refine=-1)
+
+
 def test_fig8_polarization_lies_above(fig8_flood):
     """Fig. 9a: the polarized curve lies above the unpolarized one, noise-free everywhere and at the best
     noisy value; the plan recommends the better polarized reading."""
