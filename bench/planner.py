@@ -93,11 +93,45 @@ def _settings(args) -> tuple[ScanSettings, int, int, int]:
     return settings, n_sep, grid, refine
 
 
-def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps, exposure: str, tick):
-    """The plans and (CPU s, wall s, model evaluations) of one full plan on one model thread."""
+class _Bisections:
+    """The plan's model, timing the evaluations off the grid (the planner's bisections, planner.REFINE): a
+    plan timed on fewer separations than a full plan's scales its grid part, not these."""
+
+    def __init__(self, model, grid):
+        self._model, self._grid = model, {round(float(d), 9) for d in grid}
+        self.cpu = self.wall = 0.0
+        self.n = 0
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def _timed(self, fn, d):
+        if round(d, 9) in self._grid:
+            return fn(d)
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return fn(d)
+        finally:
+            self.cpu += time.process_time() - c0
+            self.wall += time.perf_counter() - t0
+            self.n += 1
+
+    def flood(self, d):
+        return self._timed(self._model.flood, d)
+
+    def stripes(self, d):
+        return self._timed(self._model.stripes, d)
+
+
+def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps, exposure: str, tick,
+                scale: float):
+    """The plans and (CPU s, wall s, grid evaluations, bisection evaluations) of one full plan on one model
+    thread: the grid's part times ``scale`` (a full plan's separations over ``seps``), the bisections' as
+    they are (their scoring is in the grid's part)."""
     measure, orders = VARIANTS[variant]
     model = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders, n_stripes=settings.n_stripes,
                        p_rule=settings.p_rule, width=settings.width if measure == "error" else None)
+    timed = _Bisections(model, seps)
     count = {"n": 0}
 
     def progress():
@@ -111,11 +145,13 @@ def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps
                           width=16 if measure == "error" else None)
         plan(warm, seps[:2])            # load the kernels, warm the caches (phase tables, quadrature nodes)
         t0, c0 = time.perf_counter(), time.process_time()
-        plans = plan(model, seps, exposure=exposure, refine=REFINE, progress=progress)
+        plans = plan(timed, seps, exposure=exposure, refine=REFINE, progress=progress)
         cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     finally:
         set_threads(before)
-    return plans, cpu, wall, count["n"]
+    cpu = (cpu - timed.cpu) * scale + timed.cpu
+    wall = (wall - timed.wall) * scale + timed.wall
+    return plans, cpu, wall, count["n"] - timed.n, timed.n
 
 
 def run(args) -> dict:
@@ -144,11 +180,12 @@ def run(args) -> dict:
 
     out = {"separations": n_sep, "full_plan": FULL_PLAN, "time_scale": scale, "threads": 1,
            "exposure": args.exposure, "settings": vars(settings), "grid_m": default_grid(n_grid).tolist(),
-           "refine": refine, "target_cpu_seconds": TARGET_CPU_S, "target_regret": planner_e2e.TARGET_REGRET,
+           "refine": refine, "plan_refine": REFINE, "target_cpu_seconds": TARGET_CPU_S,
+           "target_regret": planner_e2e.TARGET_REGRET,
            "skipped": [f"{v}/{f}" for v, f in skipped], "load_average_start": list(os.getloadavg()),
            "truth": {}, "levels": []}
     rows = {lv: {"variant": lv[0], "fidelity": lv[1], "cpu": [], "wall": [], "evaluations": 0,
-                 "picks_m": {}, "regret": {}} for lv in levels}
+                 "bisections": [], "picks_m": {}, "regret": {}} for lv in levels}
     c_all = time.process_time()
     try:
         for name, scene in scenes:
@@ -156,11 +193,13 @@ def run(args) -> dict:
             for lv in levels:
                 if bar is not None:
                     bar.set_description(f"plan {name} {lv[0]}/{lv[1]}")
-                plans, cpu, wall, evals = _timed_plan(scene, *lv, settings, seps, args.exposure, tick)
+                plans, cpu, wall, evals, bisections = _timed_plan(scene, *lv, settings, seps, args.exposure,
+                                                                  tick, scale)
                 r = rows[lv]
-                r["cpu"].append(cpu * scale)
-                r["wall"].append(wall * scale)
+                r["cpu"].append(cpu)
+                r["wall"].append(wall)
                 r["evaluations"] = evals
+                r["bisections"].append(bisections)
                 picks[f"{lv[0]}/{lv[1]}"] = picks_of(plans)
             if bar is not None:
                 bar.set_description(f"truth {name}")
@@ -188,7 +227,8 @@ def run(args) -> dict:
             "variant": r["variant"], "fidelity": r["fidelity"],
             "cpu_seconds_per_plan": float(np.median(r["cpu"])),
             "seconds_per_plan": float(np.median(r["wall"])),
-            "model_evaluations": r["evaluations"], "picks_m": r["picks_m"], "regret": r["regret"],
+            "model_evaluations": r["evaluations"], "bisection_evaluations": r["bisections"],
+            "picks_m": r["picks_m"], "regret": r["regret"],
             "worst_regret": max(regrets) if regrets else None})
     out["cpu_seconds"] = time.process_time() - c_all
     out["load_average_end"] = list(os.getloadavg())
@@ -204,9 +244,9 @@ def print_ladder(res: dict) -> None:
     s = res["settings"]
     timed = "" if res["time_scale"] == 1 else \
         f" (timed on {res['separations']}, scaled ×{res['time_scale']:g})"
-    print(f"planner ladder: a full plan = {res['full_plan']} separations{timed} × (flood, stripes) × "
-          f"(with, without polarizer), one core, process CPU; rendered {s['width']} px wide, exposure "
-          f"{res['exposure']}")
+    print(f"planner ladder: a full plan = {res['full_plan']} separations{timed} and the planner's "
+          f"{res['plan_refine']} bisection round(s) × (flood, stripes) × (with, without polarizer), one "
+          f"core, process CPU; rendered {s['width']} px wide, exposure {res['exposure']}")
     g = res["grid_m"]
     print(f"regret vs the end-to-end truth: {len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm "
           f"+ picks + {res['refine']} bisection(s), scans at {s['fidelity']}, {s['orders']} orders, "

@@ -163,6 +163,10 @@ class Planner(Node):
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=p.refine)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
+        if sheets > 1:                            # at the curve's own separations (its bisections too)
+            allowed = feasible(sheet_limits(self.scene, p.stripes, c.separations_m), sheets)
+        else:
+            allowed = np.ones(c.separations_m.size, bool)
         # the objective counts the planned method's saturated pixels as lost (planning/predicted_error.py);
         # a user may also keep a flood frame at the plan's separation (the brightest of any method, every
         # method of a scan uses it) below full scale: max_saturated_fraction < 1

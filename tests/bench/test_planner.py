@@ -36,6 +36,7 @@ def test_every_level_has_its_time_and_regret(ladder):
     for lv in ladder["levels"]:
         assert lv["cpu_seconds_per_plan"] > 0 and lv["seconds_per_plan"] > 0
         assert lv["model_evaluations"] == 2 * 3                             # flood + stripes per separation
+        assert all(2 <= n <= 2 * 2 * 2 * 3 for n in lv["bisection_evaluations"])  # 2 rounds, ≤ 2 per best
         regret, picks = lv["regret"]["tank_sigma5"], lv["picks_m"]["tank_sigma5"]
         assert set(regret) == set(METHOD_NAMES)
         for m in METHOD_NAMES:

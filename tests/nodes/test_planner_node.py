@@ -30,8 +30,10 @@ def test_plan_is_served_and_published(harness):
     assert len(h.published("planner/plan")) == 1
     plan = h.call("planner/plan", Empty())
     assert plan.modality == "stripes"
-    seps = plan.curves["separation_m"]
-    np.testing.assert_allclose(seps, np.linspace(0.05, 0.45, 6))
+    seps = plan.curves["separation_m"]          # the grid and the bisections around the best (refine)
+    grid = np.linspace(0.05, 0.45, 6)
+    assert np.all(np.diff(seps) > 0) and np.all(np.isin(np.round(grid, 9), np.round(seps, 9)))
+    assert 2 <= seps.size - grid.size <= 2 * 2 * 3
     # the plan is the planner's on the node's scene: in the configured range, and within one grid step of
     # the best separation planning.planner.plan finds for the same scene, modality and polarization
     assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
@@ -39,7 +41,8 @@ def test_plan_is_served_and_published(harness):
     # rendered at the camera's width (160 px, its resolution): the pixel grid the stripe composite aliases on
     model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"], width=160,
                        n_stripes=h.node.params.stripes, stripe_step=h.node.params.stripe_step)
-    reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",))
+    reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",),
+                                 refine=h.node.params.refine)
     step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
     best = reference["stripes_polarized"].curve
     assert abs(plan.separation_m - best.best_separation_m) <= step + 1e-12
@@ -110,7 +113,8 @@ def test_changed_p_replans_with_the_measured_medium():
     # the paper's measure and single-scattering model, where the margin's dependence on p below holds
     # (planning.md §1)
     h = NodeHarness(Planner, name="planner", namespace="/rig",
-                    params={**FAST, "publish_on_start": False, "orders": "single", "measure": "paper"})
+                    params={**FAST, "publish_on_start": False, "orders": "single", "measure": "paper",
+                            "refine": 0})     # the curves compared below on the same separations
     before = h.call("planner/plan", Empty())
     n = len(h.published("planner/plan"))
     h.deliver("medium/estimate", MediumEstimate(p=0.2, scan_id=2))

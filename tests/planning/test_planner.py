@@ -86,7 +86,7 @@ def test_fig8_sensor_noise_gives_an_interior_maximum_stable_under_refinement(fig
 
 def test_bisection_rounds_refine_the_pick_between_the_grids_points(paper_geometry):
     """refine: the grid's points keep their values, each round adds the midpoints either side of a curve's
-    best, and the best cannot get worse (the stripe composite's ripple between grid points, planning.md §8)."""
+    best, and the best cannot get worse (the stripe composite ripples between grid points, planning.md §8)."""
     w, h = paper_geometry.camera.resolution
     model = SceneModel(paper_geometry, fidelity="preview", pixels=[[h // 2, w // 2]], orders="single")
     coarse = default_separations(8, 0.02, 0.6)
