@@ -135,3 +135,72 @@ def view_gather(shape, cum, index, frac, out, first=0, end=-1):
                     out[f0 + 2, m] = a2
                 if f0 + 3 < nf:
                     out[f0 + 3, m] = a3
+
+
+@njit(inline="always")
+def _half_axis(i, size):
+    """Pixel i's coarse coordinate on a twice-coarser axis of ``size`` (i/2 − ¼ clamped to [0, size − 1],
+    as cv2.resize's INTER_LINEAR has it): (the lower neighbour, the weight of the upper one)."""
+    f = min(max(i / 2.0 - 0.25, 0.0), size - 1.0)
+    lo = min(int(f), max(size - 2, 0))
+    return lo, f - lo
+
+
+@njit(cache=True, nogil=True)
+def half_up(smooth, p_small, ids_small, ids, albedo, a_out, out, first=0, end=-1):
+    """A ``preview`` frame's half-resolution parts at full resolution, one pass: out[k] (h·w flat) the
+    bilinear twice-finer upsampling of ``smooth[k]`` (hs, ws) (cv2.resize INTER_LINEAR's, every pixel), and
+    A = ρ·P↑ + H↑ with H = smooth[0] and P↑ the upsampling of ``p_small`` within each object: each pixel
+    weighs only the coarse neighbours that see its own object (``ids``), the nearest of them when none do,
+    0 where it sees none. Rows [first, end) only (end −1: to the last)."""
+    h, w = ids.shape
+    hs, ws = p_small.shape
+    nf = len(smooth)
+    x0s, txs = np.empty(w, np.int64), np.empty(w)
+    for j in range(w):
+        x0s[j], txs[j] = _half_axis(j, ws)
+    for i in range(first, h if end < 0 else end):
+        y0, ty = _half_axis(i, hs)
+        y1 = min(y0 + 1, hs - 1)
+        for j in range(w):
+            x0, tx = x0s[j], txs[j]
+            x1 = min(x0 + 1, ws - 1)
+            m = i * w + j
+            w00, w01, w10, w11 = (1.0 - ty) * (1.0 - tx), (1.0 - ty) * tx, ty * (1.0 - tx), ty * tx
+            for f in range(nf):
+                s = smooth[f]
+                out[f, m] = w00 * s[y0, x0] + w01 * s[y0, x1] + w10 * s[y1, x0] + w11 * s[y1, x1]
+            k = ids[i, j]
+            if k < 0:
+                a_out[m] = out[0, m]
+                continue
+            if ids_small[y0, x0] == k and ids_small[y0, x1] == k and ids_small[y1, x0] == k and \
+                    ids_small[y1, x1] == k:
+                p = (w00 * p_small[y0, x0] + w01 * p_small[y0, x1] + w10 * p_small[y1, x0]
+                     + w11 * p_small[y1, x1])
+            else:
+                p = _within(p_small, ids_small, k, y0, y1, x0, x1, w00, w01, w10, w11,
+                            min(max(i / 2.0 - 0.25, 0.0), hs - 1.0), min(max(j / 2.0 - 0.25, 0.0), ws - 1.0))
+            a_out[m] = albedo[m] * p + out[0, m]
+
+
+@njit(nogil=True)
+def _within(small, ids_small, k, y0, y1, x0, x1, w00, w01, w10, w11, fy, fx):
+    """:func:`half_up`'s P at a pixel of object k by an edge of it (a call of its own): the bilinear
+    weights of the neighbours that see k, renormalised; else the nearest coarse pixel of k within two."""
+    acc = wsum = 0.0
+    for yy, xx, wq in ((y0, x0, w00), (y0, x1, w01), (y1, x0, w10), (y1, x1, w11)):
+        if ids_small[yy, xx] == k:
+            acc += wq * small[yy, xx]
+            wsum += wq
+    if wsum > 1e-9:
+        return acc / wsum
+    best, val = 1e30, 0.0
+    hs, ws = small.shape
+    for yy in range(max(int(fy) - 1, 0), min(int(fy) + 3, hs)):
+        for xx in range(max(int(fx) - 1, 0), min(int(fx) + 3, ws)):
+            if ids_small[yy, xx] == k:
+                d = (yy - fy) ** 2 + (xx - fx) ** 2
+                if d < best:
+                    best, val = d, small[yy, xx]
+    return val

@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.backscatter import (
@@ -42,10 +41,10 @@ from polarstripe.sim.backscatter import (
     rays,
     scaled_source,
 )
-from polarstripe.sim.frame_kernels import field_irradiance
+from polarstripe.sim.frame_kernels import field_irradiance, half_up
 from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
 from polarstripe.sim.glow import glow_fields
-from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths, upsample_within
+from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths
 from polarstripe.sim.grid_sources import (
     source_field,
     view_integral,
@@ -235,15 +234,13 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
     _, p_half, h_half, b, bq, bu, bv = _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
-    size = (cam.w, cam.h)
-    up = [cv2.resize(x.reshape(half.h, half.w), size, interpolation=cv2.INTER_LINEAR).ravel() if x.any()
-          else np.zeros(cam.w * cam.h) for x in (h_half, b, bq, bu, bv)]      # (V is 0 for linear light)
-    p_full = np.empty(cam.w * cam.h)                                     # every pixel written
-    args = (p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
-            view.surf.object_id.reshape(cam.h, cam.w), p_full)
-    in_bands(cam.h, lambda a, b: upsample_within(*args, a, b), min_size=16)
-    a = view.surf.albedo * p_full + up[0] if "A" in need else np.zeros(p_full.size)
-    return d, a, up[1], up[2], up[3], up[4]
+    fields = (h_half, b, bq, bu, bv) if bv.any() else (h_half, b, bq, bu)      # (V is 0 for linear light)
+    smooth = tuple(np.ascontiguousarray(x).reshape(half.h, half.w) for x in fields)
+    out, a = np.empty((len(smooth), cam.w * cam.h)), np.empty(cam.w * cam.h)       # every pixel written
+    args = (smooth, p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
+            view.surf.object_id.reshape(cam.h, cam.w), view.surf.albedo, a, out)
+    in_bands(cam.h, lambda r0, r1: half_up(*args, r0, r1), min_size=16)
+    return d, a, out[1], out[2], out[3], out[4] if len(smooth) > 4 else np.zeros(a.size)
 
 
 class RayGeometry(NamedTuple):
