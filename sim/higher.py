@@ -52,7 +52,7 @@ from polarstripe.sim.grid_sources import (
 )
 from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders
 from polarstripe.sim.orders import OrdersPlan
-from polarstripe.sim.patterns import pattern_lit
+from polarstripe.sim.patterns import column_order, lit_in_columns, pattern_lit
 from polarstripe.sim.psf import halo_table, mixture, spread
 from polarstripe.sim.psf_frame import object_radiance
 from polarstripe.sim.psf_stencil import stencil_blur
@@ -115,17 +115,24 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
     scene, pat, _, cam, _, hits, surf, _ = view
     n = hits.t.size
     d, quasi = np.zeros(n), np.zeros(n)
-    hit = np.nonzero(surf.object_id >= 0)[0]
-    if hit.size == 0:
-        return d, quasi
     want_d = "D" in need or ("A" in need and view.pixels is not None)       # pixels: A = stencil − D
     if view.pixels is None and geometry_cache.enabled():
-        seen = geo(view, "seen", lambda: hit[~occluded(scene.objects, src.position, hits.point[hit])])
+        def visible():
+            hit = np.nonzero(surf.object_id >= 0)[0]
+            return hit[~occluded(scene.objects, src.position, hits.point[hit])]
+
+        seen = geo(view, "seen", visible)
+        if seen.size == 0:
+            return d, quasi
         if src.frame is None:
             lit = seen
         else:
             coords = geo(view, "seen_coords", lambda: projector_coords(src.frame, hits.point[seen]))
-            lit = seen[pattern_lit(pat, src.frame, None, coords)]
+            if pat.kind in ("flood", "stripe"):       # by bisection in the seen points' columns
+                lit = seen[lit_in_columns(pat, src.frame.w, geo(view, "seen_columns",
+                                                                lambda: column_order(src.frame, coords)))]
+            else:
+                lit = seen[pattern_lit(pat, src.frame, None, coords)]
 
         def every(source, albedo):
             out = np.zeros(n)
@@ -137,6 +144,9 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
             d[lit] = geo(view, "D", lambda: every(src, surf.albedo[seen]))[lit]
         if "A" in need:
             quasi[lit] = geo(view, ("quasi", ssrc.sigma_t), lambda: every(ssrc, np.ones(seen.size)))[lit]
+        return d, quasi
+    hit = np.nonzero(surf.object_id >= 0)[0]
+    if hit.size == 0:
         return d, quasi
     lit = hit[pattern_lit(pat, src.frame, hits.point[hit])]
     lit = lit[~occluded(scene.objects, src.position, hits.point[lit])]

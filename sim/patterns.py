@@ -28,8 +28,8 @@ from polarstripe.sim.geometry import PinholeFrame, projector_coords
 from polarstripe.sim.kernels import clip_rays
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["PatternSpec", "clip_halfspaces", "gray_lit", "lit_intervals", "parse_pattern", "sheet_columns",
-           "single_sheets", "stripe_columns"]
+__all__ = ["PatternSpec", "clip_halfspaces", "column_order", "gray_lit", "lit_in_columns", "lit_intervals",
+           "parse_pattern", "sheet_columns", "single_sheets", "stripe_columns"]
 
 _PAR_EPS = 1e-13
 
@@ -162,6 +162,24 @@ def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.n
     if not rays:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     return np.concatenate(rays), np.concatenate(los), np.concatenate(his)
+
+
+def column_order(frame: PinholeFrame, coords) -> tuple[np.ndarray, np.ndarray]:
+    """The points inside the projector's ``frame`` (of their :func:`~polarstripe.sim.geometry.projector_coords`
+    ``coords``) sorted by pattern column: (their indices, their columns), for :func:`lit_in_columns`."""
+    col, row, depth = coords
+    inside = np.nonzero((depth > 0) & (row >= 0) & (row < frame.h) & (col >= 0) & (col < frame.w))[0]
+    order = inside[np.argsort(col[inside], kind="stable")]
+    return order, col[order]
+
+
+def lit_in_columns(pattern: PatternSpec, width: int, order: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Indices of the points a flood or stripe ``pattern`` lights, from their :func:`column_order`: those of
+    :func:`pattern_lit`, found by bisection (a scan's frames share the order)."""
+    index, col = order
+    parts = [index[np.searchsorted(col, c0, "left"):np.searchsorted(col, c1, "left")]
+             for c0, c1 in sheet_columns(pattern, width)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def pattern_lit(pattern: PatternSpec | None, frame, points: np.ndarray, coords=None) -> np.ndarray:
