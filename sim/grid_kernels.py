@@ -152,6 +152,7 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
     c, g, sigma, origin = view
     nf = phi.shape[0]
     nk = cum.shape[2] - 1
+    step_w, decay = np.empty(nf), np.empty(nf)     # a step's weight at the ray's start, its decay a step
     for r in range(dirs.shape[0]):
         for i in range(nf):
             cum[i, r, 0] = 0.0
@@ -162,6 +163,10 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
                     cum[i, r, j + 1] = 0.0
             continue
         ds = length / nk
+        for f in range(nf):      # ∫ e^{−σa} over step j = e^{−σjΔ}·(1 − e^{−σΔ})/σ: one exp a ray, not two a step
+            sf = sigma[f]
+            step_w[f] = -math.expm1(-sf * ds) / sf if sf > 0.0 else ds
+            decay[f] = math.exp(-sf * ds) if sf > 0.0 else 1.0
         dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
         for j in range(nk):
             a0 = j * ds
@@ -172,8 +177,8 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
             for f in range(nf):  # sample_fields' trilinear loop, written out: a shared helper taking the
                 p = 0.0            # field's slices cost 9 % of a preview frame (measured)
                 fd = 0.0
-                sf = sigma[f]
-                w = (math.exp(-sf * a0) - math.exp(-sf * (a0 + ds))) / sf if sf > 0.0 else ds
+                w = step_w[f]
+                step_w[f] = w * decay[f]
                 for cx in range(2):
                     wx = tx if cx else 1.0 - tx
                     for cy in range(2):
