@@ -176,7 +176,7 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
     """
     src = np.asarray(spread_part, np.float32)
     if mask is not None:
-        src = np.where(mask, src, 0.0).astype(np.float32)          # only the object's own light
+        src = np.where(mask, src, np.float32(0.0))          # only the object's own light
     if levels is None:
         levels = blur_levels(rms_px, mask)
     if not levels:
@@ -191,17 +191,21 @@ def blur_image(spread_part: np.ndarray, rms_px: np.ndarray, mix: np.ndarray,
         out = np.zeros(src.shape, np.float32)
         for rms, hat in levels:
             out += hat * _halo(src, m32, rms, mix, pyramid)
-    return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
+    return out if mask is None else np.where(mask, out, np.float32(0.0))
 
 
 def _down(pyramid: dict, key: str, img: np.ndarray, down: int) -> np.ndarray:
-    """``img`` downsampled by ``down`` (area average), cached per (key, down)."""
+    """``img`` downsampled by ``down`` (area average), cached per (key, down): from the level of half its
+    ``down`` when that is exactly twice its size (the same average), else from ``img``."""
     if down == 1:
         return img
     if (key, down) not in pyramid:
         h, w = img.shape
         size = (max(1, w // down), max(1, h // down))
-        pyramid[key, down] = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        finer = _down(pyramid, key, img, down // 2) if down % 2 == 0 else img
+        if finer.shape != (2 * size[1], 2 * size[0]):
+            finer = img
+        pyramid[key, down] = cv2.resize(finer, size, interpolation=cv2.INTER_AREA)
     return pyramid[key, down]
 
 
@@ -223,7 +227,7 @@ def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, 
     """Σ_j mix_j G_{c_j·rms} ⊛ src, each Gaussian normalised over the mask when given, widest first."""
     h, w = src.shape
     acc, acc_size, sharp = None, None, 0.0
-    for c, m in sorted(zip(WIDTHS, mix, strict=True), reverse=True):
+    for c, m in sorted(zip(WIDTHS.tolist(), mix.tolist(), strict=True), reverse=True):    # floats: stay float32
         s = c * rms
         if m <= 0:
             continue

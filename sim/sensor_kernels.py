@@ -17,6 +17,7 @@ from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix
 
 POISSON_EXACT_BELOW = 30.0   # mean e- below which shot noise is drawn by inversion (docs/physics.md §7)
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
+_PAIR_RECIPROCALS = 1.0 / ((np.arange(128.0) + 1.0) * (np.arange(128.0) + 2.0))   # 1/((k + 1)(k + 2))
 
 
 @njit(cache=True, nogil=True)
@@ -47,14 +48,23 @@ def malus_basis(d, a, b, sq, su, total, q, u):
 
 @njit(nogil=True)
 def _poisson_inversion(lam, key, n):
-    """An exact Poisson(λ) count by inversion from the word ``n`` of ``key`` (λ < 30; a call of its own)."""
+    """An exact Poisson(λ) count by inversion from the word ``n`` of ``key`` (λ < 30; a call of its own):
+    the least k with u ≤ F(k), the pmf's terms two at a time (p_{k+2} = p_k·λ²/((k+1)(k+2)) beside p_{k+1},
+    so the sum's chain takes one add per two terms)."""
     u = unit(splitmix(key, n))
     p = math.exp(-lam)
+    if u <= p:
+        return 0.0
     f, k = p, 0
-    while u > f and p > 1e-17 and k < 127:       # past the mode, terms below 1e-17 cannot move f
-        k += 1
-        p *= lam * _RECIPROCALS[k]
-        f += p
+    lam2 = lam * lam
+    while p > 1e-17 and k < 126:                  # past the mode, terms below 1e-17 cannot move f
+        p1 = p * (lam * _RECIPROCALS[k + 1])
+        p = p * (lam2 * _PAIR_RECIPROCALS[k])
+        f1 = f + p1
+        f = f + (p1 + p)
+        if u <= f:
+            return float(k + 1) if u <= f1 else float(k + 2)
+        k += 2
     return float(k)
 
 

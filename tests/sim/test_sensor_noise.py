@@ -52,7 +52,7 @@ def test_normals_have_the_normal_moments_and_tails():
     assert np.array_equal(later, z[1000:2000])
 
 
-@pytest.mark.parametrize("mean_e", [0.2, 4.0, 29.5, 30.5, 250.0, 1e4])
+@pytest.mark.parametrize("mean_e", [0.2, 4.0, 12.5, 29.5, 30.5, 250.0, 1e4])
 def test_shot_noise_is_poisson(mean_e):
     """Gain 1 e⁻/DN, no read noise: the DN are the electron counts, inversion below 30 e⁻ and the
     Cornish–Fisher draw above it, both against the Poisson pmf."""
