@@ -114,8 +114,8 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
     computing only the lit points."""
     scene, pat, _, cam, _, hits, surf, _ = view
     n = hits.t.size
-    d, quasi = np.zeros(n), np.zeros(n)
     want_d = "D" in need or ("A" in need and view.pixels is not None)       # pixels: A = stencil − D
+    d, quasi = (np.zeros(n) if want else np.empty(0) for want in (want_d, "A" in need))  # only what is asked
     if view.pixels is None and geometry_cache.enabled():
         def visible():
             hit = np.nonzero(surf.object_id >= 0)[0]
@@ -244,6 +244,7 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
     _, p_half, h_half, b, bq, bu, bv = _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
+    d = d if d.size else np.zeros(cam.w * cam.h)
     fields = (h_half, b, bq, bu, bv) if bv.any() else (h_half, b, bq, bu)      # (V is 0 for linear light)
     smooth = tuple(np.ascontiguousarray(x).reshape(half.h, half.w) for x in fields)
     out, a = np.empty((len(smooth), cam.w * cam.h)), np.empty(cam.w * cam.h)       # every pixel written
@@ -300,6 +301,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     B, Bq, Bu, Bv = (None,) * 4 if b_made else tuple(np.zeros(n) for _ in range(4))
     if not (want_a or "B" in need) or sc.sigma_s <= 0:
         A = np.zeros(n) if A is None else A
+        D = D if D.size == n else np.zeros(n)
         return (D, np.zeros(n), A, B, Bq, Bu, Bv) if parts else (D, A, B, Bq, Bu, Bv)
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
