@@ -43,6 +43,28 @@ def field_irradiance(grid, phi, flux, points, normals, out):
 
 
 @njit(cache=True, nogil=True)
+def plane_irradiance(grid, e_field, points, out):
+    """out[m] = max(0, E) at ``points`` (m, 3) of a plane, E the trilinear sample of ``e_field`` = φ/4 − F·n/2
+    made with the plane's one outward normal n (:func:`field_irradiance`'s value: the sampling is linear;
+    one field's eight corners instead of four's)."""
+    lo, h, n = grid
+    for m in range(points.shape[0]):
+        i0, tx = _axis(points[m, 0], lo[0], h[0], n[0])
+        j0, ty = _axis(points[m, 1], lo[1], h[1], n[1])
+        k0, tz = _axis(points[m, 2], lo[2], h[2], n[2])
+        e = 0.0
+        for cx in range(2):
+            wx = tx if cx else 1.0 - tx
+            for cy in range(2):
+                wy = ty if cy else 1.0 - ty
+                for cz in range(2):
+                    w = wx * wy * (tz if cz else 1.0 - tz)
+                    if w != 0.0:
+                        e += w * e_field[i0 + cx, j0 + cy, k0 + cz]
+        out[m] = e if e > 0.0 else 0.0
+
+
+@njit(cache=True, nogil=True)
 def polarized_gain(bq, bu, seen, dop):
     """In place: (q, u) ← (q, u)·(1 + dop·seen/|(q, u)|) where |(q, u)| > 0 (docs/physics.md §10.4; the
     orders ≥ 2 in the orientation of the single wide-angle scattering)."""

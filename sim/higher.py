@@ -41,7 +41,7 @@ from polarstripe.sim.backscatter import (
     rays,
     scaled_source,
 )
-from polarstripe.sim.frame_kernels import field_irradiance, half_up
+from polarstripe.sim.frame_kernels import field_irradiance, half_up, plane_irradiance
 from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
 from polarstripe.sim.glow import glow_fields
 from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths
@@ -257,7 +257,8 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
 class RayGeometry(NamedTuple):
     """Per camera ray, the same for every pattern (kept per scene for whole frames): the medium grid's
     interval [t0, t1], the view path's end x_end = min(t1, hit) and start x0 = max(t0, 0), the in-medium
-    length ℓ_C of rays that hit an object (0 elsewhere) and the hit points and normals (contiguous)."""
+    length ℓ_C of rays that hit an object (0 elsewhere), the hit points and normals (contiguous) and their one
+    normal where they all share it (a plane seen alone; else None)."""
 
     t0: np.ndarray
     t1: np.ndarray
@@ -266,6 +267,7 @@ class RayGeometry(NamedTuple):
     ell_c: np.ndarray
     hit_points: np.ndarray
     hit_normals: np.ndarray
+    one_normal: np.ndarray | None
 
 
 def _ray_geometry(view: View, grid: Grid) -> RayGeometry:
@@ -274,15 +276,22 @@ def _ray_geometry(view: View, grid: Grid) -> RayGeometry:
         x_end, x0 = np.minimum(t1, view.hits.t), np.maximum(t0, 0.0)
         hit = view.surf.object_id >= 0
         ell_c = np.where(hit & (t1 > t0), x_end - x0, 0.0)     # the view ray in the medium
-        return RayGeometry(t0, t1, x_end, x0, ell_c, np.ascontiguousarray(view.hits.point[hit]),
-                           np.ascontiguousarray(view.hits.normal[hit]))
+        normals = np.ascontiguousarray(view.hits.normal[hit])
+        one = normals[0].copy() if normals.size and (normals == normals[0]).all() else None
+        return RayGeometry(t0, t1, x_end, x0, ell_c, np.ascontiguousarray(view.hits.point[hit]), normals, one)
 
     return geo(view, ("rays", tuple(grid.lo), tuple(grid.hi)), make)
 
 
-def _irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """The P1 irradiance max(0, φ/4 − F·n/2) of ``field`` at surface points (one compiled pass)."""
+def _irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray,
+                normal: np.ndarray | None = None) -> np.ndarray:
+    """The P1 irradiance max(0, φ/4 − F·n/2) of ``field`` at surface points (one compiled pass); ``normal``:
+    the one outward normal of them all (a plane), which makes φ/4 − F·n/2 one field to sample."""
     out, args = np.empty(points.shape[0]), grid.args()
+    if normal is not None:
+        e_field = np.ascontiguousarray(field.phi / 4.0 - 0.5 * (field.flux @ normal))
+        in_bands(out.size, lambda a, b: plane_irradiance(args, e_field, points[a:b], out[a:b]))
+        return out
     in_bands(out.size, lambda a, b: field_irradiance(args, field.phi, field.flux, points[a:b], normals[a:b],
                                                      out[a:b]))
     return out
@@ -364,9 +373,9 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
         if st.a1_exact:
             unit = view._replace(surf=dataclasses.replace(view.surf, albedo=np.ones(n)))
             rest = single_parts(unit, ssrc, ("A",))[1]                   # per unit albedo
-            e2 = _irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn)
+            e2 = _irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn, rg.one_normal)
         else:
-            e2 = _irradiance(grid, orders.total + glow_scattered, hp, hn)
+            e2 = _irradiance(grid, orders.total + glow_scattered, hp, hn, rg.one_normal)
         att = geo(view, ("att_c", sc.sigma_t), lambda: np.exp(-sc.sigma_t * ell_c[hit]))
         rest[hit] += e2 * att / np.pi
         light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
