@@ -304,6 +304,7 @@ def test_sim_recording_exports_imports_and_replays(sim_run):
     env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs_replay")}
     r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "replay.toml"),
                         "--once", f"bag={tmp / 'imported.mcap'}", f"out={tmp / 'replayed'}", "rate=4",
+                        "resolution=96x72", "stripes=8",  # the planner plans the live run's rig
                         "topics=camera/frame,emitter/scan", "dark_offset_dn=64.0"],
                        cwd=tmp, env=env, capture_output=True, text=True, timeout=150)
     assert r.returncode == 0, r.stderr[-3000:]

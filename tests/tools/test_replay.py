@@ -250,6 +250,8 @@ def test_replayed_scan_gives_the_live_composites_bit_for_bit(tmp_path):
             "--once",
             f"bag={live}",
             "rate=4",
+            "resolution=64x48",  # the planner plans the live run's rig (the default 320x240 took ~30 s)
+            "stripes=4",
             "--record",
             str(replayed),
         ],
