@@ -25,20 +25,31 @@ def pytest_addoption(parser):
     group.addoption("--hardware-address", default="0", help="ELLx address of the real device")
 
 
-# The files that take longest (tens of seconds to minutes: whole launches, the murk's renders), longest first.
-# They run first, so that the workers of ``-n auto --dist loadfile`` (pyproject.toml) share out the short
-# files at the end and finish together; in collection order one worker was left with the long ones alone.
+# The files that take longest (tens of seconds to minutes: whole launches, the murk's renders), longest first
+# (measured, --durations). They run first, so that the workers of ``-n auto --dist loadfile`` (pyproject.toml)
+# share out the short files at the end and finish together. pyproject.toml's ``--no-loadscope-reorder`` keeps
+# this order: by default xdist (>= 3.6) sorts the files by their number of tests, which sent these files of a
+# few tests each to the end, where one worker ran them alone.
 LONGEST_FIRST = (
     "tests/launch/test_sim_launch.py",
+    "tests/tools/test_calibrate.py",
     "tests/nodes/test_foxglove_bridge.py",
     "tests/launch/test_soak.py",
-    "tests/tools/test_calibrate.py",
-    "tests/tools/test_replay.py",
-    "tests/launch/test_sigint.py",
-    "tests/launch/",
-    "tests/planning/test_medium_fit.py",
     "tests/planning/test_sweep.py",
+    "tests/launch/test_sigint.py",
+    "tests/launch/test_liveness_launch.py",
+    "tests/planning/test_medium_fit.py",
+    "tests/sim/test_all_orders.py",
+    "tests/tools/test_replay.py",
     "tests/nodes/test_planner_node.py",
+    "tests/runtime/test_launch.py",
+    "tests/sim/test_mitsuba_polarized.py",
+    "tests/imaging/test_port_calibration.py",
+    "tests/launch/",
+    "tests/planning/test_plan_cli.py",
+    "tests/sim/test_multiple.py",
+    "tests/tools/test_render_cli.py",
+    "tests/sim/test_transport.py",
 )
 
 
