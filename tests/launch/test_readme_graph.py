@@ -7,13 +7,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _graph(tmp_path) -> dict:
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory) -> dict:
+    """The resolved graph of ``launch/sim.toml`` (one dry run for both tests)."""
     r = subprocess.run([sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"),
                         "--dry-run"], capture_output=True, text=True, timeout=60,
-                       env={"POLARSTRIPE_RUNS": str(tmp_path), "PATH": str(Path(sys.executable).parent)})
+                       env={"POLARSTRIPE_RUNS": str(tmp_path_factory.mktemp("runs")),
+                            "PATH": str(Path(sys.executable).parent)})
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
 
@@ -26,8 +31,8 @@ def _readme_arrows(kind: str) -> set[tuple[str, str, str]]:
     return {(a, name.strip(), b) for a, names, b in re.findall(arrow, block) for name in names.split(",")}
 
 
-def test_topic_arrows_are_the_launch_graph(tmp_path):
-    g = _graph(tmp_path)
+def test_topic_arrows_are_the_launch_graph(graph):
+    g = graph
     ns = g["namespace"] + "/"
     pubs: dict[str, set[str]] = {}
     subs: dict[str, set[str]] = {}
@@ -42,8 +47,8 @@ def test_topic_arrows_are_the_launch_graph(tmp_path):
     assert _readme_arrows("topic") == edges
 
 
-def test_service_arrows_end_at_their_server(tmp_path):
-    g = _graph(tmp_path)
+def test_service_arrows_end_at_their_server(graph):
+    g = graph
     ns = g["namespace"] + "/"
     served = {(s.removeprefix(ns), node) for node, v in g["nodes"].items() for s in v["serves"]}
     calls = _readme_arrows("service")
