@@ -124,6 +124,7 @@ class Objective:
     limited_by: tuple[str, ...] = ()
     frame_quality: float | None = None  # the error measure: over the whole image, one gain (else None)
     frame_saturated: bool = False
+    frame_lost: float = 0.0             # the error measure: the fraction of the image's pixels saturated
 
     @property
     def value(self) -> np.ndarray:
@@ -217,14 +218,16 @@ def error_objective(samples: Samples, noise: SensorNoise, reading: str, p_min: f
     t_at, g_at = truth[at] * k, group[at]
 
     def scored(sub):
-        err, sat = image_error(mean[sub], var[sub], t_at[sub], valid[sub])
-        return 1.0 - err, sat >= 1.0
+        err, lost = image_error(mean[sub], var[sub], t_at[sub], valid[sub])
+        return 1.0 - err, lost
 
+    lost = np.zeros(n)
     for g in range(n):
-        quality[g], saturated[g] = scored(g_at == g) if n > 1 else scored(slice(None))
-    frame = (quality[0], saturated[0]) if n == 1 else scored(slice(None))
+        quality[g], lost[g] = scored(g_at == g) if n > 1 else scored(slice(None))
+    saturated = lost >= 1.0
+    frame = (quality[0], lost[0]) if n == 1 else scored(slice(None))
     return Objective(quality, np.ones(n), saturated, frame_quality=float(frame[0]),
-                     frame_saturated=bool(frame[1]))
+                     frame_saturated=bool(frame[1] >= 1.0), frame_lost=float(frame[1]))
 
 
 def objective(samples: Samples, noise: SensorNoise, *, modality: str, reading: str = "E",

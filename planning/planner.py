@@ -73,6 +73,7 @@ class Curve:
     weight: np.ndarray
     saturated: np.ndarray
     limited_by: list[str] | None = None
+    lost: np.ndarray | None = None      # the error measure: the fraction of the image saturated (lost)
 
     @property
     def best_index(self) -> int:
@@ -139,7 +140,8 @@ def _curve(seps: np.ndarray, objs: list[Objective], noise_free: list[Objective],
             return 0.0 if o.frame_saturated else o.frame_quality
         return Curve(seps, np.array([whole(o) for o in objs]), np.array([whole(o) for o in noise_free]),
                      np.array([o.frame_quality for o in objs]), np.ones(len(objs)),
-                     np.array([o.frame_saturated for o in objs]), None)
+                     np.array([o.frame_saturated for o in objs]), None,
+                     np.array([o.frame_lost for o in objs]))
     pick = (lambda x: x) if cols is None else (lambda x: x[cols])
     limited = None
     if cols is not None and len(cols) == 1 and all(o.limited_by for o in objs):
@@ -253,15 +255,19 @@ def _score(scored: dict, p_mean: list, samples: Samples, noise, modality, edge, 
 
 def _bisections(seps: list[float], scored: dict) -> list[float]:
     """The midpoints between each curve's best separation and its neighbours among ``seps`` (in the order
-    they were evaluated) that are not evaluated yet."""
+    they were evaluated) that are not evaluated yet; none toward a neighbour whose image loses more pixels
+    to saturation than the best's: there the error jumps within millimetres, and the prediction places that
+    cliff only to about half a centimetre (docs/planning.md §8), so a pick moved toward it is a gamble."""
     order = np.argsort(seps)
     ordered = np.asarray(seps)[order]
     done = {round(d, 9) for d in seps}
     out = []
     for objs, ideal in scored.values():
-        i = int(np.argmax(_curve(ordered, [objs[k] for k in order], [ideal[k] for k in order]).objective))
+        c = _curve(ordered, [objs[k] for k in order], [ideal[k] for k in order])
+        lost = c.lost if c.lost is not None else c.saturated.astype(float)
+        i = int(np.argmax(c.objective))
         for j in (i - 1, i + 1):
-            if 0 <= j < ordered.size:
+            if 0 <= j < ordered.size and lost[j] <= lost[i]:
                 mid = round(0.5 * float(ordered[i] + ordered[j]), 9)
                 if mid not in done:
                     done.add(mid)

@@ -112,6 +112,24 @@ def test_bisection_rounds_refine_the_pick_between_the_grids_points(paper_geometr
         plan(model, coarse, modalities=("flood",), refine=-1)
 
 
+def test_no_bisection_toward_a_neighbour_that_saturates():
+    """The midpoints either side of the best, but none toward a neighbour whose image loses more pixels to
+    saturation than the best's (a cliff the prediction places only to ~0.5 cm, planning.md §8)."""
+    from polarstripe.planning.objectives import Objective
+    from polarstripe.planning.planner import _bisections
+
+    def curve(quality, lost):
+        objs = [Objective(np.array([q]), np.ones(1), np.array([False]), frame_quality=q, frame_lost=f)
+                for q, f in zip(quality, lost, strict=True)]
+        return {("E",): (objs, objs)}
+
+    seps = [0.4, 0.1, 0.3, 0.2]                  # in the order evaluated: bisections come last
+    assert sorted(_bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0, 0, 0]))) == [0.25, 0.35]
+    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0.9, 0, 0.01])) == [0.35]
+    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0.2, 0, 0.1, 0.1])) == [0.25]
+    assert _bisections([0.1, 0.2, 0.15], curve([0.2, 0.9, 0.5], [0, 0, 0])) == [0.175]  # the nearest done
+
+
 def test_fig8_polarization_lies_above(fig8_flood):
     """Fig. 9a: the polarized curve lies above the unpolarized one, noise-free everywhere and at the best
     noisy value; the plan recommends the better polarized reading."""
