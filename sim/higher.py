@@ -380,9 +380,13 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
         rest[hit] += e2 * att / np.pi
         light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
         if parts:
-            return D, light[0], light[1] + seen_vals[-1], B, Bq, Bu, Bv
+            h = light[1]
+            h += seen_vals[-1]
+            return D, light[0], h, B, Bq, Bu, Bv
         if view.pixels is None:
-            A = view.surf.albedo * light[0] + light[1] + seen_vals[-1]
+            A = view.surf.albedo * light[0]                  # ρ·P + H + glow, in place (one array)
+            A += light[1]
+            A += seen_vals[-1]
         else:
             A = np.maximum(light - D, 0.0) + seen_vals[-1]
     if parts:

@@ -179,4 +179,5 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
                                             spread_c[a:b]))
     halo = blur_image(spread_c.reshape(shape), legs.camera.rms.reshape(shape), legs.camera_mixture,
                       levels=legs.camera_levels)
-    return legs.keep_c * extra, halo.ravel().astype(float)
+    extra *= legs.keep_c                                      # P, in place
+    return extra, halo.ravel().astype(float)
