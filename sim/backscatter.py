@@ -74,7 +74,8 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
     out = np.empty((4, cam.h * cam.w))
     if made < 4:
         out[3] = 0.0
-    in_bands(cam.h, lambda a, b: upsample_grid(parts[:made], cam.w, float(div), out[:made], a, b), min_size=16)
+    in_bands(cam.h, lambda a, b: upsample_grid(parts[:made], cam.w, float(div), out[:made], a, b),
+             min_size=16)
     if idx.size:       # this frame's pattern on the silhouettes' rays
         sub = view._replace(dirs=sub_dirs, hits=sub_hits, pixels=np.zeros((idx.size, 2), int))
         out[:, idx] = np.stack(single_parts(sub, ssrc, keys)[2:])

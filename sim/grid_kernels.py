@@ -163,7 +163,7 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
                     cum[i, r, j + 1] = 0.0
             continue
         ds = length / nk
-        for f in range(nf):      # ∫ e^{−σa} over step j = e^{−σjΔ}·(1 − e^{−σΔ})/σ: one exp a ray, not two a step
+        for f in range(nf):      # ∫ e^{−σa} over step j = e^{−σjΔ}·(1 − e^{−σΔ})/σ: one exp a ray
             sf = sigma[f]
             step_w[f] = -math.expm1(-sf * ds) / sf if sf > 0.0 else ds
             decay[f] = math.exp(-sf * ds) if sf > 0.0 else 1.0

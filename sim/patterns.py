@@ -165,8 +165,9 @@ def lit_intervals(pattern: PatternSpec, frame: PinholeFrame | None, origin: np.n
 
 
 def column_order(frame: PinholeFrame, coords) -> tuple[np.ndarray, np.ndarray]:
-    """The points inside the projector's ``frame`` (of their :func:`~polarstripe.sim.geometry.projector_coords`
-    ``coords``) sorted by pattern column: (their indices, their columns), for :func:`lit_in_columns`."""
+    """The points inside the projector's ``frame`` (given their
+    :func:`~polarstripe.sim.geometry.projector_coords` ``coords``) sorted by pattern column: (their indices,
+    their columns), for :func:`lit_in_columns`."""
     col, row, depth = coords
     inside = np.nonzero((depth > 0) & (row >= 0) & (row < frame.h) & (col >= 0) & (col < frame.w))[0]
     order = inside[np.argsort(col[inside], kind="stable")]

@@ -227,7 +227,7 @@ def _halo(src: np.ndarray, m32: np.ndarray | None, rms: float, mix: np.ndarray, 
     """Σ_j mix_j G_{c_j·rms} ⊛ src, each Gaussian normalised over the mask when given, widest first."""
     h, w = src.shape
     acc, acc_size, sharp = None, None, 0.0
-    for c, m in sorted(zip(WIDTHS.tolist(), mix.tolist(), strict=True), reverse=True):    # floats: stay float32
+    for c, m in sorted(zip(WIDTHS.tolist(), mix.tolist(), strict=True), reverse=True):   # floats keep float32
         s = c * rms
         if m <= 0:
             continue
