@@ -53,7 +53,7 @@ from polarstripe.msgs import (
 )
 from polarstripe.nodes.sequencer_report import scores, summary
 from polarstripe.nodes.sequencer_rescan import Rescanning
-from polarstripe.runtime.bus import BusError, BusTimeout
+from polarstripe.runtime.bus import RECONNECT_MAX_S, BusError, BusTimeout
 from polarstripe.runtime.liveness import STARTING_DEADLINE_S, PeerLost
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
@@ -79,6 +79,7 @@ class Sequencer(Rescanning, Node):
         scan_peers: list[str] = ["emitter", "grabber", "simulator", "compositor"]  # a scan's waits need them
         polarized_peers: list[str] = ["polarizer"]  # … and a polarized scan's these
         respawn_wait_s: float = 60.0  # a lost node the launch respawns: its return and the old scan's end
+        rejoin_s: float = RECONNECT_MAX_S + 0.2  # … then this long, so its subscribers have reconnected
         repeat: int = 1  # passes over methods; 0: scan until stopped (polarstripe bench soak)
         rescan: bool = True  # rescan when an estimate moves the plan by more than one grid step (step 4)
         max_rescans: int = 1
@@ -274,6 +275,11 @@ class Sequencer(Rescanning, Node):
                                     f"{self.params.respawn_wait_s:g} s")
             self.take("heartbeat", 0.05)
         self.liveness.forgive(lost.node)
+        # the new process is heard by each subscriber only once its socket has reconnected, up to
+        # RECONNECT_MAX_S after the bind (runtime/bus.py): a retry's start sent sooner can miss the compositor
+        settled = self.now() + self.params.rejoin_s
+        while self.now() < settled and not self.stopping:
+            self.take("heartbeat", min(0.05, max(0.0, settled - self.now())))
         if lost.node != "emitter" and sid and not self.scan_ended:  # it must end before the retry starts
             try:
                 self.wait_for("emitter/scan", lambda e: e.scan_id == sid and e.event in ("done", "fault"),

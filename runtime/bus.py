@@ -33,6 +33,10 @@ from polarstripe.msgs import DEFAULT_MAX_BYTES, Message, MessageError, encode
 from polarstripe.msgs.codec import decode_views
 from polarstripe.runtime import auth
 
+RECONNECT_MAX_S = 1.0
+"""A subscriber retries a lost publisher's endpoint at 0.1 s, doubling up to this: a publisher started again
+is heard by every subscriber within this of its bind (what it publishes before is lost to them)."""
+
 Mode = str  # "latest" | "all"
 _SNDMORE = zmq.SNDMORE
 MODES = ("latest", "all")
@@ -279,7 +283,7 @@ class Subscriber(_SocketOwner):
         self.socket.linger = 0
         self.socket.rcvhwm = (4 if mode == "latest" else 0) if hwm is None else hwm
         self.socket.reconnect_ivl = 100
-        self.socket.reconnect_ivl_max = 1000
+        self.socket.reconnect_ivl_max = round(RECONNECT_MAX_S * 1000)
         _apply_curve(self.socket, curve, server=False)
         self.socket.setsockopt(zmq.SUBSCRIBE, self._topic_b)
         self.endpoints: list[str] = []

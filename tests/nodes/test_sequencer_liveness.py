@@ -4,6 +4,7 @@ clock): a peer lost mid-scan is named at once; a respawned one gets the scan ret
 import numpy as np
 from polarstripe.msgs import Composite, Heartbeat, ScanEvent
 from polarstripe.nodes.sequencer import Sequencer
+from polarstripe.runtime.bus import RECONNECT_MAX_S
 from polarstripe.runtime.testing import NodeHarness
 
 
@@ -48,7 +49,10 @@ def test_an_emitter_that_stops_beating_mid_scan_is_named_and_ends_the_sequence()
 
 
 def test_a_respawned_emitter_gets_the_scan_retried_once_with_a_new_scan_id():
+    at = []
+
     def on_start(h, sid):
+        at.append(h.bus.clock)
         if sid == 1:  # the emitter dies and comes back as incarnation 1: its beat shows it
             h.queue("heartbeat", beat("emitter", inc=1))
         else:
@@ -57,6 +61,8 @@ def test_a_respawned_emitter_gets_the_scan_retried_once_with_a_new_scan_id():
     h = rig({"emitter": {"respawn": True}}, on_start)
     h.node.run()
     assert h.node.exit_code == 0 and h.starts == [1, 2]
+    # the retry waits until the compositor's subscription has found the new emitter (runtime/bus.py)
+    assert at[1] - at[0] >= h.node.params.rejoin_s >= RECONNECT_MAX_S
     texts = [t for _, t in h.logs]
     assert any("node 'emitter' lost: respawned (incarnation 0 -> 1" in t for t in texts), texts
     assert any("flood: retrying the scan once: node 'emitter' is back (incarnation 1)" in t for t in texts)
