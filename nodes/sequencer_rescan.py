@@ -53,13 +53,16 @@ class Rescanning:
 
 def _move(new: Plan, scanned_m: float) -> tuple[int, float | None, float | None]:
     """(grid steps from ``scanned_m`` to ``new``'s pick, ``new``'s objective at its pick and at ``scanned_m``;
-    None without an objective curve), read on ``new``'s separation grid."""
+    None without an objective curve), read on ``new``'s separations. A step is the grid's spacing, the widest
+    gap between them: the planner's bisections add midpoints near its best (planning/planner.py)."""
     grid = np.asarray(new.curves.get("separation_m", [new.separation_m]), float)
     i, j = (int(np.argmin(np.abs(grid - d))) for d in (new.separation_m, scanned_m))
+    spacing = float(np.max(np.diff(np.sort(grid)))) if grid.size > 1 else 0.0
+    steps = int(round(abs(new.separation_m - scanned_m) / spacing)) if spacing > 0 else abs(i - j)
     obj = new.curves.get("objective")
     if obj is None or len(obj) != grid.size:
-        return abs(i - j), None, None
-    return abs(i - j), float(obj[i]), float(obj[j])
+        return steps, None, None
+    return steps, float(obj[i]), float(obj[j])
 
 
 def _answers(plan: Plan, scan_id: int) -> bool:

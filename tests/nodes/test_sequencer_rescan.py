@@ -11,8 +11,8 @@ from polarstripe.runtime.testing import NodeHarness
 GRID = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
 
 
-def _plan(sep, answers=None, objective=None):
-    curves = {"separation_m": GRID}
+def _plan(sep, answers=None, objective=None, grid=GRID):
+    curves = {"separation_m": grid}
     if objective is not None:
         curves["objective"] = np.asarray(objective, float)
     if answers is not None:
@@ -20,7 +20,7 @@ def _plan(sep, answers=None, objective=None):
     return Plan(modality="stripes", separation_m=sep, curves=curves)
 
 
-def rig(replan_to: float | None, graph=("estimator", "planner"), objective=None, **params):
+def rig(replan_to: float | None, graph=("estimator", "planner"), objective=None, grid=GRID, **params):
     """Scans end at once; after each stripes scan the estimator's estimate and then (if ``replan_to``) the
     planner's plan at ``replan_to`` in answer to it arrive, after plans that answer something else."""
     h = NodeHarness(Sequencer, name="sequencer", namespace="/rig",
@@ -44,7 +44,7 @@ def rig(replan_to: float | None, graph=("estimator", "planner"), objective=None,
             h.queue("planner/plan", _plan(0.1))
             h.queue("planner/plan", _plan(0.1, answers=sid - 1))
             if replan_to is not None:
-                h.queue("planner/plan", _plan(replan_to, answers=sid, objective=objective))
+                h.queue("planner/plan", _plan(replan_to, answers=sid, objective=objective, grid=grid))
         return ScanEvent(scan_id=sid, event="start", method=req.method)
 
     h.on_call("emitter/start_scan", start)
@@ -66,6 +66,16 @@ def test_one_grid_step_is_no_rescan():
     assert h.node.exit_code == 0
     assert h.calls == ["plan", "move 0.3", "scan flood 1", "scan stripes 2"]
     assert any("plan d_LC = 0.400 m (scanned at 0.300 m, 1 grid steps)" in t for _, t in h.logs)
+
+
+def test_steps_are_the_grids_spacing_not_the_bisections_points():
+    """The planner's curve holds midpoints near its best (planning/planner.py refine): a pick half a step away
+    is no rescan, though three points of the curve lie between."""
+    h = rig(0.25, grid=np.array([0.1, 0.2, 0.25, 0.2625, 0.275, 0.3, 0.4, 0.5]))
+    h.node.run()
+    assert h.node.exit_code == 0
+    assert h.calls == ["plan", "move 0.3", "scan flood 1", "scan stripes 2"]
+    assert any("plan d_LC = 0.250 m (scanned at 0.300 m, 0 grid steps)" in t for _, t in h.logs), h.logs
 
 
 def test_no_plan_answering_the_estimate_is_no_rescan():
