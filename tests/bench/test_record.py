@@ -24,4 +24,5 @@ def test_the_recorder_over_the_bus_writes_every_frame(tmp_path):
     calls = []
     row = over_bus(tmp_path, frames, lambda: calls.append(1), recorder_args=("--queue", "2"))
     assert calls == [1] and row["recorded"] == row["sent"] == 5 and row["gaps"] == 0
-    assert row["bytes"] > sum(len(pack(f)) for f in frames) and row["cpu_recorder_s"] > 0
+    assert row["bytes"] > sum(len(pack(f)) for f in frames)
+    assert 0.0 <= row["cpu_recorder_s"] < 60.0   # the process clock ticks at 10 ms: 5 small frames may read 0

@@ -45,7 +45,7 @@ def rig(request):
         # stalled by the machine's load for more than the 0.5 s default is not what they check
         stage = Cia402Stage(
             drive.channel, drive.node_id, counts_per_deg=1000, speed_deg_s=720.0, min_deg=-90, max_deg=90,
-            heartbeat_timeout_s=2.0,
+            heartbeat_timeout_s=2.0, sdo_timeout_s=2.0,     # nor SDO reply times (the default 0.3 s)
         )
 
         def heal():
