@@ -163,8 +163,13 @@ class Planner(Node):
         plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=p.refine)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
-        if sheets > 1:                            # at the curve's own separations (its bisections too)
-            allowed = feasible(sheet_limits(self.scene, p.stripes, c.separations_m), sheets)
+        if sheets > 1:          # the bisections' separations too (the grid's were checked above)
+            extra = ~np.isin(np.round(c.separations_m, 9), np.round(seps, 9))
+            ok = np.ones(c.separations_m.size, bool)
+            ok[~extra] = allowed
+            if extra.any():
+                ok[extra] = feasible(sheet_limits(self.scene, p.stripes, c.separations_m[extra]), sheets)
+            allowed = ok
         else:
             allowed = np.ones(c.separations_m.size, bool)
         # the objective counts the planned method's saturated pixels as lost (planning/predicted_error.py);
