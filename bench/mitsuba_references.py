@@ -260,9 +260,10 @@ so they overstate the cost: unloaded, 4096 spp of a 32×32 all-orders image take
 
 
 def _port_section(out: Path) -> str:
-    from polarstripe.bench.mitsuba_port_references import readme_section  # it builds on this module
+    from polarstripe.bench.mitsuba_port_polarized import readme_section as polarized  # they build on
+    from polarstripe.bench.mitsuba_port_references import readme_section  # this module
 
-    return readme_section(out)
+    return readme_section(out) + polarized(out)
 
 
 def main(argv: list[str] | None = None) -> int:

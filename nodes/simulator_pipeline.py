@@ -38,7 +38,7 @@ from polarstripe.sim.threads import submit_frame
 @dataclasses.dataclass(frozen=True)
 class FrameSource:
     """What the frames of one pattern need of its components: the analyzer's angle-free part (``basis``:
-    D + A + B and the polarized backscatter) and the linear Stokes (S1, S2) = (Bq, Bu) for the mosaic,
+    D + A + B and the polarized light) and the linear Stokes (S1, S2) = (Bq + Sq, Bu + Su) for the mosaic,
     at the model's resolution."""
 
     basis: AnalyzerBasis
@@ -52,7 +52,7 @@ class FrameSource:
 
 def frame_source(scene: Scene, pattern: str, fidelity) -> FrameSource:
     comp = render_components(scene, pattern, fidelity)
-    return FrameSource(analyzer_basis(comp), comp.Bq.copy(), comp.Bu.copy())    # not the model's B stack
+    return FrameSource(analyzer_basis(comp), comp.Bq + comp.Sq, comp.Bu + comp.Su)   # not the model's arrays
 
 
 class Sources:

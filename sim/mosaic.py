@@ -104,9 +104,11 @@ def effective_extinction_ratio(extinction_ratio: float, crosstalk_edge: float = 
 
 
 def linear_stokes(components) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(S0, S1, S2) of the light reaching the camera [W sr⁻¹ m⁻²]: S0 = D + A + B, (S1, S2) = (Bq, Bu),
-    in the camera frame (angles from image right toward image up; sim/render.py ``Components``)."""
-    return components.D + components.A + components.B, components.Bq, components.Bu
+    """(S0, S1, S2) of the light reaching the camera [W sr⁻¹ m⁻²]: S0 = D + A + B, (S1, S2) = (Bq + Sq,
+    Bu + Su), in the camera frame (angles from image right toward image up; sim/render.py ``Components``:
+    Sq, Su the object's light polarized by a camera port)."""
+    return (components.D + components.A + components.B, components.Bq + components.Sq,
+            components.Bu + components.Su)
 
 
 def mosaic_radiance(s0, s1, s2, sensor: MicroPolarizerArray) -> np.ndarray:

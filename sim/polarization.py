@@ -70,8 +70,9 @@ def polarizer_transmittances(extinction_ratio: float) -> tuple[float, float]:
 @dataclass(frozen=True)
 class AnalyzerBasis:
     """What the radiance through a linear analyzer needs that does not depend on its angle: ``total`` =
-    D + A + B and the backscatter's polarized part on the analyzer's circle, ``q`` = B·p·cos 2χ and
-    ``u`` = B·p·sin 2χ (flat arrays of the components' ``shape``), and the analyzer's principal
+    D + A + B and the polarized part on the analyzer's circle, ``q`` = B·p·cos 2χ + Sq and
+    ``u`` = B·p·sin 2χ + Su (the backscatter's, and the object's behind a camera port; flat arrays of the
+    components' ``shape``), and the analyzer's principal
     transmittances k1, k2. A scan keeps one per pattern: its second analyzer angle costs one pass
     (:func:`through_analyzer`)."""
 
@@ -94,6 +95,10 @@ def analyzer_basis(components, extinction_ratio: float | None = None) -> Analyze
             (components.D, components.A, components.B, *components.seen_stokes())]
     total, q, u = (np.empty(flat[0].size) for _ in range(3))
     malus_basis(*flat, total, q, u)          # one compiled pass (sim/sensor_kernels.py)
+    if np.any(components.Sq) or np.any(components.Su):      # the object's light polarized by a camera port
+        sq, su = components.object_seen_stokes()
+        q += np.ravel(sq)
+        u += np.ravel(su)
     return AnalyzerBasis(total, q, u, float(k1), float(k2), tuple(np.shape(components.B)))
 
 
@@ -110,7 +115,8 @@ def through_analyzer(basis: AnalyzerBasis, angle_deg: float) -> np.ndarray:
 def analyzer(components, angle_deg: float | None, extinction_ratio: float | None = None) -> np.ndarray:
     """Radiance [W sr⁻¹ m⁻²] through a linear analyzer at ``angle_deg`` (Malus; paper eqs. 4–5).
 
-    I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·B·p·cos 2(φ − χ): object light unpolarized, backscatter with
+    I(φ) = ½(k1 + k2)(D + A + B) + ½(k1 − k2)·[B·p·cos 2(φ − χ) + Sq cos 2φ + Su sin 2φ]: object light
+    unpolarized (Sq = Su = 0) but behind a camera port's diattenuation (docs/physics.md §11), backscatter with
     DOP p and angle χ (``components.p``, ``components.chi_rad``, camera frame: from image right toward
     image up). With a quarter-wave plate at α in front of the analyzer (``camera.polarizer.quarter_wave_deg``)
     p and χ are the effective ones, √(Q_α² + V²)/B and α + ½ atan2(V, Q_α), and this is the Mueller product

@@ -17,12 +17,14 @@ n_g·sin θ_g = n_w·sin θ_w, so with c_k = √(n_k² − q²) (c_k/n_k = cos �
   I₀·T·J with J = dΩ_a/dA_⊥ = 1/(n_a²·cos θ_a·cos θ_w·r'(q)·r(q)/q): with no port (every index 1) J =
   cos²θ/z² = 1/|Y − P|²; at normal incidence through a vanishing port J = (n_w/n_a)²/z², the solid angle
   compressed by n² (the radiance theorem: L/n² is conserved along a ray);
-* T: Fresnel transmittance of unpolarized light through both faces, ½(T_s1·T_s2 + T_p1·T_p2) (1 for a
-  coated port; multiple reflections inside the glass are neglected), and the radiance a camera behind the
-  port sees of water radiance L_w is L_w·T·(n_a/n_w)².
-
-The port's diattenuation (T_s ≠ T_p) is not applied to the polarization; the polarization's frame is carried
-through each face (its s component kept, its p component turned with the ray).
+* T: Fresnel transmittance of unpolarized light through both faces, ½(T_s + T_p) with T_s = T_s1·T_s2,
+  T_p = T_p1·T_p2 (1 for a coated port; multiple reflections inside the glass are neglected), and the
+  radiance a camera behind the port sees of water radiance L_w is L_w·T·(n_a/n_w)²;
+* the port's diattenuation: in the frame of the plane of incidence (Q = I_p − I_s, p the axis in the plane
+  of N and the ray) the port is the Mueller matrix ½[[T_p + T_s, T_p − T_s, 0, 0], [T_p − T_s, T_p + T_s, 0,
+  0], [0, 0, 2√(T_p T_s), 0], [0, 0, 0, 2√(T_p T_s)]] (no retardance below the critical angle), its m00 the
+  T above (:func:`diattenuate`). The frame is carried through each face: its s axis kept, its p axis
+  turned with the ray (:func:`carry_frame`).
 """
 
 from __future__ import annotations
@@ -65,19 +67,51 @@ def _interface(ci, ct, n1, n2):
 
 
 @njit(cache=True, nogil=True)
-def transmittance(q, d, t, n_a, n_g, n_w, fresnel):
-    """½(T_s1·T_s2 + T_p1·T_p2) through both faces at Snell invariant q (one air–water face when t = 0)."""
+def transmittances_sp(q, t, n_a, n_g, n_w, fresnel):
+    """(T_s, T_p) = (T_s1·T_s2, T_p1·T_p2) through both faces at Snell invariant q (one air–water face when
+    t = 0; (1, 1) for a coated port)."""
     if not fresnel:
-        return 1.0
+        return 1.0, 1.0
     ca = math.sqrt(max(n_a * n_a - q * q, 0.0)) / n_a
     cw = math.sqrt(max(n_w * n_w - q * q, 0.0)) / n_w
     if t <= 0.0:
-        ts, tp = _interface(ca, cw, n_a, n_w)
-        return 0.5 * (ts + tp)
+        return _interface(ca, cw, n_a, n_w)
     cg = math.sqrt(max(n_g * n_g - q * q, 0.0)) / n_g
     ts1, tp1 = _interface(ca, cg, n_a, n_g)
     ts2, tp2 = _interface(cg, cw, n_g, n_w)
-    return 0.5 * (ts1 * ts2 + tp1 * tp2)
+    return ts1 * ts2, tp1 * tp2
+
+
+@njit(cache=True, nogil=True)
+def transmittance(q, d, t, n_a, n_g, n_w, fresnel):
+    """½(T_s1·T_s2 + T_p1·T_p2) through both faces at Snell invariant q (one air–water face when t = 0)."""
+    ts, tp = transmittances_sp(q, t, n_a, n_g, n_w, fresnel)
+    return 0.5 * (ts + tp)
+
+
+@njit(cache=True, nogil=True)
+def diattenuate(ts, tp, c2, s2, i, q, u, v):
+    """The port's Mueller matrix (module docstring) applied to the Stokes vector (i, q, u, v) given in a frame
+    where the port's p axis lies at angle θ (c2, s2 = cos 2θ, sin 2θ): the vector rotated into the p/s frame
+    (q_p = c2·q + s2·u, u_p = −s2·q + c2·u), i' = ½(T_p + T_s)·i + ½(T_p − T_s)·q_p,
+    q_p' = ½(T_p − T_s)·i + ½(T_p + T_s)·q_p, u_p' = √(T_p T_s)·u_p, v' = √(T_p T_s)·v, rotated back.
+    Works on floats and on arrays alike."""
+    mean, half, root = 0.5 * (tp + ts), 0.5 * (tp - ts), np.sqrt(tp * ts)
+    qp, up = c2 * q + s2 * u, c2 * u - s2 * q
+    qp2, up2 = half * i + mean * qp, root * up
+    return mean * i + half * qp, c2 * qp2 - s2 * up2, s2 * qp2 + c2 * up2, root * v
+
+
+@njit(cache=True, nogil=True)
+def p_axis(ax, ay, az, nx, ny, nz):
+    """The p axis s × a of the plane of incidence of air ray a on a port of normal n, s = normalize(a × n);
+    (0, 0, 0) at normal incidence (no plane: T_s = T_p there)."""
+    sx, sy, sz = ay * nz - az * ny, az * nx - ax * nz, ax * ny - ay * nx
+    sn = math.sqrt(sx * sx + sy * sy + sz * sz)
+    if sn < 1e-15:
+        return 0.0, 0.0, 0.0
+    sx, sy, sz = sx / sn, sy / sn, sz / sn
+    return sy * az - sz * ay, sz * ax - sx * az, sx * ay - sy * ax
 
 
 @njit(cache=True, nogil=True)
@@ -244,3 +278,36 @@ def light_to(geo: PortGeometry, points: np.ndarray) -> PortLight:
 def radiance_factor(geo: PortGeometry, trans: np.ndarray) -> np.ndarray:
     """The camera-side factor T·(n_a/n_w)²: air radiance behind the port per unit water radiance."""
     return trans * (geo.n_a / geo.n_w) ** 2
+
+
+@njit(cache=True, nogil=True)
+def _camera_mueller_kernel(dirs, n, n_a, t, n_g, n_w, fresnel, r, u, out):
+    for i in range(dirs.shape[0]):
+        ax, ay, az = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        c = ax * n[0] + ay * n[1] + az * n[2]
+        q = n_a * math.sqrt(max(1.0 - c * c, 0.0))
+        out[i, 0], out[i, 1] = transmittances_sp(q, t, n_a, n_g, n_w, fresnel)
+        px, py, pz = p_axis(ax, ay, az, n[0], n[1], n[2])
+        cx, cy = px * r[0] + py * r[1] + pz * r[2], px * u[0] + py * u[1] + pz * u[2]
+        r2 = cx * cx + cy * cy
+        out[i, 2], out[i, 3] = ((cx * cx - cy * cy) / r2, 2.0 * cx * cy / r2) if r2 > 0.0 else (1.0, 0.0)
+
+
+class PortMueller(NamedTuple):
+    """The port's Mueller matrix per camera ray (:func:`diattenuate`): ``ts``, ``tp`` (n,) and the p axis's
+    angle θ in the camera frame (from image right toward image up) as ``c2``, ``s2`` = cos 2θ, sin 2θ (n,)."""
+
+    ts: np.ndarray
+    tp: np.ndarray
+    c2: np.ndarray
+    s2: np.ndarray
+
+
+def camera_mueller(geo: PortGeometry, air_dirs: np.ndarray, r, u) -> PortMueller:
+    """:class:`PortMueller` of a camera's air rays ``air_dirs`` (n, 3) through its port; ``r``, ``u`` the
+    camera's right and up axes. The p axis of each ray is radial in the image about the port's normal."""
+    air_dirs = np.ascontiguousarray(air_dirs, float).reshape(-1, 3)
+    out = np.empty((air_dirs.shape[0], 4))
+    _camera_mueller_kernel(air_dirs, geo.normal, geo.n_a, geo.t, geo.n_g, geo.n_w, geo.fresnel,
+                           np.asarray(r, float), np.asarray(u, float), out)
+    return PortMueller(*out.T)

@@ -12,7 +12,10 @@ the integrand has no 1/d² peak on the ray and is summed by Gauss–Legendre in 
 subdividing the ray until at most one boundary of the pattern lies between the ends of a piece
 (:func:`lit_cuts`), then bisecting each piece whose ends differ in lit state. The Stokes sums are the
 Rayleigh-δ Mueller model of :func:`polarstripe.sim.kernels.line_integrals`, node by node, rotated into the
-camera's axes carried through the camera's port (so q, u come out in the camera frame).
+camera's axes carried through the camera's port (so q, u come out in the camera frame). Through a projector
+port with Fresnel faces the source's Stokes vector at each node is the port's Mueller matrix times the
+source's (:func:`polarstripe.sim.port.diattenuate`): its intensity I₀·J·i' instead of I₀·J·T, and a state
+changed toward the port's p axis (even an unpolarized source's light is polarized by (T_p − T_s)/(T_p + T_s)).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 from polarstripe.sim.kernels import phase_value, segment_in_box
-from polarstripe.sim.port import carry_frame, through_port
+from polarstripe.sim.port import carry_frame, diattenuate, p_axis, through_port, transmittances_sp
 from polarstripe.sim.stokes_kernels import source_state
 
 
@@ -65,7 +68,8 @@ class PatternTable(NamedTuple):
 
 class PortPolarization(NamedTuple):
     """Stokes sums on (``on``), the m12 intensity term (``mueller``), the source E-field and fast axis, DOP_L,
-    the Rayleigh-δ reduced factors Δ (``big``) and ΔΔ' (``big44``), ``qwp`` (a quarter-wave plate)."""
+    the Rayleigh-δ reduced factors Δ (``big``) and ΔΔ' (``big44``), ``qwp`` (a quarter-wave plate). A
+    projector port with Fresnel faces (``PortSource.fresnel``) applies its Mueller matrix to the source."""
 
     on: bool
     mueller: bool
@@ -104,6 +108,43 @@ def light_at(src, pat, px, py, pz, buf):
     row = pat.h / 2.0 - (buf[0] * pat.u[0] + buf[1] * pat.u[1] + buf[2] * pat.u[2]) / depth / pat.s
     lit = 0.0 <= col < pat.w and 0.0 <= row < pat.h and pat.table[int(row), int(col)]
     return lit, col, row, True
+
+
+@njit(cache=True, nogil=True)
+def _through_source_port(src, ax, ay, az, wx, wy, wz, ix, iy, iz, jx, jy, jz, val, q, u, v):
+    """The source's unit Stokes (1, q, u, v) in the scattering frame (e_par_in = i, e_perp = j) of a node
+    lit along air ray a and water ray w, through the projector port's Mueller matrix: (val·i'/T, q'/i',
+    u'/i', v'/i'), val carrying the unpolarized T."""
+    c = ax * src.normal[0] + ay * src.normal[1] + az * src.normal[2]
+    ts, tp = transmittances_sp(src.n_a * math.sqrt(max(1.0 - c * c, 0.0)), src.t, src.n_a, src.n_g, src.n_w,
+                               True)
+    pax, pay, paz = p_axis(ax, ay, az, src.normal[0], src.normal[1], src.normal[2])
+    px, py, pz = carry_frame(pax, pay, paz, ax, ay, az, wx, wy, wz, src.normal[0], src.normal[1],
+                             src.normal[2])
+    cx, cy = px * ix + py * iy + pz * iz, px * jx + py * jy + pz * jz
+    r2 = cx * cx + cy * cy
+    c2, s2 = ((cx * cx - cy * cy) / r2, 2.0 * cx * cy / r2) if r2 > 0.0 else (1.0, 0.0)
+    i1, q1, u1, v1 = diattenuate(ts, tp, c2, s2, 1.0, q, u, v)
+    return val * i1 / (0.5 * (ts + tp)), q1 / i1, u1 / i1, v1 / i1
+
+
+@njit(cache=True, nogil=True)
+def source_port_gain(air, normal, t, n_a, n_g, n_w, e_field, fast_axis, qwp, dop_l, out):
+    """i'/T of the source's light through its port along each air ray ``air`` (n, 3) into ``out`` (n,): the
+    port's Mueller matrix's intensity 1 + (T_p − T_s)/(T_p + T_s)·Q_p, Q_p the source's Stokes along the p
+    axis (the E-field's and fast axis's components on p = s × a and s, docs/physics.md §5.1)."""
+    for i in range(air.shape[0]):
+        ax, ay, az = air[i, 0], air[i, 1], air[i, 2]
+        c = ax * normal[0] + ay * normal[1] + az * normal[2]
+        ts, tp = transmittances_sp(n_a * math.sqrt(max(1.0 - c * c, 0.0)), t, n_a, n_g, n_w, True)
+        px, py, pz = p_axis(ax, ay, az, normal[0], normal[1], normal[2])
+        sx, sy, sz = ay * pz - az * py, az * px - ax * pz, ax * py - ay * px      # s = a × p
+        aa = e_field[0] * px + e_field[1] * py + e_field[2] * pz
+        bb = e_field[0] * sx + e_field[1] * sy + e_field[2] * sz
+        af = fast_axis[0] * px + fast_axis[1] * py + fast_axis[2] * pz
+        bf = fast_axis[0] * sx + fast_axis[1] * sy + fast_axis[2] * sz
+        q_p = dop_l * source_state(aa, bb, af, bf, qwp)[0]
+        out[i] = 1.0 + (tp - ts) / (tp + ts) * q_p
 
 
 @njit(cache=True, nogil=True)
@@ -196,6 +237,8 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
     ex, ey, ez = pol.e_field[0], pol.e_field[1], pol.e_field[2]
     fx, fy, fz = pol.fast_axis[0], pol.fast_axis[1], pol.fast_axis[2]
     nx, ny, nz = src.normal[0], src.normal[1], src.normal[2]
+    dia = src.has_port and src.fresnel             # the projector port's Mueller matrix on the source
+    stateful = pol.mueller or pol.on or (dia and pol.dop_l > 0.0)
     per_o = origin.shape[0] > 1
     per_c = cam_r.shape[0] > 1
     for i in range(dirs.shape[0]):
@@ -241,7 +284,7 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
                         ell = segment_in_box(buf[3], buf[4], buf[5], px, py, pz, box_lo, box_hi)
                     val = gl_w[k] * half * ss * src.intensity * buf[9] * phase_value(phase, omm, opm) * \
                         math.exp(-st * (ell + x - x0))
-                    if not (pol.mueller or pol.on):
+                    if not stateful:
                         b_ray += val
                         continue
                     # the scattering plane: e_perp = normalize(w × (−d)), e_par_in = e_perp × w,
@@ -267,7 +310,13 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
                     aa, bb = e1 * ix + e2 * iy + e3 * iz, e1 * pxx + e2 * pyy + e3 * pzz
                     af, bf = f1 * ix + f2 * iy + f3 * iz, f1 * pxx + f2 * pyy + f3 * pzz
                     c2, s2, v2 = source_state(aa, bb, af, bf, pol.qwp)
-                    q_in, u_in = pol.dop_l * c2, pol.dop_l * s2
+                    q_in, u_in, v_in = pol.dop_l * c2, pol.dop_l * s2, pol.dop_l * v2
+                    if dia:
+                        val, q_in, u_in, v_in = _through_source_port(src, ax_, ay_, az_, wx, wy, wz, ix, iy,
+                                                                     iz, pxx, pyy, pzz, val, q_in, u_in, v_in)
+                        if not (pol.mueller or pol.on):
+                            b_ray += val
+                            continue
                     m22 = depol_big * 0.75 * (1.0 + mu * mu)
                     m11 = m22 + (1.0 - depol_big)
                     m12 = -depol_big * 0.75 * (omm * opm)
@@ -289,7 +338,7 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
                     q_ray += val * (qs * c - us * s)
                     u_ray += val * (qs * s + us * c)
                     if pol.qwp:
-                        v_ray += val * big44 * 1.5 * mu * pol.dop_l * v2 / i_out
+                        v_ray += val * big44 * 1.5 * mu * v_in / i_out
         b_out[i] = b_ray
         if pol.on:
             q_out[i], u_out[i], v_out[i] = q_ray, u_ray, v_ray

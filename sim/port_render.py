@@ -2,9 +2,12 @@
 projector's light refracted at both faces of each port (docs/physics.md §11).
 
 The camera's pixels look along their water rays (:func:`polarstripe.sim.port.water_rays`), starting on the
-port's outer face; the radiance the camera sees is the water radiance times T·(n_a/n_w)². The projector's
+port's outer face; the radiance the camera sees is (n_a/n_w)² times the port's Mueller matrix applied to the
+water radiance's Stokes vector (:func:`polarstripe.sim.port.diattenuate`: T for unpolarized light, and the
+object's unpolarized light comes out polarized along each pixel's p axis, ``Sq``, ``Su``). The projector's
 light reaches each water point along the air ray :func:`polarstripe.sim.port.light_to` finds, with irradiance
-I₀·T·J; the pattern pixel is that air ray's. D is eq. 11 with that irradiance, B the line integral of
+I₀·J times the port's Mueller matrix's intensity for the source's polarization (T when unpolarized); the
+pattern pixel is that air ray's. D is eq. 11 with that irradiance, B the line integral of
 :mod:`polarstripe.sim.port_kernels`, A the hemisphere integral of the same line integral at surface points (on
 a grid of camera pixels, interpolated per object as :func:`polarstripe.sim.surface_field.a_field` does).
 The higher orders are not modelled through a port (:mod:`polarstripe.sim.orders`).
@@ -20,8 +23,22 @@ from polarstripe.sim.geometry import PinholeFrame, box_interval, intersect, pixe
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.kernel_records import Medium, Stokes
 from polarstripe.sim.patterns import PatternSpec, pattern_lit
-from polarstripe.sim.port import light_to, port_geometry, radiance_factor, water_rays
-from polarstripe.sim.port_kernels import PatternTable, PortPolarization, PortSource, port_line_integrals
+from polarstripe.sim.port import (
+    PortMueller,
+    camera_mueller,
+    diattenuate,
+    light_to,
+    port_geometry,
+    radiance_factor,
+    water_rays,
+)
+from polarstripe.sim.port_kernels import (
+    PatternTable,
+    PortPolarization,
+    PortSource,
+    port_line_integrals,
+    source_port_gain,
+)
 from polarstripe.sim.scene import Scene
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import camera_frame_stokes, interpolate_grid
@@ -38,7 +55,8 @@ def has_port(scene: Scene) -> bool:
 
 class PortView(NamedTuple):
     """The camera side through its port: water ray origins and directions (n, 3), the radiance factor
-    T·(n_a/n_w)² (n,), the camera axes r, u carried into the water (n, 3) each, hits and surface info."""
+    T·(n_a/n_w)² (n,), the camera axes r, u carried into the water (n, 3) each, hits and surface info, and
+    the port's Mueller matrix per ray (None: no port, or a coated one)."""
 
     origins: np.ndarray
     dirs: np.ndarray
@@ -47,12 +65,13 @@ class PortView(NamedTuple):
     cam_u: np.ndarray
     hits: object
     surf: object
+    mueller: PortMueller | None = None
 
 
 def port_view(scene: Scene, cam: PinholeFrame, pixels) -> PortView:
     """The camera's water rays of ``pixels`` ((n, 2) (row, col), None: every pixel, row-major)."""
     air = pixel_rays(cam, pixels)
-    port = scene.camera.port
+    port, mueller = scene.camera.port, None
     if port is None:
         n = air.shape[0]
         origins = np.broadcast_to(np.asarray(cam.position, float), (n, 3)).copy()
@@ -62,8 +81,10 @@ def port_view(scene: Scene, cam: PinholeFrame, pixels) -> PortView:
         geo = port_geometry(port, cam.position, cam.f)
         origins, dirs, trans, axes = water_rays(geo, air, np.stack([cam.r, cam.u]))
         factor, cam_r, cam_u = radiance_factor(geo, trans), axes[0], axes[1]
+        if geo.fresnel:
+            mueller = camera_mueller(geo, air, cam.r, cam.u)
     hits = intersect(scene.objects, origins, dirs)
-    return PortView(origins, dirs, factor, cam_r, cam_u, hits, surface_info(scene.objects, hits))
+    return PortView(origins, dirs, factor, cam_r, cam_u, hits, surface_info(scene.objects, hits), mueller)
 
 
 def _source(scene: Scene, src: Source) -> PortSource:
@@ -113,12 +134,14 @@ def _pattern(src: Source) -> PatternTable:
                         _cells(src.pattern), box, src.pattern.kind in ("flood", "stripe"))
 
 
-def _polarization(src: Source, on: bool) -> PortPolarization:
+def _polarization(src: Source, on: bool, diattenuating: bool) -> PortPolarization:
+    """The kernel's polarization; ``diattenuating``: the projector's port has Fresnel faces, so even an
+    unpolarized source reaches the water polarized and the m12 term is needed."""
     rayleigh = src.dop_model.model == "rayleigh"
     depol = float(src.dop_model.depolarization) if rayleigh else 0.0
     big = (1.0 - depol) / (1.0 + depol / 2.0)
     big44 = big * (1.0 - 2.0 * depol) / (1.0 - depol)
-    return PortPolarization(bool(on and rayleigh), bool(rayleigh and src.dop_l > 0.0),
+    return PortPolarization(bool(on and rayleigh), bool(rayleigh and (src.dop_l > 0.0 or diattenuating)),
                             np.asarray(src.e_field, float), np.asarray(src.fast_axis, float),
                             float(src.dop_l),
                             big, big44, bool(np.any(src.fast_axis)))
@@ -132,9 +155,11 @@ def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, ca
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or n == 0:
         return out
     t, w = gauss_legendre(max(int(nodes), 4))
-    args = (_source(scene, src), _pattern(src),
+    source = _source(scene, src)
+    args = (source, _pattern(src),
             Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
-                   np.asarray(src.box_hi, float)), phase_args(src.phase), _polarization(src, pol))
+                   np.asarray(src.box_hi, float)), phase_args(src.phase),
+            _polarization(src, pol, source.has_port and source.fresnel))
     f64 = np.ascontiguousarray
     origins, dirs = f64(origins, float).reshape(-1, 3), f64(dirs, float)
     x0, x1 = f64(np.broadcast_to(x0, (n,)), float), f64(np.broadcast_to(x1, (n,)), float)
@@ -151,7 +176,8 @@ def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, ca
 
 
 def _light(scene: Scene, src: Source, points: np.ndarray):
-    """Air direction, exit point, water direction, J·T and validity of the light reaching ``points``."""
+    """Air direction, exit point, water direction, J·T and validity of the light reaching ``points``; T is the
+    port's Mueller matrix's intensity for the source's polarization (docs/physics.md §11)."""
     pr = scene.projector
     if pr.port is None:
         v = points - np.asarray(src.position, float)
@@ -160,8 +186,15 @@ def _light(scene: Scene, src: Source, points: np.ndarray):
         exit_ = np.broadcast_to(np.asarray(src.position, float), points.shape)
         return air, exit_, air, 1.0 / np.maximum(d2 + src.radius ** 2, 1e-300), np.ones(len(points), bool)
     forward = src.frame.f if src.frame is not None else np.subtract(pr.look_at, pr.position)
-    lt = light_to(port_geometry(pr.port, pr.position, forward), points)
-    return lt.air, lt.exit, lt.water, np.where(lt.ok, lt.J * lt.T, 0.0), lt.ok
+    geo = port_geometry(pr.port, pr.position, forward)
+    lt = light_to(geo, points)
+    gain = np.ones(len(points))
+    if geo.fresnel and src.dop_l > 0.0:
+        air = np.ascontiguousarray(np.nan_to_num(lt.air))
+        source_port_gain(air, geo.normal, geo.t, geo.n_a, geo.n_g, geo.n_w, np.asarray(src.e_field, float),
+                         np.asarray(src.fast_axis, float), bool(np.any(src.fast_axis)), float(src.dop_l),
+                         gain)
+    return lt.air, lt.exit, lt.water, np.where(lt.ok, lt.J * lt.T * gain, 0.0), lt.ok
 
 
 def port_direct(scene: Scene, src: Source, origins, points, normals, albedo) -> np.ndarray:
@@ -239,8 +272,9 @@ def _a_field(scene, src, fid, cam, view: PortView, pixels) -> np.ndarray:
 
 
 def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need):
-    """Single scattering through the ports: flat (n,) D, A, B, Bq, Bu, Bv (camera radiance, the port's
-    T·(n_a/n_w)² applied) and the surface info."""
+    """Single scattering through the ports: flat (n,) D, A, B, Bq, Bu, Bv, Sq, Su (camera radiance through the
+    camera's port: (n_a/n_w)² times its Mueller matrix on the water radiance, the object's light unpolarized
+    in the water and polarized by the port, Sq, Su) and the surface info."""
     if pixels is None:
         view = cached(scene, "port_camera", lambda: port_view(scene, cam, None))
     else:
@@ -254,15 +288,27 @@ def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need):
                              surf.albedo[hit])
     if "A" in need and hit.size and src.sigma_s > 0:
         A = _a_field(scene, src, fid, cam, view, pixels)
+    stokes = "p" in need or view.mueller is not None     # the port's B depends on B's polarization
     if "B" in need and src.sigma_s > 0:
         t0, t1 = box_interval(view.origins, view.dirs, src.box_lo, src.box_hi)
         t1 = np.minimum(t1, hits.t)
-        pol = "p" in need and scene.medium.dop.model == "rayleigh"
+        pol = stokes and scene.medium.dop.model == "rayleigh"
         res = line_stokes(scene, src, view.origins, view.dirs, t0, t1, fid.xi_nodes, view.cam_r, view.cam_u,
                           pol)
         B = res.b
         if pol:
             Bq, Bu, Bv = res.q, res.u, res.v
-        elif "p" in need:
+        elif stokes:
             Bq, Bu, Bv = camera_frame_stokes(src, scene, cam, view.dirs, B, None, None, None)
-    return tuple(a * view.factor for a in (D, A, B, Bq, Bu, Bv)) + (surf,)
+    Sq, Su = np.zeros(n), np.zeros(n)
+    if view.mueller is not None:
+        m = view.mueller
+        k = view.factor / (0.5 * (m.ts + m.tp))                      # (n_a/n_w)²
+        B, Bq, Bu, Bv = (k * a for a in diattenuate(m.ts, m.tp, m.c2, m.s2, B, Bq, Bu, Bv))
+        _, Sq, Su, _ = diattenuate(m.ts, m.tp, m.c2, m.s2, k * (D + A), 0.0, 0.0, 0.0)
+        D, A = D * view.factor, A * view.factor
+    else:
+        D, A, B, Bq, Bu, Bv = (a * view.factor for a in (D, A, B, Bq, Bu, Bv))
+    if "p" not in need:
+        Bq, Bu, Bv, Sq, Su = (np.zeros(n) for _ in range(5))
+    return D, A, B, Bq, Bu, Bv, Sq, Su, surf

@@ -100,7 +100,8 @@ class Components:
     D direct (eq. 11), A surface-scattered (eq. 12), B backscatter (eq. 13), Bq/Bu the backscatter's
     B-weighted linear Stokes in the camera frame (angles from image right toward image up) and Bv its
     circular Stokes (docs/physics.md §5.1), so p and χ follow; ``surface`` says which pixels see which
-    object and the chart's bars.
+    object and the chart's bars. Sq/Su: the object light's linear Stokes in the camera frame, 0 but behind a
+    camera port with Fresnel faces, whose diattenuation polarizes the object's light (docs/physics.md §11).
     """
 
     D: np.ndarray
@@ -116,10 +117,16 @@ class Components:
     seconds: float = 0.0
     orders: OrdersPlan | None = None
     Bv: np.ndarray | None = None
+    Sq: np.ndarray | None = None
+    Su: np.ndarray | None = None
 
     def __post_init__(self):
         if self.Bv is None:
             self.Bv = np.zeros_like(self.B)
+        if self.Sq is None:
+            self.Sq = np.zeros_like(self.B)
+        if self.Su is None:
+            self.Su = np.zeros_like(self.B)
 
     @property
     def S(self) -> np.ndarray:
@@ -130,12 +137,19 @@ class Components:
         """The backscatter's Stokes on the analyzer's circle (docs/physics.md §5.1): (Bq, Bu) without a
         quarter-wave plate; with one at α, (Q_α cos 2α − V sin 2α, Q_α sin 2α + V cos 2α) with
         Q_α = Bq cos 2α + Bu sin 2α, so that Malus's law in p and χ holds for the rotating analyzer."""
+        return self._on_analyzer_circle(self.Bq, self.Bu, self.Bv)
+
+    def object_seen_stokes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object light's (Sq, Su) on the analyzer's circle, as :meth:`seen_stokes` (its V is 0)."""
+        return self._on_analyzer_circle(self.Sq, self.Su, 0.0)
+
+    def _on_analyzer_circle(self, q, u, v):
         qw = self.scene.camera.polarizer.quarter_wave_deg
         if qw is None:
-            return self.Bq, self.Bu
+            return q, u
         a2 = 2.0 * np.radians(qw)
-        q_a = self.Bq * np.cos(a2) + self.Bu * np.sin(a2)
-        return q_a * np.cos(a2) - self.Bv * np.sin(a2), q_a * np.sin(a2) + self.Bv * np.cos(a2)
+        q_a = q * np.cos(a2) + u * np.sin(a2)
+        return q_a * np.cos(a2) - v * np.sin(a2), q_a * np.sin(a2) + v * np.cos(a2)
 
     @property
     def p(self) -> np.ndarray:
@@ -174,7 +188,7 @@ class Components:
         return Components(a * self.D + b * other.D, a * self.A + b * other.A, a * self.B + b * other.B,
                           a * self.Bq + b * other.Bq, a * self.Bu + b * other.Bu, self.surface, self.scene,
                           self.pattern, self.fidelity, self.pixels, self.seconds + other.seconds, self.orders,
-                          a * self.Bv + b * other.Bv)
+                          a * self.Bv + b * other.Bv, a * self.Sq + b * other.Sq, a * self.Su + b * other.Su)
 
 
 def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fidelity = "standard",
@@ -235,9 +249,9 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
         shape = (cam.h, cam.w) if pixels is None else (-1,)
         surf = SurfaceInfo(*(a.reshape(shape) for a in (surf.object_id, surf.albedo, surf.chart_band,
                                                          surf.chart_high)))
-        D, A, B, Bq, Bu, Bv = (a.reshape(shape) for a in parts)
+        D, A, B, Bq, Bu, Bv, Sq, Su = (a.reshape(shape) for a in parts)
         return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan,
-                          Bv)
+                          Bv, Sq, Su)
     if pixels is None:        # the pattern-independent geometry, once per scene (sim/geometry_cache.py)
         dirs, hits, surf = cached(scene, "camera", lambda: _camera_geometry(scene, cam, None))
     else:
