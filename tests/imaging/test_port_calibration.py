@@ -111,8 +111,8 @@ def test_the_projector_corner_step_is_exact_through_the_ports(rig):
 def test_the_projector_corners_carry_the_camera_corners_error_and_the_fit_takes_it_out(rig):
     """0.1 px of noise on the camera's corners, and the projector's found from them (so they carry that
     error, ~3 times larger): with the maps' derivatives the fit's ports come within 0.5 mm and 3 of their
-    reported σ, and within 0.5° (2–3 of its σ here); taken as independent errors the camera's d is observed
-    5 times worse."""
+    reported σ, and within 0.5° and 2.5 of its σ (1.4 and 1.9 here; the linearized σ had them at 2.5 and
+    3.1: docs/depth.md); taken as independent errors the camera's d is observed 5 times worse."""
     found = list(_decoded_poses(rig, 6, cam_noise=0.1))
     pinhole = _pinhole(rig, [PoseResult(c, p, 0, j) for c, p, j, _ in found])
     fit = fit_ports(pinhole, BOARD, TANK, TANK, start_distances_m=(0.05,), one_wall=True)
@@ -120,7 +120,7 @@ def test_the_projector_corners_carry_the_camera_corners_error_and_the_fit_takes_
     for key in ("port_cam", "port_proj"):
         err, tilt = abs(getattr(fit, key)[3] - rig[key][3]), _tilt_deg(getattr(fit, key), rig[key])
         assert err < 3 * fit.sigma[f"{key}_d_sigma_m"] and err < 5e-4
-        assert tilt < 0.5
+        assert tilt < 2.5 * fit.sigma[f"{key}_tilt_sigma_deg"] and tilt < 0.5
     pinhole.poses = [PoseResult(c, p) for c, p, _, _ in found]
     independent = fit_ports(pinhole, BOARD, TANK, TANK, start_distances_m=(0.05,), one_wall=True)
     assert fit.sigma["port_cam_d_sigma_m"] * 5 < independent.sigma["port_cam_d_sigma_m"]
