@@ -31,7 +31,7 @@ from polarstripe import __version__
 from polarstripe.heap import keep_freed
 from polarstripe.msgs import REGISTRY, Message
 from polarstripe.runtime.bag import BagError, BagWriter
-from polarstripe.runtime.graph import load_graph, pid_alive, resolve
+from polarstripe.runtime.graph import load_graph, pid_alive, resolve, shm_offered
 from polarstripe.runtime.node import Node
 from polarstripe.runtime.params import NodeParams
 
@@ -105,6 +105,7 @@ class Recorder(Node):
         split_size: int = 0  # start a new file beyond this many bytes (0: never)
         split_duration_s: float = 0.0  # start a new file after this many seconds (0: never)
         receive_queue: int = 8  # messages per topic received ahead of writing; more wait upstream (0: no cap)
+        transport: Literal["shm", "zmq"] = "shm"  # shm: frames through shared memory where offered
 
         def validate(self):
             super().validate()
@@ -133,9 +134,9 @@ class Recorder(Node):
                 )
                 continue
             self.types[topic] = cls
-            self.subscribe(
-                topic, lambda m, t=topic: self.write(t, m), msg_type=cls, mode="all", queue=p.receive_queue
-            )
+            shm = "view" if p.transport == "shm" and shm_offered(graph, topic) else ""
+            self.subscribe(topic, lambda m, t=topic: self.write(t, m), msg_type=cls, mode="all",
+                           queue=p.receive_queue, shm=shm)
         if not self.types:
             raise BagError(
                 f"recorder: nothing to record (topics {wanted or 'none'} of graph "
@@ -161,7 +162,8 @@ class Recorder(Node):
         p = self.params
         path = split_path(Path(p.path), len(self.files), self._split)
         self.writer = BagWriter(
-            path, compression=p.compression, chunk_size=p.chunk_size, chunk_age_s=p.chunk_age_s
+            path, compression=p.compression, chunk_size=p.chunk_size, chunk_age_s=p.chunk_age_s,
+            on_torn=self._torn,
         ).start()
         self.files.append(str(path))
         self.writer.add_metadata("launch", launch_metadata(self.recorded_graph))
@@ -195,6 +197,16 @@ class Recorder(Node):
         if self.params.split_size and self.writer.size >= self.params.split_size:
             self._rotate()
 
+    def _torn(self, topic: str) -> None:
+        """A message whose ring slot was reused before its chunk reached the file: dropped, a gap."""
+        self.gaps[topic] += 1
+        self.counts[topic] -= 1
+
+    def _gaps(self, topic: str) -> int:
+        """Gaps of ``topic``: the counted ones and ring slots overwritten before the first or after the last
+        message received (no ``seq`` jump shows those)."""
+        return self.gaps[topic] + getattr(self._subs[topic].source, "unseen_overwritten", 0)
+
     def _drain(self) -> None:
         """Write what has already arrived when the loop stops (a stop must not drop queued messages)."""
         for topic in self.types:  # full names: subscribed as such
@@ -219,14 +231,15 @@ class Recorder(Node):
             t: {
                 "type": self.types[t].TYPE,
                 "messages": self.counts[t],
-                "gaps": self.gaps[t],
+                "gaps": self._gaps(t),
                 "restarts": self.restarts[t],
+                "transport": "shm" if getattr(self._subs[t].source, "shm", "") else "zmq",
             }
             for t in self.types
         }
         return {
             "topics": json.dumps(topics, sort_keys=True),
-            "gaps": str(sum(self.gaps.values())),
+            "gaps": str(sum(self._gaps(t) for t in self.types)),
             "bad": str(self.counts_bad()),
             "file_index": str(len(self.files) - 1),
             "started_ns": str(self.started_ns),
@@ -241,10 +254,10 @@ class Recorder(Node):
         self._close()
         for t in self._syncing:  # the rotated files are on disk too before the recorder ends
             t.join()
-        total, gaps = sum(self.counts.values()), sum(self.gaps.values())
+        total, gaps = sum(self.counts.values()), sum(self._gaps(t) for t in self.types)
         for t in self.types:
-            if self.counts[t] or self.gaps[t]:
-                self.log.info("%s: %d messages, %d gaps", t, self.counts[t], self.gaps[t])
+            if self.counts[t] or self._gaps(t):
+                self.log.info("%s: %d messages, %d gaps", t, self.counts[t], self._gaps(t))
         say = self.log.warning if gaps or self.counts_bad() else self.log.info
         files = self.files[0] if len(self.files) == 1 else f"{len(self.files)} files {self.files[0]} …"
         say(

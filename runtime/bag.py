@@ -45,40 +45,21 @@ from polarstripe.runtime.bag_format import (
     PROFILE,
     SCHEMA_ENCODING,
     BagError,
+    compressor,
     library_id,
     payload,
     schema_name,
+    write_buffers,
 )
+from polarstripe.runtime.shm_bus import lease_of
 
 __all__ = [  # the writer, and the layout's names from bag_format (importable from here as before)
     "COMPRESSIONS", "MAGIC", "MESSAGE_ENCODING", "PROFILE", "SCHEMA_ENCODING",
-    "BagError", "BagWriter", "library_id", "payload", "schema_name",
+    "BagError", "BagWriter", "library_id", "payload", "schema_name", "write_buffers",
 ]
 
 
 # ---- writer ------------------------------------------------------------------------------------------------
-_IOV_MAX = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 1024
-
-
-def write_buffers(fd: int, bufs) -> int:
-    """Write ``bufs`` in order with as few ``writev`` calls as the kernel takes (no join: the payloads go
-    from the received frames to the page cache in one copy); returns the bytes written."""
-    views = [v if v.format == "B" and v.ndim == 1 else v.cast("B") for v in map(memoryview, bufs) if v.nbytes]
-    total, i = 0, 0
-    while i < len(views):
-        n = os.writev(fd, views[i : i + _IOV_MAX])
-        if n == 0:
-            raise OSError(28, "no byte written (disk full?)")
-        total += n
-        while n:  # a short write (a signal, a full disk): go on after the last byte written
-            if n >= views[i].nbytes:
-                n -= views[i].nbytes
-                i += 1
-            else:
-                views[i], n = views[i][n:], 0
-    return total
-
-
 def _records(*records) -> bytes:
     rb = RecordBuilder()
     for r in records:
@@ -86,31 +67,12 @@ def _records(*records) -> bytes:
     return rb.end()
 
 
-def _compressor(compression: str):
-    if compression == "none":
-        return None
-    try:
-        if compression == "zstd":
-            import zstandard
-
-            return zstandard.ZstdCompressor(level=3).compress
-        if compression == "lz4":
-            import lz4.frame
-
-            return lz4.frame.compress
-    except ImportError as exc:
-        raise BagError(f"compression {compression!r} needs the package {exc.name!r}") from None
-    raise BagError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
-
-
 @dataclass
 class _Chunk:
-    parts: list = field(default_factory=list)
+    parts: list = field(default_factory=list)  # per message: (channel id, log time, [record head, *payload])
     size: int = 0
-    start_ns: int = 0
-    end_ns: int = 0
     opened: float = 0.0  # monotonic time of the first message
-    index: dict = field(default_factory=lambda: defaultdict(list))  # channel id -> [(log_time, offset)]
+    leases: list = field(default_factory=list)  # (message number, lease) of messages viewing a ring slot
 
 
 class BagWriter:
@@ -130,6 +92,10 @@ class BagWriter:
     crc : bool, optional
         Store the CRC-32 of each chunk's records. Default: only for compressed chunks (it costs about 1 ms
         per 2.6 MB frame, a quarter of an uncompressed write; a torn chunk is found by its length anyway).
+    on_torn : callable, optional
+        ``on_torn(topic)`` for each message dropped because its shared-memory slot was reused before its
+        chunk was written out (a message received as views of a ring slot, ``Subscriber(shm="view")``:
+        the chunk is written, its leases checked, and written again without the torn ones).
     """
 
     def __init__(
@@ -140,16 +106,19 @@ class BagWriter:
         chunk_size: int = 1 << 20,
         chunk_age_s: float = 1.0,
         crc: bool | None = None,
+        on_torn=None,
     ):
         if chunk_size <= 0 or not chunk_age_s > 0:
             raise BagError(f"chunk size and age must be > 0, got {chunk_size} bytes, {chunk_age_s} s")
         self.path = Path(path)
-        self._compress = _compressor(compression)
+        self._compress = compressor(compression)
         self.compression = "" if compression == "none" else compression
         self.chunk_size, self.chunk_age_s = int(chunk_size), float(chunk_age_s)
         self.crc = self._compress is not None if crc is None else bool(crc)
         self._f = None
         self._pos = 0
+        self.on_torn = on_torn
+        self._topics: dict[int, str] = {}
         self._schemas: dict[str, Schema] = {}
         self._channels: dict[str, Channel] = {}
         self._chunk = _Chunk()
@@ -226,6 +195,7 @@ class BagWriter:
         )
         self.stats.channel_count += 1
         out.append(ch)
+        self._topics[ch.id] = topic
         self._write(_records(*out))
         return ch.id
 
@@ -240,32 +210,26 @@ class BagWriter:
             log_time_ns=time.time_ns() if log_time_ns is None else log_time_ns,
             publish_time_ns=h.stamp_ns,
             sequence=h.seq,
+            lease=lease_of(msg),
         )
 
     def add_payload(
-        self, channel_id: int, parts: list, *, log_time_ns: int, publish_time_ns: int, sequence: int
+        self, channel_id: int, parts: list, *, log_time_ns: int, publish_time_ns: int, sequence: int,
+        lease=None,
     ) -> int:
-        """Append a payload given as buffers (see :func:`payload`) on a channel from :meth:`channel`."""
+        """Append a payload given as buffers (see :func:`payload`) on a channel from :meth:`channel`;
+        ``lease``: the buffers view a ring slot (checked after the chunk is written, ``on_torn``)."""
         n = sum(memoryview(p).nbytes for p in parts)
         c = self._chunk
         if not c.parts:
-            c.start_ns = c.end_ns = log_time_ns
             c.opened = time.monotonic()
-        c.index[channel_id].append((log_time_ns, c.size))
-        c.parts.append(
-            struct.pack(
-                "<BQHIQQ",
-                Opcode.MESSAGE,
-                22 + n,
-                channel_id,
-                sequence & 0xFFFFFFFF,
-                log_time_ns,
-                publish_time_ns,
-            )
+        if lease is not None:
+            c.leases.append((len(c.parts), lease))
+        head = struct.pack(
+            "<BQHIQQ", Opcode.MESSAGE, 22 + n, channel_id, sequence & 0xFFFFFFFF, log_time_ns, publish_time_ns
         )
-        c.parts.extend(parts)
+        c.parts.append((channel_id, log_time_ns, [head, *parts]))
         c.size += 31 + n
-        c.start_ns, c.end_ns = min(c.start_ns, log_time_ns), max(c.end_ns, log_time_ns)
         st = self.stats
         if st.message_count == 0:
             st.message_start_time = log_time_ns
@@ -343,10 +307,38 @@ class BagWriter:
             raise BagError(f"bag {self.path}: write failed at byte {self._pos}: {exc.strerror}") from None
 
     def _close_chunk(self) -> None:
-        c = self._chunk
-        if not c.parts:
-            return
-        parts = c.parts
+        """Write the open chunk; where a message viewing a ring slot is torn after all, undo the write and
+        write the chunk again without it (the kernel has copied the bytes once ``writev`` returns)."""
+        c, self._chunk = self._chunk, _Chunk()
+        while c.parts:
+            start = self._pos
+            self._write_chunk(c.parts)
+            torn = {i for i, lease in c.leases if not lease.valid()}
+            if not torn:
+                return
+            os.ftruncate(self._f.fileno(), start)
+            os.lseek(self._f.fileno(), start, os.SEEK_SET)
+            self._pos = start
+            self._chunk_indexes.pop()
+            self.stats.chunk_count -= 1
+            for i in sorted(torn):
+                cid = c.parts[i][0]
+                self.stats.message_count -= 1
+                self.stats.channel_message_counts[cid] -= 1
+                if self.on_torn is not None:
+                    self.on_torn(self._topics.get(cid, ""))
+            leases, kept = dict(c.leases), [i for i in range(len(c.parts)) if i not in torn]
+            c.parts = [c.parts[i] for i in kept]
+            c.leases = [(j, leases[i]) for j, i in enumerate(kept) if i in leases]
+
+    def _write_chunk(self, messages: list) -> None:
+        """One chunk of ``messages`` (channel id, log time, buffers) and its message indexes, one writev."""
+        index, parts, size = defaultdict(list), [], 0
+        for cid, log_ns, bufs in messages:
+            index[cid].append((log_ns, size))
+            parts.extend(bufs)
+            size += sum(memoryview(b).nbytes for b in bufs)
+        start_ns, end_ns = min(m[1] for m in messages), max(m[1] for m in messages)
         crc = 0
         if self._compress is not None:
             joined = b"".join(parts)
@@ -362,9 +354,9 @@ class BagWriter:
                 "<BQQQQI",
                 Opcode.CHUNK,
                 8 * 3 + 4 + 4 + len(comp) + 8 + stored,
-                c.start_ns,
-                c.end_ns,
-                c.size,
+                start_ns,
+                end_ns,
+                size,
                 crc,
             )
             + struct.pack("<I", len(comp))
@@ -374,22 +366,21 @@ class BagWriter:
         chunk_start = self._pos
         chunk_length = len(head) + stored
         offsets, index_start, indexes = {}, chunk_start + chunk_length, []
-        for cid, entries in c.index.items():
+        for cid, entries in index.items():
             offsets[cid] = index_start + sum(len(r) for r in indexes)
             indexes.append(_records(MessageIndex(channel_id=cid, records=entries)))
         self._write(head, *parts, *indexes)  # one writev: the chunk and its indexes
         self._chunk_indexes.append(
             ChunkIndex(
-                message_start_time=c.start_ns,
-                message_end_time=c.end_ns,
+                message_start_time=start_ns,
+                message_end_time=end_ns,
                 chunk_start_offset=chunk_start,
                 chunk_length=chunk_length,
                 message_index_offsets=offsets,
                 message_index_length=self._pos - index_start,
                 compression=self.compression,
                 compressed_size=stored,
-                uncompressed_size=c.size,
+                uncompressed_size=size,
             )
         )
         self.stats.chunk_count += 1
-        self._chunk = _Chunk()

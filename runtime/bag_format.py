@@ -18,6 +18,7 @@ message's arrays, so the writer never copies the pixels.
 
 from __future__ import annotations
 
+import os
 import struct
 
 import msgpack
@@ -114,3 +115,43 @@ def payload(msg: Message, *, topic: str = "") -> list:
     if cur:
         out.append(bytes(cur))
     return out
+
+
+# ---- writing ----------------------------------------------------------------------------------------------
+_IOV_MAX = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 1024
+
+
+def write_buffers(fd: int, bufs) -> int:
+    """Write ``bufs`` in order with as few ``writev`` calls as the kernel takes (no join: the payloads go
+    from the received frames to the page cache in one copy); returns the bytes written."""
+    views = [v if v.format == "B" and v.ndim == 1 else v.cast("B") for v in map(memoryview, bufs) if v.nbytes]
+    total, i = 0, 0
+    while i < len(views):
+        n = os.writev(fd, views[i : i + _IOV_MAX])
+        if n == 0:
+            raise OSError(28, "no byte written (disk full?)")
+        total += n
+        while n:  # a short write (a signal, a full disk): go on after the last byte written
+            if n >= views[i].nbytes:
+                n -= views[i].nbytes
+                i += 1
+            else:
+                views[i], n = views[i][n:], 0
+    return total
+
+
+def compressor(compression: str):
+    if compression == "none":
+        return None
+    try:
+        if compression == "zstd":
+            import zstandard
+
+            return zstandard.ZstdCompressor(level=3).compress
+        if compression == "lz4":
+            import lz4.frame
+
+            return lz4.frame.compress
+    except ImportError as exc:
+        raise BagError(f"compression {compression!r} needs the package {exc.name!r}") from None
+    raise BagError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")

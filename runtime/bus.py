@@ -13,6 +13,8 @@ reconnects).
   ``mode="latest"`` keeps only the newest message of what has arrived (live views); ``mode="all"`` delivers
   every message and counts sequence gaps (recorders). A bad message is counted and returned as a
   :class:`~polarstripe.msgs.MessageError`, never raised from :meth:`Subscriber.take`.
+* On one host, large buffers can travel through a shared-memory ring instead (``PubSocket(shm_slots=…)``,
+  ``Subscriber(shm="copy"|"view")``; :mod:`.shm_bus`): the subscriber gets the same message.
 * :class:`ServiceServer` (ROUTER) and :class:`ServiceClient` (DEALER) do request/reply with a timeout; after a
   timeout the client drops its socket, so a late reply or a queued request cannot leak into the next call.
 
@@ -24,14 +26,22 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
 
+import msgpack
 import zmq
-from polarstripe.errors import PolarstripeError
 from polarstripe.msgs import DEFAULT_MAX_BYTES, Message, MessageError, encode
 from polarstripe.msgs.codec import decode_views
-from polarstripe.runtime import auth
+from polarstripe.runtime.bus_keys import (  # noqa: F401  (importable from here, as before)
+    BusError,
+    BusTimeout,
+    CurveKeys,
+    ServiceError,
+    ServiceTimeout,
+    _apply_curve,
+    apply_curve,
+)
+from polarstripe.runtime.shm_bus import LEASE, MARK, RingTake, ShmOffer, local
 
 RECONNECT_MAX_S = 1.0
 """A subscriber retries a lost publisher's endpoint at 0.1 s, doubling up to this: a publisher started again
@@ -40,79 +50,6 @@ is heard by every subscriber within this of its bind (what it publishes before i
 Mode = str  # "latest" | "all"
 _SNDMORE = zmq.SNDMORE
 MODES = ("latest", "all")
-
-
-class BusError(PolarstripeError):
-    """A bus failure: bad endpoint, a service that failed; the text names the endpoint, topic or service."""
-
-
-class BusTimeout(BusError, TimeoutError):
-    """Nothing arrived in time."""
-
-
-class ServiceTimeout(BusTimeout):
-    """A service call got no reply within its timeout."""
-
-
-class ServiceError(BusError):
-    """The service replied with an error (its handler raised, or it does not know the request)."""
-
-
-@dataclass(frozen=True)
-class CurveKeys:
-    """ZeroMQ CURVE keys (Z85 bytes, from ``zmq.curve_keypair()`` or certificate files, :mod:`.auth`).
-
-    A binding socket (PUB, ROUTER) needs ``secret`` (and ``public``); a connecting socket needs
-    ``server_public`` and gets its own ``public``/``secret`` (generated if empty). ``allow`` (server side):
-    the client public keys admitted by ZAP authentication; a client with another key fails the handshake and
-    gets nothing (the refusal is logged once per key, docs/hardware.md "Security"). ``allow=None`` only
-    encrypts: any client that knows the server's public key is served.
-    """
-
-    public: bytes = b""
-    secret: bytes = b""
-    server_public: bytes = b""
-    allow: frozenset[bytes] | None = None
-
-    @staticmethod
-    def load(path: str) -> CurveKeys:
-        """Read ``public=…``/``secret=…``/``server_public=…`` lines (Z85) from a file (the older format)."""
-        return CurveKeys(**auth.load_key_lines(path))
-
-    @staticmethod
-    def from_env(environ: Mapping[str, str] | None = None) -> CurveKeys | None:
-        """This host's keys as a node or tool reads them at start (None without
-        ``$POLARSTRIPE_CURVE_KEYS``): :func:`.auth.host_keys`."""
-        keys = auth.host_keys(os.environ if environ is None else environ)
-        return None if keys is None else CurveKeys(**keys)
-
-    def client(self) -> CurveKeys:
-        """The keys of this host's connecting sockets: its own pair (so that servers with an allow-list know
-        it) and the server's public key."""
-        return CurveKeys(self.public, self.secret, self.server_public or self.public)
-
-
-def _apply_curve(sock: zmq.Socket, curve: CurveKeys | None, *, server: bool) -> None:
-    if curve is None:
-        return
-    if server:
-        if not curve.secret:
-            raise BusError("CURVE server socket needs a secret key")
-        if curve.allow is not None:  # before the socket binds: the ZAP handler must be there first
-            sock.zap_domain = auth.zap_domain(sock.context, curve.allow).encode()
-        sock.curve_secretkey = curve.secret
-        sock.curve_publickey = curve.public or zmq.curve_public(curve.secret)
-        sock.curve_server = True
-    else:
-        if not curve.server_public:
-            raise BusError("CURVE client socket needs the server's public key")
-        public, secret = (curve.public, curve.secret) if curve.secret else zmq.curve_keypair()
-        sock.curve_serverkey = curve.server_public
-        sock.curve_publickey = public or zmq.curve_public(secret)
-        sock.curve_secretkey = secret
-
-
-apply_curve = _apply_curve  # for a tool that opens its own socket (tools/topic.py)
 
 
 def _bind(sock: zmq.Socket, endpoint: str) -> str:
@@ -161,6 +98,9 @@ class PubSocket(_SocketOwner):
         (100 frames of 2.6 MB = 262 MB).
     curve : CurveKeys, optional
         Encrypt with CURVE (server side).
+    shm_slots : int
+        On an ipc or inproc endpoint, > 0 offers the shared-memory ring form of every topic, with rings of
+        this many slots (:attr:`shm`, :mod:`.shm_bus`); ignored elsewhere.
     """
 
     def __init__(
@@ -170,17 +110,23 @@ class PubSocket(_SocketOwner):
         hwm: int = 100,
         curve: CurveKeys | None = None,
         ctx: zmq.Context | None = None,
+        shm_slots: int = 0,
     ):
-        self.socket = (ctx or zmq.Context.instance()).socket(zmq.PUB)
+        offer = shm_slots > 0 and local(endpoint)
+        self.socket = (ctx or zmq.Context.instance()).socket(zmq.XPUB if offer else zmq.PUB)
         self.socket.linger = 0
         self.socket.sndhwm = hwm
         _apply_curve(self.socket, curve, server=True)
         self.endpoint = _bind(self.socket, endpoint)
+        self.shm = ShmOffer(self.socket, shm_slots) if offer else None
         self._topics: dict[str, Publisher] = {}
 
     def close(self, linger_s: float = 0.0) -> None:
-        """Close; ``linger_s`` > 0 gives what is still queued (a node's last heartbeat) that long to leave."""
+        """Close; ``linger_s`` > 0 gives what is still queued (a node's last heartbeat) that long to leave.
+        The shared-memory rings are unlinked."""
         self.socket.close(round(linger_s * 1000))
+        if self.shm is not None:
+            self.shm.close()
 
     def publisher(self, topic: str, msg_type: type[Message]) -> Publisher:
         """The publisher of ``topic`` (full name, e.g. ``/rig/camera/frame``) for messages of ``msg_type``."""
@@ -201,7 +147,7 @@ class Publisher:
 
     def __init__(self, sock: PubSocket, topic: str, msg_type: type[Message]):
         self.topic, self.msg_type = topic, msg_type
-        self._sock = sock.socket
+        self._sock, self._offer = sock.socket, sock.shm
         self._topic_b = topic.encode()
         self.seq = 0  # sequence number of the next message
         self.published = 0
@@ -218,12 +164,18 @@ class Publisher:
             )
         seq = self.seq
         frames = encode(msg, topic=self.topic, seq=seq, stamp_ns=stamp_ns)
-        send = self._sock.send  # part by part: send_multipart's checks cost ~1 µs a part
-        send(self._topic_b, _SNDMORE)
-        last = len(frames) - 1
-        send(frames[0], _SNDMORE if last else 0)
-        for i in range(1, last + 1):
-            send(frames[i], _SNDMORE if i < last else 0, copy=False)  # pyzmq copies parts < 64 KiB
+        plain = True
+        if self._offer is not None:  # each form only while someone subscribes to it
+            plain, ring = self._offer.wants(self._topic_b)
+            if ring:
+                self._offer.send(self._topic_b, frames)
+        if plain:
+            send = self._sock.send  # part by part: send_multipart's checks cost ~1 µs a part
+            send(self._topic_b, _SNDMORE)
+            last = len(frames) - 1
+            send(frames[0], _SNDMORE if last else 0)
+            for i in range(1, last + 1):
+                send(frames[i], _SNDMORE if i < last else 0, copy=False)  # pyzmq copies parts < 64 KiB
         self.seq = seq + 1
         self.published += 1
         return seq
@@ -237,6 +189,7 @@ class SubscriberStats:
     bad: int = 0  # messages that failed to decode
     gaps: int = 0  # messages missing according to seq (lost in transit)
     restarts: int = 0  # times seq went backwards (the publisher restarted)
+    overwritten: int = 0  # of the gaps: ring slots reused before they were read (shm)
     last_error: str = ""
 
     def as_dict(self) -> dict[str, int]:
@@ -261,6 +214,11 @@ class Subscriber(_SocketOwner):
         Receive queue [messages]; default 4 for latest, unlimited (0) for all.
     max_bytes : int
         Messages larger than this are rejected (counted as bad).
+    shm : {"", "copy", "view"}
+        Receive the shared-memory ring form (every publisher must offer it: ipc or inproc, ``shm_slots``):
+        ``copy`` copies each buffer out of its slot (a message like any other); ``view`` gives views of the
+        slot with a lease (:func:`.shm_bus.lease_of`) that the user checks after using the bytes (the
+        recorder, runtime/bag.py). A slot reused before it is read counts as a gap.
     """
 
     def __init__(
@@ -274,11 +232,15 @@ class Subscriber(_SocketOwner):
         max_bytes: int = DEFAULT_MAX_BYTES,
         curve: CurveKeys | None = None,
         ctx: zmq.Context | None = None,
+        shm: str = "",
     ):
-        if mode not in MODES:
-            raise BusError(f"topic {topic!r}: mode must be one of {MODES}, got {mode!r}")
+        if mode not in MODES or shm not in ("", "copy", "view"):
+            raise BusError(f"topic {topic!r}: mode must be one of {MODES}, got {mode!r}; shm one of "
+                           f"'', 'copy', 'view', got {shm!r}")
         self.topic, self.msg_type, self.mode, self.max_bytes = topic, msg_type, mode, max_bytes
-        self._topic_b = topic.encode()
+        self.shm = shm
+        self._ring = RingTake(copy=shm == "copy") if shm else None
+        self._topic_b = (MARK if shm else b"") + topic.encode()
         self.socket = (ctx or zmq.Context.instance()).socket(zmq.SUB)
         self.socket.linger = 0
         self.socket.rcvhwm = (4 if mode == "latest" else 0) if hwm is None else hwm
@@ -293,6 +255,8 @@ class Subscriber(_SocketOwner):
         self._last_seq: int | None = None
 
     def connect(self, endpoint: str) -> None:
+        if self._ring is not None and not local(endpoint):
+            raise BusError(f"topic {self.topic!r}: shared memory needs a publisher on this host, not {endpoint}")
         if endpoint not in self.endpoints:
             _connect(self.socket, endpoint)
             self.endpoints.append(endpoint)
@@ -307,7 +271,16 @@ class Subscriber(_SocketOwner):
         recv = self.socket.recv
         part = recv(flags, copy=False)
         topic_b = part.bytes  # small: cheaper than a view
-        head, bufs = None, []
+        head, bufs, lease = None, [], None
+        if self._ring is not None:
+            while part.more:
+                part = recv(copy=False)
+                bufs.append(part)
+            if topic_b != self._topic_b:
+                return None
+            head, bufs, lease = self._ring.resolve(bufs)
+            if bufs is None:
+                return self._overwritten(head)
         while part.more:
             part = recv(copy=False)  # the rest of a message is always there once its first part is
             if head is None:
@@ -333,7 +306,33 @@ class Subscriber(_SocketOwner):
             elif seq <= last:
                 st.restarts += 1
         self._last_seq = seq
+        if self._ring is not None:
+            self._ring.seen()
+            if lease is not None:
+                msg.__dict__[LEASE] = lease
         return msg
+
+    def _overwritten(self, head: bytes | None) -> None:
+        """A ring slot reused before it was read: a gap (its seq taken from the header)."""
+        st = self.stats
+        st.gaps += 1
+        st.overwritten += 1
+        try:
+            self._last_seq = int(msgpack.unpackb(head)[3])
+        except Exception:  # a header that does not decode: the gap is still counted
+            pass
+        return None
+
+    @property
+    def unseen_overwritten(self) -> int:
+        """Overwritten messages that a count of ``seq`` gaps over the delivered ones cannot see (before the
+        first, after the last): a recorder adds them to its own count."""
+        return 0 if self._ring is None else self._ring.unseen
+
+    def close(self) -> None:
+        super().close()
+        if self._ring is not None:
+            self._ring.close()
 
     def take(self, limit: int = 1000) -> list[Message | MessageError]:
         """Everything that has arrived, without waiting (at most ``limit`` messages read off the socket).

@@ -113,3 +113,15 @@ def pub_endpoints(graph: dict, topic: str) -> list[str]:
     nodes = graph.get("nodes", {})
     pubs = graph.get("topics", {}).get(topic, {}).get("publishers") or list(nodes)
     return [nodes[n]["pub"] for n in pubs if n in nodes and nodes[n].get("pub")]
+
+
+def shm_offered(graph: dict, topic: str) -> bool:
+    """Whether every publisher of ``topic`` offers its shared-memory ring form (the graph's
+    ``shm_slots`` > 0, given to nodes bound at ipc endpoints: runtime/shm_bus.py)."""
+    nodes = graph.get("nodes", {})
+    pubs = graph.get("topics", {}).get(topic, {}).get("publishers") or []
+    return bool(pubs) and all(
+        n in nodes and int(nodes[n].get("shm_slots") or 0) > 0
+        and str(nodes[n].get("pub", "")).startswith(("ipc://", "inproc://"))
+        for n in pubs
+    )

@@ -13,6 +13,7 @@ from pathlib import Path
 from polarstripe.runtime.graph import resolve
 from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, sock_dir
 from polarstripe.runtime.runner import load_node_class
+from polarstripe.runtime.shm_bus import DEFAULT_SLOTS, local
 
 RECORDER = "polarstripe.nodes.recorder:Recorder"
 
@@ -43,6 +44,7 @@ def build_graph(spec: LaunchSpec, run_dir: Path) -> dict:
             "module": n.module,
             "pub": pub,
             "srv": srv,
+            "shm_slots": DEFAULT_SLOTS if local(pub) else 0,  # the ring form offered (runtime/shm_bus.py)
             "publishes": publishes,
             "subscribes": {full[t]: m.TYPE for t, m in cls.SUBSCRIBES.items()},
             "serves": {full[s]: [q.TYPE, r.TYPE] for s, (q, r) in cls.SERVES.items()},

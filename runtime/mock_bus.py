@@ -134,8 +134,9 @@ class MockBus:
         return _Pub(self, topic, msg_type)
 
     def subscribe(
-        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None
-    ) -> MockSource:  # (``queue`` has no meaning here: the harness delivers what its test sends)
+        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None,
+        shm: str = "",
+    ) -> MockSource:  # (``queue``, ``shm`` have no meaning here: the harness delivers what its test sends)
         src = self.sources[topic] = MockSource(topic, msg_type, mode)
         return src
 

@@ -165,6 +165,7 @@ class Node(SubscriptionReads, Watching):
         msg_type: type[Message] | None = None,
         mode: str = "latest",
         queue: int | None = None,
+        shm: str = "",
     ) -> None:
         """Receive ``topic`` (declared in ``SUBSCRIBES``, or give ``msg_type``).
 
@@ -172,7 +173,8 @@ class Node(SubscriptionReads, Watching):
         :class:`Received` events instead. ``mode`` is ``"latest"`` (newest only) or ``"all"`` (every message,
         sequence gaps counted). ``queue``: messages received ahead of the loop (default 4 for ``latest``,
         unlimited for ``all``); beyond it a backlog waits in the publisher's queue (its ``hwm``, where a
-        message costs no copy) and what overflows that is lost upstream and counted as a gap.
+        message costs no copy) and what overflows that is lost upstream and counted as a gap. ``shm``
+        (``"copy"``, ``"view"``): frames through shared memory where the publishers offer it (runtime/bus.py).
         """
         msg_type = msg_type or self.SUBSCRIBES.get(topic)
         if msg_type is None:
@@ -182,7 +184,7 @@ class Node(SubscriptionReads, Watching):
         if topic in self._subs:
             raise NodeError(f"node {self.name!r}: already subscribed to {topic!r}")
         full = self.resolve(topic)
-        source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes, queue)
+        source = self._bus.subscribe(full, msg_type, mode, self.params.max_message_bytes, queue, shm)
         self._subs[topic] = _Sub(topic, full, msg_type, callback, mode, source)
 
     def serve(self, service: str, handler: Handler) -> None:

@@ -106,9 +106,12 @@ class NodeBus(Protocol):
     def publisher(self, topic: str, msg_type: type[Message]) -> BusPublisher: ...
 
     def subscribe(
-        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None
+        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None,
+        shm: str = "",
     ) -> BusSource:
-        """Receive ``topic``; ``queue``: messages received ahead of the node (None: the mode's default)."""
+        """Receive ``topic``; ``queue``: messages received ahead of the node (None: the mode's default);
+        ``shm``: ``"copy"`` or ``"view"`` asks for the shared-memory ring form where every publisher offers it
+        (runtime/shm_bus.py), ``""`` the socket."""
         ...
 
     def serve(self, service: str, req: type[Message], resp: type[Message], handler: Handler) -> None:

@@ -22,7 +22,7 @@ from polarstripe.msgs import Heartbeat, Message
 from polarstripe.runtime import bus as zbus
 from polarstripe.runtime.auth import log_refusals_as
 from polarstripe.runtime.client import ServerWatch
-from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir
+from polarstripe.runtime.graph import load_graph, pub_endpoints, runs_dir, shm_offered
 from polarstripe.runtime.liveness import HeartbeatThread, incarnation
 from polarstripe.runtime.node import Node, NodeStopping
 from polarstripe.runtime.node_bus import Handler
@@ -37,6 +37,7 @@ from polarstripe.runtime.process import (
     release_signals,
 )
 from polarstripe.runtime.service import ServiceClient, ServiceServer
+from polarstripe.runtime.shm_bus import local
 
 
 def load_node_class(spec: str) -> type[Node]:
@@ -72,10 +73,11 @@ class ZmqNodeBus:
         services: dict[str, str] | None = None,
         curve: zbus.CurveKeys | None = None,
         pub_hwm: int = 100,
+        shm_slots: int = 0,
     ):
         self.name, self.graph, self.curve = name, graph or {}, curve
         self.ctx = zmq.Context.instance()
-        self.pub_socket = zbus.PubSocket(pub, hwm=pub_hwm, curve=curve)
+        self.pub_socket = zbus.PubSocket(pub, hwm=pub_hwm, curve=curve, shm_slots=shm_slots)
         self.pub_lock = threading.Lock()  # the heartbeat thread publishes on the same PUB socket
         self._srv_endpoint = srv
         self.server: ServiceServer | None = None
@@ -93,12 +95,17 @@ class ZmqNodeBus:
         return _LockedPublisher(self.pub_socket.publisher(topic, msg_type), self.pub_lock)
 
     def subscribe(
-        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None
+        self, topic: str, msg_type: type[Message], mode: str, max_bytes: int, queue: int | None = None,
+        shm: str = "",
     ) -> zbus.Subscriber:
         endpoints = pub_endpoints(self.graph, topic) + self.connect
         client_curve = self.curve.client() if self.curve else None  # this host's own key pair
+        if shm and self.graph.get("nodes") and not shm_offered(self.graph, topic):
+            shm = ""  # shared memory only where every publisher offers it (a node by hand: its caller says)
+        if shm:
+            endpoints = [e for e in endpoints if local(e)]
         sub = zbus.Subscriber(
-            endpoints, topic, msg_type, mode=mode, hwm=queue, max_bytes=max_bytes, curve=client_curve
+            endpoints, topic, msg_type, mode=mode, hwm=queue, max_bytes=max_bytes, curve=client_curve, shm=shm
         )
         self.subscribers.append(sub)
         self.poller.register(sub.socket, zmq.POLLIN)
@@ -214,6 +221,7 @@ def run_node(
         services=services,
         curve=curve,
         pub_hwm=typed.pub_hwm,
+        shm_slots=int(entry.get("shm_slots") or 0),
     )
     node: Node | None = None
     try:

@@ -65,6 +65,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="messages per topic received ahead of the writes; a backlog beyond waits in the publisher's "
         "queue (default 8; 0: unlimited)",
     )
+    parser.add_argument(
+        "--transport",
+        choices=("shm", "zmq"),
+        default="shm",
+        help="shm (default): frames from publishers on this host through shared memory, only the slot's "
+        "name over ZeroMQ; zmq: every byte over the socket (docs/recording.md)",
+    )
     split = parser.add_mutually_exclusive_group()
     split.add_argument(
         "--split-size",
@@ -94,6 +101,7 @@ def main(args: argparse.Namespace) -> int:
         "chunk_size": parse_bytes(args.chunk_size),
         "chunk_age_s": args.chunk_age,
         "receive_queue": args.queue,
+        "transport": args.transport,
         "split_size": parse_bytes(args.split_size),
         "split_duration_s": args.split_duration,
         "heartbeat_s": 0.0,

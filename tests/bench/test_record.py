@@ -3,6 +3,8 @@ and one recorder over the bus (bench/record_bus.py, its own process) that writes
 
 import json
 
+import pytest
+
 from polarstripe.bench.record import _frames
 from polarstripe.bench.record_bus import over_bus
 from polarstripe.msgs import pack
@@ -19,10 +21,13 @@ def test_bench_record_in_process_rows(capsys):
     assert rows["plain write (warm)"]["bytes"] == rows["plain write (cold)"]["bytes"] == payload
 
 
-def test_the_recorder_over_the_bus_writes_every_frame(tmp_path):
-    frames = _frames(5, 48, 64)
+@pytest.mark.parametrize("transport", ["zmq", "shm"])
+def test_the_recorder_over_the_bus_writes_every_frame(tmp_path, transport):
+    frames = _frames(5, 256, 320)  # 160 kB: through a ring slot with shm
     calls = []
-    row = over_bus(tmp_path, frames, lambda: calls.append(1), recorder_args=("--queue", "2"))
+    row = over_bus(tmp_path, frames, lambda: calls.append(1), recorder_args=("--queue", "2"),
+                   transport=transport)
     assert calls == [1] and row["recorded"] == row["sent"] == 5 and row["gaps"] == 0
+    assert row["transport"] == transport  # as the bag's recording metadata says
     assert row["bytes"] > sum(len(pack(f)) for f in frames)
     assert 0.0 <= row["cpu_recorder_s"] < 60.0   # the process clock ticks at 10 ms: 5 small frames may read 0
