@@ -14,7 +14,11 @@ Measured in one run, on the file system of ``--dir`` (default: the system temp d
   publisher in this process over ipc (an XPUB socket: nothing is sent before the subscription has arrived):
   frames sent as fast as the publisher can (the recorder's sustained rate is the count over its
   first-to-last receive time), and paced at ``--rate`` (default 100 frames/s: no gap, every frame written,
-  and how far behind the recorder ran);
+  and how far behind the recorder ran). The ``via`` column: ``zmq``, every byte through the socket, or
+  ``shm``, the frames through the publisher's shared-memory ring (``--transport``, runtime/shm_bus.py; the
+  ring holds the whole burst, as the socket's queue does, and is made before the memory is prepared, as a
+  running publisher's is). The as-fast-as-sent rows run ``--repeats`` alternating rounds (zmq and shm,
+  warm and cold in each round) and print each round's ratio to the plain write's median;
 * **export** — ``polarstripe bag export`` of a recording of the frames (a simulator launch's metadata, so
   camera info and tf go along) to a ROS 2 bag and to a Foxglove MCAP, in frames per second and as a ratio
   to reading the same bag alone (``BagReader.messages``, every frame decoded); warm, the median of
@@ -31,8 +35,10 @@ does it just before it sends), **cold** rows after ``--cold-pause`` seconds of i
 when a burst of frames follows a quiet spell). On bare metal the two agree.
 
 Every row also gives the **CPU** it cost per frame (user + system; in this process the writing thread's,
-over the bus the recorder process's threads and the sender's ZeroMQ I/O thread, from /proc) and the
-**minor page faults** per frame (over the bus: the recorder's, i.e. receive buffers in fresh pages). On a
+over the bus the recorder process's threads and the sender's, its publishing thread, which copies into the
+ring with shm, and its ZeroMQ I/O thread, which copies into the socket with zmq, from /proc) and the
+**minor page faults** per frame (over the bus: the recorder's, i.e. receive buffers in fresh pages, or with
+shm the ring's pages it maps at its first frame). On a
 busy machine the frame rates follow the scheduler; the CPU per frame says what each path costs. Neither row
 counts the final ``fsync`` (reported apart for the in-process rows; the recorder's comes after its last
 message).

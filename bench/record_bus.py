@@ -29,6 +29,7 @@ class _WatchedPub(PubSocket):
 
     def __init__(self, endpoint: str, slots: int):
         super().__init__(endpoint, hwm=100_000, shm_slots=slots)
+        self.shm.max_bytes = 0  # the whole burst, however large
 
     def wait_subscribed(self, topic: str, proc: subprocess.Popen, ring: bool, timeout_s: float = 60.0) -> None:
         deadline = time.monotonic() + timeout_s
@@ -52,8 +53,8 @@ def over_bus(
     """``polarstripe record`` in its own process; once it has subscribed and started, this process calls
     ``prepare`` (memory warm or cold) and publishes ``frames`` (paced at ``rate``, else as fast as it can).
     The recorder's rate is its count over its first-to-last receive time; its CPU and the sender's ZeroMQ
-    I/O thread's come from /proc. ``transport="shm"``: the ring is made (and its pages allocated) before
-    ``prepare``, as a running publisher's ring is, and the recorder reads frames from it."""
+    I/O thread's come from /proc. ``transport="shm"``: the ring is made and its pages allocated before
+    ``prepare``, as a running publisher's are after its first lap, and the recorder reads frames from it."""
     ep = f"ipc://{tmp}/bench-cam.pub"
     graph = {
         "launch": "bench",
@@ -71,7 +72,8 @@ def over_bus(
     with _WatchedPub(ep, len(frames)) as ps:
         pub = ps.publisher("/rig/camera/frame", Frame)
         if transport == "shm":
-            ps.shm.reserve(b"/rig/camera/frame", slot_bytes([b.nbytes for b in encode(frames[0])[1:]]))
+            ps.shm.reserve(b"/rig/camera/frame", slot_bytes([b.nbytes for b in encode(frames[0])[1:]]),
+                           prefault=True)
         proc = subprocess.Popen(
             [*command, "--compression", compression, "--transport", transport, *recorder_args],
             env=env,

@@ -25,6 +25,9 @@ __all__ = ["DEFAULT_SLOTS", "LEASE", "MARK", "MIN_BYTES", "RingTake", "ShmOffer"
 MARK = b"\x01"
 MIN_BYTES = 64 << 10
 """Messages whose buffers are smaller than this travel inline in the ring form (a slot is not worth it)."""
+RING_BYTES = 256 << 20
+"""A ring has fewer slots (at least 2) where ``shm_slots`` of its messages would take more than this: a topic
+of large, rare messages (composites) does not reserve hundreds of MB."""
 LEASE = "_shm_lease"
 """Where a message read as views of a ring slot keeps its :class:`~.shm_ring.Lease` (``msg.__dict__``)."""
 
@@ -49,6 +52,7 @@ class ShmOffer:
 
     def __init__(self, socket: zmq.Socket, slots: int = DEFAULT_SLOTS):
         self.socket, self.slots = socket, int(slots)
+        self.max_bytes = RING_BYTES  # per ring (0: no limit)
         self.prefixes: set[bytes] = set()  # subscribed prefixes, plain and ring form
         self.rings: dict[bytes, RingWriter] = {}
         self._wants: dict[bytes, tuple[bool, bool]] = {}
@@ -85,22 +89,23 @@ class ShmOffer:
                 send(f, _SNDMORE if i < last else 0, copy=i == 0)
             return
         ring = self.rings.get(topic_b)
-        need = slot_bytes([b.nbytes for b in bufs])
-        if ring is None or ring.capacity < need:
-            if ring is not None:
-                ring.close()
-            ring = self.rings[topic_b] = RingWriter(self.slots, need)
+        if ring is None or ring.capacity < slot_bytes([b.nbytes for b in bufs]):
+            ring = self.reserve(topic_b, slot_bytes([b.nbytes for b in bufs]))
         slot, ticket, lengths = ring.write(bufs)
         send(_packb([ring.name, ring.stride, slot, ticket, lengths]), _SNDMORE)
         send(frames[0])
 
-    def reserve(self, topic_b: bytes, nbytes: int) -> None:
-        """Make the ring of ``topic_b`` now, for messages of up to ``nbytes`` of buffers (before a burst)."""
+    def reserve(self, topic_b: bytes, nbytes: int, *, prefault: bool = False) -> RingWriter:
+        """The ring of ``topic_b`` for messages of up to ``nbytes`` of buffers, made now if it has none that
+        large (the old one is unlinked); ``prefault``: its pages allocated now (before a burst), not on its
+        first lap."""
         ring = self.rings.get(topic_b)
         if ring is None or ring.capacity < nbytes:
             if ring is not None:
                 ring.close()
-            self.rings[topic_b] = RingWriter(self.slots, nbytes)
+            slots = min(self.slots, max(2, self.max_bytes // max(nbytes, 1))) if self.max_bytes else self.slots
+            ring = self.rings[topic_b] = RingWriter(slots, nbytes, prefault=prefault)
+        return ring
 
     def close(self) -> None:
         rings, self.rings = self.rings, {}
