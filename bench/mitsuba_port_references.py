@@ -71,9 +71,9 @@ glass (n 1.5), then water (n 1.333, clear up to the tank's face); Mitsuba's port
 rectangles (`sim/mitsuba_scene.py`), so Fresnel and the n² of radiance are its own. The source has no
 port (a delta light behind a dielectric is never reached by a path tracer). Read by
 `tests/sim/test_mitsuba_port.py`: the model's D + B (`standard`, single scattering; the chart at 4×4
-pixel centres per Mitsuba pixel) within the seed spread + 1 % in each region (measured 0.11 %
-medium, 0.3 % chart), the chart's column profile within 1.2 %; without the port that profile is off
-by more than 10 %. Each npz holds `images`, `seeds`, `spp`, `max_depth`, `sigma_t`, `scene_toml`,
+pixel centres per Mitsuba pixel) within the seed spread + 1 % in each region (measured 0.15 %
+medium, 0.3 % chart, with the port's diattenuation; 0.11 % medium without it), the chart's column
+profile within 1.2 %; without the port that profile is off by more than 10 %. Each npz holds `images`, `seeds`, `spp`, `max_depth`, `sigma_t`, `scene_toml`,
 `seconds` (wall-clock, the shared 2-core machine at load 8–9), `regions`, `spread`, `mitsuba_version`,
 `variant`.
 
