@@ -73,9 +73,9 @@ port (a delta light behind a dielectric is never reached by a path tracer). Read
 `tests/sim/test_mitsuba_port.py`: the model's D + B (`standard`, single scattering; the chart at 4×4
 pixel centres per Mitsuba pixel) within the seed spread + 1 % in each region (measured 0.15 %
 medium, 0.3 % chart, with the port's diattenuation; 0.11 % medium without it), the chart's column
-profile within 1.2 %; without the port that profile is off by more than 10 %. Each npz holds `images`, `seeds`, `spp`, `max_depth`, `sigma_t`, `scene_toml`,
-`seconds` (wall-clock, the shared 2-core machine at load 8–9), `regions`, `spread`, `mitsuba_version`,
-`variant`.
+profile within 1.2 %; without the port that profile is off by more than 10 %. Each npz holds `images`,
+`seeds`, `spp`, `max_depth`, `sigma_t`, `scene_toml`, `seconds` (wall-clock, the shared 2-core machine at
+load 8–9), `regions`, `spread`, `mitsuba_version`, `variant`.
 
 | file | what | σ_t [1/m] | spp | seeds | seconds per seed | mean: left / right / centre | seed spread % |
 |---|---|---|---|---|---|---|---|
