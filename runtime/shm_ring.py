@@ -150,15 +150,18 @@ class Lease:
 
 
 class RingReader:
-    """The readers' side of any number of publishers' rings (attached on first use, mapped until
-    :meth:`close`)."""
+    """The readers' side of publishers' rings: attached on first use, the ``keep`` most recently used
+    mapped until :meth:`close` (an older one, of a publisher that restarted or outgrew its ring, is let go)."""
 
-    def __init__(self):
+    def __init__(self, keep: int = 4):
+        self.keep = keep
         self._rings: dict[str, tuple[SharedMemory, np.ndarray, np.ndarray, int]] = {}
 
     def _ring(self, name: str, stride: int):
         ring = self._rings.get(name)
         if ring is None:
+            while len(self._rings) >= self.keep:
+                self._let_go(next(iter(self._rings)))
             shm = attach(name)
             # frombuffer keeps a view that holds the mapping (np.ndarray(buffer=…) would not): arrays made
             # from the slot keep it, and closing the segment under them fails (BufferError), never unmaps.
@@ -167,7 +170,16 @@ class RingReader:
             # would make; a page first touched by a writev costs a fault inside it (twice the write's CPU).
             int(data[:: mmap.PAGESIZE].sum())
             ring = self._rings[name] = (shm, data, np.frombuffer(shm.buf, np.uint64), stride)
+        elif next(reversed(self._rings)) != name:  # most recently used last
+            self._rings[name] = self._rings.pop(name)
         return ring
+
+    def _let_go(self, name: str) -> None:
+        shm = self._rings.pop(name)[0]  # this reader's own views go first
+        try:
+            shm.close()
+        except BufferError:  # a message still views it: the mapping goes with the last such view
+            shm._mmap = None  # noqa: SLF001 (so that SharedMemory.__del__ does not try again and warn)
 
     def views(self, name: str, stride: int, slot: int, ticket: int, lengths: list[int]):
         """``(buffers as read-only byte views of the slot, its Lease)``, or None when the slot no longer
@@ -199,10 +211,5 @@ class RingReader:
 
     def close(self) -> None:
         """Let every segment go (a mapping still viewed by a message is unmapped when that message goes)."""
-        shms = [ring[0] for ring in self._rings.values()]
-        self._rings.clear()  # drops this reader's own views first
-        for shm in shms:
-            try:
-                shm.close()
-            except BufferError:  # a message still views it: the mapping goes with the last such view
-                shm._mmap = None  # noqa: SLF001 (so that SharedMemory.__del__ does not try again and warn)
+        for name in list(self._rings):
+            self._let_go(name)

@@ -183,3 +183,27 @@ def test_readers_that_exit_or_crash_leave_the_ring_and_a_killed_publisher_leaves
     sweep_dead()  # where the tracker died too (killed with its process group): the next ring sweeps
     assert segments(pub.proc.pid) == []
     assert not any(n.startswith(f"{PREFIX}{os.getpid()}_") for n in os.listdir("/dev/shm"))
+
+
+def test_a_ring_outgrown_is_replaced_and_let_go_without_unmapping_a_frame_still_held(tmp_path):
+    """The publisher's next, larger message makes a new ring and unlinks the old one; a reader that keeps one
+    mapping lets the old one go, and a message still viewing it reads its bytes intact."""
+    from polarstripe.runtime.bus import PubSocket
+
+    ep = f"ipc://{tmp_path}/grow.sock"
+    small, large = expected(1)[:240], expected(2)
+    with PubSocket(ep, shm_slots=2) as ps, Subscriber([ep], TOPIC, Frame, mode="all", shm="view") as sub:
+        sub._ring.reader.keep = 1
+        pub = ps.publisher(TOPIC, Frame)
+        deadline = time.monotonic() + 10
+        while not ps.shm.wants(TOPIC.encode())[1]:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        pub.publish(Frame(image=small, exposure_s=0.01))
+        first = sub.recv(10.0)
+        old = ps.shm.rings[TOPIC.encode()].name
+        pub.publish(Frame(image=large, exposure_s=0.01))
+        second = sub.recv(10.0)
+        assert ps.shm.rings[TOPIC.encode()].name != old and not (Path("/dev/shm") / old).exists()
+        assert list(sub._ring.reader._rings) == [ps.shm.rings[TOPIC.encode()].name]
+        assert np.array_equal(first.image, small) and np.array_equal(second.image, large)
