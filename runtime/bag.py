@@ -67,6 +67,10 @@ def _records(*records) -> bytes:
     return rb.end()
 
 
+MAX_LEASES = 8
+"""Messages viewing shared-memory ring slots that one chunk may hold (a ring has 32 slots by default)."""
+
+
 @dataclass
 class _Chunk:
     parts: list = field(default_factory=list)  # per message: (channel id, log time, [record head, *payload])
@@ -95,7 +99,8 @@ class BagWriter:
     on_torn : callable, optional
         ``on_torn(topic)`` for each message dropped because its shared-memory slot was reused before its
         chunk was written out (a message received as views of a ring slot, ``Subscriber(shm="view")``:
-        the chunk is written, its leases checked, and written again without the torn ones).
+        the chunk is written, its leases checked, and written again without the torn ones). A chunk
+        closes once it holds :data:`MAX_LEASES` such messages, so that it never outlives a ring's lap.
     """
 
     def __init__(
@@ -237,7 +242,8 @@ class BagWriter:
         st.message_end_time = max(st.message_end_time, log_time_ns)
         st.message_count += 1
         st.channel_message_counts[channel_id] += 1
-        if c.size >= self.chunk_size or time.monotonic() - c.opened >= self.chunk_age_s:
+        if (c.size >= self.chunk_size or time.monotonic() - c.opened >= self.chunk_age_s
+                or len(c.leases) >= MAX_LEASES):
             self._close_chunk()
         return n
 

@@ -86,21 +86,28 @@ def recv_all(sub: Subscriber, n: int) -> list[Frame]:
 
 
 def test_frames_round_trip_bit_exact_in_every_form_and_the_ring_goes_with_the_publisher(tmp_path):
-    pub = Publisher(tmp_path, slots=8, need="both")
+    pub = Publisher(tmp_path, slots=10, need="both")
     with (Subscriber([pub.ep], TOPIC, Frame, mode="all", shm="view") as view,
           Subscriber([pub.ep], TOPIC, Frame, mode="all", shm="copy") as copy,
           Subscriber([pub.ep], TOPIC, Frame, mode="all") as plain):
         pub.ready()
-        pub.send(6)
-        got = {name: recv_all(s, 6) for name, s in (("view", view), ("copy", copy), ("plain", plain))}
+        pub.send(9)
+        got = {name: recv_all(s, 9) for name, s in (("view", view), ("copy", copy), ("plain", plain))}
         assert len(segments(pub.proc.pid)) == 1  # one ring for the topic, in /dev/shm
         for name, msgs in got.items():
-            assert [m.header.seq for m in msgs] == list(range(6)), name
+            assert [m.header.seq for m in msgs] == list(range(9)), name
             for m in msgs:
                 assert np.array_equal(m.image, expected(m.header.seq)) and m.step == m.header.seq, name
-        assert all(lease_of(m).valid() for m in got["view"])  # 6 writes into 8 slots: none reused
+        assert all(lease_of(m).valid() for m in got["view"])  # 9 writes into 10 slots: none reused
         assert lease_of(got["copy"][0]) is None and lease_of(got["plain"][0]) is None
         assert view.stats.gaps == copy.stats.gaps == plain.stats.gaps == 0
+        with BagWriter(tmp_path / "views.mcap", chunk_size=1 << 30) as w:  # written from the slots
+            for k, m in enumerate(got["view"]):
+                w.add_message(TOPIC, m)
+                assert w.stats.chunk_count == (1 if k >= 7 else 0)  # 8 leases close a chunk (of 1 GB)
+        with open(tmp_path / "views.mcap", "rb") as f:
+            recs = [m for _, _, m in make_reader(f, validate_crcs=True).iter_messages()]
+        assert [r.data for r in recs] == [pack(m, topic=TOPIC) for m in got["plain"]]
         err = pub.quit()
     assert segments(pub.proc.pid) == []  # unlinked by the publisher as it closed
     assert "leaked" not in err  # its resource tracker found nothing to clean up
