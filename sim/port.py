@@ -10,9 +10,11 @@ n_g·sin θ_g = n_w·sin θ_w, so with c_k = √(n_k² − q²) (c_k/n_k = cos �
   the water ray starts on the outer face at E = P + (d + t)·N + q·(d/c_a + t/c_g)·e and runs along
   w = (c_w·N + q·e)/n_w;
 * inverse (the projector's light reaching a water point Y at height z = (Y − P)·N above P, radial distance
-  ρ): q solves r(q) = q·(d/c_a + t/c_g + ℓ/c_w) = ρ with ℓ = z − d − t, an increasing convex function, so
-  Newton's method from the paraxial q₀ = ρ/(d/n_a + t/n_g + ℓ/n_w) (which lies above the root) converges
-  monotonically;
+  ρ): q solves r(q) = q·(d/c_a + t/c_g + ℓ/c_w) = ρ with ℓ = z − d − t, an increasing function that grows
+  without bound as q nears the least index n_m; Newton's method runs in τ = q/c_m (q = n_m·τ/√(1 + τ²)),
+  where the term of the least index is linear and the others are bounded (in q, points far off the axis
+  took ~20 steps), kept inside the bracket of the signs seen so far, from a nearby point's q (the previous
+  node on a ray) or the paraxial q₀ = ρ/(d/n_a + t/n_g + ℓ/n_w): ~3–6 steps to rounding;
 * the irradiance a point source of intensity I₀ [W/sr] in the air gives at Y, per unit area normal to w, is
   I₀·T·J with J = dΩ_a/dA_⊥ = 1/(n_a²·cos θ_a·cos θ_w·r'(q)·r(q)/q): with no port (every index 1) J =
   cos²θ/z² = 1/|Y − P|²; at normal incidence through a vanishing port J = (n_w/n_a)²/z², the solid angle
@@ -128,34 +130,52 @@ def _radial(q, d, t, ell, n_a, n_g, n_w):
     return s, ds
 
 
+_Q_MAX = 1.0 - 1e-12           # q/n_m at most: an air or water ray within ~1e-6 rad of the port's plane
+_TAU_MAX = _Q_MAX / math.sqrt(1.0 - _Q_MAX * _Q_MAX)
+
+
 @njit(cache=True, nogil=True)
-def solve_invariant(rho, ell, d, t, n_a, n_g, n_w):
+def solve_invariant(rho, ell, d, t, n_a, n_g, n_w, hint=0.0):
     """Snell's invariant q of the ray from the pinhole to a water point at radial distance ``rho`` and
-    ``ell`` beyond the outer face (Newton from above, module docstring)."""
+    ``ell`` beyond the outer face (module docstring), from the start ``hint`` (a nearby point's q; ≤ 0: the
+    paraxial q₀)."""
     if rho <= 0.0:
         return 0.0
-    n_min = min(n_a, n_w)
+    n_m = min(n_a, n_w)
     if t > 0.0:
-        n_min = min(n_min, n_g)
-    q = rho / (d / n_a + t / n_g + ell / n_w)
-    q = min(q, n_min * (1.0 - 1e-12))
-    for _ in range(100):
+        n_m = min(n_m, n_g)
+    q = hint if 0.0 < hint < _Q_MAX * n_m else min(rho / (d / n_a + t / n_g + ell / n_w), 0.999 * n_m)
+    tau = q / math.sqrt(n_m * n_m - q * q)
+    lo, hi, capped = 0.0, _TAU_MAX, False
+    for _ in range(200):
+        den = math.sqrt(1.0 + tau * tau)
+        q = n_m * tau / den
         s, ds = _radial(q, d, t, ell, n_a, n_g, n_w)
-        q_new = q - (q * s - rho) / ds
-        if not q_new < q:           # monotone from above: a step that does not decrease is rounding
+        f = q * s - rho
+        if f == 0.0:
             return q
-        if q_new <= 0.0:
-            q_new = 0.5 * q
-        if q - q_new <= 1e-14 * q:
-            return q_new
-        q = q_new
-    return q
+        if f > 0.0:
+            hi = tau
+        elif tau >= _TAU_MAX:               # the root lies beyond the grazing limit: stop there
+            return q
+        else:
+            lo = tau
+        step = f * den * den * den / (ds * n_m)
+        if abs(step) <= 1e-11 * tau:          # quadratic convergence: the next step is below rounding
+            tau -= step
+            break
+        tau -= step
+        if not lo < tau < hi:
+            tau = 0.5 * (lo + hi) if hi < _TAU_MAX or capped else _TAU_MAX
+            capped = capped or tau == _TAU_MAX
+    return n_m * tau / math.sqrt(1.0 + tau * tau)
 
 
 @njit(cache=True, nogil=True)
 def through_port(px, py, pz, geo_apex, geo_n, d, t, n_a, n_g, n_w, fresnel, out):
     """The light from the pinhole reaching the water point (px, py, pz): out[0:3] the air direction a,
-    out[3:6] the exit point E on the outer face, out[6:9] the water direction w, out[9] J [1/m²], out[10] T.
+    out[3:6] the exit point E on the outer face, out[6:9] the water direction w, out[9] J [1/m²], out[10] T,
+    out[11] Snell's invariant q (read first as the solver's start: 0, or the q of a nearby point).
     Returns False when the point is not beyond the outer face (then nothing reaches it)."""
     vx, vy, vz = px - geo_apex[0], py - geo_apex[1], pz - geo_apex[2]
     nx, ny, nz = geo_n[0], geo_n[1], geo_n[2]
@@ -169,7 +189,8 @@ def through_port(px, py, pz, geo_apex, geo_n, d, t, n_a, n_g, n_w, fresnel, out)
         ex, ey, ez = rx / rho, ry / rho, rz / rho
     else:
         ex, ey, ez = 0.0, 0.0, 0.0
-    q = solve_invariant(rho, ell, d, t, n_a, n_g, n_w)
+    q = solve_invariant(rho, ell, d, t, n_a, n_g, n_w, out[11])
+    out[11] = q
     ca = math.sqrt(n_a * n_a - q * q)
     cw = math.sqrt(n_w * n_w - q * q)
     s, ds = _radial(q, d, t, ell, n_a, n_g, n_w)
@@ -244,7 +265,7 @@ def water_rays(geo: PortGeometry, air_dirs: np.ndarray, axes: np.ndarray | None 
 
 @njit(cache=True, nogil=True)
 def _inverse_kernel(points, apex, n, d, t, n_a, n_g, n_w, fresnel, out, ok):
-    buf = np.empty(11)
+    buf = np.zeros(12)
     for i in range(points.shape[0]):
         ok[i] = through_port(points[i, 0], points[i, 1], points[i, 2], apex, n, d, t, n_a, n_g, n_w, fresnel,
                              buf)

@@ -83,7 +83,7 @@ class PortPolarization(NamedTuple):
 
 @njit(cache=True, nogil=True)
 def light_at(src, pat, px, py, pz, buf):
-    """Fill ``buf`` (11,) as :func:`through_port` for the water point (px, py, pz) and return (lit, col, row,
+    """Fill ``buf`` (12,) as :func:`through_port` for the water point (px, py, pz) and return (lit, col, row,
     valid): valid False where no light of the pattern's pinhole reaches the point; buf[9] is J·T."""
     if src.has_port:
         if not through_port(px, py, pz, src.apex, src.normal, src.d, src.t, src.n_a, src.n_g, src.n_w,
@@ -160,14 +160,82 @@ def _outside(pat, ca, ra, cb, rb):
 
 
 @njit(cache=True, nogil=True)
+def _on_grid(v, off, size):
+    """Whether the value v is a cell boundary off + k·size (none for an infinite size)."""
+    k = (v - off) / size
+    return math.isfinite(size) and k == math.floor(k)
+
+
+@njit(cache=True, nogil=True)
 def _boundaries(pat, ca, ra, cb, rb):
-    """How many cell boundaries and edges of the pattern lie between two pattern coordinates."""
+    """How many cell boundaries and edges of the pattern lie between two pattern coordinates (an edge on a
+    cell boundary counted once)."""
     c0, cs, r0, rs = pat.cells[0], pat.cells[1], pat.cells[2], pat.cells[3]
     n = abs(math.floor((cb - c0) / cs) - math.floor((ca - c0) / cs)) + \
         abs(math.floor((rb - r0) / rs) - math.floor((ra - r0) / rs))
-    n += ((ca < 0.0) != (cb < 0.0)) + ((ca >= pat.w) != (cb >= pat.w))
-    n += ((ra < 0.0) != (rb < 0.0)) + ((ra >= pat.h) != (rb >= pat.h))
+    if not _on_grid(0.0, c0, cs):
+        n += (ca < 0.0) != (cb < 0.0)
+    if not _on_grid(float(pat.w), c0, cs):
+        n += (ca >= pat.w) != (cb >= pat.w)
+    if not _on_grid(0.0, r0, rs):
+        n += (ra < 0.0) != (rb < 0.0)
+    if not _on_grid(float(pat.h), r0, rs):
+        n += (ra >= pat.h) != (rb >= pat.h)
     return n
+
+
+@njit(cache=True, nogil=True)
+def _crossing(pat, ca, ra, cb, rb):
+    """The one pattern line between two pattern coordinates where the lit state can change: (axis 0 col,
+    1 row, its value), or (-1, 0) where there is none or more than one (a corner)."""
+    axis, value, found = -1, 0.0, 0
+    if pat.convex:                  # the lit set is the box: its four edges
+        for k in range(4):
+            a, b = (ca, cb) if k < 2 else (ra, rb)
+            if (a < pat.box[k]) != (b < pat.box[k]):
+                axis, value, found = k // 2, pat.box[k], found + 1
+        return (axis, value) if found == 1 else (-1, 0.0)
+    for k in range(2):
+        a, b = (ca, cb) if k == 0 else (ra, rb)
+        off, size = pat.cells[2 * k], pat.cells[2 * k + 1]
+        end = float(pat.w if k == 0 else pat.h)
+        fa, fb = math.floor((a - off) / size), math.floor((b - off) / size)
+        if fa != fb:
+            axis, value, found = k, off + size * max(fa, fb), found + 1
+        for v in (0.0, end):
+            if (a < v) != (b < v) and not (fa != fb and v == off + size * max(fa, fb)):
+                axis, value, found = k, v, found + 1
+    return (axis, value) if found == 1 else (-1, 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _solve_crossing(src, pat, ox, oy, oz, dx, dy, dz, a, b, fa, fb, axis, value, buf):
+    """x in (a, b) where the pattern coordinate ``axis`` of the ray's point equals ``value`` (fa, fb: that
+    coordinate minus ``value`` at a and b, of opposite signs): the Illinois variant of regula falsi (the
+    coordinate is nearly linear along the ray); NaN where a point on the way gets no light."""
+    side = 0
+    tol = 1e-12 * (abs(a) + abs(b)) + 1e-15
+    for _ in range(60):
+        x = (a * fb - b * fa) / (fb - fa)
+        if not a < x < b:
+            x = 0.5 * (a + b)
+        _, c, r, valid = _state(src, pat, ox, oy, oz, dx, dy, dz, x, buf)
+        if not valid:
+            return math.nan
+        f = (c if axis == 0 else r) - value
+        if (f < 0.0) == (fa < 0.0):
+            a, fa = x, f
+            if side == -1:
+                fb *= 0.5
+            side = -1
+        else:
+            b, fb = x, f
+            if side == 1:
+                fa *= 0.5
+            side = 1
+        if b - a <= tol or f == 0.0:
+            return x
+    return 0.5 * (a + b)
 
 
 @njit(cache=True, nogil=True)
@@ -213,6 +281,14 @@ def lit_cuts(src, pat, ox, oy, oz, dx, dy, dz, x0, x1, cuts, buf):
             top += 1
             continue
         if la != lb and n_cut < cuts.size:
+            axis, value = _crossing(pat, ca, ra, cb, rb) if va and vb else (-1, 0.0)
+            if axis >= 0:
+                x = _solve_crossing(src, pat, ox, oy, oz, dx, dy, dz, a, b, (ca if axis == 0 else ra) - value,
+                                    (cb if axis == 0 else rb) - value, axis, value, buf)
+                if x == x:
+                    cuts[n_cut] = x
+                    n_cut += 1
+                    continue
             for _ in range(30):
                 mid = 0.5 * (a + b)
                 lm = _state(src, pat, ox, oy, oz, dx, dy, dz, mid, buf)[0]
@@ -231,8 +307,8 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
     record, each (n,)); ``origin`` (1, 3) or (n, 3), ``cam_r``/``cam_u`` (1, 3) or (n, 3)."""
     st, ss, box_lo, box_hi = medium
     b_out, q_out, u_out, v_out = out
-    buf = np.empty(11)
-    cuts = np.empty(256)
+    buf = np.zeros(12)
+    cuts = np.empty(4096)        # a ray crosses at most w + h pattern lines
     depol_big, big44 = pol.big, pol.big44
     ex, ey, ez = pol.e_field[0], pol.e_field[1], pol.e_field[2]
     fx, fy, fz = pol.fast_axis[0], pol.fast_axis[1], pol.fast_axis[2]

@@ -111,12 +111,16 @@ def _table(pattern: PatternSpec, w: int, h: int) -> np.ndarray:
 
 def _cells(pattern: PatternSpec) -> np.ndarray:
     """(col offset, col size, row offset, row size) [pattern pixels]: cells whose boundaries hold every
-    change of a checker's or Gray code's lit state (Gray bit b, XOR base bit c: multiples of 2^min(b, c))."""
+    change of a checker's or Gray code's lit state (Gray bit b: multiples of 2^b along its axis; an XOR base
+    bit c, a column bit: multiples of 2^c in columns)."""
     if pattern.kind == "checker":
         return np.array([pattern.shift % pattern.size, pattern.size, 0.0, pattern.size], float)
     if pattern.kind == "gray":
-        size = float(2 ** min(pattern.index, pattern.xor if pattern.xor >= 0 else pattern.index))
-        return np.array([0.0, size, 0.0, np.inf] if pattern.axis == "col" else [0.0, np.inf, 0.0, size])
+        size = float(2 ** pattern.index)
+        base = float(2 ** pattern.xor) if pattern.xor >= 0 else np.inf    # the XOR base: a column bit
+        if pattern.axis == "col":
+            return np.array([0.0, min(size, base), 0.0, np.inf])
+        return np.array([0.0, base, 0.0, size])
     return np.array([0.0, np.inf, 0.0, np.inf])
 
 

@@ -115,10 +115,12 @@ def _scene(port=None, pport=None, sigma_t=2.0, w=48):
 UNIT = Port(distance_m=0.0, thickness_m=0.0, n_air=1.0, n_glass=1.0, n_water=1.0)
 
 
-@pytest.mark.parametrize("pattern", ["stripe:12/30", "checker:64:32"])
+@pytest.mark.parametrize("pattern", ["stripe:12/30", "checker:64:32", "gray:0:row:1:xor3", "gray:1:col:0"])
 def test_a_port_of_index_one_is_the_pinhole(pattern):
     """With every index 1 the port's rays are the pinhole's: D, B and B's Stokes agree with the pinhole
-    model's own kernels (validated against Mitsuba) to the quadratures' precision."""
+    model's own kernels (validated against Mitsuba) to the quadratures' precision; also for an XOR row code
+    (its lit state changes at the base's column lines too) and a Gray bit of 2-pixel stripes (~500 lit
+    pieces on a ray across the pattern)."""
     pin = render_components(_scene(), pattern, "preview", orders="single", need=("D", "B", "p"))
     port = render_components(_scene(UNIT, UNIT), pattern, "preview", orders="single", need=("D", "B", "p"))
     for k, tol in (("D", 1e-4), ("B", 1e-3), ("Bq", 1e-3)):
