@@ -16,6 +16,8 @@ into the ring instead of the socket's two (into the kernel and out of it).
 
 from __future__ import annotations
 
+import logging
+
 import msgpack
 import zmq
 from polarstripe.runtime.shm_ring import DEFAULT_SLOTS, Lease, RingReader, RingWriter, slot_bytes
@@ -32,6 +34,7 @@ LEASE = "_shm_lease"
 """Where a message read as views of a ring slot keeps its :class:`~.shm_ring.Lease` (``msg.__dict__``)."""
 
 _packb = msgpack.Packer(use_bin_type=True).pack
+log = logging.getLogger(__name__)
 _SNDMORE = zmq.SNDMORE
 
 
@@ -55,6 +58,7 @@ class ShmOffer:
         self.max_bytes = RING_BYTES  # per ring (0: no limit)
         self.prefixes: set[bytes] = set()  # subscribed prefixes, plain and ring form
         self.rings: dict[bytes, RingWriter] = {}
+        self.failed: dict[bytes, str] = {}  # topics whose ring could not be made: why
         self._wants: dict[bytes, tuple[bool, bool]] = {}
 
     def wants(self, topic_b: bytes) -> tuple[bool, bool]:
@@ -80,17 +84,22 @@ class ShmOffer:
         """Send ``frames`` (``[header, *buffers]``) in the ring form of ``topic_b``."""
         send = self.socket.send
         bufs = [memoryview(b) for b in frames[1:]]
-        total = sum(b.nbytes for b in bufs)
+        need = slot_bytes([b.nbytes for b in bufs])
+        ring = self.rings.get(topic_b)
+        if need >= MIN_BYTES and (ring is None or ring.capacity < need) and topic_b not in self.failed:
+            try:
+                ring = self.reserve(topic_b, need)
+            except OSError as exc:  # /dev/shm full or not writable: this topic goes inline, said once
+                self.failed[topic_b] = str(exc)
+                log.warning("topic %s: no shared-memory ring (%s); its ring form carries the bytes inline",
+                            topic_b.decode(errors="replace"), exc)
         send(MARK + topic_b, _SNDMORE)
-        if total < MIN_BYTES:
+        if need < MIN_BYTES or topic_b in self.failed:
             send(b"", _SNDMORE)
             last = len(frames) - 1
             for i, f in enumerate(frames):
                 send(f, _SNDMORE if i < last else 0, copy=i == 0)
             return
-        ring = self.rings.get(topic_b)
-        if ring is None or ring.capacity < slot_bytes([b.nbytes for b in bufs]):
-            ring = self.reserve(topic_b, slot_bytes([b.nbytes for b in bufs]))
         slot, ticket, lengths = ring.write(bufs)
         send(_packb([ring.name, ring.stride, slot, ticket, lengths]), _SNDMORE)
         send(frames[0])

@@ -214,3 +214,25 @@ def test_a_ring_outgrown_is_replaced_and_let_go_without_unmapping_a_frame_still_
         assert ps.shm.rings[TOPIC.encode()].name != old and not (Path("/dev/shm") / old).exists()
         assert list(sub._ring.reader._rings) == [ps.shm.rings[TOPIC.encode()].name]
         assert np.array_equal(first.image, small) and np.array_equal(second.image, large)
+
+
+def test_a_ring_that_cannot_be_made_leaves_the_frames_inline(tmp_path):
+    """A ring the kernel refuses (here one of 2**40 slots: no address space maps it) is said once, and the
+    topic's ring form carries its bytes inline: nothing is lost, nothing is left in /dev/shm."""
+    from polarstripe.runtime.bus import PubSocket
+
+    ep = f"ipc://{tmp_path}/huge.sock"
+    with PubSocket(ep, shm_slots=2**40) as ps, Subscriber([ep], TOPIC, Frame, mode="all", shm="view") as sub:
+        ps.shm.max_bytes = 0  # no cap on the ring's size
+        pub = ps.publisher(TOPIC, Frame)
+        deadline = time.monotonic() + 10
+        while not ps.shm.wants(TOPIC.encode())[1]:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        for k in range(2):
+            pub.publish(Frame(image=expected(k), exposure_s=0.01))
+        got = recv_all(sub, 2)
+        assert TOPIC.encode() in ps.shm.failed and not ps.shm.rings
+        assert [np.array_equal(m.image, expected(k)) for k, m in enumerate(got)] == [True, True]
+        assert lease_of(got[0]) is None and sub.stats.gaps == 0
+    assert segments(os.getpid()) == []
