@@ -232,12 +232,12 @@ def run(
                 got[(name, "shm", memory)] = [over_bus(tmp, frames, warm if memory == "warm" else cold,
                                                        compression=comp, rate=pace, recorder_args=args,
                                                        transport="shm")]
-            for (name, via, memory), got in got.items():
+            for (name, via, memory), runs in got.items():
                 rows[f"{name} ({memory}, {via})"] = {
-                    **sorted(got, key=lambda r: r["fps"])[len(got) // 2],
-                    "gaps": max(r["gaps"] for r in got),
-                    "recorded": min(r["recorded"] for r in got),
-                    "fps_runs": [r["fps"] for r in got],
+                    **sorted(runs, key=lambda r: r["fps"])[len(runs) // 2],
+                    "gaps": max(r["gaps"] for r in runs),
+                    "recorded": min(r["recorded"] for r in runs),
+                    "fps_runs": [r["fps"] for r in runs],
                     "memory": memory,
                 }
     rows = out["rows"]
@@ -335,6 +335,7 @@ def main(args: argparse.Namespace) -> int:
                 f"no gap {yes[v['no_gap']]}; end to end within 80% of the plain write "
                 f"{yes[v['bus_within_80pct_of_plain']]} warm, {yes[v['bus_within_80pct_of_plain_cold']]} cold"
                 + (" (the socket adds two copies of every frame: into the kernel and out of it)"
-                   if via == "zmq" else " (one copy into the ring, in the sender; the recorder writes from it)")
+                   if via == "zmq" else
+                   " (one copy into the ring, in the sender; the recorder writes from it)")
             )
     return 0

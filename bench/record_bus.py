@@ -31,7 +31,8 @@ class _WatchedPub(PubSocket):
         super().__init__(endpoint, hwm=100_000, shm_slots=slots)
         self.shm.max_bytes = 0  # the whole burst, however large
 
-    def wait_subscribed(self, topic: str, proc: subprocess.Popen, ring: bool, timeout_s: float = 60.0) -> None:
+    def wait_subscribed(self, topic: str, proc: subprocess.Popen, ring: bool,
+                        timeout_s: float = 60.0) -> None:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and proc.poll() is None:
             if self.shm.wants(topic.encode())[1 if ring else 0]:

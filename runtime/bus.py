@@ -256,7 +256,8 @@ class Subscriber(_SocketOwner):
 
     def connect(self, endpoint: str) -> None:
         if self._ring is not None and not local(endpoint):
-            raise BusError(f"topic {self.topic!r}: shared memory needs a publisher on this host, not {endpoint}")
+            raise BusError(f"topic {self.topic!r}: shared memory needs a publisher on this host, "
+                           f"not {endpoint}")
         if endpoint not in self.endpoints:
             _connect(self.socket, endpoint)
             self.endpoints.append(endpoint)

@@ -1,4 +1,5 @@
-"""The bus's errors and its CURVE keys (re-exported by :mod:`polarstripe.runtime.bus`, where they are used)."""
+"""The bus's errors and its CURVE keys (re-exported by :mod:`polarstripe.runtime.bus`, where they are
+used)."""
 
 from __future__ import annotations
 

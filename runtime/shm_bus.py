@@ -112,7 +112,8 @@ class ShmOffer:
         if ring is None or ring.capacity < nbytes:
             if ring is not None:
                 ring.close()
-            slots = min(self.slots, max(2, self.max_bytes // max(nbytes, 1))) if self.max_bytes else self.slots
+            slots = (min(self.slots, max(2, self.max_bytes // max(nbytes, 1))) if self.max_bytes
+                     else self.slots)
             ring = self.rings[topic_b] = RingWriter(slots, nbytes, prefault=prefault)
         return ring
 

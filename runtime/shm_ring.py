@@ -110,7 +110,8 @@ class RingWriter:
 
     def write(self, bufs: list) -> tuple[int, int, list[int]]:
         """Copy ``bufs`` (byte buffers) into the next slot; ``(slot, ticket, lengths)`` for the readers."""
-        views = [b if isinstance(b, memoryview) and b.format == "B" and b.ndim == 1 else memoryview(b).cast("B")
+        views = [b if isinstance(b, memoryview) and b.format == "B" and b.ndim == 1
+                 else memoryview(b).cast("B")
                  for b in bufs]
         lengths = [v.nbytes for v in views]
         if slot_bytes(lengths) > self.capacity:
@@ -151,7 +152,8 @@ class Lease:
 
 class RingReader:
     """The readers' side of publishers' rings: attached on first use, the ``keep`` most recently used
-    mapped until :meth:`close` (an older one, of a publisher that restarted or outgrew its ring, is let go)."""
+    mapped until :meth:`close` (an older one, of a publisher that restarted or outgrew its ring, is let
+    go)."""
 
     def __init__(self, keep: int = 4):
         self.keep = keep

@@ -4,7 +4,6 @@ and one recorder over the bus (bench/record_bus.py, its own process) that writes
 import json
 
 import pytest
-
 from polarstripe.bench.record import _frames
 from polarstripe.bench.record_bus import over_bus
 from polarstripe.msgs import pack
