@@ -131,15 +131,15 @@ def polarized_source(src: Source, plan: OrdersPlan, scene) -> Source:
 
 
 def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid,
-                    circular: bool = False) -> Field:
+                    circular: bool = False, port=None) -> Field:
     """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k): the quasi-direct light deposited and
     carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4); ``circular``: the circular part,
-    with σ_pV and κ_V (§5.1)."""
+    with σ_pV and κ_V (§5.1); ``port``: the source's flat port (:func:`source_field`)."""
     ph, dop = scene.medium.phase, scene.medium.dop
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization), circular)
     sigma = psrc.sigma_pol_v if circular else psrc.sigma_pol
     deposit = dataclasses.replace(psrc, sigma_t=sigma)
-    quasi = source_field(grid, deposit, scene.objects, st.oversample)
+    quasi = source_field(grid, deposit, scene.objects, st.oversample, port)
     return solve_polarized(grid, quasi, sigma, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
                            orders=st.orders)
 

@@ -98,9 +98,10 @@ def glow_basis(scene, grid: Grid, cells: np.ndarray, eye: np.ndarray, sigma: flo
                      np.ascontiguousarray(flux.reshape(keep.size, -1).T))
 
 
-def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field) -> tuple[Field, Field]:
+def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None) -> tuple[Field, Field]:
     """The objects' glow on the grid: the field to view (its emission toward the camera) and the scattered
-    glow field (whose irradiance lights the objects again); module docstring."""
+    glow field (whose irradiance lights the objects again); module docstring. ``patch_light(patches)``, where
+    given, is the patches' quasi-direct irradiance (a projector behind a port); else the pinhole source's."""
     scene, sc = view.scene, plan.scaled
     cells, eye = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float)
     phase = PhaseArgs(*truncated_code(sc.phase))
@@ -110,8 +111,11 @@ def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field) -> tuple[Field, 
     patches = basis.patches
     if patches.area.size == 0:
         return zero_field(grid), zero_field(grid)
-    lit = footprint_lit(ssrc, patches.point, patches.du, patches.dv) if ssrc.frame is not None else None
-    e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal, lit)   # area-averaged pattern
+    if patch_light is not None:
+        e = patch_light(patches)
+    else:
+        lit = footprint_lit(ssrc, patches.point, patches.du, patches.dv) if ssrc.frame is not None else None
+        e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal, lit)   # area-averaged
     exitance = basis.albedo * (e + surface_irradiance(grid, total, patches.point, patches.normal))
     j1 = np.empty(cells.shape[0])
     keep = basis.keep

@@ -134,7 +134,8 @@ def sample_fields(grid, phi, flux, points, phi_out, flux_out):
 
 class ViewArgs(NamedTuple):
     """Emissions J_i(Y, ω) = c_i·(φ_i + 3 g_i F_i·ω) [W m⁻³ sr⁻¹] (clamped at 0) of the fields i (arrays c, g
-    (k,)) seen along rays from ``origin`` (3,) with the view attenuations σ_i (array (k,))."""
+    (k,)) seen along rays from ``origin`` ((1, 3) shared, or (m, 3) one per ray: a camera behind a port) with
+    the view attenuations σ_i (array (k,))."""
 
     c: np.ndarray
     g: np.ndarray
@@ -152,8 +153,10 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
     c, g, sigma, origin = view
     nf = phi.shape[0]
     nk = cum.shape[2] - 1
+    per = origin.shape[0] > 1
     step_w, decay = np.empty(nf), np.empty(nf)     # a step's weight at the ray's start, its decay a step
     for r in range(dirs.shape[0]):
+        ko = r if per else 0
         for i in range(nf):
             cum[i, r, 0] = 0.0
         length = t1[r] - t0[r]
@@ -171,9 +174,9 @@ def view_cumulative(grid, phi, flux, view, dirs, t0, t1, cum):
         for j in range(nk):
             a0 = j * ds
             x = t0[r] + a0 + 0.5 * ds
-            i0, tx = _axis(origin[0] + x * dx, lo[0], h[0], n[0])
-            j0, ty = _axis(origin[1] + x * dy, lo[1], h[1], n[1])
-            k0, tz = _axis(origin[2] + x * dz, lo[2], h[2], n[2])
+            i0, tx = _axis(origin[ko, 0] + x * dx, lo[0], h[0], n[0])
+            j0, ty = _axis(origin[ko, 1] + x * dy, lo[1], h[1], n[1])
+            k0, tz = _axis(origin[ko, 2] + x * dz, lo[2], h[2], n[2])
             for f in range(nf):  # sample_fields' trilinear loop, written out: a shared helper taking the
                 p = 0.0            # field's slices cost 9 % of a preview frame (measured)
                 fd = 0.0

@@ -32,6 +32,8 @@ from polarstripe.sim.grid_kernels import (
 )
 from polarstripe.sim.multiple import Field, Grid
 from polarstripe.sim.patterns import gray_lit, pattern_lit, sheet_columns
+from polarstripe.sim.port import water_rays
+from polarstripe.sim.port_kernels import source_port_gain
 from polarstripe.sim.scene import BoxObject, PlaneObject, SphereObject
 from polarstripe.sim.threads import in_bands
 from polarstripe.sim.transport import Source
@@ -61,7 +63,7 @@ def _square_mean(a: np.ndarray, b: np.ndarray, size: float) -> np.ndarray:
     return np.where(wide, (tri(b) - tri(a)) / np.where(wide, w, 1.0), point)
 
 
-def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
+def lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
     """Lit fraction of each rectangle [c0, c1] × [r0, r1] of pattern pixels: exact for flood, stripes and
     checkers (lit = (1 + q(col − shift)·q(row))/2 with q the square wave of :func:`_square_mean`, separable
     over a rectangle; several sheets: the sum of theirs), 4 × 4 sub-samples for Gray code."""
@@ -83,7 +85,7 @@ def _lit_fraction(src: Source, c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r
 def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
     """The pattern's lit fraction averaged over each patch p ± du/2 ± dv/2 (docs/physics.md §10.3): the
     rectangle in pattern pixels that bounds the projected corners, cut to the frame, through
-    :func:`_lit_fraction` (a patch wider than a checker square sees half of it lit, as the light it reflects
+    :func:`lit_fraction` (a patch wider than a checker square sees half of it lit, as the light it reflects
     does; a point sample would alias). 0 where the patch's centre is outside the frustum; the point's own
     value where a corner is behind the projector. Complementary patterns add up to the flood exactly."""
     fr = src.frame
@@ -104,7 +106,7 @@ def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarra
     r1 = np.where(ahead, np.clip(rr.max(axis=0), 0.0, fr.h), row[idx])
     eps = 1e-6                                      # a patch seen edge-on: its centre's value
     c1, r1 = np.maximum(c1, c0 + eps), np.maximum(r1, r0 + eps)
-    out[idx] = _lit_fraction(src, c0, c1, r0, r1)
+    out[idx] = lit_fraction(src, c0, c1, r0, r1)
     return out
 
 
@@ -133,22 +135,45 @@ def _source_beams(src: Source, grid: Grid, oversample: float):
     dirs = fr.f[None, :] + a[:, None] * fr.r - b[:, None] * fr.u
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     solid = (c1 - c0) * (r1 - r0) * fr.s * fr.s * (1 + a * a + b * b) ** -1.5
-    return dirs, src.intensity * solid * _lit_fraction(src, c0, c1, r0, r1)
+    return dirs, src.intensity * solid * lit_fraction(src, c0, c1, r0, r1)
 
 
-def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0) -> Field:
+def port_source_gain(port, src: Source, air: np.ndarray) -> np.ndarray:
+    """i'/T of the source's light through its ``port`` along the air rays ``air`` (n, 3): the port's Mueller
+    matrix's intensity for the source's polarization (1: unpolarized, or a coated port; docs/physics.md
+    §11)."""
+    gain = np.ones(air.shape[0])
+    if port.fresnel and src.dop_l > 0.0:
+        source_port_gain(np.ascontiguousarray(air, float), port.normal, port.t, port.n_a, port.n_g, port.n_w,
+                         np.asarray(src.e_field, float), np.asarray(src.fast_axis, float),
+                         bool(np.any(src.fast_axis)), float(src.dop_l), gain)
+    return gain
+
+
+def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0, port=None) -> Field:
     """The quasi-direct light's fluence φ₀ and flux F₀ per cell (module docstring); ``src`` is the scaled
-    source (σ̃_t). ``oversample`` multiplies the beam density (1: beams half a cell apart at the far side)."""
+    source (σ̃_t). ``oversample`` multiplies the beam density (1: beams half a cell apart at the far side).
+    ``port`` (a :class:`~polarstripe.sim.port.PortGeometry`): the source looks through a flat port; each air
+    beam becomes its water ray (from the outer face, refracted) carrying I0·ΔΩ_air·T, T the port's
+    transmittance for the source's polarization (:func:`port_source_gain`; docs/physics.md §11)."""
     phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
     if src.intensity <= 0.0:
         return Field(phi, flux)
     dirs, power = _source_beams(src, grid, oversample)
     keep = power > 0
+    origin = np.asarray(src.position, float).reshape(1, 3)
+    if port is not None:          # only the air rays that leave through the window's side
+        keep &= dirs @ port.normal > 1e-9
     dirs, power = np.ascontiguousarray(dirs[keep]), power[keep]
-    t0, t1 = box_interval(src.position, dirs, grid.lo, grid.hi)
+    if port is not None:
+        gain = port_source_gain(port, src, dirs)
+        origin, dirs, trans, _ = water_rays(port, dirs)
+        power = power * trans * gain
+    start = origin[0] if origin.shape[0] == 1 else origin
+    t0, t1 = box_interval(start, dirs, grid.lo, grid.hi)
     if len(objects):
-        t1 = np.minimum(t1, intersect(objects, src.position, dirs).t)
-    beams = Beams(np.asarray(src.position, float).reshape(1, 3), dirs, power, t0, t1, np.zeros(t0.size))
+        t1 = np.minimum(t1, intersect(objects, start, dirs).t)
+    beams = Beams(np.ascontiguousarray(origin), dirs, power, t0, t1, np.zeros(t0.size))
     deposit_beams(grid.args(), beams, float(src.sigma_t), 0.5 * float(grid.h.min()), phi, flux)
     return Field(phi, flux)
 
@@ -320,9 +345,11 @@ def glow_field(grid: Grid, patches: Patches, exitance: np.ndarray, sigma: float,
 
 class ViewTable(NamedTuple):
     """The coarse view rays of a whole frame and where each pixel reads them (the same for every pattern):
-    rays (k, 3), their medium entry t0 and exit t1, the coarse grid (gh, gw), and per pixel and neighbour
-    ray ``index``, ``frac`` (h·w, 4) of :func:`~polarstripe.sim.frame_kernels.view_depths`."""
+    their origins ((1, 3) the pinhole, or (k, 3)) and directions (k, 3), their medium entry t0 and exit t1,
+    the coarse grid (gh, gw), and per pixel and neighbour ray ``index``, ``frac`` (h·w, 4) of
+    :func:`~polarstripe.sim.frame_kernels.view_depths`."""
 
+    origins: np.ndarray
     rays: np.ndarray
     t0: np.ndarray
     t1: np.ndarray
@@ -332,42 +359,56 @@ class ViewTable(NamedTuple):
     frac: np.ndarray
 
 
-def _coarse_rays(grid: Grid, cam, coarse: tuple[int, int]):
+def camera_rays(cam, pixels, rays_of=None) -> tuple[np.ndarray, np.ndarray]:
+    """Origins ((1, 3): the pinhole) and directions (n, 3) of the camera rays of ``pixels`` ((n, 2) (row,
+    col), fractional allowed); ``rays_of(pixels)``, where given, returns them per ray (a camera behind a
+    port)."""
+    if rays_of is not None:
+        return rays_of(pixels)
+    return np.asarray(cam.position, float).reshape(1, 3), pixel_rays(cam, pixels)
+
+
+def _coarse_rays(grid: Grid, cam, coarse: tuple[int, int], rays_of=None):
     gw, gh = max(min(coarse[0], cam.w), 2), max(min(coarse[1], cam.h), 2)
     gr, gc = np.linspace(0, cam.h - 1, gh), np.linspace(0, cam.w - 1, gw)
     GR, GC = np.meshgrid(gr, gc, indexing="ij")
-    rays = pixel_rays(cam, np.stack([GR.ravel(), GC.ravel()], 1))
-    t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
-    return rays, np.maximum(t0, 0.0), t1, gh, gw
+    origins, rays = camera_rays(cam, np.stack([GR.ravel(), GC.ravel()], 1), rays_of)
+    t0, t1 = box_interval(origins[0] if origins.shape[0] == 1 else origins, rays, grid.lo, grid.hi)
+    return origins, rays, np.maximum(t0, 0.0), t1, gh, gw
 
 
-def view_table(grid: Grid, cam, x_end: np.ndarray, coarse: tuple[int, int], steps: int) -> ViewTable:
-    """The :class:`ViewTable` of a whole frame of ``cam`` whose pixels' view paths end at ``x_end``."""
-    rays, t0, t1, gh, gw = _coarse_rays(grid, cam, coarse)
+def view_table(grid: Grid, cam, x_end: np.ndarray, coarse: tuple[int, int], steps: int,
+               rays_of=None) -> ViewTable:
+    """The :class:`ViewTable` of a whole frame of ``cam`` whose pixels' view paths end at ``x_end``
+    (``rays_of``: :func:`camera_rays`)."""
+    origins, rays, t0, t1, gh, gw = _coarse_rays(grid, cam, coarse, rays_of)
     index, frac = np.empty((cam.h * cam.w, 4), np.int32), np.empty((cam.h * cam.w, 4))
     x_end = np.ascontiguousarray(x_end, float)
     in_bands(cam.h, lambda a, b: view_depths((cam.h, cam.w, gh, gw), t0, t1, int(steps), x_end, index, frac,
                                              a, b), min_size=16)
-    return ViewTable(rays, t0, t1, gh, gw, index, frac)
+    return ViewTable(origins, rays, t0, t1, gh, gw, index, frac)
 
 
 def view_integral(grid: Grid, fields: list[Field], view_args: ViewArgs, cam, pixels, x_end: np.ndarray,
-                  coarse: tuple[int, int], steps: int, table: ViewTable | None = None) -> np.ndarray:
+                  coarse: tuple[int, int], steps: int, table: ViewTable | None = None,
+                  rays_of=None) -> np.ndarray:
     """∫ J_i(C + x d, −d) e^{−σ(x − x₀)} dx from the medium's entry x₀ to ``x_end`` (per ray, flat) of each
     field i, for every pixel (a coarse grid of ``coarse`` = (w, h) rays, interpolated bilinearly between them
     at each pixel's own depth; ``table``: its :func:`view_table`, kept from an earlier frame) or for the
-    requested ``pixels`` (their own rays). Returns (k, n)."""
+    requested ``pixels`` (their own rays); the rays start at the pinhole, or where ``rays_of``
+    (:func:`camera_rays`) says. Returns (k, n)."""
     phi = np.ascontiguousarray(np.stack([f.phi for f in fields]))
     flux = np.ascontiguousarray(np.stack([f.flux for f in fields]))
     if pixels is None:
-        table = table or view_table(grid, cam, x_end, coarse, steps)
-        rays, t0, t1 = table.rays, table.t0, table.t1
+        table = table or view_table(grid, cam, x_end, coarse, steps, rays_of)
+        origins, rays, t0, t1 = table.origins, table.rays, table.t0, table.t1
     else:
-        rays = pixel_rays(cam, pixels)
-        t0, t1 = box_interval(cam.position, rays, grid.lo, grid.hi)
+        origins, rays = camera_rays(cam, pixels, rays_of)
+        t0, t1 = box_interval(origins[0] if origins.shape[0] == 1 else origins, rays, grid.lo, grid.hi)
         t0 = np.maximum(t0, 0.0)
     cum = np.empty((len(fields), rays.shape[0], int(steps) + 1))         # every entry written
-    view_cumulative(grid.args(), phi, flux, view_args, np.ascontiguousarray(rays), t0, t1, cum)
+    view_cumulative(grid.args(), phi, flux, view_args._replace(origin=np.ascontiguousarray(origins, float)),
+                    np.ascontiguousarray(rays), t0, t1, cum)
     out = (np.empty if pixels is None else np.zeros)((len(fields), x_end.size))   # a frame: every pixel
     if pixels is None:
         in_bands(cam.h, lambda a, b: view_gather((cam.h, cam.w, table.gh, table.gw), cum, table.index,

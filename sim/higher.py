@@ -160,12 +160,13 @@ def _direct_pair(view: View, src: Source, ssrc: Source, need) -> tuple[np.ndarra
     return d, quasi
 
 
-def _object_light(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest_unit: np.ndarray,
-                  ells: tuple[np.ndarray, np.ndarray]):
+def object_light(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray, rest_unit: np.ndarray,
+                 ells: tuple[np.ndarray, np.ndarray], rays_of=None, light=None):
     """The object light after both forward-cone blurs: whole frames (P, H) with A = ρ·P + H (beyond D,
     :func:`polarstripe.sim.psf_frame.object_radiance`); requested pixels the object radiance D + A (stencils).
     ``quasi`` and ``rest_unit`` (Ã) per unit albedo, ``ells`` the in-medium lengths source → hit and
-    camera → hit."""
+    camera → hit; ``rays_of``, ``light``: the camera's rays and the quasi-direct irradiance through ports
+    (:func:`polarstripe.sim.psf_stencil.stencil_blur`)."""
     scene, _, _, cam, dirs, hits, surf, pixels = view
     sc, ph = plan.scaled, scene.medium.phase
     table = halo_table(ph.model, float(ph.g), float(sc.phase.cos_c))
@@ -183,7 +184,7 @@ def _object_light(view: View, ssrc: Source, plan: OrdersPlan, quasi: np.ndarray,
     for ell in ells:
         n, rms = spread(table, fss, ell)
         legs.append((n, rms, np.stack([mixture(table, float(v)) for v in n])))
-    return stencil_blur(view, ssrc, legs, rest_unit, depth)
+    return stencil_blur(view, ssrc, legs, rest_unit, depth, rays_of, light)
 
 
 def _probe(view: View, ssrc: Source):
@@ -337,7 +338,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     cam = view.cam
     c = np.full(len(fields), sc.sigma_s / (4 * np.pi))
     args = ViewArgs(c, np.full(len(fields), sc.g_tilde), np.array(sigmas, float),
-                    np.asarray(cam.position, float))
+                    np.asarray(cam.position, float).reshape(1, 3))
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     table = None if view.pixels is not None else geo(view, ("view_table", grid, coarse, st.view_steps),
                                                      lambda: view_table(grid, cam, x_end, coarse,
@@ -378,7 +379,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
             e2 = _irradiance(grid, orders.total + glow_scattered, hp, hn, rg.one_normal)
         att = geo(view, ("att_c", sc.sigma_t), lambda: np.exp(-sc.sigma_t * ell_c[hit]))
         rest[hit] += e2 * att / np.pi
-        light = _object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
+        light = object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
         if parts:
             h = light[1]
             h += seen_vals[-1]

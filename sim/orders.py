@@ -112,10 +112,6 @@ def plan_orders(scene: Scene, orders: str = "all", fidelity_name: str = "standar
         return OrdersPlan("all", False, tau_s, eta, eta,
                           f"higher orders skipped: sigma_s*l = {tau_s:.3g} < {SKIP_BELOW} (single scattering "
                           f"within {100 * eta:.2g} %)")
-    if scene.camera.port is not None or scene.projector.port is not None:
-        return OrdersPlan("all", False, tau_s, eta, eta, f"through a port only single scattering is modelled "
-                          f"(docs/physics.md §11): sigma_s*l = {tau_s:.3g}, it misses ~{100 * eta:.0f} % of "
-                          "the light")
     err = expected_error(tau_s, fidelity_name)
     return OrdersPlan("all", True, tau_s, eta, err, f"sigma_s*l = {tau_s:.3g}: single scattering would miss "
                       f"~{100 * eta:.0f} % of the light", scaled_medium(scene.medium))

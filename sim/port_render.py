@@ -10,7 +10,7 @@ I₀·J times the port's Mueller matrix's intensity for the source's polarizatio
 pattern pixel is that air ray's. D is eq. 11 with that irradiance, B the line integral of
 :mod:`polarstripe.sim.port_kernels`, A the hemisphere integral of the same line integral at surface points (on
 a grid of camera pixels, interpolated per object as :func:`polarstripe.sim.surface_field.a_field` does).
-The higher orders are not modelled through a port (:mod:`polarstripe.sim.orders`).
+The higher orders through a port: :mod:`polarstripe.sim.port_higher`.
 """
 
 from __future__ import annotations
@@ -275,14 +275,28 @@ def _a_field(scene, src, fid, cam, view: PortView, pixels) -> np.ndarray:
                             hit, lambda idx: at(idx, view.origins, hits, surf.albedo[idx]))
 
 
-def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need):
-    """Single scattering through the ports: flat (n,) D, A, B, Bq, Bu, Bv, Sq, Su (camera radiance through the
-    camera's port: (n_a/n_w)² times its Mueller matrix on the water radiance, the object's light unpolarized
-    in the water and polarized by the port, Sq, Su) and the surface info."""
+def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need, plan=None):
+    """Flat (n,) D, A, B, Bq, Bu, Bv, Sq, Su through the ports (camera radiance through the camera's port:
+    (n_a/n_w)² times its Mueller matrix on the water radiance, the object's light unpolarized in the water
+    and polarized by the port, Sq, Su) and the surface info: single scattering, or all orders where ``plan``
+    (an :class:`~polarstripe.sim.orders.OrdersPlan`) models them (:mod:`polarstripe.sim.port_higher`)."""
     if pixels is None:
         view = cached(scene, "port_camera", lambda: port_view(scene, cam, None))
     else:
         view = port_view(scene, cam, pixels)
+    stokes = "p" in need or view.mueller is not None     # the port's B depends on B's polarization
+    if plan is not None and plan.modelled:
+        from polarstripe.sim.port_higher import port_higher
+
+        need_w = tuple(need) + (("p",) if stokes and "p" not in need else ())
+        D, A, B, Bq, Bu, Bv = port_higher(scene, src, plan, fid, cam, pixels, need_w, view)
+    else:
+        D, A, B, Bq, Bu, Bv = _single(scene, src, fid, cam, pixels, need, view, stokes)
+    return _through_camera_port(view, need, D, A, B, Bq, Bu, Bv)
+
+
+def _single(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need, view: PortView, stokes: bool):
+    """Single scattering's D, A, B, Bq, Bu, Bv (water radiance) along the camera's water rays."""
     n = view.dirs.shape[0]
     D, A, B, Bq, Bu, Bv = (np.zeros(n) for _ in range(6))
     hits, surf = view.hits, view.surf
@@ -292,7 +306,6 @@ def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need):
                              surf.albedo[hit])
     if "A" in need and hit.size and src.sigma_s > 0:
         A = _a_field(scene, src, fid, cam, view, pixels)
-    stokes = "p" in need or view.mueller is not None     # the port's B depends on B's polarization
     if "B" in need and src.sigma_s > 0:
         t0, t1 = box_interval(view.origins, view.dirs, src.box_lo, src.box_hi)
         t1 = np.minimum(t1, hits.t)
@@ -304,6 +317,13 @@ def port_parts(scene: Scene, src: Source, fid, cam: PinholeFrame, pixels, need):
             Bq, Bu, Bv = res.q, res.u, res.v
         elif stokes:
             Bq, Bu, Bv = camera_frame_stokes(src, scene, cam, view.dirs, B, None, None, None)
+    return D, A, B, Bq, Bu, Bv
+
+
+def _through_camera_port(view: PortView, need, D, A, B, Bq, Bu, Bv):
+    """The camera radiance of water radiance: (n_a/n_w)² times the camera port's Mueller matrix (T where it
+    is coated), and the surface info."""
+    n, surf = view.dirs.shape[0], view.surf
     Sq, Su = np.zeros(n), np.zeros(n)
     if view.mueller is not None:
         m = view.mueller

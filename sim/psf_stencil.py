@@ -29,7 +29,8 @@ def _tangents(nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(nrm, e1)
 
 
-def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray) -> np.ndarray:
+def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray, rays_of=None,
+                 light=None) -> np.ndarray:
     """Object radiance per requested pixel after both blurs (module docstring).
 
     Parameters
@@ -40,6 +41,10 @@ def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray) -> 
         carries a nearby object point's halos (it receives only the halo).
     rest_unit : (n,) the wide-angle object radiance Ã per unit albedo per pixel.
     depth : (n,) camera distance [m] of the object point a pixel beside the objects takes its halo from.
+    rays_of : (origins, directions) of camera pixels (a camera behind a port,
+        :func:`~polarstripe.sim.grid_sources.camera_rays`); None: the pinhole's rays.
+    light : ``light(points, normals)``, the quasi-direct irradiance there (a projector behind a port); None:
+        :func:`~polarstripe.sim.grid_sources.quasi_irradiance`.
     """
     scene, _, _, cam, dirs, hits, surf, pixels = view
     (n_l, rms_l, mix_l), (n_c, rms_c, mix_c) = legs
@@ -51,7 +56,8 @@ def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray) -> 
         dist = float(np.linalg.norm(hits.point[i] - cam.position)) if own else float(depth[i])
         step = rms_c[i] / max(dist * cam.s, 1e-12)                       # pixels per rms
         px = np.vstack([np.asarray(pixels[i], float), np.asarray(pixels[i], float) + step * cam_nodes])
-        h2 = intersect(scene.objects, cam.position, pixel_rays(cam, px))
+        origin, rays = (cam.position, pixel_rays(cam, px)) if rays_of is None else rays_of(px)
+        h2 = intersect(scene.objects, origin, rays)
         s2 = surface_info(scene.objects, h2)
         ok = s2.object_id >= 0
         if not ok.any():
@@ -63,9 +69,11 @@ def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray) -> 
         offs = rms_l[i] * (ill_nodes[None, :, :1] * e1[:, None, :] + ill_nodes[None, :, 1:] * e2[:, None, :])
         pts = np.concatenate([pnt[:, None, :], pnt[:, None, :] + offs], axis=1).reshape(-1, 3)
         k = ill_w.size + 1
-        e = quasi_irradiance(ssrc, scene.objects, pts, np.repeat(nrm, k, axis=0)).reshape(-1, k)
+        nrm_k = np.repeat(nrm, k, axis=0)
+        e = quasi_irradiance(ssrc, scene.objects, pts, nrm_k) if light is None else light(pts, nrm_k)
+        e = e.reshape(-1, k)
         ill = np.exp(-n_l[i]) * e[:, 0] + (-np.expm1(-n_l[i])) * (e[:, 1:] * ill_w).sum(1)
-        att = np.exp(-ssrc.sigma_t * segment_length_in_box(cam.position, pnt, ssrc.box_lo, ssrc.box_hi))
+        att = np.exp(-ssrc.sigma_t * segment_length_in_box(origin, pnt, ssrc.box_lo, ssrc.box_hi))
         rad = np.where(ok, s2.albedo * (ill * att / np.pi + rest_unit[i]), 0.0)
         if not own:                    # a pixel beside an object: only the halo reaches it
             rad[0] = 0.0

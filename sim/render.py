@@ -244,8 +244,8 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
         out.scene, out.seconds = scene, time.perf_counter() - t_start
         return out
     src = make_source(scene, pat)
-    if has_port(scene):      # refraction at flat ports: single scattering (docs/physics.md §11)
-        *parts, surf = port_parts(scene, src, fid, cam, pixels, need)
+    if has_port(scene):      # refraction at flat ports (docs/physics.md §11)
+        *parts, surf = port_parts(scene, src, fid, cam, pixels, need, plan)
         shape = (cam.h, cam.w) if pixels is None else (-1,)
         surf = SurfaceInfo(*(a.reshape(shape) for a in (surf.object_id, surf.albedo, surf.chart_band,
                                                          surf.chart_high)))

@@ -10,9 +10,9 @@ import dataclasses
 import numpy as np
 import pytest
 from polarstripe.sim.grid_sources import (
-    _lit_fraction,
     footprint_lit,
     glow_field,
+    lit_fraction,
     object_patches,
     quasi_irradiance,
 )
@@ -42,7 +42,7 @@ def test_checker_lit_fraction_is_the_area_average(scene):
         src = make_source(scene, parse_pattern(f"checker:{size}:{shift}"))
         c0, r0 = rng.uniform(0, 400, 6), rng.uniform(0, 300, 6)
         c1, r1 = c0 + rng.uniform(0.5, 90, 6), r0 + rng.uniform(0.5, 90, 6)
-        got = _lit_fraction(src, c0, c1, r0, r1)
+        got = lit_fraction(src, c0, c1, r0, r1)
         want = [_checker_brute(size, shift % (2 * size), *b) for b in zip(c0, c1, r0, r1, strict=True)]
         np.testing.assert_allclose(got, want, atol=3e-3)
 
