@@ -10,7 +10,9 @@ scattering behind them (two specular vertices, one scattering, the light). The m
 light → medium → object, depth 5 here).
 
 Cases: ``medium`` (σ_t = 2.5, no object: B), ``chart`` (σ_t = 1, the chart texture on a 0.6 × 0.6 m back
-wall: D + B; the bars and the chart's edges place the narrowed field of view).
+wall: D + B; the bars and the chart's edges place the narrowed field of view); ``all_medium`` (σ_t = 2.5) and
+``all_chart`` (σ_t = 2) the same with every order of scattering (``max_depth = −1``: D + A + B of the model's
+all orders through the port, docs/physics.md §11).
 """
 
 from __future__ import annotations
@@ -25,14 +27,15 @@ from polarstripe.sim.scene import PlaneObject, Scene
 from polarstripe.sim.scene_port import Port
 
 PORT = Port(distance_m=0.005, thickness_m=0.005, n_glass=1.5, n_water=1.333)
-CASES = {"medium": (2.5, False), "chart": (1.0, True)}       # name: (sigma_t, chart on the back wall)
-MAX_DEPTH = 4
-WHAT = {"medium": "medium only: B", "chart": "the chart texture on a 0.6 × 0.6 m back wall: D + B"}
+CASES = {"medium": (2.5, False, 4), "chart": (1.0, True, 4),      # name: (sigma_t, chart, max_depth)
+         "all_medium": (2.5, False, -1), "all_chart": (2.0, True, -1)}
+WHAT = {"medium": "medium only: B", "chart": "the chart texture on a 0.6 × 0.6 m back wall: D + B",
+        "all_medium": "medium only, all orders: B", "all_chart": "the chart wall, all orders: D + A + B"}
 
 
 def port_scene(case: str) -> Scene:
     """The reference rig of ``case`` with the camera behind :data:`PORT`."""
-    sigma_t, chart = CASES[case]
+    sigma_t, chart, _ = CASES[case]
     s = reference_scene(sigma_t, chart)
     if chart:
         wall = s.objects[0]
@@ -41,7 +44,7 @@ def port_scene(case: str) -> Scene:
     return s.replace(camera=s.camera.replace(port=PORT))
 
 
-def render_case(case: str, spp: int, seeds: tuple[int, ...], variant: str | None) -> dict:
+def render_case(case: str, spp: int, seeds: tuple[int, ...], variant: str | None, pass_spp: int) -> dict:
     """Every seed's image of one case and the numbers stored beside it."""
     import mitsuba as mi
     from polarstripe.sim.mitsuba_scene import render_truth, select_variant
@@ -49,13 +52,15 @@ def render_case(case: str, spp: int, seeds: tuple[int, ...], variant: str | None
     scene = port_scene(case)
     variant = select_variant(variant)
     images, seconds = [], []
+    depth = CASES[case][2]
     for seed in seeds:
         t0 = time.perf_counter()
-        images.append(render_truth(scene, "flood", max_depth=MAX_DEPTH, spp=spp, seed=seed, variant=variant))
+        images.append(render_truth(scene, "flood", max_depth=depth, spp=spp, seed=seed, variant=variant,
+                                   pass_spp=pass_spp))
         seconds.append(time.perf_counter() - t0)
     imgs = np.stack(images).astype(np.float32)
     reg = np.stack([regions(im) for im in imgs])
-    return {"images": imgs, "seeds": np.array(seeds), "spp": spp, "max_depth": MAX_DEPTH,
+    return {"images": imgs, "seeds": np.array(seeds), "spp": spp, "max_depth": depth,
             "sigma_t": CASES[case][0], "scene_toml": scene_toml(scene), "seconds": np.array(seconds),
             "regions": reg, "spread": (reg.max(0) - reg.min(0)) / reg.mean(0),
             "mitsuba_version": mi.__version__, "variant": variant}
@@ -102,13 +107,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-o", "--out", type=Path, default=Path("tests/data/mitsuba"), help="output folder")
     ap.add_argument("--spp", type=int, default=16384, help="samples per pixel per seed (default 16384)")
     ap.add_argument("--seeds", default="0,1", help="seeds (default 0,1)")
+    ap.add_argument("--pass-spp", type=int, default=2048, help="samples per pixel per render pass")
     ap.add_argument("--variant", default=None, help="Mitsuba variant (default: the first that works)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"cases (default {','.join(CASES)})")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     seeds = tuple(int(s) for s in args.seeds.split(","))
     for case in args.cases.split(","):
-        data = render_case(case, args.spp, seeds, args.variant)
+        data = render_case(case, args.spp, seeds, args.variant, args.pass_spp)
         np.savez_compressed(args.out / f"port_{case}.npz", **data)
         (args.out / f"port_{case}.toml").write_text(str(data["scene_toml"]))
         print(f"port_{case}: {data['spp']} spp x {len(seeds)} seeds, {np.round(data['seconds'], 1)} s, "
