@@ -217,6 +217,41 @@ def node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz, 
 
 
 @njit(cache=True, nogil=True)
+def ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi, cam_r, cam_u, gl_t,
+                  gl_w, cuts, buf):
+    """B, q, u, v of one ray over [lo, hi] (its camera-side path from x0): Gauss–Legendre on sub-pieces of
+    each lit piece (:func:`lit_cuts`)."""
+    st = medium[0]
+    n_cut = lit_cuts(src, pat, ox, oy, oz, dx, dy, dz, lo, hi, cuts, buf)
+    b_ray = q_ray = u_ray = v_ray = 0.0
+    for p in range(n_cut + 1):
+        a = lo if p == 0 else cuts[p - 1]
+        b = hi if p == n_cut else cuts[p]
+        if not b > a or not ray_state(src, pat, ox, oy, oz, dx, dy, dz, 0.5 * (a + b), buf)[0]:
+            continue
+        # sub-pieces: one per half optical depth and per 0.15 rad of the scattering angle's change
+        wa = ray_state(src, pat, ox, oy, oz, dx, dy, dz, a, buf)[3]
+        mua = -(buf[6] * dx + buf[7] * dy + buf[8] * dz) if wa else 0.0
+        wb = ray_state(src, pat, ox, oy, oz, dx, dy, dz, b, buf)[3]
+        mub = -(buf[6] * dx + buf[7] * dy + buf[8] * dz) if wb else 0.0
+        turn = abs(math.acos(min(max(mua, -1.0), 1.0)) - math.acos(min(max(mub, -1.0), 1.0)))
+        n_sub = min(64, 1 + int(st * (b - a) / 0.5) + int(turn / 0.15))
+        for sp in range(n_sub):
+            sa = a + (b - a) * sp / n_sub
+            sb = a + (b - a) * (sp + 1) / n_sub
+            half, mid = 0.5 * (sb - sa), 0.5 * (sb + sa)
+            for k in range(gl_t.size):
+                f = node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz,
+                                mid + half * gl_t[k], x0, cam_r, cam_u, buf)
+                wk = gl_w[k] * half
+                b_ray += wk * f[4]
+                q_ray += wk * f[5]
+                u_ray += wk * f[6]
+                v_ray += wk * f[7]
+    return b_ray, q_ray, u_ray, v_ray
+
+
+@njit(cache=True, nogil=True)
 def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, cam_r, cam_u, gl_t, gl_w, out):
     """B and its camera-frame Stokes (q, u, v) of each ray (module docstring) into ``out`` (a ``Stokes``
     record, each (n,)); ``origin`` (1, 3) or (n, 3), ``cam_r``/``cam_u`` (1, 3) or (n, 3)."""
@@ -241,32 +276,8 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
         lo, hi = beyond_port(src, ox, oy, oz, dx, dy, dz, x0, x1)
         if not hi > lo:
             continue
-        n_cut = lit_cuts(src, pat, ox, oy, oz, dx, dy, dz, lo, hi, cuts, buf)
-        b_ray = q_ray = u_ray = v_ray = 0.0
-        for p in range(n_cut + 1):
-            a = lo if p == 0 else cuts[p - 1]
-            b = hi if p == n_cut else cuts[p]
-            if not b > a or not ray_state(src, pat, ox, oy, oz, dx, dy, dz, 0.5 * (a + b), buf)[0]:
-                continue
-            # sub-pieces: one per half optical depth and per 0.15 rad of the scattering angle's change
-            wa = ray_state(src, pat, ox, oy, oz, dx, dy, dz, a, buf)[3]
-            mua = -(buf[6] * dx + buf[7] * dy + buf[8] * dz) if wa else 0.0
-            wb = ray_state(src, pat, ox, oy, oz, dx, dy, dz, b, buf)[3]
-            mub = -(buf[6] * dx + buf[7] * dy + buf[8] * dz) if wb else 0.0
-            turn = abs(math.acos(min(max(mua, -1.0), 1.0)) - math.acos(min(max(mub, -1.0), 1.0)))
-            n_sub = min(64, 1 + int(st * (b - a) / 0.5) + int(turn / 0.15))
-            for sp in range(n_sub):
-                sa = a + (b - a) * sp / n_sub
-                sb = a + (b - a) * (sp + 1) / n_sub
-                half, mid = 0.5 * (sb - sa), 0.5 * (sb + sa)
-                for k in range(gl_t.size):
-                    f = node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz,
-                                    mid + half * gl_t[k], x0, cam_r[kc], cam_u[kc], buf)
-                    wk = gl_w[k] * half
-                    b_ray += wk * f[4]
-                    q_ray += wk * f[5]
-                    u_ray += wk * f[6]
-                    v_ray += wk * f[7]
+        b_ray, q_ray, u_ray, v_ray = ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz,
+                                                   x0, lo, hi, cam_r[kc], cam_u[kc], gl_t, gl_w, cuts, buf)
         b_out[i] = b_ray
         if pol.on:
             q_out[i], u_out[i], v_out[i] = q_ray, u_ray, v_ray

@@ -39,6 +39,7 @@ from polarstripe.sim.port_kernels import (
     port_line_integrals,
     source_port_gain,
 )
+from polarstripe.sim.port_panels import port_panel_integrals
 from polarstripe.sim.scene import Scene
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import camera_frame_stokes, interpolate_grid
@@ -111,16 +112,19 @@ def _table(pattern: PatternSpec, w: int, h: int) -> np.ndarray:
 
 def _cells(pattern: PatternSpec) -> np.ndarray:
     """(col offset, col size, row offset, row size) [pattern pixels]: cells whose boundaries hold every
-    change of a checker's or Gray code's lit state (Gray bit b: multiples of 2^b along its axis; an XOR base
-    bit c, a column bit: multiples of 2^c in columns)."""
+    change of a checker's or Gray code's lit state (Gray bit b: the odd multiples of 2^b along its axis; an XOR
+    base bit c, a column bit: the odd multiples of 2^c in columns; a column bit XOR its base: multiples of
+    2^min(b, c))."""
     if pattern.kind == "checker":
         return np.array([pattern.shift % pattern.size, pattern.size, 0.0, pattern.size], float)
-    if pattern.kind == "gray":
-        size = float(2 ** pattern.index)
-        base = float(2 ** pattern.xor) if pattern.xor >= 0 else np.inf    # the XOR base: a column bit
+    if pattern.kind == "gray":      # bit b changes at the odd multiples of 2^b
+        off, size = float(2 ** pattern.index), float(2 ** (pattern.index + 1))
+        if pattern.xor < 0:
+            return np.array([off, size, 0.0, np.inf] if pattern.axis == "col" else [0.0, np.inf, off, size])
+        base = float(2 ** pattern.xor)       # the XOR base, a column bit
         if pattern.axis == "col":
-            return np.array([0.0, min(size, base), 0.0, np.inf])
-        return np.array([0.0, base, 0.0, size])
+            return np.array([0.0, min(off, base), 0.0, np.inf])
+        return np.array([base, 2.0 * base, off, size])
     return np.array([0.0, np.inf, 0.0, np.inf])
 
 
@@ -152,15 +156,17 @@ def _polarization(src: Source, on: bool, diattenuating: bool) -> PortPolarizatio
 
 
 def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, cam_r, cam_u, pol: bool):
-    """B, q, u, v (camera frame) of rays origin + x·dir over [x0, x1] (:mod:`~polarstripe.sim.port_kernels`).
+    """B, q, u, v (camera frame) of rays origin + x·dir over [x0, x1] (:mod:`~polarstripe.sim.port_kernels`;
+    a pattern of many lit pieces a ray, a Gray code or a checker, by :mod:`~polarstripe.sim.port_panels`).
     """
     n = dirs.shape[0]
     out = Stokes(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
     if src.sigma_s <= 0.0 or src.intensity <= 0.0 or n == 0:
         return out
     t, w = gauss_legendre(max(int(nodes), 4))
-    source = _source(scene, src)
-    args = (source, _pattern(src),
+    source, table = _source(scene, src), _pattern(src)
+    kernel = port_line_integrals if table.convex else port_panel_integrals
+    args = (source, table,
             Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
                    np.asarray(src.box_hi, float)), phase_args(src.phase),
             _polarization(src, pol, source.has_port and source.fresnel))
@@ -172,8 +178,7 @@ def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, ca
     def band(a, b):
         o = origins[a:b] if origins.shape[0] > 1 else origins
         cr, cu = (cam_r[a:b], cam_u[a:b]) if cam_r.shape[0] > 1 else (cam_r, cam_u)
-        port_line_integrals(*args, o, dirs[a:b], x0[a:b], x1[a:b], cr, cu, t, w,
-                            Stokes(*(arr[a:b] for arr in out)))
+        kernel(*args, o, dirs[a:b], x0[a:b], x1[a:b], cr, cu, t, w, Stokes(*(arr[a:b] for arr in out)))
 
     in_bands(n, band, min_size=512)
     return out
