@@ -88,8 +88,8 @@ Mueller matrices of both faces, so the port's diattenuation is its own. Read by
 `tests/sim/test_mitsuba_port_polarized.py`: the model's single scattering (`standard`) agrees within 0.25 %
 in E_b and E_w per region and 0.001 in DOP; the model before the port's diattenuation (main at ce7fcf6) was
 off in the tilted port's right half by −4.1 % in E_b (analyzer at 0°), +5.3 % in E_w and +0.018 in DOP. All
-orders (`standard`): E_b within 1 %, E_w within 3.2 %, DOP within 0.011 (single scattering's DOP is
-0.12–0.14 too high). Each npz holds `stokes` (seeds × 4 × 32 × 32, S0..S3 in the camera frame), `regions`,
+orders (`standard`): E_b and E_w within 3.2 %, DOP within 0.002 (single scattering's DOP is 0.12–0.14
+too high). Each npz holds `stokes` (seeds × 4 × 32 × 32, S0..S3 in the camera frame), `regions`,
 `spread` (S0 relative, DOP absolute), `seeds`, `spp`, `seconds` (wall-clock, the shared 2-core machine),
 `max_depth`, `scene_toml`, `mitsuba_version`, `variant`.
 

@@ -148,13 +148,12 @@ def _b_stokes(scene, src: Source, ssrc: Source, psrc, cam, view, fid, need, seen
     t1 = np.minimum(t1, hits.t)
     dop = scene.medium.dop
     pol = psrc is not None
-    one = line_stokes(scene, ssrc, view.origins, view.dirs, t0, t1, fid.xi_nodes, view.cam_r, view.cam_u, pol)
+    one = line_stokes(scene, psrc if pol else ssrc, view.origins, view.dirs, t0, t1, fid.xi_nodes, view.cam_r,
+                      view.cam_u, pol)           # psrc: the Stokes sums with σ_p (docs/physics.md §10.4)
     n = view.dirs.shape[0]
     B, Bq, Bu, Bv = one.b.copy(), np.zeros(n), np.zeros(n), np.zeros(n)
-    if pol:        # the Stokes of the source's polarization lose σ_p on both legs (docs/physics.md §10.4)
-        p = line_stokes(scene, dataclasses.replace(ssrc, sigma_t=psrc.sigma_pol), view.origins, view.dirs, t0,
-                        t1, fid.xi_nodes, view.cam_r, view.cam_u, True)
-        Bq, Bu, Bv = p.q.copy(), p.u.copy(), p.v.copy()
+    if pol:
+        Bq, Bu, Bv = one.q.copy(), one.u.copy(), one.v.copy()
         single = (B.copy(), Bq.copy(), Bu.copy())
         delta, k = float(dop.depolarization), 1
         if lin != 0.0:

@@ -72,7 +72,10 @@ class PatternTable(NamedTuple):
 class PortPolarization(NamedTuple):
     """Stokes sums on (``on``), the m12 intensity term (``mueller``), the source E-field and fast axis, DOP_L,
     the Rayleigh-δ reduced factors Δ (``big``) and ΔΔ' (``big44``), ``qwp`` (a quarter-wave plate). A
-    projector port with Fresnel faces (``PortSource.fresnel``) applies its Mueller matrix to the source."""
+    projector port with Fresnel faces (``PortSource.fresnel``) applies its Mueller matrix to the source.
+    ``dsigma``, ``dsigma_v``: the extinction the linear and circular Stokes lose beyond σ_t (all orders'
+    σ_p − σ̃_t, docs/physics.md §10.4: the response to the source's polarization on both legs, the
+    polarization the scattering makes on the leg to the camera only; 0: single scattering)."""
 
     on: bool
     mueller: bool
@@ -82,6 +85,8 @@ class PortPolarization(NamedTuple):
     big: float
     big44: float
     qwp: bool
+    dsigma: float = 0.0
+    dsigma_v: float = 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -204,8 +209,14 @@ def node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz, 
         val *= i_out / m11
     if not pol.on:
         return lit, col, row, valid, val, 0.0, 0.0, 0.0
-    qs = (m12 + m22 * q_in) / i_out
-    us = m33 * u_in / i_out
+    if pol.dsigma > 0.0:          # σ_p: the made part on the camera leg, the rest on both legs
+        a_out = math.exp(-pol.dsigma * (x - x0))
+        a_both = a_out * math.exp(-pol.dsigma * ell)
+        qs = (m12 * a_out + m22 * q_in * a_both) / i_out
+        us = m33 * u_in * a_both / i_out
+    else:
+        qs = (m12 + m22 * q_in) / i_out
+        us = m33 * u_in / i_out
     # e_par_out = e_perp × (−d), its angle β from the camera's r toward its u
     ox_, oy_, oz_ = -(pyy * dz - pzz * dy), -(pzz * dx - pxx * dz), -(pxx * dy - pyy * dx)
     cx = ox_ * cam_r[0] + oy_ * cam_r[1] + oz_ * cam_r[2]
@@ -213,6 +224,8 @@ def node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz, 
     r2 = cx * cx + cy * cy
     c, s = ((cx * cx - cy * cy) / r2, 2.0 * cx * cy / r2) if r2 > 0 else (1.0, 0.0)
     v_out = val * pol.big44 * 1.5 * mu * v_in / i_out if pol.qwp else 0.0
+    if pol.dsigma_v > 0.0:
+        v_out *= math.exp(-pol.dsigma_v * (ell + x - x0))
     return lit, col, row, valid, val, val * (qs * c - us * s), val * (qs * s + us * c), v_out
 
 

@@ -149,10 +149,12 @@ def _polarization(src: Source, on: bool, diattenuating: bool) -> PortPolarizatio
     depol = float(src.dop_model.depolarization) if rayleigh else 0.0
     big = (1.0 - depol) / (1.0 + depol / 2.0)
     big44 = big * (1.0 - 2.0 * depol) / (1.0 - depol)
+    extra = [0.0 if s is None or not on else max(float(s) - float(src.sigma_t), 0.0)
+             for s in (src.sigma_pol, src.sigma_pol_v)]     # all orders' σ_p (docs/physics.md §10.4)
     return PortPolarization(bool(on and rayleigh), bool(rayleigh and (src.dop_l > 0.0 or diattenuating)),
                             np.asarray(src.e_field, float), np.asarray(src.fast_axis, float),
                             float(src.dop_l),
-                            big, big44, bool(np.any(src.fast_axis)))
+                            big, big44, bool(np.any(src.fast_axis)), *extra)
 
 
 def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, cam_r, cam_u, pol: bool):
