@@ -8,13 +8,17 @@ buffer's pages are faulted in again: 3000–4600 minor faults and 13–17 ms of 
 frame, one fault per page of every received frame. :func:`keep_freed` serves blocks up to 32 MB (the largest
 mmap threshold glibc takes on 64-bit) from the heap and keeps up to ``keep_bytes`` of freed heap.
 
-Process-wide and Linux/glibc only; elsewhere it does nothing and returns False.
+Process-wide and Linux/glibc only; elsewhere it does nothing and returns False. :func:`shared_zeros`: a
+read-only array of zeros kept per shape, for the fields a frame leaves at zero (no frame allocates and
+clears its own).
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+
+import numpy as np
 
 _M_TRIM_THRESHOLD = -1  # malloc.h
 _M_MMAP_THRESHOLD = -3
@@ -35,3 +39,20 @@ def keep_freed(keep_bytes: int = KEEP_BYTES) -> bool:
         return False
     keep = max(0, min(int(keep_bytes), 2**31 - 1))
     return bool(_mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX)) and bool(_mallopt(_M_TRIM_THRESHOLD, keep))
+
+
+_ZEROS: dict = {}
+
+
+def shared_zeros(shape) -> np.ndarray:
+    """A read-only float64 array of zeros of ``shape``, the same array for every caller (the last 8 shapes
+    are kept); writing into it raises."""
+    key = tuple(int(n) for n in np.atleast_1d(shape))
+    z = _ZEROS.get(key)
+    if z is None:
+        z = np.zeros(key)
+        z.flags.writeable = False
+        if len(_ZEROS) >= 8:
+            _ZEROS.clear()
+        _ZEROS[key] = z
+    return z

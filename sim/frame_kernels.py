@@ -169,41 +169,76 @@ def _half_axis(i, size):
 
 
 @njit(cache=True, nogil=True)
-def half_up(smooth, p_small, ids_small, ids, albedo, a_out, out, first=0, end=-1):
-    """A ``preview`` frame's half-resolution parts at full resolution, one pass: out[k] (h·w flat) the
-    bilinear twice-finer upsampling of ``smooth[k]`` (hs, ws) (cv2.resize INTER_LINEAR's, every pixel), and
+def half_up(smooth, p_small, ids_small, ids, albedo, fix, fix_start, a_out, out, first=0, end=-1):
+    """A ``preview`` frame's half-resolution parts at twice the resolution, one pass: out[k − 1] (h·w flat)
+    the bilinear upsampling of ``smooth[k]`` (hs, ws), k ≥ 1 (cv2.resize INTER_LINEAR's, every pixel), and
     A = ρ·P↑ + H↑ with H = smooth[0] and P↑ the upsampling of ``p_small`` within each object: each pixel
-    weighs only the coarse neighbours that see its own object (``ids``), the nearest of them when none do,
-    0 where it sees none. Rows [first, end) only (end −1: to the last)."""
-    h, w = ids.shape
+    weighs only the coarse neighbours that see its own object (``ids``, flat), the nearest of them when none
+    do, H↑ alone where it sees none. Separable: each output row blends its two coarse rows, then each pair of
+    output pixels its two coarse columns (weights ¼, ¾: the bilinear's, equal to it to rounding); A is
+    ρ·P↑ + H↑ everywhere (ρ = 0 off the objects), then made again at ``fix`` (:func:`half_fix`, rows
+    ``fix_start``), the pixels by an object's edge. Rows [first, end) only (end −1: to the last)."""
     hs, ws = p_small.shape
+    w = 2 * ws
     nf = len(smooth)
-    x0s, txs = np.empty(w, np.int64), np.empty(w)
-    for j in range(w):
-        x0s[j], txs[j] = _half_axis(j, ws)
-    for i in range(first, h if end < 0 else end):
+    rows = np.empty((nf + 1, ws))       # this output row's vertical blends: H, the fields, P
+    for i in range(first, 2 * hs if end < 0 else end):
         y0, ty = _half_axis(i, hs)
         y1 = min(y0 + 1, hs - 1)
-        for j in range(w):
-            x0, tx = x0s[j], txs[j]
+        m0 = i * w
+        for f in range(nf + 1):
+            s = p_small if f == nf else smooth[f]
+            for x in range(ws):
+                rows[f, x] = (1.0 - ty) * s[y0, x] + ty * s[y1, x]
+        for f in range(1, nf):           # pixel 0 reads column 0, 2x + 1 and 2x + 2 columns x, x + 1, w − 1 the last
+            o = out[f - 1]
+            o[m0] = rows[f, 0]
+            for x in range(ws - 1):
+                r0, r1 = rows[f, x], rows[f, x + 1]
+                o[m0 + 2 * x + 1] = 0.75 * r0 + 0.25 * r1
+                o[m0 + 2 * x + 2] = 0.25 * r0 + 0.75 * r1
+            o[m0 + w - 1] = rows[f, ws - 1]
+        a_out[m0] = albedo[m0] * rows[nf, 0] + rows[0, 0]
+        for x in range(ws - 1):
+            p0, p1, h0, h1 = rows[nf, x], rows[nf, x + 1], rows[0, x], rows[0, x + 1]
+            m = m0 + 2 * x + 1
+            a_out[m] = albedo[m] * (0.75 * p0 + 0.25 * p1) + (0.75 * h0 + 0.25 * h1)
+            a_out[m + 1] = albedo[m + 1] * (0.25 * p0 + 0.75 * p1) + (0.25 * h0 + 0.75 * h1)
+        a_out[m0 + w - 1] = albedo[m0 + w - 1] * rows[nf, ws - 1] + rows[0, ws - 1]
+        for e in range(fix_start[i], fix_start[i + 1]):
+            m = fix[e]
+            j = m - m0
+            x0, tx = _half_axis(j, ws)
             x1 = min(x0 + 1, ws - 1)
-            m = i * w + j
-            w00, w01, w10, w11 = (1.0 - ty) * (1.0 - tx), (1.0 - ty) * tx, ty * (1.0 - tx), ty * tx
-            for f in range(nf):
-                s = smooth[f]
-                out[f, m] = w00 * s[y0, x0] + w01 * s[y0, x1] + w10 * s[y1, x0] + w11 * s[y1, x1]
-            k = ids[i, j]
+            hv = (1.0 - tx) * rows[0, x0] + tx * rows[0, x1]
+            k = ids[m]
             if k < 0:
-                a_out[m] = out[0, m]
+                a_out[m] = hv
                 continue
-            if ids_small[y0, x0] == k and ids_small[y0, x1] == k and ids_small[y1, x0] == k and \
-                    ids_small[y1, x1] == k:
-                p = (w00 * p_small[y0, x0] + w01 * p_small[y0, x1] + w10 * p_small[y1, x0]
-                     + w11 * p_small[y1, x1])
-            else:
-                p = _within(p_small, ids_small, k, y0, y1, x0, x1, w00, w01, w10, w11,
-                            min(max(i / 2.0 - 0.25, 0.0), hs - 1.0), min(max(j / 2.0 - 0.25, 0.0), ws - 1.0))
-            a_out[m] = albedo[m] * p + out[0, m]
+            w00, w01, w10, w11 = (1.0 - ty) * (1.0 - tx), (1.0 - ty) * tx, ty * (1.0 - tx), ty * tx
+            p = _within(p_small, ids_small, k, y0, y1, x0, x1, w00, w01, w10, w11,
+                        min(max(i / 2.0 - 0.25, 0.0), hs - 1.0), min(max(j / 2.0 - 0.25, 0.0), ws - 1.0))
+            a_out[m] = albedo[m] * p + hv
+
+
+def half_fix(ids: np.ndarray, ids_small: np.ndarray, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels :func:`half_up` makes A at one by one, the same for every pattern: those of an object
+    whose four coarse neighbours do not all see it, and any beside the objects with an albedo (none, as
+    the scene's surfaces have it). (flat indices, sorted; the index of each row's first of them, h + 1)."""
+    h, w = ids.shape
+    hs, ws = ids_small.shape
+
+    def neighbours(n, size):
+        lo = np.minimum(np.clip(np.arange(n) / 2.0 - 0.25, 0.0, size - 1.0).astype(np.int64), max(size - 2, 0))
+        return lo, np.minimum(lo + 1, size - 1)
+
+    (y0, y1), (x0, x1) = neighbours(h, hs), neighbours(w, ws)
+    same = np.ones((h, w), bool)
+    for yy in (y0, y1):
+        for xx in (x0, x1):
+            same &= ids_small[yy[:, None], xx[None, :]] == ids
+    fix = np.flatnonzero(((ids >= 0) & ~same) | ((ids < 0) & (albedo.reshape(h, w) != 0)))
+    return fix, np.searchsorted(fix, np.arange(h + 1) * w)
 
 
 @njit(nogil=True)

@@ -41,7 +41,8 @@ from polarstripe.sim.backscatter import (
     rays,
     scaled_source,
 )
-from polarstripe.sim.frame_kernels import field_irradiance, half_up, plane_irradiance
+from polarstripe.heap import shared_zeros
+from polarstripe.sim.frame_kernels import field_irradiance, half_fix, half_up, plane_irradiance
 from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
 from polarstripe.sim.glow import glow_fields
 from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths
@@ -248,11 +249,14 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     d = d if d.size else np.zeros(cam.w * cam.h)
     fields = (h_half, b, bq, bu, bv) if bv.any() else (h_half, b, bq, bu)      # (V is 0 for linear light)
     smooth = tuple(np.ascontiguousarray(x).reshape(half.h, half.w) for x in fields)
-    out, a = np.empty((len(smooth), cam.w * cam.h)), np.empty(cam.w * cam.h)       # every pixel written
-    args = (smooth, p_half.reshape(half.h, half.w), small.surf.object_id.reshape(half.h, half.w),
-            view.surf.object_id.reshape(cam.h, cam.w), view.surf.albedo, a, out)
+    out, a = np.empty((len(smooth) - 1, cam.w * cam.h)), np.empty(cam.w * cam.h)   # every pixel written
+    ids_small = small.surf.object_id.reshape(half.h, half.w)
+    fix, fix_start = geo(view, "half_fix", lambda: half_fix(view.surf.object_id.reshape(cam.h, cam.w), ids_small,
+                                                            view.surf.albedo))
+    args = (smooth, p_half.reshape(half.h, half.w), ids_small, view.surf.object_id, view.surf.albedo, fix,
+            fix_start, a, out)
     in_bands(cam.h, lambda r0, r1: half_up(*args, r0, r1), min_size=16)
-    return d, a, out[1], out[2], out[3], out[4] if len(smooth) > 4 else np.zeros(a.size)
+    return d, a, out[0], out[1], out[2], out[3] if len(smooth) > 4 else shared_zeros(a.size)
 
 
 class RayGeometry(NamedTuple):

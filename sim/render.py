@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from polarstripe.heap import keep_freed
+from polarstripe.heap import keep_freed, shared_zeros
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.higher import HigherSettings, higher_components
@@ -102,6 +102,7 @@ class Components:
     circular Stokes (docs/physics.md §5.1), so p and χ follow; ``surface`` says which pixels see which
     object and the chart's bars. Sq/Su: the object light's linear Stokes in the camera frame, 0 but behind a
     camera port with Fresnel faces, whose diattenuation polarizes the object's light (docs/physics.md §11).
+    Bv, Sq, Su not given are a shared read-only array of zeros (:func:`polarstripe.heap.shared_zeros`).
     """
 
     D: np.ndarray
@@ -120,13 +121,10 @@ class Components:
     Sq: np.ndarray | None = None
     Su: np.ndarray | None = None
 
-    def __post_init__(self):
-        if self.Bv is None:
-            self.Bv = np.zeros_like(self.B)
-        if self.Sq is None:
-            self.Sq = np.zeros_like(self.B)
-        if self.Su is None:
-            self.Su = np.zeros_like(self.B)
+    def __post_init__(self):      # a field not given is 0: one read-only array of zeros, shared
+        for name in ("Bv", "Sq", "Su"):
+            if getattr(self, name) is None:
+                setattr(self, name, shared_zeros(self.B.shape))
 
     @property
     def S(self) -> np.ndarray:
