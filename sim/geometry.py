@@ -42,7 +42,23 @@ class PinholeFrame:
 
 
 def pinhole_frame(position, look_at, up, fov_deg: float, resolution) -> PinholeFrame:
-    """The pinhole frame of a camera or projector (docs/scene-format.md "Geometry")."""
+    """The pinhole frame of a camera or projector (docs/scene-format.md "Geometry"); of a scene's tuples
+    kept (read-only arrays: every frame of a scan asks for the same two)."""
+    args = (position, look_at, up, fov_deg, resolution)
+    if all(isinstance(a, tuple) for a in (position, look_at, up, resolution)):
+        return _kept_frame(*args)
+    return _pinhole(*args)
+
+
+@lru_cache(maxsize=64)
+def _kept_frame(position, look_at, up, fov_deg, resolution) -> PinholeFrame:
+    frame = _pinhole(position, look_at, up, fov_deg, resolution)
+    for a in (frame.position, frame.f, frame.r, frame.u):
+        a.flags.writeable = False
+    return frame
+
+
+def _pinhole(position, look_at, up, fov_deg: float, resolution) -> PinholeFrame:
     p = np.asarray(position, dtype=float)
     f = np.asarray(look_at, dtype=float) - p
     f /= np.linalg.norm(f)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from polarstripe.sim.geometry import box_interval, intersect, segment_length_in_box
@@ -104,6 +105,12 @@ def plan_orders(scene: Scene, orders: str = "all", fidelity_name: str = "standar
     """
     if not isinstance(orders, str) or orders not in ORDERS:
         raise SceneError(f"orders must be one of {', '.join(ORDERS)}, got {orders!r}")
+    return _plan(scene, orders, str(fidelity_name))
+
+
+@lru_cache(maxsize=32)
+def _plan(scene: Scene, orders: str, fidelity_name: str) -> OrdersPlan:
+    """:func:`plan_orders` of a checked ``orders``, kept per scene (every frame of a scan asks the same)."""
     tau_s = scene.medium.sigma_s * main_path(scene)
     eta = float(-math.expm1(-tau_s))
     if orders == "single":
