@@ -42,6 +42,7 @@ from polarstripe.runtime.bus_keys import (  # noqa: F401  (importable from here,
     apply_curve,
 )
 from polarstripe.runtime.shm_bus import LEASE, MARK, RingTake, ShmOffer, local
+from polarstripe.runtime.zero_copy import ZeroCopy
 
 RECONNECT_MAX_S = 1.0
 """A subscriber retries a lost publisher's endpoint at 0.1 s, doubling up to this: a publisher started again
@@ -118,13 +119,15 @@ class PubSocket(_SocketOwner):
         self.socket.sndhwm = hwm
         _apply_curve(self.socket, curve, server=True)
         self.endpoint = _bind(self.socket, endpoint)
-        self.shm = ShmOffer(self.socket, shm_slots) if offer else None
+        self.zero_copy = ZeroCopy(self.socket)
+        self.shm = ShmOffer(self.socket, shm_slots, self.zero_copy) if offer else None
         self._topics: dict[str, Publisher] = {}
 
     def close(self, linger_s: float = 0.0) -> None:
         """Close; ``linger_s`` > 0 gives what is still queued (a node's last heartbeat) that long to leave.
-        The shared-memory rings are unlinked."""
-        self.socket.close(round(linger_s * 1000))
+        Returns once ZeroMQ has let go of every array sent (runtime/zero_copy.py: at most ``linger_s`` and
+        1 s), so that they can be freed. The shared-memory rings are unlinked."""
+        self.zero_copy.close(linger_s)
         if self.shm is not None:
             self.shm.close()
 
@@ -147,7 +150,7 @@ class Publisher:
 
     def __init__(self, sock: PubSocket, topic: str, msg_type: type[Message]):
         self.topic, self.msg_type = topic, msg_type
-        self._sock, self._offer = sock.socket, sock.shm
+        self._sock, self._offer, self._zsend = sock.socket, sock.shm, sock.zero_copy.send
         self._topic_b = topic.encode()
         self.seq = 0  # sequence number of the next message
         self.published = 0
@@ -174,8 +177,9 @@ class Publisher:
             send(self._topic_b, _SNDMORE)
             last = len(frames) - 1
             send(frames[0], _SNDMORE if last else 0)
+            zsend = self._zsend  # tracked until sent (runtime/zero_copy.py); pyzmq copies parts < 64 KiB
             for i in range(1, last + 1):
-                send(frames[i], _SNDMORE if i < last else 0, copy=False)  # pyzmq copies parts < 64 KiB
+                zsend(frames[i], _SNDMORE if i < last else 0)
         self.seq = seq + 1
         self.published += 1
         return seq
