@@ -13,6 +13,8 @@ reconnects).
   ``mode="latest"`` keeps only the newest message of what has arrived (live views); ``mode="all"`` delivers
   every message and counts sequence gaps (recorders). A bad message is counted and returned as a
   :class:`~polarstripe.msgs.MessageError`, never raised from :meth:`Subscriber.take`.
+* Arrays of 64 KiB or more go zero-copy; a socket's close waits until ZeroMQ has ended it, so the process
+  can free them and exit (:mod:`.zero_copy`; docs/architecture.md "What an exit guarantees").
 * On one host, large buffers can travel through a shared-memory ring instead (``PubSocket(shm_slots=…)``,
   ``Subscriber(shm="copy"|"view")``; :mod:`.shm_bus`): the subscriber gets the same message.
 * :class:`ServiceServer` (ROUTER) and :class:`ServiceClient` (DEALER) do request/reply with a timeout; after a
@@ -42,7 +44,7 @@ from polarstripe.runtime.bus_keys import (  # noqa: F401  (importable from here,
     apply_curve,
 )
 from polarstripe.runtime.shm_bus import LEASE, MARK, RingTake, ShmOffer, local
-from polarstripe.runtime.zero_copy import ZeroCopy
+from polarstripe.runtime.zero_copy import ZeroCopyGuard
 
 RECONNECT_MAX_S = 1.0
 """A subscriber retries a lost publisher's endpoint at 0.1 s, doubling up to this: a publisher started again
@@ -119,15 +121,15 @@ class PubSocket(_SocketOwner):
         self.socket.sndhwm = hwm
         _apply_curve(self.socket, curve, server=True)
         self.endpoint = _bind(self.socket, endpoint)
-        self.zero_copy = ZeroCopy(self.socket)
-        self.shm = ShmOffer(self.socket, shm_slots, self.zero_copy) if offer else None
+        self.guard = ZeroCopyGuard(self.socket)
+        self.shm = ShmOffer(self.socket, shm_slots) if offer else None
         self._topics: dict[str, Publisher] = {}
 
     def close(self, linger_s: float = 0.0) -> None:
         """Close; ``linger_s`` > 0 gives what is still queued (a node's last heartbeat) that long to leave.
-        Returns once ZeroMQ has let go of every array sent (runtime/zero_copy.py: at most ``linger_s`` and
-        1 s), so that they can be freed. The shared-memory rings are unlinked."""
-        self.zero_copy.close(linger_s)
+        Returns once ZeroMQ has ended the socket (at most ``linger_s`` + 1 s), so the arrays it was sending
+        zero-copy may be freed (runtime/zero_copy.py). The shared-memory rings are unlinked."""
+        self.guard.close(linger_s)
         if self.shm is not None:
             self.shm.close()
 
@@ -150,7 +152,7 @@ class Publisher:
 
     def __init__(self, sock: PubSocket, topic: str, msg_type: type[Message]):
         self.topic, self.msg_type = topic, msg_type
-        self._sock, self._offer, self._zsend = sock.socket, sock.shm, sock.zero_copy.send
+        self._sock, self._offer = sock.socket, sock.shm
         self._topic_b = topic.encode()
         self.seq = 0  # sequence number of the next message
         self.published = 0
@@ -177,9 +179,8 @@ class Publisher:
             send(self._topic_b, _SNDMORE)
             last = len(frames) - 1
             send(frames[0], _SNDMORE if last else 0)
-            zsend = self._zsend  # tracked until sent (runtime/zero_copy.py); pyzmq copies parts < 64 KiB
             for i in range(1, last + 1):
-                zsend(frames[i], _SNDMORE if i < last else 0)
+                send(frames[i], _SNDMORE if i < last else 0, copy=False)  # pyzmq copies parts < 64 KiB
         self.seq = seq + 1
         self.published += 1
         return seq

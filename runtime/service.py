@@ -27,7 +27,7 @@ from polarstripe.runtime.bus import (
     _SocketOwner,
 )
 from polarstripe.runtime.node_bus import Deferred
-from polarstripe.runtime.zero_copy import ZeroCopy
+from polarstripe.runtime.zero_copy import ZeroCopyGuard
 
 Handler = Callable[[Message], "Message | Deferred"]
 
@@ -71,13 +71,13 @@ class ServiceServer(_SocketOwner):
         self.socket.router_mandatory = False
         _apply_curve(self.socket, curve, server=True)
         self.endpoint = _bind(self.socket, endpoint)
-        self.zero_copy = ZeroCopy(self.socket)  # replies' arrays, tracked until sent (runtime/zero_copy.py)
+        self.guard = ZeroCopyGuard(self.socket)  # replies' arrays go zero-copy (runtime/zero_copy.py)
         self.max_bytes = max_bytes
         self.services: dict[str, _Service] = {}
         self.stats = ServerStats()
 
     def close(self) -> None:
-        self.zero_copy.close(0)
+        self.guard.close(0)
 
     def add(self, name: str, req_type: type[Message], resp_type: type[Message], handler: Handler) -> None:
         """Serve ``name``: ``handler(request) -> reply``; an exception becomes an error reply with its
@@ -111,7 +111,7 @@ class ServiceServer(_SocketOwner):
         svc = self.services.get(name)
 
         def reply(status: bytes, payload: list) -> None:
-            self.zero_copy.send_multipart([ident, name_f, rid, status, *payload])
+            self.socket.send_multipart([ident, name_f, rid, status, *payload], copy=False)
 
         if svc is None:
             st.bad += 1
@@ -196,7 +196,6 @@ class ServiceClient:
         self._ctx, self._curve = ctx or zmq.Context.instance(), curve
         self._name_b = name.encode()
         self.socket: zmq.Socket | None = None
-        self._zero_copy: ZeroCopy | None = None  # the socket's requests' arrays (runtime/zero_copy.py)
         self._monitor: zmq.Socket | None = None  # hears a CURVE server refuse our key (runtime/auth.py)
         self.calls = self.timeouts = 0
 
@@ -208,7 +207,7 @@ class ServiceClient:
             _apply_curve(s, self._curve, server=False)
             self._monitor = auth.watch_refusal(s) if self._curve else None
             _connect(s, self.endpoint)
-            self.socket, self._zero_copy = s, ZeroCopy(s)
+            self.socket = s
         return self.socket
 
     def call(self, request: Message, timeout_s: float | None = None, *,
@@ -233,8 +232,9 @@ class ServiceClient:
         sock = self._open()
         rid = next(_request_ids).to_bytes(8, "little")
         self.calls += 1
-        self._zero_copy.send_multipart([self._name_b, rid, *encode(request, topic=self.name,
-                                                                   seq=self.calls - 1)])
+        # copied: a request is sent once (zero-copy buys nothing), and a socket dropped after a timeout is
+        # not waited for (runtime/zero_copy.py)
+        sock.send_multipart([self._name_b, rid, *encode(request, topic=self.name, seq=self.calls - 1)])
         deadline = time.monotonic() + timeout_s
         while True:
             left = deadline - time.monotonic()
@@ -268,8 +268,8 @@ class ServiceClient:
             self._monitor.close(0)
             self._monitor = None
         if self.socket is not None:
-            self._zero_copy.close(0)
-            self.socket = self._zero_copy = None
+            self.socket.close(0)
+            self.socket = None
 
     def close(self) -> None:
         self._drop()

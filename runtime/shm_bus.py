@@ -21,7 +21,6 @@ import logging
 import msgpack
 import zmq
 from polarstripe.runtime.shm_ring import DEFAULT_SLOTS, Lease, RingReader, RingWriter, slot_bytes
-from polarstripe.runtime.zero_copy import ZeroCopy
 
 __all__ = ["DEFAULT_SLOTS", "LEASE", "MARK", "MIN_BYTES", "RingTake", "ShmOffer", "lease_of", "local"]
 
@@ -54,9 +53,8 @@ class ShmOffer:
     per topic (made for the first large message a ring subscriber needs, made anew when a message outgrows
     its slots), unlinked on :meth:`close`."""
 
-    def __init__(self, socket: zmq.Socket, slots: int = DEFAULT_SLOTS, zero_copy: ZeroCopy | None = None):
+    def __init__(self, socket: zmq.Socket, slots: int = DEFAULT_SLOTS):
         self.socket, self.slots = socket, int(slots)
-        self.zero_copy = zero_copy or ZeroCopy(socket)  # the inline form's buffers (runtime/zero_copy.py)
         self.max_bytes = RING_BYTES  # per ring (0: no limit)
         self.prefixes: set[bytes] = set()  # subscribed prefixes, plain and ring form
         self.rings: dict[bytes, RingWriter] = {}
@@ -99,9 +97,8 @@ class ShmOffer:
         if need < MIN_BYTES or topic_b in self.failed:
             send(b"", _SNDMORE)
             last = len(frames) - 1
-            send(frames[0], _SNDMORE if last else 0)
-            for i in range(1, last + 1):
-                self.zero_copy.send(frames[i], _SNDMORE if i < last else 0)
+            for i, f in enumerate(frames):
+                send(f, _SNDMORE if i < last else 0, copy=i == 0)
             return
         slot, ticket, lengths = ring.write(bufs)
         send(_packb([ring.name, ring.stride, slot, ticket, lengths]), _SNDMORE)

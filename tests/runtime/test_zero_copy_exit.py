@@ -17,8 +17,12 @@ import subprocess
 import sys
 import threading
 import time
+import weakref
 
+import numpy as np
 import zmq
+from polarstripe.msgs import Frame
+from polarstripe.runtime.bus import PubSocket
 
 _SCRIPT = '''
 import os, sys, time
@@ -162,3 +166,35 @@ def test_processes_exiting_with_frames_queued_for_a_slow_subscriber_exit_cleanly
     assert {name: [code for code, _ in runs] for name, runs in got.items()} == {
         name: [0] * RUNS for name in COMMANDS
     }
+
+
+def test_a_close_returns_once_zeromq_has_let_go_of_the_arrays_it_was_sending():
+    """In one process: frames queued for a subscriber that reads nothing are released (pyzmq drops its
+    reference, the array is freed) by the time ``close(linger_s)`` has returned (give or take pyzmq's thread
+    noting it), not ``linger_s`` later."""
+    linger_s = 1.0
+    ps = PubSocket("tcp://127.0.0.1:0")
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.linger, sub.rcvhwm = 0, 1
+    sub.setsockopt(zmq.RCVBUF, 4096)
+    sub.subscribe(b"/t/frame")
+    sub.connect(ps.endpoint)
+    try:
+        pub = ps.publisher("/t/frame", Frame)
+        while not sub.poll(10):  # ZeroMQ's slow joiner: small frames until one arrives
+            pub.publish(Frame(image=np.zeros((1, 1), np.uint16), exposure_s=0.01))
+        arrays = []
+        for i in range(6):
+            image = np.full((1024, 1280), i, np.uint16)
+            arrays.append(weakref.ref(image))
+            pub.publish(Frame(image=image, exposure_s=0.01))
+            del image
+        time.sleep(0.1)
+        assert sum(a() is not None for a in arrays) > 0  # queued: nothing reads them
+        ps.close(linger_s=linger_s)
+        deadline = time.monotonic() + linger_s / 2
+        while any(a() is not None for a in arrays) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert [a() is None for a in arrays] == [True] * 6
+    finally:
+        sub.close()
