@@ -1,6 +1,6 @@
 """A process that exits while large frames it sent zero-copy are still queued for a slow subscriber exits
 cleanly (runtime/zero_copy.py). Before, its ZeroMQ I/O thread went on writing them from buffers the
-interpreter had freed at exit: SIGSEGV, or SIGABRT on libzmq's "Bad address" assertion (16 of 18 runs of
+interpreter had freed at exit: SIGSEGV, or SIGABRT on libzmq's "Bad address" assertion (33 of 36 runs of
 the kinds below, at a12a302).
 
 Real processes on loopback tcp, all started at once: each publishes small frames until the subscriber in
