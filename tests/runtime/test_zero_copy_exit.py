@@ -155,8 +155,9 @@ COMMANDS = {
     "script, socket left open": [sys.executable, "pub.py", "{ep}", "{go}", "open", f"{BURST}"],
     # run_node's shutdown path, then the interpreter's exit (as `polarstripe replay` does)
     "node": [sys.executable, "-c", "import sys; from polarstripe.runtime.runner import run_node; "
-             "sys.exit(run_node('flood_mod:Flood', name='flood', pub=sys.argv[1], srv='ipc://' + sys.argv[2] + "
-             "'.srv', params={{'go': sys.argv[2], 'n': sys.argv[3]}}))", "{ep}", "{go}", f"{BURST}"],
+             "sys.exit(run_node('flood_mod:Flood', name='flood', pub=sys.argv[1], "
+             "srv='ipc://' + sys.argv[2] + '.srv', params={{'go': sys.argv[2], 'n': sys.argv[3]}}))",
+             "{ep}", "{go}", f"{BURST}"],
 }
 
 
