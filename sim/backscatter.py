@@ -54,9 +54,13 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
         return single_parts(view, ssrc, keys)[2:]
     cam = view.cam
     gh, gw = -(-(cam.h - 1) // div) + 1, -(-(cam.w - 1) // div) + 1      # every div-th pixel, past the last
-    gr, gc = np.arange(gh) * div, np.arange(gw) * div                      # (rays of real pixels only)
-    px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
-    dirs, hits = geo(view, ("coarse", div), lambda: rays(view.scene, cam, px))
+
+    def coarse_rays():      # the same for every pattern
+        gr, gc = np.arange(gh) * div, np.arange(gw) * div                  # (rays of real pixels only)
+        px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
+        return px, *rays(view.scene, cam, px)
+
+    px, dirs, hits = geo(view, ("coarse", div), coarse_rays)
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
     parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(4, gh, gw)
 

@@ -318,6 +318,16 @@ class Scene(_Part):
                 f"camera has no finite backscatter in this model; move the source or give it a radius "
                 f"(e.g. source_radius_m = 0.001)")
 
+    def __hash__(self) -> int:    # kept: the model's caches look a scene up some 30 times a frame
+        h = self.__dict__.get("_hash")
+        if h is None:
+            h = hash((self.medium, self.camera, self.projector, self.objects))
+            object.__setattr__(self, "_hash", h)
+        return h
+
+    def __getstate__(self) -> dict:  # a kept hash is this process's (str hashes are salted per process)
+        return {k: v for k, v in self.__dict__.items() if k != "_hash"}
+
     def separation_m(self) -> float:
         """Camera–source distance d_LC [m]."""
         return float(np.linalg.norm(np.subtract(self.projector.position, self.camera.position)))

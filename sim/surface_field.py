@@ -44,7 +44,7 @@ def single_parts(view: View, src: Source, need) -> tuple[np.ndarray, ...]:
     scene, pat, fid, cam, dirs, hits, surf, pixels = view
     n = dirs.shape[0]
     D, A, B, Bq, Bu, Bv = (np.zeros(n) for _ in range(6))
-    hit = np.nonzero(surf.object_id >= 0)[0]
+    hit = np.nonzero(surf.object_id >= 0)[0] if "D" in need or "A" in need else None
     if "D" in need and hit.size:
         lit_idx = hit[pattern_lit(pat, src.frame, hits.point[hit])]          # shadow rays only where lit
         lit_idx = lit_idx[~occluded(scene.objects, src.position, hits.point[lit_idx])]
