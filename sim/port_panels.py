@@ -13,9 +13,10 @@ state of each piece between crossings read from the pattern's table at its middl
 pieces integrated exactly on the integrands' polynomials (their antiderivatives). A ray costs its panels'
 8 points each, whatever the number of its lit pieces (a Gray bit of one-pixel stripes lights hundreds,
 each of which cost the piecewise rule 7 points or more); the result differs from the piecewise rule's by
-the interpolation's error (~1e−6 of the peak at `preview`). A ray where a point gets no light (behind the
-projector) or a panel's integrand varies by more than :data:`_SMOOTH` (near the source's forward lobe, or
-at a port whose face holds the pinhole, where J peaks) takes the piecewise rule.
+the interpolation's error (~1e−6 of the peak at `preview`). Where a panel's integrand varies by more than
+:data:`_SMOOTH` (the light's rise along a ray near the wall, the source's forward lobe) the ray's panels are
+halved, up to 3 times; a ray where it still does (a port whose face holds the pinhole, where J peaks) or
+where a point gets no light (behind the projector) takes the piecewise rule.
 """
 
 from __future__ import annotations
@@ -98,7 +99,8 @@ def _crossings(a, k, nodes, j, off, size, end, out, n):
 def ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi, cam_r, cam_u,
                   work, buf):
     """(ok, B, q, u, v) of one ray over [lo, hi] (camera-side path from x0; module docstring); ok False
-    where a point gets no light (then nothing is summed). ``work`` (4096 + 2,) scratch."""
+    where a point gets no light, or a panel's integrand still varies more than :data:`_SMOOTH` after the
+    panels were halved 3 times (then nothing is summed). ``work`` (4096,) scratch."""
     st = medium[0]
     va = light_at(src, pat, ox + lo * dx, oy + lo * dy, oz + lo * dz, buf)[3]
     mua = -(buf[6] * dx + buf[7] * dy + buf[8] * dz)
@@ -108,6 +110,21 @@ def ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
         return False, 0.0, 0.0, 0.0, 0.0
     turn = abs(math.acos(min(max(mua, -1.0), 1.0)) - math.acos(min(max(mub, -1.0), 1.0)))
     n_pan = min(64, 1 + int(st * (hi - lo) / 0.5) + int(turn / 0.15))
+    for halving in range(4):
+        status, b, q, u, v = _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi,
+                                     cam_r, cam_u, n_pan << halving, work, buf)
+        if status == 0:
+            return True, b, q, u, v
+        if status == 2:
+            break
+    return False, 0.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, nogil=True)
+def _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi, cam_r, cam_u, n_pan,
+            work, buf):
+    """(status, B, q, u, v) of the ray on ``n_pan`` panels: status 0 done, 1 a panel's integrand varies
+    more than :data:`_SMOOTH`, 2 a point gets no light."""
     vals = np.empty((6, M))          # B, q, u, v, col, row at the points
     coef = np.empty((6, M))          # their polynomials' coefficients in the panel's t
     prim = np.zeros((4, M + 1))      # those of the integrands' integrals from t = 0
@@ -125,11 +142,11 @@ def ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
             _, col, row, valid, fb, fq, fu, fv = node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz,
                                                              dx, dy, dz, mid + half * _T[j], x0, cam_r, cam_u, buf)
             if not valid:
-                return False, 0.0, 0.0, 0.0, 0.0
+                return 2, 0.0, 0.0, 0.0, 0.0
             vals[0, j], vals[1, j], vals[2, j], vals[3, j], vals[4, j], vals[5, j] = fb, fq, fu, fv, col, row
         lo_b, hi_b = vals[0].min(), vals[0].max()
         if not lo_b * _SMOOTH >= hi_b:            # a peak (the source's forward lobe, a port at the pinhole)
-            return False, 0.0, 0.0, 0.0, 0.0
+            return 1, 0.0, 0.0, 0.0, 0.0
         for k in range(6):                       # the polynomials' coefficients, the integrands' integrals'
             for m in range(M):
                 v = 0.0
@@ -159,7 +176,7 @@ def ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
                 for k in range(4):
                     acc[k] += half * (_horner(prim, k, end) - _horner(prim, k, run))
                 run = -2.0
-    return True, acc[0], acc[1], acc[2], acc[3]
+    return 0, acc[0], acc[1], acc[2], acc[3]
 
 
 @njit(cache=True, nogil=True)
