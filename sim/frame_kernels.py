@@ -190,7 +190,8 @@ def half_up(smooth, p_small, ids_small, ids, albedo, fix, fix_start, a_out, out,
             s = p_small if f == nf else smooth[f]
             for x in range(ws):
                 rows[f, x] = (1.0 - ty) * s[y0, x] + ty * s[y1, x]
-        for f in range(1, nf):           # pixel 0 reads column 0, 2x + 1 and 2x + 2 columns x, x + 1, w − 1 the last
+        # pixel 0 reads column 0, 2x + 1 and 2x + 2 columns x, x + 1, w − 1 the last
+        for f in range(1, nf):
             o = out[f - 1]
             o[m0] = rows[f, 0]
             for x in range(ws - 1):
@@ -229,7 +230,8 @@ def half_fix(ids: np.ndarray, ids_small: np.ndarray, albedo: np.ndarray) -> tupl
     hs, ws = ids_small.shape
 
     def neighbours(n, size):
-        lo = np.minimum(np.clip(np.arange(n) / 2.0 - 0.25, 0.0, size - 1.0).astype(np.int64), max(size - 2, 0))
+        lo = np.minimum(np.clip(np.arange(n) / 2.0 - 0.25, 0.0, size - 1.0).astype(np.int64),
+                        max(size - 2, 0))
         return lo, np.minimum(lo + 1, size - 1)
 
     (y0, y1), (x0, x1) = neighbours(h, hs), neighbours(w, ws)

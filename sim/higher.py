@@ -28,6 +28,7 @@ import dataclasses
 from typing import NamedTuple
 
 import numpy as np
+from polarstripe.heap import shared_zeros
 from polarstripe.sim import geometry_cache
 from polarstripe.sim.backscatter import (
     add_circular_orders,
@@ -41,7 +42,6 @@ from polarstripe.sim.backscatter import (
     rays,
     scaled_source,
 )
-from polarstripe.heap import shared_zeros
 from polarstripe.sim.frame_kernels import field_irradiance, half_fix, half_up, plane_irradiance
 from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
 from polarstripe.sim.glow import glow_fields
@@ -251,8 +251,8 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     smooth = tuple(np.ascontiguousarray(x).reshape(half.h, half.w) for x in fields)
     out, a = np.empty((len(smooth) - 1, cam.w * cam.h)), np.empty(cam.w * cam.h)   # every pixel written
     ids_small = small.surf.object_id.reshape(half.h, half.w)
-    fix, fix_start = geo(view, "half_fix", lambda: half_fix(view.surf.object_id.reshape(cam.h, cam.w), ids_small,
-                                                            view.surf.albedo))
+    fix, fix_start = geo(view, "half_fix", lambda: half_fix(view.surf.object_id.reshape(cam.h, cam.w),
+                                                            ids_small, view.surf.albedo))
     args = (smooth, p_half.reshape(half.h, half.w), ids_small, view.surf.object_id, view.surf.albedo, fix,
             fix_start, a, out)
     in_bands(cam.h, lambda r0, r1: half_up(*args, r0, r1), min_size=16)

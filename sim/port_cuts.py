@@ -206,8 +206,8 @@ def lit_cuts(src, pat, ox, oy, oz, dx, dy, dz, x0, x1, cuts, buf):
             stack_a[top], stack_b[top], stack_l[top] = mid, b, lev + 1
             top += 1
             stack_a[top], stack_b[top], stack_l[top] = a, mid, lev + 1
-            st_lit[top], st_col[top], st_row[top], st_ok[top] = ray_state(src, pat, ox, oy, oz, dx, dy, dz, mid,
-                                                                       buf)
+            st_lit[top], st_col[top], st_row[top], st_ok[top] = ray_state(src, pat, ox, oy, oz, dx, dy, dz,
+                                                                       mid, buf)
             top += 1
             continue
         if la != lb and n_cut < cuts.size:

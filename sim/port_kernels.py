@@ -230,8 +230,8 @@ def node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz, dx, dy, dz, 
 
 
 @njit(cache=True, nogil=True)
-def ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi, cam_r, cam_u, gl_t,
-                  gl_w, cuts, buf):
+def ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi, cam_r, cam_u,
+                  gl_t, gl_w, cuts, buf):
     """B, q, u, v of one ray over [lo, hi] (its camera-side path from x0): Gauss–Legendre on sub-pieces of
     each lit piece (:func:`lit_cuts`)."""
     st = medium[0]
@@ -268,7 +268,6 @@ def ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
 def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, cam_r, cam_u, gl_t, gl_w, out):
     """B and its camera-frame Stokes (q, u, v) of each ray (module docstring) into ``out`` (a ``Stokes``
     record, each (n,)); ``origin`` (1, 3) or (n, 3), ``cam_r``/``cam_u`` (1, 3) or (n, 3)."""
-    st = medium[0]
     b_out, q_out, u_out, v_out = out
     buf = np.zeros(12)
     cuts = np.empty(4096)        # a ray crosses at most w + h pattern lines
@@ -289,8 +288,9 @@ def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, ca
         lo, hi = beyond_port(src, ox, oy, oz, dx, dy, dz, x0, x1)
         if not hi > lo:
             continue
-        b_ray, q_ray, u_ray, v_ray = ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz,
-                                                   x0, lo, hi, cam_r[kc], cam_u[kc], gl_t, gl_w, cuts, buf)
+        b_ray, q_ray, u_ray, v_ray = ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy,
+                                                   dz, x0, lo, hi, cam_r[kc], cam_u[kc], gl_t, gl_w, cuts,
+                                                   buf)
         b_out[i] = b_ray
         if pol.on:
             q_out[i], u_out[i], v_out[i] = q_ray, u_ray, v_ray

@@ -111,8 +111,8 @@ def ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
     turn = abs(math.acos(min(max(mua, -1.0), 1.0)) - math.acos(min(max(mub, -1.0), 1.0)))
     n_pan = min(64, 1 + int(st * (hi - lo) / 0.5) + int(turn / 0.15))
     for halving in range(4):
-        status, b, q, u, v = _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo, hi,
-                                     cam_r, cam_u, n_pan << halving, work, buf)
+        status, b, q, u, v = _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo,
+                                     hi, cam_r, cam_u, n_pan << halving, work, buf)
         if status == 0:
             return True, b, q, u, v
         if status == 2:
@@ -139,8 +139,9 @@ def _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, 
                 for k in range(6):
                     vals[k, 0] = vals[k, M - 1]
                 continue
-            _, col, row, valid, fb, fq, fu, fv = node_stokes(src, pat, phase, pol, medium, stateful, ox, oy, oz,
-                                                             dx, dy, dz, mid + half * _T[j], x0, cam_r, cam_u, buf)
+            _, col, row, valid, fb, fq, fu, fv = node_stokes(src, pat, phase, pol, medium, stateful, ox, oy,
+                                                             oz, dx, dy, dz, mid + half * _T[j], x0, cam_r,
+                                                             cam_u, buf)
             if not valid:
                 return 2, 0.0, 0.0, 0.0, 0.0
             vals[0, j], vals[1, j], vals[2, j], vals[3, j], vals[4, j], vals[5, j] = fb, fq, fu, fv, col, row

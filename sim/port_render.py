@@ -112,9 +112,9 @@ def _table(pattern: PatternSpec, w: int, h: int) -> np.ndarray:
 
 def _cells(pattern: PatternSpec) -> np.ndarray:
     """(col offset, col size, row offset, row size) [pattern pixels]: cells whose boundaries hold every
-    change of a checker's or Gray code's lit state (Gray bit b: the odd multiples of 2^b along its axis; an XOR
-    base bit c, a column bit: the odd multiples of 2^c in columns; a column bit XOR its base: multiples of
-    2^min(b, c))."""
+    change of a checker's or Gray code's lit state (Gray bit b: the odd multiples of 2^b along its axis; an
+    XOR base bit c, a column bit: the odd multiples of 2^c in columns; a column bit XOR its base: multiples
+    of 2^min(b, c))."""
     if pattern.kind == "checker":
         return np.array([pattern.shift % pattern.size, pattern.size, 0.0, pattern.size], float)
     if pattern.kind == "gray":      # bit b changes at the odd multiples of 2^b

@@ -69,4 +69,5 @@ def test_half_up_is_the_bilinear_and_the_within_object_rule(fields):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(want).max())
     want_a = _a_by_the_rule(p_small, ids_small, ids, albedo, ups[0])
     np.testing.assert_allclose(a, want_a, rtol=0, atol=1e-13 * np.abs(want_a).max())
-    assert not np.array_equal(a, albedo * cv2.resize(p_small, (2 * ws, 2 * hs)).ravel() + ups[0])   # edges matter
+    # edges matter
+    assert not np.array_equal(a, albedo * cv2.resize(p_small, (2 * ws, 2 * hs)).ravel() + ups[0])
