@@ -29,6 +29,7 @@ from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
 
 import numpy as np
+from polarstripe.runtime.graph import pid_alive
 
 HEAD = 64  # bytes before a slot's first buffer: begin and end tickets, padded to a cache line
 ALIGN = 64
@@ -47,16 +48,6 @@ def slot_bytes(lengths: list[int]) -> int:
     return sum(_aligned(n) for n in lengths)
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def sweep_dead(directory: str = "/dev/shm") -> list[str]:
     """Unlink the rings of publishers that are no longer alive (their pid is in the name); the names
     removed. Linux keeps POSIX shared memory in ``/dev/shm``; elsewhere this does nothing."""
@@ -67,7 +58,7 @@ def sweep_dead(directory: str = "/dev/shm") -> list[str]:
         return gone
     for name in names:
         pid = name[len(PREFIX):].partition("_")[0]
-        if pid.isdigit() and not _pid_alive(int(pid)):
+        if pid.isdigit() and not pid_alive(int(pid)):
             try:
                 os.unlink(os.path.join(directory, name))
                 gone.append(name)
