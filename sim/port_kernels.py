@@ -262,35 +262,3 @@ def ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz
                 u_ray += wk * f[6]
                 v_ray += wk * f[7]
     return b_ray, q_ray, u_ray, v_ray
-
-
-@njit(cache=True, nogil=True)
-def port_line_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, cam_r, cam_u, gl_t, gl_w, out):
-    """B and its camera-frame Stokes (q, u, v) of each ray (module docstring) into ``out`` (a ``Stokes``
-    record, each (n,)); ``origin`` (1, 3) or (n, 3), ``cam_r``/``cam_u`` (1, 3) or (n, 3)."""
-    b_out, q_out, u_out, v_out = out
-    buf = np.zeros(12)
-    cuts = np.empty(4096)        # a ray crosses at most w + h pattern lines
-    stateful = needs_state(src, pol)
-    per_o = origin.shape[0] > 1
-    per_c = cam_r.shape[0] > 1
-    for i in range(dirs.shape[0]):
-        x0, x1 = x0s[i], x1s[i]
-        b_out[i] = 0.0
-        if pol.on:
-            q_out[i] = u_out[i] = v_out[i] = 0.0
-        if not x1 > x0:
-            continue
-        ko = i if per_o else 0
-        kc = i if per_c else 0
-        ox, oy, oz = origin[ko, 0], origin[ko, 1], origin[ko, 2]
-        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        lo, hi = beyond_port(src, ox, oy, oz, dx, dy, dz, x0, x1)
-        if not hi > lo:
-            continue
-        b_ray, q_ray, u_ray, v_ray = ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy,
-                                                   dz, x0, lo, hi, cam_r[kc], cam_u[kc], gl_t, gl_w, cuts,
-                                                   buf)
-        b_out[i] = b_ray
-        if pol.on:
-            q_out[i], u_out[i], v_out[i] = q_ray, u_ray, v_ray

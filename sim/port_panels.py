@@ -181,9 +181,12 @@ def _panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, 
 
 
 @njit(cache=True, nogil=True)
-def port_panel_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, cam_r, cam_u, gl_t, gl_w, out):
-    """As :func:`~polarstripe.sim.port_kernels.port_line_integrals`, each ray by :func:`ray_by_panels` (by
-    the piecewise rule where that gives up)."""
+def port_line_integrals(panels, src, pat, medium, phase, pol, origin, dirs, x0s, x1s, cam_r, cam_u, gl_t,
+                        gl_w, out):
+    """B and its camera-frame Stokes (q, u, v) of each ray into ``out`` (a ``Stokes`` record, each (n,)),
+    over its part beyond the projector port's face: by :func:`ray_by_panels` with ``panels`` (the piecewise
+    rule where that gives up), else by :func:`~polarstripe.sim.port_kernels.ray_by_pieces`; ``origin``
+    (1, 3) or (n, 3), ``cam_r``/``cam_u`` (1, 3) or (n, 3)."""
     b_out, q_out, u_out, v_out = out
     buf = np.zeros(12)
     work = np.empty(4096)
@@ -204,8 +207,10 @@ def port_panel_integrals(src, pat, medium, phase, pol, origin, dirs, x0s, x1s, c
         lo, hi = beyond_port(src, ox, oy, oz, dx, dy, dz, x0, x1)
         if not hi > lo:
             continue
-        ok, b, q, u, v = ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo,
-                                       hi, cam_r[kc], cam_u[kc], work, buf)
+        ok, b, q, u, v = 0, 0.0, 0.0, 0.0, 0.0
+        if panels:
+            ok, b, q, u, v = ray_by_panels(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0,
+                                           lo, hi, cam_r[kc], cam_u[kc], work, buf)
         if not ok:
             b, q, u, v = ray_by_pieces(src, pat, medium, phase, pol, stateful, ox, oy, oz, dx, dy, dz, x0, lo,
                                        hi, cam_r[kc], cam_u[kc], gl_t, gl_w, work, buf)

@@ -36,10 +36,9 @@ from polarstripe.sim.port_kernels import (
     PatternTable,
     PortPolarization,
     PortSource,
-    port_line_integrals,
     source_port_gain,
 )
-from polarstripe.sim.port_panels import port_panel_integrals
+from polarstripe.sim.port_panels import port_line_integrals
 from polarstripe.sim.scene import Scene
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.surface_field import camera_frame_stokes, interpolate_grid
@@ -167,8 +166,7 @@ def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, ca
         return out
     t, w = gauss_legendre(max(int(nodes), 4))
     source, table = _source(scene, src), _pattern(src)
-    kernel = port_line_integrals if table.convex else port_panel_integrals
-    args = (source, table,
+    args = (not table.convex, source, table,
             Medium(float(src.sigma_t), float(src.sigma_s), np.asarray(src.box_lo, float),
                    np.asarray(src.box_hi, float)), phase_args(src.phase),
             _polarization(src, pol, source.has_port and source.fresnel))
@@ -180,7 +178,8 @@ def line_stokes(scene: Scene, src: Source, origins, dirs, x0, x1, nodes: int, ca
     def band(a, b):
         o = origins[a:b] if origins.shape[0] > 1 else origins
         cr, cu = (cam_r[a:b], cam_u[a:b]) if cam_r.shape[0] > 1 else (cam_r, cam_u)
-        kernel(*args, o, dirs[a:b], x0[a:b], x1[a:b], cr, cu, t, w, Stokes(*(arr[a:b] for arr in out)))
+        port_line_integrals(*args, o, dirs[a:b], x0[a:b], x1[a:b], cr, cu, t, w,
+                            Stokes(*(arr[a:b] for arr in out)))
 
     in_bands(n, band, min_size=512)
     return out
