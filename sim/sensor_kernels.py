@@ -15,9 +15,29 @@ import numpy as np
 from numba import njit
 from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix, unit
 
-POISSON_EXACT_BELOW = 30.0   # mean e- below which shot noise is drawn by inversion (docs/physics.md §7)
+POISSON_EXACT_BELOW = 30.0   # mean e⁻ below which shot noise is drawn exactly (docs/physics.md §7)
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
 _PAIR_RECIPROCALS = 1.0 / ((np.arange(128.0) + 1.0) * (np.arange(128.0) + 2.0))   # 1/((k + 1)(k + 2))
+_ONE = np.uint64(1)
+_STEPS_PER_E = 8      # the tabulated means λ₀ = j/8 e⁻ below POISSON_EXACT_BELOW (a power of two: λ·8 is exact)
+_BUCKETS = 64         # the guide tables' buckets of u (a power of two: u·64 is exact)
+
+
+def _poisson_tables(steps: int, buckets: int, width: int = 96):
+    """The CDFs F(k) = Σ_{j≤k} e^{−λ₀}λ₀^j/j!, k < ``width``, of the means λ₀ = row/``steps`` below
+    POISSON_EXACT_BELOW (the last set to 1: F(95) rounds to 1 there, the tail past it is below 10⁻¹⁸), and
+    their guide tables: the least k with F(k) ≥ j/``buckets``, j = 0 … ``buckets``."""
+    lam0 = np.arange(1, int(POISSON_EXACT_BELOW * steps))[:, None] / steps
+    k = np.arange(width)
+    log_pmf = -lam0 + k * np.log(lam0) - np.array([math.lgamma(x + 1.0) for x in k])
+    cdf = np.minimum(np.cumsum(np.exp(log_pmf), axis=1), 1.0)
+    cdf = np.vstack([np.ones(width), cdf])                    # λ₀ = 0: the count is 0
+    cdf[:, -1] = 1.0
+    guide = np.array([np.searchsorted(row, np.arange(buckets + 1) / buckets) for row in cdf], np.int64)
+    return cdf, guide
+
+
+_CDF, _GUIDE = _poisson_tables(_STEPS_PER_E, _BUCKETS)
 
 
 @njit(cache=True, nogil=True)
@@ -47,11 +67,10 @@ def malus_basis(d, a, b, sq, su, total, q, u):
 
 
 @njit(nogil=True)
-def _poisson_inversion(lam, key, n):
-    """An exact Poisson(λ) count by inversion from the word ``n`` of ``key`` (λ < 30; a call of its own):
-    the least k with u ≤ F(k), the pmf's terms two at a time (p_{k+2} = p_k·λ²/((k+1)(k+2)) beside p_{k+1},
-    so the sum's chain takes one add per two terms)."""
-    u = unit(splitmix(key, n))
+def _poisson_inversion(lam, u):
+    """An exact Poisson(λ) count by inversion of the uniform ``u`` (a call of its own): the least k with
+    u ≤ F(k), the pmf's terms two at a time (p_{k+2} = p_k·λ²/((k+1)(k+2)) beside p_{k+1}, so the sum's chain
+    takes one add per two terms)."""
     p = math.exp(-lam)
     if u <= p:
         return 0.0
@@ -69,12 +88,30 @@ def _poisson_inversion(lam, key, n):
 
 
 @njit(inline="always")
+def _poisson_by_table(lam, key, n):
+    """An exact Poisson(λ) count for λ < 30 from the words ``n`` and ``n + 1`` of ``key``, as the sum of two
+    independent counts (Poisson(λ₀) + Poisson(λ − λ₀) is Poisson(λ)): one of mean λ₀ = ⌊Sλ⌋/S from its
+    tabulated CDF, entered at its guide table's bucket (Chen & Asau 1974), and one of mean f = λ − λ₀ < 1/S,
+    0 without the exponential when u ≤ 1 − f ≤ e^{−f}, else by :func:`_poisson_inversion`."""
+    row = int(lam * _STEPS_PER_E)
+    u = unit(splitmix(key, n))
+    k = _GUIDE[row, int(u * _BUCKETS)]
+    while u > _CDF[row, k]:
+        k += 1
+    f = lam - row * (1.0 / _STEPS_PER_E)
+    u = unit(splitmix(key, n + _ONE))
+    if u <= 1.0 - f:
+        return float(k)
+    return float(k) + _poisson_inversion(f, u)
+
+
+@njit(inline="always")
 def poisson_count(lam, key, n):
-    """A Poisson(λ) count as a float, from the draws ``n``, ``n + 1``, … of ``key``: inversion below
-    :data:`POISSON_EXACT_BELOW` (exact), above it a normal z through the rounded Cornish–Fisher expansion
-    λ + √λ·z + (z² − 1)/6 − z(2 + z²)/(72√λ) (docs/physics.md §7)."""
+    """A Poisson(λ) count as a float, from the draws ``n``, ``n + 1``, … of ``key``: exact below
+    :data:`POISSON_EXACT_BELOW` (:func:`_poisson_by_table`), above it a normal z through the rounded
+    Cornish–Fisher expansion λ + √λ·z + (z² − 1)/6 − z(2 + z²)/(72√λ) (docs/physics.md §7)."""
     if lam < POISSON_EXACT_BELOW:
-        return _poisson_inversion(lam, key, n)
+        return _poisson_by_table(lam, key, n)
     z = normal(key, n)[0]
     r = math.sqrt(lam)
     x = lam + r * z + (z * z - 1.0) * (1.0 / 6.0) - z * (2.0 + z * z) / (72.0 * r)

@@ -63,6 +63,29 @@ def test_shot_noise_is_poisson(mean_e):
     assert abs(y.var() / mean_e - 1) < 5 * np.sqrt(2 / N) + 5 / np.sqrt(N * mean_e)
 
 
+@pytest.mark.parametrize("mean_e", [0.5, 5.0, 12.0, 29.0, 31.0, 0.3, 5.06, 12.93, 29.99])
+def test_exact_shot_noise_over_many_draws(mean_e):
+    """2·10⁶ draws against the Poisson pmf (chi-square): the exact ones below 30 e⁻ (a tabulated count of mean
+    ⌊8μ⌋/8 plus one of the rest, sim/sensor_kernels.py) on and off the table's grid, and the Cornish–Fisher
+    draw just above (its total variation, 10⁻⁴, needs ~10⁸ draws to show)."""
+    n = 2_000_000
+    y = _dn(_camera(), mean_e, seed=int(mean_e * 100) + 3, n=n).astype(np.int64)
+    assert _chi2_p(y, stats.poisson.pmf(np.arange(int(mean_e + 12 * np.sqrt(mean_e) + 20)), mean_e)) > 1e-4
+    assert abs(y.mean() - mean_e) < 5 * np.sqrt(mean_e / n)
+
+
+def test_shot_noise_of_a_frame_of_many_means():
+    """Each pixel its own mean, 1000 means across 0…30 e⁻ (every table row and the parts between them)
+    1000 pixels each: the counts against the mixture of their Poisson pmfs."""
+    means = np.repeat((np.arange(1000) + 0.5) * 0.03, 1000)
+    y = expose(np.ones(means.size), _camera(), 17, electrons=means).astype(np.int64)
+    ks = np.arange(80)
+    pmf = stats.poisson.pmf(ks[None, :], np.unique(means)[:, None]).mean(axis=0)
+    assert _chi2_p(y, pmf) > 1e-4
+    per_mean = y.reshape(1000, 1000).mean(axis=1)      # and no row off: each mean's average within 5σ
+    assert np.all(np.abs(per_mean - np.unique(means)) < 5 * np.sqrt(np.unique(means) / 1000) + 0.01)
+
+
 def test_read_noise_adds_to_a_low_poisson_count():
     """3 e⁻ mean with 0.7 e⁻ read noise, gain 1, offset 10: P(y) = Σ_k Pois(k; 3)·[Φ((y − 10 + ½ − k)/σ)
     − Φ((y − 10 − ½ − k)/σ)], neither Poisson nor normal."""
