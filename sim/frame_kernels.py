@@ -48,20 +48,28 @@ def plane_irradiance(grid, e_field, points, out):
     made with the plane's one outward normal n (:func:`field_irradiance`'s value: the sampling is linear;
     one field's eight corners instead of four's)."""
     lo, h, n = grid
-    for m in range(points.shape[0]):
-        i0, tx = _axis(points[m, 0], lo[0], h[0], n[0])
-        j0, ty = _axis(points[m, 1], lo[1], h[1], n[1])
+    for m in range(points.shape[0]):     # the eight corners written out, zero weights too (a zero term
+        i0, tx = _axis(points[m, 0], lo[0], h[0], n[0])      # adds nothing to a finite sum: the same
+        j0, ty = _axis(points[m, 1], lo[1], h[1], n[1])      # numbers, without a branch per corner)
         k0, tz = _axis(points[m, 2], lo[2], h[2], n[2])
-        e = 0.0
-        for cx in range(2):
-            wx = tx if cx else 1.0 - tx
-            for cy in range(2):
-                wy = ty if cy else 1.0 - ty
-                for cz in range(2):
-                    w = wx * wy * (tz if cz else 1.0 - tz)
-                    if w != 0.0:
-                        e += w * e_field[i0 + cx, j0 + cy, k0 + cz]
+        sx, sy, sz = 1.0 - tx, 1.0 - ty, 1.0 - tz
+        i1, j1, k1 = i0 + 1, j0 + 1, k0 + 1
+        e = sx * sy * sz * e_field[i0, j0, k0]
+        e += sx * sy * tz * e_field[i0, j0, k1]
+        e += sx * ty * sz * e_field[i0, j1, k0]
+        e += sx * ty * tz * e_field[i0, j1, k1]
+        e += tx * sy * sz * e_field[i1, j0, k0]
+        e += tx * sy * tz * e_field[i1, j0, k1]
+        e += tx * ty * sz * e_field[i1, j1, k0]
+        e += tx * ty * tz * e_field[i1, j1, k1]
         out[m] = e if e > 0.0 else 0.0
+
+
+@njit(inline="always")
+def stokes_norm(q, u):
+    """|(q, u)|: √(q² + u²), hypot (slower, safe from underflow) where q² + u² is below 10⁻²⁹⁰."""
+    n2 = q * q + u * u
+    return math.sqrt(n2) if n2 > 1e-290 else math.hypot(q, u)
 
 
 @njit(cache=True, nogil=True)
@@ -69,11 +77,12 @@ def polarized_gain(bq, bu, seen, dop):
     """In place: (q, u) ← (q, u)·(1 + dop·seen/|(q, u)|) where |(q, u)| > 0 (docs/physics.md §10.4; the
     orders ≥ 2 in the orientation of the single wide-angle scattering)."""
     for m in range(bq.size):
-        norm = math.hypot(bq[m], bu[m])
+        q, u = bq[m], bu[m]
+        norm = stokes_norm(q, u)
         if norm > 0:
             gain = 1.0 + dop * seen[m] / norm
-            bq[m] *= gain
-            bu[m] *= gain
+            bq[m] = q * gain
+            bu[m] = u * gain
 
 
 @njit(cache=True, nogil=True)
@@ -130,26 +139,27 @@ def view_gather(shape, cum, index, frac, out, first=0, end=-1):
     for j in range(w):
         fc = j * cols_scale
         tcs[j] = fc - min(int(fc), max(gw - 2, 0))
-    wts = np.empty(4)
     for f0 in range(0, nf, 4):
-        quad = np.zeros((flat, 4))              # the four fields side by side
+        quad = np.zeros(4 * flat)               # the four fields side by side, flat: entry k at 4k … 4k + 3
         for f in range(f0, min(f0 + 4, nf)):
-            quad[:, f - f0] = cum[f].ravel()
+            one = cum[f].ravel()
+            for k in range(flat):
+                quad[4 * k + f - f0] = one[k]
         for i in range(first, h if end < 0 else end):
             fr = i * rows_scale
             tr = fr - min(int(fr), max(gh - 2, 0))
             for j in range(w):
                 tc = tcs[j]
-                wts[0], wts[1], wts[2], wts[3] = (1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc
                 m = i * w + j
                 a0 = a1 = a2 = a3 = 0.0
                 for q in range(4):
-                    k, a, wq = index[m, q], frac[m, q], wts[q]
+                    wq = (1 - tr if q < 2 else tr) * (1 - tc if q % 2 == 0 else tc)
+                    k, a = 4 * np.intp(index[m, q]), frac[m, q]
                     b = 1.0 - a
-                    a0 += wq * (b * quad[k, 0] + a * quad[k + 1, 0])
-                    a1 += wq * (b * quad[k, 1] + a * quad[k + 1, 1])
-                    a2 += wq * (b * quad[k, 2] + a * quad[k + 1, 2])
-                    a3 += wq * (b * quad[k, 3] + a * quad[k + 1, 3])
+                    a0 += wq * (b * quad[k] + a * quad[k + 4])
+                    a1 += wq * (b * quad[k + 1] + a * quad[k + 5])
+                    a2 += wq * (b * quad[k + 2] + a * quad[k + 6])
+                    a3 += wq * (b * quad[k + 3] + a * quad[k + 7])
                 out[f0, m] = a0
                 if f0 + 1 < nf:
                     out[f0 + 1, m] = a1

@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix, unit
+from polarstripe.sim.frame_kernels import stokes_norm
 
 POISSON_EXACT_BELOW = 30.0   # mean e⁻ below which shot noise is drawn exactly (docs/physics.md §7)
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
@@ -52,11 +53,12 @@ def malus(total, q, u, a, b, c, s, out):
 def malus_basis(d, a, b, sq, su, total, q, u):
     """The analyzer's angle-free part over flat arrays: total = D + A + B and (q, u) = B·p·(Q, U)/√(Q² + U²)
     with p = clip(√(Q² + U²)/B, 0, 1) (0 where B ≤ 0) and (q, u) = 0 where Q = U = 0: the operations of
-    :attr:`polarstripe.sim.render.Components.p` and :func:`polarstripe.sim.polarization.analyzer_basis`."""
+    :attr:`polarstripe.sim.render.Components.p` and :func:`polarstripe.sim.polarization.analyzer_basis`
+    (√(Q² + U²) by :func:`~polarstripe.sim.frame_kernels.stokes_norm`: equal to hypot's to an ulp)."""
     for i in range(total.size):
         bi = b[i]
         total[i] = d[i] + a[i] + bi
-        norm = math.hypot(sq[i], su[i])
+        norm = stokes_norm(sq[i], su[i])
         if norm > 0.0:
             p = min(max(norm / bi, 0.0), 1.0) if bi > 0.0 else 0.0
             scale = bi * p / norm
