@@ -20,7 +20,7 @@ from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.geometry_cache import cached
 from polarstripe.sim.grid_kernels import coarse_silhouettes, upsample_grid
 from polarstripe.sim.grid_sources import source_field
-from polarstripe.sim.multiple import Field, Grid, solve_polarized
+from polarstripe.sim.multiple import Field, Grid, GridSolve, answer
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.similarity import pair_retention_of, polarized_extinction
 from polarstripe.sim.surface_field import View, single_parts
@@ -139,13 +139,19 @@ def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, g
     """The polarized part of the grid's orders ≥ 1, Σ_k κ^k φ_p^(k): the quasi-direct light deposited and
     carried with σ_p, each order weighted by κ^k (docs/physics.md §10.4); ``circular``: the circular part,
     with σ_pV and κ_V (§5.1); ``port``: the source's flat port (:func:`source_field`)."""
+    return answer(polarized_steps(psrc, plan, scene, st, grid, circular, port))
+
+
+def polarized_steps(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid,
+                    circular: bool = False, port=None, beams=None):
+    """:func:`polarized_field` as steps that yield its grid solve (:class:`~polarstripe.sim.multiple.GridSolve`);
+    ``beams``: the source's beams when the caller keeps them (:func:`~polarstripe.sim.grid_sources.source_field`)."""
     ph, dop = scene.medium.phase, scene.medium.dop
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization), circular)
     sigma = psrc.sigma_pol_v if circular else psrc.sigma_pol
     deposit = dataclasses.replace(psrc, sigma_t=sigma)
-    quasi = source_field(grid, deposit, scene.objects, st.oversample, port)
-    return solve_polarized(grid, quasi, sigma, plan.scaled.sigma_s, plan.scaled.g_tilde, kappa=kappa,
-                           orders=st.orders)
+    quasi = source_field(grid, deposit, scene.objects, st.oversample, port, beams)
+    return (yield GridSolve(grid, quasi, sigma, plan.scaled.sigma_s, plan.scaled.g_tilde, st.orders, kappa))
 
 
 def add_polarized_orders(bq: np.ndarray, bu: np.ndarray, seen: np.ndarray, dop: float):

@@ -30,7 +30,7 @@ from polarstripe.sim.grid_sources import (
     surface_irradiance,
 )
 from polarstripe.sim.kernel_records import PhaseArgs
-from polarstripe.sim.multiple import Field, Grid, solve_orders, zero_field
+from polarstripe.sim.multiple import Field, Grid, GridSolve, answer, zero_field
 from polarstripe.sim.similarity import truncated_code
 from polarstripe.sim.surface import surface_info
 from polarstripe.sim.threads import in_bands
@@ -102,6 +102,11 @@ def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None
     """The objects' glow on the grid: the field to view (its emission toward the camera) and the scattered
     glow field (whose irradiance lights the objects again); module docstring. ``patch_light(patches)``, where
     given, is the patches' quasi-direct irradiance (a projector behind a port); else the pinhole source's."""
+    return answer(glow_steps(view, ssrc, plan, st, grid, total, patch_light))
+
+
+def glow_steps(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None):
+    """:func:`glow_fields` as steps that yield its grid solve (:class:`~polarstripe.sim.multiple.GridSolve`)."""
     scene, sc = view.scene, plan.scaled
     cells, eye = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float)
     phase = PhaseArgs(*truncated_code(sc.phase))
@@ -135,6 +140,6 @@ def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None
         in_bands(j1.size, lambda a, b: glow_emission(cells[a:b], eye, packed, phase, float(sc.sigma_t),
                                                      float(sc.sigma_s), j1[a:b]), min_size=256)
         first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)
-    more = solve_orders(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, orders=st.glow_orders)
+    more = yield GridSolve(grid, first, sc.sigma_t, sc.sigma_s, sc.g_tilde, st.glow_orders)
     c = sc.sigma_s / (4 * np.pi)
     return Field(more.total.phi + j1.reshape(grid.n) / c, more.total.flux), more.total

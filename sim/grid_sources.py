@@ -110,15 +110,29 @@ def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarra
     return out
 
 
-def _source_beams(src: Source, grid: Grid, oversample: float):
-    """Beam directions (m, 3) and their power per unit length I0·ΔΩ·lit [W/m] (before attenuation)."""
+class SourceBeams(NamedTuple):
+    """The source's beams through its whole frustum, whatever the pattern (the same for every frame of a
+    scan): directions (m, 3), power per unit length I0·ΔΩ [W/m] before the pattern, each beam's rectangle
+    of pattern pixels (c0, c1, r0, r1) (None: a point source, lit everywhere), and where each beam enters
+    the grid's box and ends (t0, t1: the box's far side or the first object; None until
+    :func:`source_beams` fills them)."""
+
+    dirs: np.ndarray
+    power: np.ndarray
+    rects: tuple | None
+    t0: np.ndarray | None = None
+    t1: np.ndarray | None = None
+
+
+def _source_beams(src: Source, grid: Grid, oversample: float) -> SourceBeams:
+    """Beam directions and their power per unit length before the pattern (:class:`SourceBeams`)."""
     corners = np.array([[x, y, z] for x in (grid.lo[0], grid.hi[0]) for y in (grid.lo[1], grid.hi[1])
                         for z in (grid.lo[2], grid.hi[2])])
     far = float(np.linalg.norm(corners - src.position, axis=1).max())
     step = float(grid.h.min()) / (2.0 * oversample * max(far, 1e-9))   # beam spacing [rad], far side
     if src.frame is None:
         m = int(min(max(4 * math.pi / step ** 2, 256), _MAX_BEAMS))
-        return _fibonacci(m), np.full(m, src.intensity * 4 * math.pi / m)
+        return SourceBeams(_fibonacci(m), np.full(m, src.intensity * 4 * math.pi / m), None)
     fr = src.frame
     c_lo, c_hi = 0.0, float(fr.w)        # the whole frustum whatever the pattern: stripes add up to the flood
     nc = int(np.clip(math.ceil((c_hi - c_lo) * fr.s / step), 1, 400))
@@ -135,7 +149,18 @@ def _source_beams(src: Source, grid: Grid, oversample: float):
     dirs = fr.f[None, :] + a[:, None] * fr.r - b[:, None] * fr.u
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     solid = (c1 - c0) * (r1 - r0) * fr.s * fr.s * (1 + a * a + b * b) ** -1.5
-    return dirs, src.intensity * solid * lit_fraction(src, c0, c1, r0, r1)
+    return SourceBeams(dirs, src.intensity * solid, (c0, c1, r0, r1))
+
+
+def source_beams(grid: Grid, src: Source, objects, oversample: float = 1.0) -> SourceBeams:
+    """The beams of :func:`source_field` with their ends in the box (no port): what a scan's frames share
+    (the pattern only weights them; each beam's ends are computed as :func:`source_field` computes them)."""
+    beams = _source_beams(src, grid, oversample)
+    origin = np.asarray(src.position, float)
+    t0, t1 = box_interval(origin, beams.dirs, grid.lo, grid.hi)
+    if len(objects):
+        t1 = np.minimum(t1, intersect(objects, origin, beams.dirs).t)
+    return beams._replace(t0=t0, t1=t1)
 
 
 def port_source_gain(port, src: Source, air: np.ndarray) -> np.ndarray:
@@ -150,18 +175,22 @@ def port_source_gain(port, src: Source, air: np.ndarray) -> np.ndarray:
     return gain
 
 
-def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0, port=None) -> Field:
+def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0, port=None,
+                 beams: SourceBeams | None = None) -> Field:
     """The quasi-direct light's fluence φ₀ and flux F₀ per cell (module docstring); ``src`` is the scaled
     source (σ̃_t). ``oversample`` multiplies the beam density (1: beams half a cell apart at the far side).
     ``port`` (a :class:`~polarstripe.sim.port.PortGeometry`): the source looks through a flat port; each air
     beam becomes its water ray (from the outer face, refracted) carrying I0·ΔΩ_air·T, T the port's
-    transmittance for the source's polarization (:func:`port_source_gain`; docs/physics.md §11)."""
+    transmittance for the source's polarization (:func:`port_source_gain`; docs/physics.md §11). ``beams``:
+    :func:`source_beams` of this grid, source pose and objects (no port), kept for a scan's frames."""
     phi, flux = np.zeros(grid.n), np.zeros((*grid.n, 3))
     if src.intensity <= 0.0:
         return Field(phi, flux)
-    dirs, power = _source_beams(src, grid, oversample)
+    if beams is None:
+        beams = _source_beams(src, grid, oversample)
+    power = beams.power if beams.rects is None else beams.power * lit_fraction(src, *beams.rects)
     keep = power > 0
-    origin = np.asarray(src.position, float).reshape(1, 3)
+    dirs, origin = beams.dirs, np.asarray(src.position, float).reshape(1, 3)
     if port is not None:          # only the air rays that leave through the window's side
         keep &= dirs @ port.normal > 1e-9
     dirs, power = np.ascontiguousarray(dirs[keep]), power[keep]
@@ -170,9 +199,12 @@ def source_field(grid: Grid, src: Source, objects, oversample: float = 1.0, port
         origin, dirs, trans, _ = water_rays(port, dirs)
         power = power * trans * gain
     start = origin[0] if origin.shape[0] == 1 else origin
-    t0, t1 = box_interval(start, dirs, grid.lo, grid.hi)
-    if len(objects):
-        t1 = np.minimum(t1, intersect(objects, start, dirs).t)
+    if beams.t0 is not None:      # the ends the caller keeps for the scan (no port)
+        t0, t1 = beams.t0[keep], beams.t1[keep]
+    else:
+        t0, t1 = box_interval(start, dirs, grid.lo, grid.hi)
+        if len(objects):
+            t1 = np.minimum(t1, intersect(objects, start, dirs).t)
     beams = Beams(np.ascontiguousarray(origin), dirs, power, t0, t1, np.zeros(t0.size))
     deposit_beams(grid.args(), beams, float(src.sigma_t), 0.5 * float(grid.h.min()), phi, flux)
     return Field(phi, flux)

@@ -37,21 +37,22 @@ from polarstripe.sim.backscatter import (
     b_cone,
     b_single,
     geo,
-    polarized_field,
+    polarized_steps,
     polarized_source,
     rays,
     scaled_source,
 )
 from polarstripe.sim.frame_kernels import field_irradiance, half_fix, half_up, plane_irradiance
 from polarstripe.sim.geometry import box_interval, occluded, projector_coords, segment_length_in_box
-from polarstripe.sim.glow import glow_fields
+from polarstripe.sim.glow import glow_steps
 from polarstripe.sim.grid_kernels import ViewArgs, segment_lengths
 from polarstripe.sim.grid_sources import (
+    source_beams,
     source_field,
     view_integral,
     view_table,
 )
-from polarstripe.sim.multiple import Field, Grid, make_grid, solve_orders
+from polarstripe.sim.multiple import Field, Grid, GridSolve, make_grid
 from polarstripe.sim.orders import OrdersPlan
 from polarstripe.sim.patterns import column_order, lit_in_columns, pattern_lit
 from polarstripe.sim.psf import halo_table, mixture, spread
@@ -219,15 +220,17 @@ def _constant_stokes(view: View, src: Source, b: np.ndarray):
     return camera_frame_stokes(src, view.scene, view.cam, view.dirs, b, None, None)
 
 
-def higher_components(view: View, src: Source, plan: OrdersPlan, need,
-                      settings: HigherSettings | None = None):
-    """D, A, B, Bq, Bu, Bv per ray (flat) with all orders of scattering (module docstring)."""
+def higher_steps(view: View, src: Source, plan: OrdersPlan, need, settings: HigherSettings | None = None):
+    """D, A, B, Bq, Bu, Bv per ray (flat) with all orders of scattering (module docstring), as steps: a
+    generator that yields the frame's grid solves (:class:`~polarstripe.sim.multiple.GridSolve`) and returns
+    the components (:func:`~polarstripe.sim.multiple.answer` runs it alone; a scan's frames step together
+    and hand their solves over as one batch, :mod:`polarstripe.sim.scan_render`)."""
     st = settings or HigherSettings()
     cam = view.cam
     if st.half_res and view.pixels is None and cam.w >= HALF_MIN[0] and cam.h >= HALF_MIN[1] and \
             cam.w % 2 == 0 == cam.h % 2:
-        return _half_resolution(view, src, plan, need, st)
-    return _components(view, src, plan, need, st)
+        return (yield from _half_resolution(view, src, plan, need, st))
+    return (yield from _components(view, src, plan, need, st))
 
 
 def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings):
@@ -244,7 +247,7 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
         return dirs, hits, surface_info(view.scene.objects, hits)
 
     small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
-    _, p_half, h_half, b, bq, bu, bv = _components(small, src, plan, need, st, parts=True)
+    _, p_half, h_half, b, bq, bu, bv = yield from _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
     d = d if d.size else np.zeros(cam.w * cam.h)
     fields = (h_half, b, bq, bu, bv) if bv.any() else (h_half, b, bq, bu)      # (V is 0 for linear light)
@@ -303,7 +306,8 @@ def _irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarra
 
 
 def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSettings, parts: bool = False):
-    """D, A, B, Bq, Bu, Bv (or, ``parts``, D, P, H, B, Bq, Bu, Bv with A = ρ·P + H) per ray, flat."""
+    """D, A, B, Bq, Bu, Bv (or, ``parts``, D, P, H, B, Bq, Bu, Bv with A = ρ·P + H) per ray, flat; steps
+    that yield the grid solves. The source's beams are kept per scene (the pattern only weights them)."""
     sc = plan.scaled
     ssrc = scaled_source(src, plan)
     n = view.dirs.shape[0]
@@ -320,8 +324,10 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     grid = make_grid(ssrc.box_lo, ssrc.box_hi, st.cells)
     dop = view.scene.medium.dop
     pol = "p" in need and "B" in need and dop.model == "rayleigh"
-    orders = solve_orders(grid, source_field(grid, ssrc, view.scene.objects, st.oversample), sc.sigma_t,
-                          sc.sigma_s, sc.g_tilde, orders=st.orders)
+    beams = geo(view, ("beams", grid, st.oversample),
+                lambda: source_beams(grid, ssrc, view.scene.objects, st.oversample))
+    orders = yield GridSolve(grid, source_field(grid, ssrc, view.scene.objects, st.oversample, beams=beams),
+                             sc.sigma_t, sc.sigma_s, sc.g_tilde, st.orders)
     rg = _ray_geometry(view, grid)
     x_end = rg.x_end
     fields = [orders.total] if "B" in need else []
@@ -330,13 +336,13 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     if pol:           # the polarized part travels with σ_p, the circular with σ_pV (docs/physics.md §10.4)
         psrc = polarized_source(src, plan, view.scene)
         if lin != 0.0:
-            fields.append(polarized_field(psrc, plan, view.scene, st, grid))
+            fields.append((yield from polarized_steps(psrc, plan, view.scene, st, grid, beams=beams)))
             sigmas.append(psrc.sigma_pol)
         if circ != 0.0:
-            fields.append(polarized_field(psrc, plan, view.scene, st, grid, circular=True))
+            fields.append((yield from polarized_steps(psrc, plan, view.scene, st, grid, True, beams=beams)))
             sigmas.append(psrc.sigma_pol_v)
     if want_a:
-        seen, glow_scattered = glow_fields(view, ssrc, plan, st, grid, orders.total)
+        seen, glow_scattered = yield from glow_steps(view, ssrc, plan, st, grid, orders.total)
         fields.append(seen)
         sigmas.append(sc.sigma_t)
     cam = view.cam

@@ -39,6 +39,7 @@ _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 _NEAR = 2            # cells within this offset (per axis) are sub-sampled
 _SUB = 5             # sub-samples per axis of a near cell
 _MAX_RATIO = 0.98    # the geometric tail's largest ratio
+_BATCH_BYTES = 1 << 20   # a batch's transforms in pieces of about this size (they stay in the cache)
 
 
 @dataclass(frozen=True)
@@ -151,19 +152,21 @@ def kernel_tables(n: tuple[int, int, int], h: tuple[float, float, float], sigma:
 
 @njit(cache=True, nogil=True)
 def kernel_product(f0, f1, f2, t, out):
-    """The P1 kernels' product in Fourier space, per frequency: out₀ = K̂₀ŝ₀ + 3(K̂₁·ŝ₁) and
-    outₐ = K̂₁ₐŝ₀ + 3(K̂₂ₐ·ŝ₁) (t = (ŝ₀, ŝ₁ₓ, ŝ₁ᵧ, ŝ₁_z), f1 (3, …), f2 (3, 3, …); the operations of the numpy
-    expression, in its order, in one pass)."""
+    """The P1 kernels' product in Fourier space, per frequency and per field of a batch: out₀ = K̂₀ŝ₀ +
+    3(K̂₁·ŝ₁) and outₐ = K̂₁ₐŝ₀ + 3(K̂₂ₐ·ŝ₁) (t (m, 4, …) = m × (ŝ₀, ŝ₁ₓ, ŝ₁ᵧ, ŝ₁_z), f1 (3, …), f2 (3, 3, …);
+    the operations of the numpy expression, in its order, in one pass that reads each frequency's kernels
+    once for the whole batch)."""
     a_, b_, c_ = f0.shape
-    for i in range(a_):
-        for j in range(b_):
-            for k in range(c_):
-                s0, sx, sy, sz = t[0, i, j, k], t[1, i, j, k], t[2, i, j, k], t[3, i, j, k]
-                out[0, i, j, k] = f0[i, j, k] * s0 + 3 * (f1[0, i, j, k] * sx + f1[1, i, j, k] * sy
-                                                          + f1[2, i, j, k] * sz)
-                for a in range(3):
-                    out[1 + a, i, j, k] = f1[a, i, j, k] * s0 + 3 * (
-                        f2[a, 0, i, j, k] * sx + f2[a, 1, i, j, k] * sy + f2[a, 2, i, j, k] * sz)
+    for q in range(t.shape[0]):
+        for i in range(a_):
+            for j in range(b_):
+                for k in range(c_):
+                    s0, sx, sy, sz = t[q, 0, i, j, k], t[q, 1, i, j, k], t[q, 2, i, j, k], t[q, 3, i, j, k]
+                    out[q, 0, i, j, k] = f0[i, j, k] * s0 + 3 * (f1[0, i, j, k] * sx + f1[1, i, j, k] * sy
+                                                                 + f1[2, i, j, k] * sz)
+                    for a in range(3):
+                        out[q, 1 + a, i, j, k] = f1[a, i, j, k] * s0 + 3 * (
+                            f2[a, 0, i, j, k] * sx + f2[a, 1, i, j, k] * sy + f2[a, 2, i, j, k] * sz)
 
 
 @lru_cache(maxsize=16)
@@ -192,23 +195,36 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field
     In Fourier space φ̂ = K̂₀ŝ₀ + 3 K̂₁·ŝ₁ and F̂_a = K̂₁ₐŝ₀ + 3 Σ_b K̂₂ₐᵦŝ₁ᵦ: the four inputs go through one
     batched transform each way (:func:`polarstripe.sim.threads.fft_workers` threads), one axis at a time,
     in single precision (half the memory traffic; ~10⁻⁷ of the largest value, docs/physics.md §10.3), the
-    field returned in double."""
+    field returned in double. ``s0`` (…, nx, ny, nz) and ``s1`` (…, nx, ny, nz, 3) may carry leading batch
+    axes (the frames of a scan, :mod:`polarstripe.sim.scan_render`): each field of the batch is transformed
+    line by line as it would be alone (the same numbers, ``tests/sim/test_scan_render.py``)."""
     n = tuple(int(m) for m in grid.n)
     shape, f0, f1, f2 = _transforms32(n, tuple(float(x) for x in grid.h), float(sigma))
-    src = np.empty((4,) + n, np.float32)
-    src[0] = s0
-    src[1:] = np.moveaxis(s1, -1, 0)
+    lead = s0.shape[:-3]
+    m = math.prod(lead)
+    src = np.empty((m, 4) + n, np.float32)
+    src[:, 0] = s0.reshape((m,) + n)
+    src[:, 1:] = np.moveaxis(s1.reshape((m,) + n + (3,)), -1, 1)
+    res = np.empty((m, 4) + n, np.float32)
+    step = max(1, _BATCH_BYTES // (32 * math.prod(shape[:2]) * (shape[2] // 2 + 1)))   # complex64, 4 inputs
+    for a in range(0, m, step):
+        res[a:a + step] = _convolve(src[a:a + step], n, shape, f0, f1, f2)
+    phi = np.maximum(res[:, 0], 0.0).astype(float).reshape(lead + n)
+    return Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))
+
+
+def _convolve(src: np.ndarray, n, shape, f0, f1, f2) -> np.ndarray:
+    """:func:`propagate`'s transforms of a batch (m, 4, nx, ny, nz): rfftn and irfftn axis by axis in their
+    own order (the same numbers), skipping the lines that are zero padding on the way in and the ones
+    sliced away on the way out."""
     workers = fft_workers()
-    # rfftn and irfftn axis by axis in their own order (the same numbers), skipping the lines that are
-    # zero padding on the way in and the ones sliced away on the way out
-    t = sfft.rfft(src, shape[2], axis=3, workers=workers)
-    t = sfft.fft(sfft.fft(t, shape[0], axis=1, workers=workers), shape[1], axis=2, workers=workers)
+    t = sfft.rfft(src, shape[2], axis=4, workers=workers)
+    t = sfft.fft(sfft.fft(t, shape[0], axis=2, workers=workers), shape[1], axis=3, workers=workers)
     out = np.empty_like(t)
     kernel_product(f0, f1, f2, t, out)
-    res = sfft.ifft(out, axis=1, workers=workers)[:, n[0] - 1:2 * n[0] - 1]
-    res = sfft.ifft(res, axis=2, workers=workers)[:, :, n[1] - 1:2 * n[1] - 1]
-    res = sfft.irfft(res, shape[2], axis=3, workers=workers)[..., n[2] - 1:2 * n[2] - 1]
-    return Field(np.maximum(res[0], 0.0).astype(float), np.moveaxis(res[1:], 0, -1).astype(float))
+    res = sfft.ifft(out, axis=2, workers=workers)[:, :, n[0] - 1:2 * n[0] - 1]
+    res = sfft.ifft(res, axis=3, workers=workers)[:, :, :, n[1] - 1:2 * n[1] - 1]
+    return sfft.irfft(res, shape[2], axis=4, workers=workers)[..., n[2] - 1:2 * n[2] - 1]
 
 
 def _emission(field: Field, sigma_s: float, g: float) -> tuple[np.ndarray, np.ndarray]:
@@ -243,7 +259,8 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
 
     Parameters
     ----------
-    grid : the cell grid; quasi : the unscattered (quasi-direct) light's fluence and flux on it.
+    grid : the cell grid; quasi : the unscattered (quasi-direct) light's fluence and flux on it, or a batch
+        of them (leading axes: each solved as it would be alone, :func:`solve_each`).
     sigma_t, sigma_s, g : σ̃_t, σ̃_s [1/m] and g̃ of the scaled medium.
     orders : orders computed one by one; the rest is the geometric tail φ_K r/(1 − r) with r from
         :func:`tail_ratio`. A fixed count and ratio keep the map from ``quasi`` to the result linear (the
@@ -256,7 +273,7 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
     if int(orders) < 1:
         raise ValueError(f"solve_orders: orders must be >= 1, got {orders!r}")
     if sigma_s <= 0.0 or not np.any(quasi.phi > 0):
-        z = zero_field(grid)
+        z = Field(np.zeros_like(quasi.phi), np.zeros_like(quasi.flux))
         return Orders(z, z, 0, 0.0)
     s0, s1 = _emission(quasi, sigma_s, g)
     first = propagate(grid, sigma_t, s0, s1)
@@ -285,9 +302,9 @@ def solve_polarized(grid: Grid, quasi: Field, sigma_p: float, sigma_s: float, g:
     if not 0.0 <= kappa <= 1.0:
         raise ValueError(f"solve_polarized: kappa must be in [0, 1], got {kappa!r}")
     if sigma_s <= 0.0 or kappa == 0.0 or not np.any(quasi.phi > 0):
-        return zero_field(grid)
+        return Field(np.zeros_like(quasi.phi), np.zeros_like(quasi.flux))
     last, weight = quasi, 1.0
-    pol = zero_field(grid)
+    pol = Field(np.zeros_like(quasi.phi), np.zeros_like(quasi.flux))
     for _ in range(int(orders)):
         s0, s1 = _emission(last, sigma_s, g)
         last = propagate(grid, sigma_p, s0, s1)
@@ -296,3 +313,60 @@ def solve_polarized(grid: Grid, quasi: Field, sigma_p: float, sigma_s: float, g:
     ratio = kappa * tail_ratio(grid, float(sigma_p), float(sigma_s), float(g), int(orders))
     tail = weight * ratio / (1.0 - ratio)
     return Field(pol.phi + tail * last.phi, pol.flux + tail * last.flux)
+
+
+@dataclass(frozen=True, eq=False)
+class GridSolve:
+    """One grid solve a frame asks for: :func:`solve_orders` of ``quasi`` (``kappa`` None) or
+    :func:`solve_polarized` with ``kappa``. A frame's computation yields these and takes the answers
+    (:func:`answer`), so that a scan's frames can hand theirs over together (:func:`solve_each`)."""
+
+    grid: Grid
+    quasi: Field
+    sigma: float
+    sigma_s: float
+    g: float
+    orders: int
+    kappa: float | None = None
+
+    def key(self) -> tuple:
+        """Requests with the same key are solved as one batch."""
+        return (self.grid, float(self.sigma), float(self.sigma_s), float(self.g), int(self.orders),
+                self.kappa, self.quasi.phi.shape)
+
+    def solve(self, quasi: Field):
+        if self.kappa is None:
+            return solve_orders(self.grid, quasi, self.sigma, self.sigma_s, self.g, orders=self.orders)
+        return solve_polarized(self.grid, quasi, self.sigma, self.sigma_s, self.g, kappa=self.kappa,
+                               orders=self.orders)
+
+
+def answer(steps):
+    """Run a frame's steps (a generator yielding :class:`GridSolve`), answering each request on its own;
+    returns what the generator returns."""
+    try:
+        request = next(steps)
+        while True:
+            request = steps.send(request.solve(request.quasi))
+    except StopIteration as done:
+        return done.value
+
+
+def solve_each(requests: list[GridSolve]) -> list:
+    """The answers to requests of one :meth:`GridSolve.key`, solved as one batch along a leading axis (the
+    map is the same for each; every field comes out as its own solve gives it). A request whose source is
+    zero gets the zero answer its own solve gives (no orders counted)."""
+    first = requests[0]
+    live = [k for k, r in enumerate(requests) if np.any(r.quasi.phi > 0)]
+    out = [first.solve(r.quasi) if k not in live else None for k, r in enumerate(requests)]
+    if not live:
+        return out
+    both = first.solve(Field(np.stack([requests[k].quasi.phi for k in live]),
+                             np.stack([requests[k].quasi.flux for k in live])))
+    for j, k in enumerate(live):
+        if first.kappa is not None:
+            out[k] = Field(both.phi[j], both.flux[j])
+        else:
+            out[k] = Orders(Field(both.first.phi[j], both.first.flux[j]),
+                            Field(both.total.phi[j], both.total.flux[j]), both.count, both.ratio)
+    return out

@@ -15,7 +15,8 @@ import numpy as np
 from polarstripe.heap import keep_freed, shared_zeros
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
 from polarstripe.sim.geometry_cache import cached
-from polarstripe.sim.higher import HigherSettings, higher_components
+from polarstripe.sim.higher import HigherSettings, higher_steps
+from polarstripe.sim.multiple import answer
 from polarstripe.sim.orders import OrdersPlan, plan_orders
 from polarstripe.sim.patterns import PatternSpec, parse_pattern
 from polarstripe.sim.polarization import analyzer
@@ -213,6 +214,15 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
     Components with arrays of shape (h, w), or (n,) when ``pixels`` is given; ``orders`` says what was
     modelled and the error to expect.
     """
+    return answer(component_steps(scene, pattern, fidelity, pixels, need, orders))
+
+
+def component_steps(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fidelity = "standard",
+                    pixels: np.ndarray | None = None, need: tuple[str, ...] = ("D", "A", "B", "p"),
+                    orders: str = "all"):
+    """:func:`render_components` as steps that yield the frame's grid solves
+    (:class:`~polarstripe.sim.multiple.GridSolve`) and return its :class:`Components`
+    (:func:`polarstripe.sim.scan_render.render_scan` steps a scan's frames together)."""
     t_start = time.perf_counter()
     if not isinstance(scene, Scene):
         raise SceneError(f"scene must be a Scene (see load_scene), got {type(scene).__name__}")
@@ -236,8 +246,8 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
     black = scene.projector.black_level
     if black > 0 and pat.kind != "flood":
         clean = scene.replace(projector=scene.projector.replace(black_level=0.0))
-        on = render_components(clean, pat, fid, pixels, need, orders)
-        flood = render_components(clean, "flood", fid, pixels, need, orders)
+        on = yield from component_steps(clean, pat, fid, pixels, need, orders)
+        flood = yield from component_steps(clean, "flood", fid, pixels, need, orders)
         out = on.combine(flood, 1.0 - black, black)
         out.scene, out.seconds = scene, time.perf_counter() - t_start
         return out
@@ -257,7 +267,7 @@ def render_components(scene: Scene, pattern: str | PatternSpec, fidelity: str | 
     n = dirs.shape[0]
     view = View(scene, pat, fid, cam, dirs, hits, surf, pixels)
     if plan.modelled:
-        D, A, B, Bq, Bu, Bv = higher_components(view, src, plan, need, fid.higher)
+        D, A, B, Bq, Bu, Bv = yield from higher_steps(view, src, plan, need, fid.higher)
     else:
         D, A, B, Bq, Bu, Bv = single_parts(view, src, need)
     shape = (cam.h, cam.w) if pixels is None else (n,)
