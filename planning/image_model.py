@@ -38,9 +38,9 @@ from polarstripe.planning.scene_model import part_frame
 from polarstripe.sim.geometry import intersect, pixel_rays
 from polarstripe.sim.higher import HigherSettings
 from polarstripe.sim.render import Fidelity, render_components, resolve_fidelity
+from polarstripe.sim.scan_render import render_scan
 from polarstripe.sim.scene import Scene, SceneError, with_separation
 from polarstripe.sim.sensor import electrons_per_radiance, full_scale_dn, mean_dn
-from polarstripe.sim.threads import each_frame
 from polarstripe.sim.truth import unscattered_object
 
 # the default renders' resolution: the camera's, but no finer than this many pixels per stripe (at 10 a
@@ -151,9 +151,7 @@ class ImageModel:
         return self._lateral
 
     def _render(self, scene: Scene, pattern: str):
-        c = render_components(scene, pattern, self.fidelity, orders=self.orders)
-        return (c.D.reshape(-1), (c.D + c.A).reshape(-1), c.B.reshape(-1), c.p.reshape(-1),
-                c.chi_rad.reshape(-1))
+        return _parts(render_components(scene, pattern, self.fidelity, orders=self.orders))
 
     def _samples(self, truth, parts, keep, group) -> Samples:
         d, s, b, p, chi = (x[keep] for x in parts)
@@ -210,7 +208,8 @@ class ImageModel:
         sd = with_separation(self.scene, d_lc_m, aim=True)
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
-        parts = each_frame(lambda p: self._render(sd, str(p)), frames)            # frames in parallel
+        comps = render_scan(sd, [str(p) for p in frames], self.fidelity, orders=self.orders)   # together
+        parts = [_parts(c) for c in comps]
         if self.fidelity.name in OWN_MAP:
             c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
             flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
@@ -222,3 +221,8 @@ class ImageModel:
             group = np.where((d > 0).any(axis=0) | (truth <= 0), group, -1)
         return Samples(d * self._e, (s - d) * self._e, b * self._e, p, chi=chi, truth=truth * self._e,
                        group=group, p_rule=self.p_rule, flood_dop=flood)
+
+
+def _parts(c) -> tuple:
+    """(D, S, B, p, χ) of a frame's components, flat."""
+    return (c.D.reshape(-1), (c.D + c.A).reshape(-1), c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))

@@ -144,8 +144,9 @@ def polarized_field(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, g
 
 def polarized_steps(psrc: Source, plan: OrdersPlan, scene, st: HigherSettings, grid: Grid,
                     circular: bool = False, port=None, beams=None):
-    """:func:`polarized_field` as steps that yield its grid solve (:class:`~polarstripe.sim.multiple.GridSolve`);
-    ``beams``: the source's beams when the caller keeps them (:func:`~polarstripe.sim.grid_sources.source_field`)."""
+    """:func:`polarized_field` as steps that yield its grid solve (a
+    :class:`~polarstripe.sim.multiple.GridSolve`); ``beams``: the source's beams where the caller keeps them
+    (:func:`~polarstripe.sim.grid_sources.source_field`)."""
     ph, dop = scene.medium.phase, scene.medium.dop
     kappa = pair_retention_of(ph.model, float(ph.g), float(dop.depolarization), circular)
     sigma = psrc.sigma_pol_v if circular else psrc.sigma_pol

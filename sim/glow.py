@@ -106,7 +106,8 @@ def glow_fields(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None
 
 
 def glow_steps(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None):
-    """:func:`glow_fields` as steps that yield its grid solve (:class:`~polarstripe.sim.multiple.GridSolve`)."""
+    """:func:`glow_fields` as steps that yield its grid solve (a
+    :class:`~polarstripe.sim.multiple.GridSolve`)."""
     scene, sc = view.scene, plan.scaled
     cells, eye = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float)
     phase = PhaseArgs(*truncated_code(sc.phase))

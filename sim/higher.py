@@ -37,8 +37,8 @@ from polarstripe.sim.backscatter import (
     b_cone,
     b_single,
     geo,
-    polarized_steps,
     polarized_source,
+    polarized_steps,
     rays,
     scaled_source,
 )

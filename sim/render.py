@@ -25,7 +25,6 @@ from polarstripe.sim.scene import Scene, SceneError
 from polarstripe.sim.sensor import expose
 from polarstripe.sim.surface import SurfaceInfo, surface_info
 from polarstripe.sim.surface_field import View, single_parts
-from polarstripe.sim.threads import each_frame
 from polarstripe.sim.transport import make_source
 
 keep_freed()        # a frame's arrays reuse the last frame's memory (heap.py)
@@ -278,9 +277,12 @@ def component_steps(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fi
 
 
 def render_each(scene: Scene, patterns, fidelity: str | Fidelity = "standard", **kwargs) -> list[Components]:
-    """:func:`render_components` of each of ``patterns`` (same keyword arguments), the frames in parallel on
-    the model's threads (:func:`polarstripe.sim.threads.each_frame`); the same as one after another."""
-    return each_frame(lambda pattern: render_components(scene, pattern, fidelity, **kwargs), patterns)
+    """:func:`render_components` of each of ``patterns`` (same keyword arguments), rendered together:
+    :func:`polarstripe.sim.scan_render.render_scan` (the frames' grid solves batched, chunks of the scan in
+    parallel on the model's threads); the same as one after another, to the bit."""
+    from polarstripe.sim.scan_render import render_scan  # (that module builds on this one)
+
+    return render_scan(scene, patterns, fidelity, **kwargs)
 
 
 def _camera_geometry(scene: Scene, cam, pixels):

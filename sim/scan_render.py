@@ -50,7 +50,7 @@ def step_together(frames: list) -> list:
     one step with the same key are answered as one batch. Returns what each returns, in order."""
     out: list = [None] * len(frames)
     pending = {}
-    for k, steps in enumerate(frames):
+    for k in range(len(frames)):
         _advance(frames, k, None, pending, out, first=True)
     while pending:
         groups = defaultdict(list)
