@@ -22,13 +22,14 @@ from polarstripe.sim.backscatter import geo
 from polarstripe.sim.geometry import Hits
 from polarstripe.sim.grid_kernels import deposit_beams, glow_emission, patch_glow, unit_toward
 from polarstripe.sim.grid_sources import (
-    footprint_lit,
     glow_beams,
     glow_field,
     object_patches,
+    patch_irradiance,
     quasi_irradiance,
     surface_irradiance,
 )
+from polarstripe.sim.grid_sources import patch_light as light_of
 from polarstripe.sim.kernel_records import PhaseArgs
 from polarstripe.sim.multiple import Field, Grid, GridSolve, answer, zero_field
 from polarstripe.sim.similarity import truncated_code
@@ -109,21 +110,24 @@ def glow_steps(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None)
     """:func:`glow_fields` as steps that yield its grid solve (a
     :class:`~polarstripe.sim.multiple.GridSolve`)."""
     scene, sc = view.scene, plan.scaled
-    cells, eye = grid.centres().reshape(-1, 3), np.asarray(view.cam.position, float)
+    eye = np.asarray(view.cam.position, float)
     phase = PhaseArgs(*truncated_code(sc.phase))
     spacing = st.patch_cells * float(grid.h.min())
     basis = geo(view, ("glow", grid, spacing, st.glow_dirs, float(sc.sigma_t), tuple(phase)),
-                lambda: glow_basis(scene, grid, cells, eye, float(sc.sigma_t), phase, spacing, st.glow_dirs))
+                lambda: glow_basis(scene, grid, grid.centres().reshape(-1, 3), eye, float(sc.sigma_t), phase,
+                                   spacing, st.glow_dirs))
     patches = basis.patches
     if patches.area.size == 0:
         return zero_field(grid), zero_field(grid)
     if patch_light is not None:
         e = patch_light(patches)
+    elif ssrc.frame is not None:            # area-averaged; what the pattern does not change, per scene
+        e = patch_irradiance(ssrc, geo(view, ("patch_light", spacing, float(ssrc.sigma_t)), lambda: light_of(
+            ssrc, scene.objects, patches.point, patches.normal, patches.du, patches.dv)))
     else:
-        lit = footprint_lit(ssrc, patches.point, patches.du, patches.dv) if ssrc.frame is not None else None
-        e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal, lit)   # area-averaged
+        e = quasi_irradiance(ssrc, scene.objects, patches.point, patches.normal)
     exitance = basis.albedo * (e + surface_irradiance(grid, total, patches.point, patches.normal))
-    j1 = np.empty(cells.shape[0])
+    j1 = np.empty(int(np.prod(grid.n)))
     keep = basis.keep
     if basis.weights is not None and np.array_equal(np.nonzero(exitance * patches.area > 0)[0], keep):
         radiance = np.ascontiguousarray(exitance[keep] / np.pi)
@@ -138,6 +142,7 @@ def glow_steps(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None)
     else:
         packed = np.ascontiguousarray(np.column_stack([patches.point, patches.normal, patches.area,
                                                        exitance / np.pi]))
+        cells = grid.centres().reshape(-1, 3)
         in_bands(j1.size, lambda a, b: glow_emission(cells[a:b], eye, packed, phase, float(sc.sigma_t),
                                                      float(sc.sigma_s), j1[a:b]), min_size=256)
         first = glow_field(grid, patches, exitance, sc.sigma_t, scene.objects, st.glow_dirs)

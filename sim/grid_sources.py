@@ -88,12 +88,25 @@ def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarra
     :func:`lit_fraction` (a patch wider than a checker square sees half of it lit, as the light it reflects
     does; a point sample would alias). 0 where the patch's centre is outside the frustum; the point's own
     value where a corner is behind the projector. Complementary patterns add up to the flood exactly."""
-    fr = src.frame
-    col, row, depth = projector_coords(fr, points)
-    inside = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
+    inside, idx, rects = footprint_rects(src.frame, points, du, dv) if src.pattern.kind != "flood" else (
+        _in_frustum(src.frame, points), None, None)
     out = np.zeros(points.shape[0])
     if src.pattern.kind == "flood" or not inside.any():
         return inside.astype(float)
+    out[idx] = lit_fraction(src, *rects)
+    return out
+
+
+def _in_frustum(fr, points: np.ndarray) -> np.ndarray:
+    col, row, depth = projector_coords(fr, points)
+    return (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
+
+
+def footprint_rects(fr, points: np.ndarray, du: np.ndarray, dv: np.ndarray):
+    """The pattern-independent part of :func:`footprint_lit` (the projector's frame ``fr``): which patches'
+    centres are in the frustum, their indices and their rectangles (c0, c1, r0, r1) in pattern pixels."""
+    col, row, depth = projector_coords(fr, points)
+    inside = (depth > 0) & (row >= 0) & (row < fr.h) & (col >= 0) & (col < fr.w)
     idx = np.nonzero(inside)[0]
     corners = [points[idx] + a * du[idx] + b * dv[idx] for a in (-0.5, 0.5) for b in (-0.5, 0.5)]
     cc, rr, dd = projector_coords(fr, np.concatenate(corners))
@@ -106,8 +119,7 @@ def footprint_lit(src: Source, points: np.ndarray, du: np.ndarray, dv: np.ndarra
     r1 = np.where(ahead, np.clip(rr.max(axis=0), 0.0, fr.h), row[idx])
     eps = 1e-6                                      # a patch seen edge-on: its centre's value
     c1, r1 = np.maximum(c1, c0 + eps), np.maximum(r1, r0 + eps)
-    out[idx] = lit_fraction(src, c0, c1, r0, r1)
-    return out
+    return inside, idx, (c0, c1, r0, r1)
 
 
 class SourceBeams(NamedTuple):
@@ -324,6 +336,49 @@ def quasi_irradiance(src: Source, objects, points: np.ndarray, normals: np.ndarr
     with np.errstate(under="ignore"):
         return np.where(lit, weight * src.intensity * cos * np.exp(-src.sigma_t * ell)
                         / np.maximum(d2 + src.radius ** 2, 1e-300), 0.0)
+
+
+class PatchLight(NamedTuple):
+    """The pattern-independent part of the quasi-direct irradiance of patches (kept per scene for a scan's
+    frames): their footprints (:func:`footprint_rects`), which of them the source sees (centre in the
+    frustum, not shadowed), cos, e^{−σ̃_t ℓ_LO} and max(d² + r_s², 1e-300)."""
+
+    rects: tuple
+    seen: np.ndarray
+    cos: np.ndarray
+    atten: np.ndarray
+    denom: np.ndarray
+
+
+def patch_light(src: Source, objects, points: np.ndarray, normals: np.ndarray, du: np.ndarray,
+                dv: np.ndarray) -> PatchLight:
+    """:class:`PatchLight` of the patches p ± du/2 ± dv/2 (a pinhole source): each term as
+    :func:`quasi_irradiance` computes it, every patch in the frustum tested for shadow."""
+    from polarstripe.sim.geometry import segment_length_in_box
+
+    inside, idx, rects = footprint_rects(src.frame, points, du, dv)
+    v = src.position - points
+    d2 = (v * v).sum(1)
+    cos = np.clip((normals * v).sum(1) / np.sqrt(np.maximum(d2, 1e-300)), 0.0, None)
+    seen = inside.copy()
+    if len(objects) and idx.size:
+        seen[idx[occluded(objects, src.position, points[idx] + 1e-7 * normals[idx])]] = False
+    ell = segment_length_in_box(src.position, points, src.box_lo, src.box_hi)
+    with np.errstate(under="ignore"):
+        atten = np.exp(-src.sigma_t * ell)
+    return PatchLight((inside, idx, rects), seen, cos, atten, np.maximum(d2 + src.radius ** 2, 1e-300))
+
+
+def patch_irradiance(src: Source, light: PatchLight) -> np.ndarray:
+    """``quasi_irradiance(src, objects, points, normals, footprint_lit(src, points, du, dv))`` from the
+    patches' :class:`PatchLight`, the same numbers: only the pattern's lit fractions are this frame's."""
+    inside = light.rects[0]
+    lit_frac = inside.astype(float) if src.pattern.kind == "flood" else np.zeros(inside.size)
+    if src.pattern.kind != "flood" and inside.any():
+        lit_frac[light.rects[1]] = lit_fraction(src, *light.rects[2])
+    lit = light.seen & (lit_frac > 0)
+    weight = np.where(lit, lit_frac, 0.0)
+    return np.where(lit, weight * src.intensity * light.cos * light.atten / light.denom, 0.0)
 
 
 def surface_irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -117,3 +117,31 @@ def test_stepping_together_batches_the_requests_of_a_step():
     own = solve_polarized(grid, solve_orders(grid, Field(phi[1], flux[1]), 3.0, 1.0, 0.2, orders=2).total,
                           3.0, 1.0, 0.2, kappa=0.5, orders=2)
     np.testing.assert_array_equal(out[1][1].phi, own.phi)
+
+
+def test_the_patches_light_kept_per_scene_is_the_frames_own():
+    """The glow's patches lit through the terms a scan keeps (grid_sources.py patch_light) get the numbers
+    quasi_irradiance gives with footprint_lit, to the bit, with a sphere shadowing some of them."""
+    from polarstripe.sim.grid_sources import (
+        footprint_lit,
+        object_patches,
+        patch_irradiance,
+        patch_light,
+        quasi_irradiance,
+    )
+    from polarstripe.sim.patterns import parse_pattern
+    from polarstripe.sim.scene import SphereObject
+    from polarstripe.sim.transport import make_source
+
+    s = load_scene(None)
+    s = s.replace(objects=s.objects + (SphereObject(center=(0.02, 0.0, 0.3), radius=0.04, albedo=0.5),))
+    flood = make_source(s, parse_pattern("flood"))
+    grid = make_grid(flood.box_lo, flood.box_hi, 16)
+    pa = object_patches(s.objects, grid.lo, grid.hi, float(grid.h.min()))
+    light = patch_light(flood, s.objects, pa.point, pa.normal, pa.du, pa.dv)
+    assert (light.rects[0] & ~light.seen).any()                  # some patches in the frustum are shadowed
+    for p in ("flood", "stripe:14/30", "stripe:1/6:x2", "checker:16:0", "gray:1:col:0"):
+        src = make_source(s, parse_pattern(p))
+        want = quasi_irradiance(src, s.objects, pa.point, pa.normal, footprint_lit(src, pa.point, pa.du, pa.dv))
+        assert want.max() > 0
+        np.testing.assert_array_equal(patch_irradiance(src, light), want, err_msg=p)
