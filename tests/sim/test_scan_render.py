@@ -142,6 +142,7 @@ def test_the_patches_light_kept_per_scene_is_the_frames_own():
     assert (light.rects[0] & ~light.seen).any()                  # some patches in the frustum are shadowed
     for p in ("flood", "stripe:14/30", "stripe:1/6:x2", "checker:16:0", "gray:1:col:0"):
         src = make_source(s, parse_pattern(p))
-        want = quasi_irradiance(src, s.objects, pa.point, pa.normal, footprint_lit(src, pa.point, pa.du, pa.dv))
+        lit = footprint_lit(src, pa.point, pa.du, pa.dv)
+        want = quasi_irradiance(src, s.objects, pa.point, pa.normal, lit)
         assert want.max() > 0
         np.testing.assert_array_equal(patch_irradiance(src, light), want, err_msg=p)
