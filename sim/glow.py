@@ -21,15 +21,15 @@ from numba import njit
 from polarstripe.sim.backscatter import geo
 from polarstripe.sim.geometry import Hits
 from polarstripe.sim.grid_kernels import deposit_beams, glow_emission, patch_glow, unit_toward
-from polarstripe.sim.grid_sources import (
+from polarstripe.sim.grid_patches import (
     glow_beams,
     glow_field,
     object_patches,
     patch_irradiance,
     quasi_irradiance,
-    surface_irradiance,
 )
-from polarstripe.sim.grid_sources import patch_light as light_of
+from polarstripe.sim.grid_patches import patch_light as light_of
+from polarstripe.sim.grid_sources import surface_irradiance
 from polarstripe.sim.kernel_records import PhaseArgs
 from polarstripe.sim.multiple import Field, Grid, GridSolve, answer, zero_field
 from polarstripe.sim.similarity import truncated_code

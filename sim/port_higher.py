@@ -86,7 +86,7 @@ def port_light(scene, ssrc: Source, port: PortGeometry, pts: np.ndarray, nrm: np
     """Quasi-direct irradiance [W/m²] at surface points lit through the projector's port: I0·T·J·lit·cos·
     e^{−σ̃_t ℓ} (ℓ from the exit point on the outer face), shadowed; lit the pattern at each point, or, for
     patches p ± du/2 ± dv/2, its fraction over the rectangle of pattern pixels that bounds the corners' air
-    rays (as :func:`~polarstripe.sim.grid_sources.footprint_lit` does without a port)."""
+    rays (as :func:`~polarstripe.sim.grid_patches.footprint_lit` does without a port)."""
     m = pts.shape[0]
     if du is None:
         du = dv = np.zeros_like(pts)

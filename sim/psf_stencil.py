@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 from polarstripe.sim.geometry import intersect, pixel_rays, segment_length_in_box
-from polarstripe.sim.grid_sources import quasi_irradiance
+from polarstripe.sim.grid_patches import quasi_irradiance
 from polarstripe.sim.psf import radial_stencil
 from polarstripe.sim.surface import surface_info
 
@@ -44,7 +44,7 @@ def stencil_blur(view, ssrc, legs, rest_unit: np.ndarray, depth: np.ndarray, ray
     rays_of : (origins, directions) of camera pixels (a camera behind a port,
         :func:`~polarstripe.sim.grid_sources.camera_rays`); None: the pinhole's rays.
     light : ``light(points, normals)``, the quasi-direct irradiance there (a projector behind a port); None:
-        :func:`~polarstripe.sim.grid_sources.quasi_irradiance`.
+        :func:`~polarstripe.sim.grid_patches.quasi_irradiance`.
     """
     scene, _, _, cam, dirs, hits, surf, pixels = view
     (n_l, rms_l, mix_l), (n_c, rms_c, mix_c) = legs

@@ -9,13 +9,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from polarstripe.sim.grid_sources import (
-    footprint_lit,
-    glow_field,
-    lit_fraction,
-    object_patches,
-    quasi_irradiance,
-)
+from polarstripe.sim.grid_patches import footprint_lit, glow_field, object_patches, quasi_irradiance
+from polarstripe.sim.grid_sources import lit_fraction
 from polarstripe.sim.multiple import make_grid
 from polarstripe.sim.patterns import parse_pattern
 from polarstripe.sim.render import FIDELITY, render_components

@@ -120,9 +120,9 @@ def test_stepping_together_batches_the_requests_of_a_step():
 
 
 def test_the_patches_light_kept_per_scene_is_the_frames_own():
-    """The glow's patches lit through the terms a scan keeps (grid_sources.py patch_light) get the numbers
+    """The glow's patches lit through the terms a scan keeps (grid_patches.py patch_light) get the numbers
     quasi_irradiance gives with footprint_lit, to the bit, with a sphere shadowing some of them."""
-    from polarstripe.sim.grid_sources import (
+    from polarstripe.sim.grid_patches import (
         footprint_lit,
         object_patches,
         patch_irradiance,
