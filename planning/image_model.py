@@ -47,6 +47,9 @@ from polarstripe.sim.truth import unscattered_object
 # stripe composite's aliasing is small; docs/planning.md §8)
 PX_PER_STRIPE = 10
 MAP_FIDELITY = "preview"   # the compositor's p map is rendered at this level (nodes/compositor_params.py)
+# a scan's grid solves in low rank (sim/multiple.py propagate): the orders' light within ~1e-4 of its peak of
+# the frame-by-frame solve, a fifth off a `standard` scan (docs/planning.md §8, "A scan rendered together")
+SCAN_RANK_TOL = 1e-3
 OWN_MAP = (MAP_FIDELITY, "draft")   # levels that divide by their own flood's DOP (draft: the map's preview
                                     # render would make it dearer than preview, 34-37 s against 19-25 a plan)
 
@@ -208,7 +211,8 @@ class ImageModel:
         sd = with_separation(self.scene, d_lc_m, aim=True)
         truth = unscattered_object(sd)[0].reshape(-1)
         frames = list(stripes(self.n_stripes, self.sheets))[::self.stripe_step]
-        comps = render_scan(sd, [str(p) for p in frames], self.fidelity, orders=self.orders)   # together
+        comps = render_scan(sd, [str(p) for p in frames], self.fidelity, orders=self.orders,
+                            rank_tol=SCAN_RANK_TOL)                                          # together
         parts = [_parts(c) for c in comps]
         if self.fidelity.name in OWN_MAP:
             c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)

@@ -189,7 +189,7 @@ def _transforms32(n: tuple[int, int, int], h: tuple[float, float, float], sigma:
     return shape, f0.astype(np.complex64), f1.astype(np.complex64), f2.astype(np.complex64)
 
 
-def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field:
+def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray, rank_tol: float = 0.0) -> Field:
     """The field (φ, F) of the emission (1/4π)(s₀ + 3 s₁·ω) [W m⁻³ sr⁻¹] of every cell, with extinction σ.
 
     In Fourier space φ̂ = K̂₀ŝ₀ + 3 K̂₁·ŝ₁ and F̂_a = K̂₁ₐŝ₀ + 3 Σ_b K̂₂ₐᵦŝ₁ᵦ: the four inputs go through one
@@ -197,7 +197,12 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field
     in single precision (half the memory traffic; ~10⁻⁷ of the largest value, docs/physics.md §10.3), the
     field returned in double. ``s0`` (…, nx, ny, nz) and ``s1`` (…, nx, ny, nz, 3) may carry leading batch
     axes (the frames of a scan, :mod:`polarstripe.sim.scan_render`): each field of the batch is transformed
-    line by line as it would be alone (the same numbers, ``tests/sim/test_scan_render.py``)."""
+    line by line as it would be alone (the same numbers, ``tests/sim/test_scan_render.py``).
+
+    ``rank_tol`` > 0 (a batch): the batch's sources X (m × 4N) are replaced by their truncated singular
+    value decomposition X ≈ Σ_{i<r} u_i s_i v_iᵀ, keeping s_i > rank_tol·s_0; only the r basis sources v_i are
+    transformed and each field is Σ u_i s_i P(v_i) (the map P is linear). The error of a field is at most
+    the dropped part of its source (docs/physics.md §10.6, "A scan's solves in low rank")."""
     n = tuple(int(m) for m in grid.n)
     shape, f0, f1, f2 = _transforms32(n, tuple(float(x) for x in grid.h), float(sigma))
     lead = s0.shape[:-3]
@@ -205,12 +210,34 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray) -> Field
     src = np.empty((m, 4) + n, np.float32)
     src[:, 0] = s0.reshape((m,) + n)
     src[:, 1:] = np.moveaxis(s1.reshape((m,) + n + (3,)), -1, 1)
-    res = np.empty((m, 4) + n, np.float32)
+    basis, coef = _low_rank(src, rank_tol) if rank_tol > 0.0 and m > 2 else (src, None)
+    res = np.empty(basis.shape, np.float32)
     step = max(1, _BATCH_BYTES // (32 * math.prod(shape[:2]) * (shape[2] // 2 + 1)))   # complex64, 4 inputs
-    for a in range(0, m, step):
-        res[a:a + step] = _convolve(src[a:a + step], n, shape, f0, f1, f2)
+    for a in range(0, len(basis), step):
+        res[a:a + step] = _convolve(basis[a:a + step], n, shape, f0, f1, f2)
+    if coef is not None:
+        res = np.tensordot(coef, res, 1).astype(np.float32)
     phi = np.maximum(res[:, 0], 0.0).astype(float).reshape(lead + n)
     return Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))
+
+
+def _low_rank(src: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """(basis (r, …), coefficients (m, r)) with src ≈ coefficients · basis: the singular vectors of the
+    batch (m, …) whose singular values exceed ``tol`` times the largest, from the eigenvectors of the m × m
+    Gram matrix (cheap for m ≪ N; accurate for the values kept, all ≥ tol·s₀ ≫ √ε·s₀). (src, None) when
+    nothing would be saved."""
+    m = src.shape[0]
+    x = src.reshape(m, -1).astype(np.float64)
+    lam, u = np.linalg.eigh(x @ x.T)
+    lam, u = lam[::-1], u[:, ::-1]
+    if not lam[0] > 0.0:
+        return src, None
+    r = int(np.count_nonzero(lam > (tol * tol) * lam[0]))
+    if r >= m - 1:
+        return src, None
+    s = np.sqrt(lam[:r])
+    basis = ((u[:, :r].T @ x) / s[:, None]).astype(np.float32).reshape((r,) + src.shape[1:])
+    return basis, u[:, :r] * s
 
 
 def _convolve(src: np.ndarray, n, shape, f0, f1, f2) -> np.ndarray:
@@ -254,7 +281,7 @@ def tail_ratio(grid: Grid, sigma_t: float, sigma_s: float, g: float, orders: int
 
 
 def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: float, *,
-                 orders: int = 6) -> Orders:
+                 orders: int = 6, rank_tol: float = 0.0) -> Orders:
     """All orders ≥ 1 of wide-angle scattering of the quasi-direct field ``quasi`` (φ₀, F₀).
 
     Parameters
@@ -265,6 +292,7 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
     orders : orders computed one by one; the rest is the geometric tail φ_K r/(1 − r) with r from
         :func:`tail_ratio`. A fixed count and ratio keep the map from ``quasi`` to the result linear (the
         stripes of a scan add up to the flood frame).
+    rank_tol : a batch's sources in low rank at each order (:func:`propagate`); 0: exact.
 
     Returns
     -------
@@ -276,11 +304,11 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
         z = Field(np.zeros_like(quasi.phi), np.zeros_like(quasi.flux))
         return Orders(z, z, 0, 0.0)
     s0, s1 = _emission(quasi, sigma_s, g)
-    first = propagate(grid, sigma_t, s0, s1)
+    first = propagate(grid, sigma_t, s0, s1, rank_tol)
     total, last = first, first
     for _ in range(int(orders) - 1):
         s0, s1 = _emission(last, sigma_s, g)
-        last = propagate(grid, sigma_t, s0, s1)
+        last = propagate(grid, sigma_t, s0, s1, rank_tol)
         total = total + last
     ratio = tail_ratio(grid, float(sigma_t), float(sigma_s), float(g), int(orders))
     tail = ratio / (1.0 - ratio)
@@ -289,7 +317,7 @@ def solve_orders(grid: Grid, quasi: Field, sigma_t: float, sigma_s: float, g: fl
 
 
 def solve_polarized(grid: Grid, quasi: Field, sigma_p: float, sigma_s: float, g: float, *, kappa: float,
-                    orders: int = 6) -> Field:
+                    orders: int = 6, rank_tol: float = 0.0) -> Field:
     """The polarized part Σ_k κ^k φ_p^(k) of the orders ≥ 1 (docs/physics.md §10.4).
 
     ``quasi`` is the quasi-direct field's polarized part (deposited with the polarized extinction σ_p),
@@ -307,7 +335,7 @@ def solve_polarized(grid: Grid, quasi: Field, sigma_p: float, sigma_s: float, g:
     pol = Field(np.zeros_like(quasi.phi), np.zeros_like(quasi.flux))
     for _ in range(int(orders)):
         s0, s1 = _emission(last, sigma_s, g)
-        last = propagate(grid, sigma_p, s0, s1)
+        last = propagate(grid, sigma_p, s0, s1, rank_tol)
         weight *= kappa
         pol = Field(pol.phi + weight * last.phi, pol.flux + weight * last.flux)
     ratio = kappa * tail_ratio(grid, float(sigma_p), float(sigma_s), float(g), int(orders))
@@ -334,11 +362,12 @@ class GridSolve:
         return (self.grid, float(self.sigma), float(self.sigma_s), float(self.g), int(self.orders),
                 self.kappa, self.quasi.phi.shape)
 
-    def solve(self, quasi: Field):
+    def solve(self, quasi: Field, rank_tol: float = 0.0):
         if self.kappa is None:
-            return solve_orders(self.grid, quasi, self.sigma, self.sigma_s, self.g, orders=self.orders)
+            return solve_orders(self.grid, quasi, self.sigma, self.sigma_s, self.g, orders=self.orders,
+                                rank_tol=rank_tol)
         return solve_polarized(self.grid, quasi, self.sigma, self.sigma_s, self.g, kappa=self.kappa,
-                               orders=self.orders)
+                               orders=self.orders, rank_tol=rank_tol)
 
 
 def answer(steps):
@@ -352,17 +381,18 @@ def answer(steps):
         return done.value
 
 
-def solve_each(requests: list[GridSolve]) -> list:
+def solve_each(requests: list[GridSolve], rank_tol: float = 0.0) -> list:
     """The answers to requests of one :meth:`GridSolve.key`, solved as one batch along a leading axis (the
     map is the same for each; every field comes out as its own solve gives it). A request whose source is
-    zero gets the zero answer its own solve gives (no orders counted)."""
+    zero gets the zero answer its own solve gives (no orders counted). ``rank_tol`` > 0: the batch in low
+    rank (:func:`propagate`), each field then within that tolerance of its own solve, not equal to it."""
     first = requests[0]
     live = [k for k, r in enumerate(requests) if np.any(r.quasi.phi > 0)]
     out = [first.solve(r.quasi) if k not in live else None for k, r in enumerate(requests)]
     if not live:
         return out
     both = first.solve(Field(np.stack([requests[k].quasi.phi for k in live]),
-                             np.stack([requests[k].quasi.flux for k in live])))
+                             np.stack([requests[k].quasi.flux for k in live])), rank_tol)
     for j, k in enumerate(live):
         if first.kappa is not None:
             out[k] = Field(both.phi[j], both.flux[j])

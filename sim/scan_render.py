@@ -24,10 +24,13 @@ from polarstripe.sim.threads import each_frame, threads
 PIXELS_IN_FLIGHT = 2_000_000     # frames stepped together hold about this many pixels (memory)
 
 
-def render_scan(scene: Scene, patterns, fidelity: str | Fidelity = "standard", **kwargs) -> list[Components]:
+def render_scan(scene: Scene, patterns, fidelity: str | Fidelity = "standard", *, rank_tol: float = 0.0,
+                **kwargs) -> list[Components]:
     """``[render_components(scene, p, fidelity, **kwargs) for p in patterns]``, the frames stepped together
     (module docstring). With more than one model thread (:func:`polarstripe.sim.threads.threads`) the scan
-    is cut into that many chunks, each rendered together on a frame worker."""
+    is cut into that many chunks, each rendered together on a frame worker. ``rank_tol`` > 0: the grid
+    solves of a batch in low rank (:func:`polarstripe.sim.multiple.propagate`; the frames then differ from
+    their own renders by about that fraction of the orders' light, docs/physics.md §10.6)."""
     patterns = list(patterns)
     w, h = scene.camera.resolution
     pixels = kwargs.get("pixels")
@@ -39,13 +42,13 @@ def render_scan(scene: Scene, patterns, fidelity: str | Fidelity = "standard", *
     chunks = [patterns[a:a + per] for a in range(0, len(patterns), per)]
 
     def together(chunk):
-        return step_together([component_steps(scene, p, fidelity, **kwargs) for p in chunk])
+        return step_together([component_steps(scene, p, fidelity, **kwargs) for p in chunk], rank_tol)
 
     done = each_frame(together, chunks) if workers > 1 and len(chunks) > 1 else [together(c) for c in chunks]
     return [c for chunk in done for c in chunk]
 
 
-def step_together(frames: list) -> list:
+def step_together(frames: list, rank_tol: float = 0.0) -> list:
     """Run generators that yield :class:`~polarstripe.sim.multiple.GridSolve` side by side: the requests of
     one step with the same key are answered as one batch. Returns what each returns, in order."""
     out: list = [None] * len(frames)
@@ -58,7 +61,7 @@ def step_together(frames: list) -> list:
             groups[request.key()].append(k)
         answers = {}
         for ks in groups.values():
-            for k, a in zip(ks, solve_each([pending[k] for k in ks]), strict=True):
+            for k, a in zip(ks, solve_each([pending[k] for k in ks], rank_tol), strict=True):
                 answers[k] = a
         pending = {}
         for k, a in answers.items():
