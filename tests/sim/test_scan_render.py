@@ -108,7 +108,7 @@ def test_stepping_together_batches_the_requests_of_a_step():
 
     batches = []
     real = scan.solve_each
-    scan.solve_each = lambda reqs: batches.append(len(reqs)) or real(reqs)
+    scan.solve_each = lambda reqs, *tol: batches.append(len(reqs)) or real(reqs, *tol)
     try:
         out = step_together([frame(k) for k in range(3)])
     finally:
