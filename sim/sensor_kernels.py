@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 from numba import njit
-from polarstripe.sim.counter_rng import normal, own_seed, pixel_normal, splitmix, unit
+from polarstripe.sim.counter_rng import normal, own_seed, pixel_normals, splitmix, unit
 from polarstripe.sim.frame_kernels import stokes_norm
 
 POISSON_EXACT_BELOW = 30.0   # mean e⁻ below which shot noise is drawn exactly (docs/physics.md §7)
@@ -120,7 +120,7 @@ def poisson_count(lam, key, n):
     return max(np.rint(x), 0.0)                   # rint: ties (probability 0) to even
 
 
-_CHUNK = 1024        # pixels whose mean electrons are computed in one vectorizable loop before their draws
+_CHUNK = 1024        # pixels whose means, normals and DN are each made in one loop that vectorizes
 
 
 @njit(inline="always")
@@ -134,30 +134,40 @@ def _mean_electrons(radiance, e_map, dark_e, start, buf):
     return m
 
 
+@njit(inline="always")
+def _to_dn(e, m, inv_gain, offset, top, out, start):
+    """out[start + k] = clip(rint(e[k]/K + offset), 0, top) for k < m (uint16 ``out``)."""
+    for k in range(m):
+        out[start + k] = min(max(np.rint(e[k] * inv_gain + offset), 0.0), top)
+
+
 @njit(cache=True, nogil=True)
 def expose_poisson(radiance, e_map, dark_e, keys, first, read_e, full_well, inv_gain, offset, top, out):
     """The EMVA 1288 sensor over flat arrays whose item j is pixel ``first + j`` (uint16 ``out``): μ of
     :func:`_mean_electrons`, electrons min(Poisson(μ), full well) + σ_r·z, y = clip(rint(e/K + offset), 0,
     top) with ``inv_gain`` = 1/K. Draws (``keys``: the frame's two, sim/counter_rng.py): the read noise's
     normal (the pixel's first word), then the shot noise's count from the pixel's own sequence."""
-    buf = np.empty(_CHUNK)
+    lam, z, e = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK)
+    n, seeds = np.empty(_CHUNK, np.uint64), np.empty(_CHUNK, np.uint64)
     for start in range(0, out.size, _CHUNK):
-        for k in range(_mean_electrons(radiance, e_map, dark_e, start, buf)):
-            i = first + start + k
-            z, n = pixel_normal(keys, i)
-            e = min(poisson_count(buf[k], own_seed(keys, i), n), full_well) + read_e * z
-            out[start + k] = min(max(np.rint(e * inv_gain + offset), 0.0), top)
+        m = _mean_electrons(radiance, e_map, dark_e, start, lam)
+        pixel_normals(keys, first + start, z[:m], n[:m])
+        for k in range(m):
+            seeds[k] = own_seed(keys, first + start + k)
+        for k in range(m):
+            e[k] = min(poisson_count(lam[k], seeds[k], n[k]), full_well) + read_e * z[k]
+        _to_dn(e, m, inv_gain, offset, top, out, start)
 
 
 @njit(cache=True, nogil=True)
 def expose_gaussian(radiance, e_map, dark_e, keys, first, read_e, full_well, inv_gain, offset, top, out):
     """As :func:`expose_poisson` with shot and read noise as one normal: e = min(μ + √(μ + σ_r²)·z, full
     well), z the pixel's first normal."""
-    buf = np.empty(_CHUNK)
+    lam, z, n = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK, np.uint64)
     read_var = read_e * read_e
     for start in range(0, out.size, _CHUNK):
-        for k in range(_mean_electrons(radiance, e_map, dark_e, start, buf)):
-            lam = buf[k]
-            z = pixel_normal(keys, first + start + k)[0]
-            e = min(lam + math.sqrt(lam + read_var) * z, full_well)
-            out[start + k] = min(max(np.rint(e * inv_gain + offset), 0.0), top)
+        m = _mean_electrons(radiance, e_map, dark_e, start, lam)
+        pixel_normals(keys, first + start, z[:m], n[:m])
+        for k in range(m):
+            lam[k] = min(lam[k] + math.sqrt(lam[k] + read_var) * z[k], full_well)
+        _to_dn(lam, m, inv_gain, offset, top, out, start)
