@@ -24,6 +24,7 @@ from collections import OrderedDict, deque
 from concurrent.futures import Future
 
 import numpy as np
+from polarstripe.heap import shared_zeros
 from polarstripe.msgs.patterns import following
 from polarstripe.msgs.rig import RenderRequest
 from polarstripe.nodes.simulator_frames import to_camera
@@ -52,7 +53,16 @@ class FrameSource:
 
 def frame_source(scene: Scene, pattern: str, fidelity) -> FrameSource:
     comp = render_components(scene, pattern, fidelity)
-    return FrameSource(analyzer_basis(comp), comp.Bq + comp.Sq, comp.Bu + comp.Su)   # not the model's arrays
+    return FrameSource(analyzer_basis(comp), _stokes(comp.Bq, comp.Sq), _stokes(comp.Bu, comp.Su))
+
+
+def _stokes(b: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """b + s: the backscatter's and the object light's Stokes; ``b`` itself where ``s`` is the shared zeros
+    (no port) and ``b`` holds its own memory (a kept source then pins no other array of the model's)."""
+    owner = b if b.base is None else b.base
+    if s is shared_zeros(b.shape) and isinstance(owner, np.ndarray) and owner.nbytes == b.nbytes:
+        return b
+    return b + s
 
 
 class Sources:

@@ -81,7 +81,7 @@ def expose(radiance: np.ndarray, camera: Camera, rng: int | np.random.Generator 
     Notes
     -----
     μ_e = L·e_L + μ_dark (capped at 1e12), e = min(Poisson(μ_e), full well) + N(0, σ_r²),
-    y = clip(round(e/K + offset), 0, 2^bits − 1): one compiled pass (sim/sensor_kernels.py), in bands of
+    y = clip(round(e/K + offset), 0, 2^bits − 1): one compiled kernel (sim/sensor_kernels.py), in bands of
     pixels on the model's threads (sim/threads.py). Each pixel draws from its own window of a counter-based
     stream keyed by the generator (sim/counter_rng.py), so a seed gives the same frame on any number of
     threads. Poisson counts are exact below μ_e = 30 and a Cornish–Fisher expansion above

@@ -2,9 +2,10 @@
 part, and the EMVA 1288 sensor in one pass, draws included (docs/physics.md §4.1, §7).
 
 Each pass reads every pixel once and writes it once, where numpy needs one pass (and one temporary) per
-operation. The sensor's draws come from the pixel's own window of a counter-based stream
-(sim/counter_rng.py), so a band of pixels can be exposed on any thread and the frame is the same. The
-passes release the GIL.
+operation; the sensor takes the frame in chunks of 1024 pixels, each step of a chunk one loop (those that
+vectorize apart from the draws that branch). The sensor's draws come from the pixel's own window of a
+counter-based stream (sim/counter_rng.py), so a band of pixels can be exposed on any thread and the frame
+is the same. The passes release the GIL.
 """
 
 from __future__ import annotations

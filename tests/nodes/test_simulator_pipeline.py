@@ -59,3 +59,21 @@ def test_the_loop_answers_other_services_while_a_frame_is_made_and_frames_come_i
     assert first.done and first.result().step == 0 and second.step == 1
     h.call("simulator/fault", SimFault(command="frame_delay 0"))
     assert h.call("simulator/render", RenderRequest(pattern="flood", step=2)).step == 2
+
+
+@pytest.mark.parametrize("port", [False, True])
+def test_a_frame_source_holds_the_linear_stokes_of_the_backscatter_and_the_object_light(port):
+    """The mosaic's (S1, S2) = (Bq + Sq, Bu + Su) of a frame source: without a port (Sq, Su the shared
+    zeros; Bq, Bu kept as they are) and behind a camera port of glass (its faces polarize the object light)."""
+    from polarstripe.nodes.simulator_pipeline import frame_source
+    from polarstripe.sim.render import render_components, resolve_fidelity
+    from polarstripe.sim.scene import load_scene
+    from polarstripe.sim.scene_port import Port
+    scene = load_scene(None)
+    cam = scene.camera.replace(resolution=(48, 36))
+    if port:
+        cam = cam.replace(port=Port(distance_m=0.02, thickness_m=0.01, n_glass=1.5, n_water=1.333))
+    scene, fid = scene.replace(camera=cam), resolve_fidelity("preview")
+    source, comp = frame_source(scene, "stripe:1/4", fid), render_components(scene, "stripe:1/4", fid)
+    assert np.any(comp.Sq) == port
+    assert np.array_equal(source.s1, comp.Bq + comp.Sq) and np.array_equal(source.s2, comp.Bu + comp.Su)
