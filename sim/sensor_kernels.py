@@ -21,7 +21,7 @@ POISSON_EXACT_BELOW = 30.0   # mean e⁻ below which shot noise is drawn exactly
 _RECIPROCALS = 1.0 / np.maximum(np.arange(128.0), 1.0)   # 1/k: the inversion's recursion without a division
 _PAIR_RECIPROCALS = 1.0 / ((np.arange(128.0) + 1.0) * (np.arange(128.0) + 2.0))   # 1/((k + 1)(k + 2))
 _ONE = np.uint64(1)
-_STEPS_PER_E = 8      # the tabulated means λ₀ = j/8 e⁻ below POISSON_EXACT_BELOW (a power of two: λ·8 is exact)
+_STEPS_PER_E = 8      # the tabulated means λ₀ = j/8 e⁻ below POISSON_EXACT_BELOW (a power of two: 8λ exact)
 _BUCKETS = 64         # the guide tables' buckets of u (a power of two: u·64 is exact)
 
 

@@ -64,7 +64,8 @@ def test_the_loop_answers_other_services_while_a_frame_is_made_and_frames_come_i
 @pytest.mark.parametrize("port", [False, True])
 def test_a_frame_source_holds_the_linear_stokes_of_the_backscatter_and_the_object_light(port):
     """The mosaic's (S1, S2) = (Bq + Sq, Bu + Su) of a frame source: without a port (Sq, Su the shared
-    zeros; Bq, Bu kept as they are) and behind a camera port of glass (its faces polarize the object light)."""
+    zeros; Bq, Bu kept as they are) and behind a camera port of glass (its faces polarize the object
+    light)."""
     from polarstripe.nodes.simulator_pipeline import frame_source
     from polarstripe.sim.render import render_components, resolve_fidelity
     from polarstripe.sim.scene import load_scene
