@@ -18,6 +18,7 @@ import numpy as np
 from polarstripe.sim.frame_kernels import polarized_gain
 from polarstripe.sim.geometry import Hits, box_interval
 from polarstripe.sim.geometry_cache import cached
+from polarstripe.sim.geometry_cache import camera_only as pose_free
 from polarstripe.sim.grid_kernels import coarse_silhouettes, upsample_grid
 from polarstripe.sim.grid_sources import source_field
 from polarstripe.sim.multiple import Field, Grid, GridSolve, answer
@@ -36,12 +37,13 @@ def scaled_source(src: Source, plan: OrdersPlan) -> Source:
     return dataclasses.replace(src, sigma_t=sc.sigma_t, sigma_s=sc.sigma_s, phase=sc.phase)
 
 
-def geo(view: View, name, make):
+def geo(view: View, name, make, camera_only: bool = False):
     """``make()`` once per scene and frame size for whole frames (:mod:`polarstripe.sim.geometry_cache`),
-    every time for requested pixels."""
+    every time for requested pixels; ``camera_only``: the value does not depend on the projector, kept once
+    for every projector pose (:func:`polarstripe.sim.geometry_cache.camera_only`)."""
     if view.pixels is not None:
         return make()
-    return cached(view.scene, (name, view.cam.w, view.cam.h), make)
+    return cached(pose_free(view.scene) if camera_only else view.scene, (name, view.cam.w, view.cam.h), make)
 
 
 def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
@@ -60,7 +62,7 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
         px = np.stack([a.ravel() for a in np.meshgrid(gr, gc, indexing="ij")], 1)
         return px, *rays(view.scene, cam, px)
 
-    px, dirs, hits = geo(view, ("coarse", div), coarse_rays)
+    px, dirs, hits = geo(view, ("coarse", div), coarse_rays, camera_only=True)
     coarse = view._replace(dirs=dirs, hits=hits, pixels=px)
     parts = np.stack(single_parts(coarse, ssrc, keys)[2:]).reshape(4, gh, gw)
 
@@ -73,7 +75,7 @@ def b_single(view: View, ssrc: Source, need, div: int, x_end: np.ndarray):
         idx = np.nonzero(bad)[0]
         return idx, view.dirs[idx], take(view.hits, idx)
 
-    idx, sub_dirs, sub_hits = geo(view, ("silhouettes", div), silhouettes)
+    idx, sub_dirs, sub_hits = geo(view, ("silhouettes", div), silhouettes, camera_only=True)
     made = 4 if parts[3].any() else 3                   # V is 0 for linear light: left at 0, not upsampled
     out = np.empty((4, cam.h * cam.w))
     if made < 4:

@@ -4,7 +4,8 @@ A scan renders one scene many times with only the pattern changing: the camera r
 surface under each pixel, the rays' in-medium intervals, the shadow rays from the source and the unscattered
 light D at every hit (before the pattern selects the lit ones) are the same for every frame. They are
 computed once per scene and kept here, keyed by the (frozen, hashable) :class:`~polarstripe.sim.scene.Scene`
-and a name; a changed camera, projector, medium or object is a different scene and recomputes. Values are
+and a name; a changed camera, projector, medium or object is a different scene and recomputes (what the
+projector does not change is kept under :func:`camera_only`'s key, for every projector pose). Values are
 made read-only so that no caller can change what the next frame reads. Per-point kernels compute each point
 independently, so a cached frame is bit-identical to an uncached one (``tests/sim/test_geometry_cache.py``).
 
@@ -75,6 +76,13 @@ def cached(scene, name: tuple | str, make: Callable[[], Any]) -> Any:
             del _making[key]
         busy.set()
     return value
+
+
+def camera_only(scene):
+    """The key under which :func:`cached` keeps what only the camera, the objects and the medium fix, not the
+    projector (the camera's rays and hits, the view rays' table, the glow's patches and weights): one entry
+    for every projector pose, e.g. the separations of a plan, which differ in the projector alone."""
+    return ("camera only", scene.medium, scene.camera, scene.objects)
 
 
 def enabled() -> bool:

@@ -115,7 +115,7 @@ def glow_steps(view, ssrc, plan, st, grid: Grid, total: Field, patch_light=None)
     spacing = st.patch_cells * float(grid.h.min())
     basis = geo(view, ("glow", grid, spacing, st.glow_dirs, float(sc.sigma_t), tuple(phase)),
                 lambda: glow_basis(scene, grid, grid.centres().reshape(-1, 3), eye, float(sc.sigma_t), phase,
-                                   spacing, st.glow_dirs))
+                                   spacing, st.glow_dirs), camera_only=True)
     patches = basis.patches
     if patches.area.size == 0:
         return zero_field(grid), zero_field(grid)

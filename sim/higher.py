@@ -246,7 +246,8 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
         dirs, hits = rays(view.scene, half)
         return dirs, hits, surface_info(view.scene.objects, hits)
 
-    small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry), None)
+    small = View(view.scene, view.pattern, view.fid, half, *geo(view, "half", geometry, camera_only=True),
+                 None)
     _, p_half, h_half, b, bq, bu, bv = yield from _components(small, src, plan, need, st, parts=True)
     d, _ = _direct_pair(view, src, scaled_source(src, plan), tuple(k for k in need if k == "D"))
     d = d if d.size else np.zeros(cam.w * cam.h)
@@ -255,7 +256,7 @@ def _half_resolution(view: View, src: Source, plan: OrdersPlan, need, st: Higher
     out, a = np.empty((len(smooth) - 1, cam.w * cam.h)), np.empty(cam.w * cam.h)   # every pixel written
     ids_small = small.surf.object_id.reshape(half.h, half.w)
     fix, fix_start = geo(view, "half_fix", lambda: half_fix(view.surf.object_id.reshape(cam.h, cam.w),
-                                                            ids_small, view.surf.albedo))
+                                                            ids_small, view.surf.albedo), camera_only=True)
     args = (smooth, p_half.reshape(half.h, half.w), ids_small, view.surf.object_id, view.surf.albedo, fix,
             fix_start, a, out)
     in_bands(cam.h, lambda r0, r1: half_up(*args, r0, r1), min_size=16)
@@ -288,7 +289,7 @@ def _ray_geometry(view: View, grid: Grid) -> RayGeometry:
         one = normals[0].copy() if normals.size and (normals == normals[0]).all() else None
         return RayGeometry(t0, t1, x_end, x0, ell_c, np.ascontiguousarray(view.hits.point[hit]), normals, one)
 
-    return geo(view, ("rays", tuple(grid.lo), tuple(grid.hi)), make)
+    return geo(view, ("rays", tuple(grid.lo), tuple(grid.hi)), make, camera_only=True)
 
 
 def _irradiance(grid: Grid, field: Field, points: np.ndarray, normals: np.ndarray,
@@ -352,7 +353,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
     coarse = (min(cam.w, max(cam.w // st.view_div, 16)), min(cam.h, max(cam.h // st.view_div, 12)))
     table = None if view.pixels is not None else geo(view, ("view_table", grid, coarse, st.view_steps),
                                                      lambda: view_table(grid, cam, x_end, coarse,
-                                                                        st.view_steps))
+                                                                        st.view_steps), camera_only=True)
     seen_vals = view_integral(grid, fields, args, view.cam, view.pixels, x_end, coarse, st.view_steps, table)
     if "B" in need:
         B, Bq, Bu, Bv = b_single(view, psrc if pol else ssrc, need, st.b_div, x_end)
@@ -387,7 +388,7 @@ def _components(view: View, src: Source, plan: OrdersPlan, need, st: HigherSetti
             e2 = _irradiance(grid, orders.total - orders.first + glow_scattered, hp, hn, rg.one_normal)
         else:
             e2 = _irradiance(grid, orders.total + glow_scattered, hp, hn, rg.one_normal)
-        att = geo(view, ("att_c", sc.sigma_t), lambda: np.exp(-sc.sigma_t * ell_c[hit]))
+        att = geo(view, ("att_c", sc.sigma_t), lambda: np.exp(-sc.sigma_t * ell_c[hit]), camera_only=True)
         rest[hit] += e2 * att / np.pi
         light = object_light(view, ssrc, plan, quasi, rest, (ell_l, ell_c))
         if parts:

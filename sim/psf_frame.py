@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from polarstripe.sim.geometry_cache import cached
+from polarstripe.sim.geometry_cache import cached, camera_only
 from polarstripe.sim.psf import N_LADDER, HaloTable, blur_image, blur_levels, mixture
 from polarstripe.sim.threads import in_bands
 
@@ -170,7 +170,7 @@ def object_radiance(view, table: HaloTable, f_sigma_s: float, quasi: np.ndarray,
                                          spread_l[a:b], keep_l[a:b]))
     halo_l = np.zeros(npx)
     for (k, mask), mix, levels in zip(legs.masks, legs.mixtures, legs.levels, strict=True):
-        norms = cached(view.scene, ("mask_norms", cam.w, cam.h, k), dict)  # the object's mask, every pattern
+        norms = cached(camera_only(view.scene), ("mask_norms", cam.w, cam.h, k), dict)   # any pose's
         halo_l += blur_image(spread_l.reshape(shape), legs.source.rms.reshape(shape), mix, mask, norms,
                              levels).ravel()
     extra, spread_c = np.empty(npx), np.empty(npx, np.float32)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from polarstripe.heap import keep_freed, shared_zeros
 from polarstripe.sim.geometry import intersect, pinhole_frame, pixel_rays
-from polarstripe.sim.geometry_cache import cached
+from polarstripe.sim.geometry_cache import cached, camera_only
 from polarstripe.sim.higher import HigherSettings, higher_steps
 from polarstripe.sim.multiple import answer
 from polarstripe.sim.orders import OrdersPlan, plan_orders
@@ -259,8 +259,8 @@ def component_steps(scene: Scene, pattern: str | PatternSpec, fidelity: str | Fi
         D, A, B, Bq, Bu, Bv, Sq, Su = (a.reshape(shape) for a in parts)
         return Components(D, A, B, Bq, Bu, surf, scene, pat, fid, pixels, time.perf_counter() - t_start, plan,
                           Bv, Sq, Su)
-    if pixels is None:        # the pattern-independent geometry, once per scene (sim/geometry_cache.py)
-        dirs, hits, surf = cached(scene, "camera", lambda: _camera_geometry(scene, cam, None))
+    if pixels is None:        # the camera's geometry, once for every projector pose (sim/geometry_cache.py)
+        dirs, hits, surf = cached(camera_only(scene), "camera", lambda: _camera_geometry(scene, cam, None))
     else:
         dirs, hits, surf = _camera_geometry(scene, cam, pixels)
     n = dirs.shape[0]

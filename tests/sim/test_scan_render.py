@@ -146,3 +146,31 @@ def test_the_patches_light_kept_per_scene_is_the_frames_own():
         want = quasi_irradiance(src, s.objects, pa.point, pa.normal, lit)
         assert want.max() > 0
         np.testing.assert_array_equal(patch_irradiance(src, light), want, err_msg=p)
+
+
+def test_what_the_projector_does_not_change_is_kept_for_every_pose():
+    """A second separation reuses the first's camera-only values (geometry_cache.camera_only: the camera's
+    rays, the view table, the glow's basis, ...) and renders, at every level, the frames of a cold cache."""
+    from polarstripe.sim.geometry_cache import camera_only
+    from polarstripe.sim.scene import with_separation
+
+    base = _scene(64)
+    pats = ["stripe:2/6", "flood"]
+    for fidelity in ("preview", "standard", PLAN_FIDELITY["draft"]):
+        far = with_separation(base, 0.25)
+        assert camera_only(far) == camera_only(with_separation(base, 0.08)) and far != base
+        geometry_cache.clear()
+        misses = geometry_cache.stats()["misses"]
+        cold_scan = render_scan(far, pats, fidelity)
+        made_cold = geometry_cache.stats()["misses"] - misses
+        geometry_cache.clear()
+        render_scan(with_separation(base, 0.08), pats, fidelity)
+        misses = geometry_cache.stats()["misses"]
+        warm = render_scan(far, pats, fidelity)
+        assert geometry_cache.stats()["misses"] - misses < made_cold - 3     # the camera's values were kept
+        geometry_cache.clear()
+        cold = [render_components(far, p, fidelity) for p in pats]
+        for a, b, c in zip(cold, warm, cold_scan, strict=True):
+            for k in FIELDS:
+                np.testing.assert_array_equal(getattr(b, k), getattr(a, k), err_msg=f"{a.pattern} {k}")
+                np.testing.assert_array_equal(getattr(c, k), getattr(a, k), err_msg=f"{a.pattern} {k}")
