@@ -154,18 +154,19 @@ def kernel_tables(n: tuple[int, int, int], h: tuple[float, float, float], sigma:
 def kernel_product(f0, f1, f2, t, out):
     """The P1 kernels' product in Fourier space, per frequency and per field of a batch: out₀ = K̂₀ŝ₀ +
     3(K̂₁·ŝ₁) and outₐ = K̂₁ₐŝ₀ + 3(K̂₂ₐ·ŝ₁) (t (m, 4, …) = m × (ŝ₀, ŝ₁ₓ, ŝ₁ᵧ, ŝ₁_z), f1 (3, …), f2 (3, 3, …);
-    the operations of the numpy expression, in its order, in one pass that reads each frequency's kernels
-    once for the whole batch)."""
+    in one pass that reads each frequency's kernels once for the whole batch; all in single precision, as the
+    transforms are: the factor 3 a float32, not an integer that would promote the sums to double)."""
     a_, b_, c_ = f0.shape
+    three = np.float32(3.0)
     for q in range(t.shape[0]):
         for i in range(a_):
             for j in range(b_):
                 for k in range(c_):
                     s0, sx, sy, sz = t[q, 0, i, j, k], t[q, 1, i, j, k], t[q, 2, i, j, k], t[q, 3, i, j, k]
-                    out[q, 0, i, j, k] = f0[i, j, k] * s0 + 3 * (f1[0, i, j, k] * sx + f1[1, i, j, k] * sy
+                    out[q, 0, i, j, k] = f0[i, j, k] * s0 + three * (f1[0, i, j, k] * sx + f1[1, i, j, k] * sy
                                                                  + f1[2, i, j, k] * sz)
                     for a in range(3):
-                        out[q, 1 + a, i, j, k] = f1[a, i, j, k] * s0 + 3 * (
+                        out[q, 1 + a, i, j, k] = f1[a, i, j, k] * s0 + three * (
                             f2[a, 0, i, j, k] * sx + f2[a, 1, i, j, k] * sy + f2[a, 2, i, j, k] * sz)
 
 
