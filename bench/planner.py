@@ -1,10 +1,12 @@
 """``polarstripe bench planner``: the planner's ladder, per fidelity level the CPU time of a full plan and the
 regret of its picks against the end-to-end truth.
 
-A full plan is the planner issue's: 60 separations (``--separations``), flood and stripes, each with and
-without a polarizer (one model evaluation per separation and modality serves every reading), every order of
-scattering the scene needs, on one core (one model thread, :mod:`polarstripe.sim.threads`), timed as process
-CPU. Each level's picks are then judged end to end on the default tank at σ_t = 5 m⁻¹
+A full plan is the planner's search (``--searches``: ``coarse``, the default, and/or ``exhaustive``, the 60
+separations and two bisection rounds of the search before it; docs/planning.md §8, "The search"), flood and
+stripes, each with and without a polarizer (one model evaluation per separation and modality serves every
+reading), every order of scattering the scene needs, on one core (one model thread,
+:mod:`polarstripe.sim.threads`), timed as process CPU: every evaluation the search makes, none scaled.
+Each level's picks are then judged end to end on the default tank at σ_t = 5 m⁻¹
 (``bench/scenes/tank_sigma5.toml``; ``--scenes`` or the positional scene for others): full scans through the
 compositor's pipeline on a log grid of separations, at every pick and one bisection round around each best
 (:mod:`polarstripe.planning.validate_table`), scanned once for every level and kept in ``--end-to-end``'s
@@ -13,8 +15,8 @@ cache, so a second run only plans; the scans keep the scene's exposure, as the p
 the image the compositor publishes. The plans render at the scans' width (``--width``): a stripe plan's pick
 depends on the camera's pixel grid (docs/planning.md §8).
 
-Targets: ≤ 2 s CPU per full plan at ``standard``, regret ≤ 1.05. ``--quick`` plans 12 separations (the time
-scaled to 60) at 96 px against a 4-separation grid without bisection: about a minute instead of several.
+Targets: ≤ 2 s CPU per full plan at ``standard``, regret ≤ 1.05. ``--quick`` plans at 96 px against a
+4-separation grid without bisection: about a minute instead of several.
 ``--end-to-end`` judges the planner variants on every scene instead (:mod:`polarstripe.bench.planner_e2e`).
 """
 
@@ -29,32 +31,33 @@ import numpy as np
 from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.image_model import plan_fidelity
-from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
+from polarstripe.planning.planner import SEARCHES, default_separations, plan, plan_model
 from polarstripe.planning.validate import ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
 from polarstripe.sim.threads import set_threads, threads
 
-FULL_PLAN = 60                      # separations of the issue's full plan
 TARGET_CPU_S = 2.0                  # per full plan at standard, one core
 DEFAULT_SCENE = "tank_sigma5"
 METHOD_NAMES = ("flood", "polarized_flood", "stripes", "polarized_stripes")
-QUICK = {"separations": 12, "grid": 4, "refine": 0, "width": 96}
+QUICK = {"grid": 4, "refine": 0, "width": 96}
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", nargs="?", default=None,
                         help="scene TOML (default: the tank at sigma_t 5, bench/scenes/tank_sigma5.toml)")
+    parser.add_argument("--searches", default="coarse",
+                        help=f"comma-separated planner searches, each a row per level: {', '.join(SEARCHES)} "
+                             "(default coarse)")
     parser.add_argument("--separations", type=int, default=None,
-                        help=f"separations per plan (default {FULL_PLAN}, the full plan; --quick "
-                             f"{QUICK['separations']}, its time scaled to {FULL_PLAN})")
+                        help="separations of every search's first grid (default: each search's own)")
     parser.add_argument("--fidelities", default="draft,preview,standard",
                         help="comma-separated fidelity levels of the planner's model (default "
                              "draft,preview,standard; draft: the planner's own, below preview; reference: "
                              "whole frames with A at every pixel, minutes per separation)")
     parser.add_argument("--quick", action="store_true",
-                        help=f"a short ladder: {QUICK['separations']} separations at {QUICK['width']} px, "
-                             f"the truth on {QUICK['grid']} separations without bisection")
+                        help=f"a short ladder: plans at {QUICK['width']} px, the truth on {QUICK['grid']} "
+                             "separations without bisection")
     parser.add_argument("--exposure", choices=["scene", "auto"], default="scene",
                         help="exposure rule of the plan (see `polarstripe plan --help`)")
     planner_e2e.configure(parser)
@@ -76,62 +79,39 @@ def _variants(text: str | None) -> list[str]:
     return variants
 
 
-def _settings(args) -> tuple[ScanSettings, int, int, int]:
-    """The scans' settings, the plan's separations, the grid and the bisection rounds (``--quick``'s where
-    the user left an option at its default)."""
+def _searches(text: str) -> list[str]:
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names or any(v not in SEARCHES for v in names):
+        raise PolarstripeError(f"--searches: comma-separated {', '.join(SEARCHES)}, got {text!r}")
+    return names
+
+
+def _settings(args) -> tuple[ScanSettings, int | None, int, int]:
+    """The scans' settings, the plans' first-grid separations (None: each search's), the truth's grid and
+    its bisection rounds (``--quick``'s where the user left an option at its default)."""
     quick = args.quick
     width = QUICK["width"] if quick and args.width is None else args.width or planner_e2e.DEFAULT_WIDTH
-    n_sep = args.separations or (QUICK["separations"] if quick else FULL_PLAN)
+    n_sep = args.separations
     grid = QUICK["grid"] if quick and args.grid is None else args.grid or planner_e2e.DEFAULT_GRID
     refine = QUICK["refine"] if quick and args.refine is None else (
         planner_e2e.DEFAULT_REFINE if args.refine is None else args.refine)
     settings = ScanSettings(fidelity=args.fidelity, orders=args.orders, n_stripes=args.stripes, width=width,
                             exposure=args.scan_exposure or "scene", seed=args.seed, p_rule=args.p_rule)
     settings.check()
-    if n_sep < 2:
+    if n_sep is not None and n_sep < 2:
         raise PolarstripeError(f"--separations: need at least 2, got {n_sep}")
     return settings, n_sep, grid, refine
 
 
-class _Bisections:
-    """The plan's model, timing the evaluations off the grid (the planner's bisections, planner.REFINE): a
-    plan timed on fewer separations than a full plan's scales its grid part, not these."""
-
-    def __init__(self, model, grid):
-        self._model, self._grid = model, {round(float(d), 9) for d in grid}
-        self.cpu = self.wall = 0.0
-        self.n = 0
-
-    def __getattr__(self, name):
-        return getattr(self._model, name)
-
-    def _timed(self, fn, d):
-        if round(d, 9) in self._grid:
-            return fn(d)
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            return fn(d)
-        finally:
-            self.cpu += time.process_time() - c0
-            self.wall += time.perf_counter() - t0
-            self.n += 1
-
-    def flood(self, d):
-        return self._timed(self._model.flood, d)
-
-    def stripes(self, d):
-        return self._timed(self._model.stripes, d)
-
-
-def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps, exposure: str, tick,
-                scale: float):
-    """The plans and (CPU s, wall s, grid evaluations, bisection evaluations) of one full plan on one model
-    thread: the grid's part times ``scale`` (a full plan's separations over ``seps``), the bisections' as
-    they are (their scoring is in the grid's part)."""
+def _timed_plan(scene, variant: str, fidelity: str, search: str, settings: ScanSettings, n_sep, exposure: str,
+                tick):
+    """The plans, CPU s, wall s and model evaluations of one full plan with ``search`` on one model thread
+    (``n_sep``: its first grid's separations instead of the search's)."""
     measure, orders = VARIANTS[variant]
+    s = SEARCHES[search]
+    seps = default_separations(n_sep or s.separations)
     model = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders, n_stripes=settings.n_stripes,
                        p_rule=settings.p_rule, width=settings.width if measure == "error" else None)
-    timed = _Bisections(model, seps)
     count = {"n": 0}
 
     def progress():
@@ -145,26 +125,22 @@ def _timed_plan(scene, variant: str, fidelity: str, settings: ScanSettings, seps
                           width=16 if measure == "error" else None)
         plan(warm, seps[:2])            # load the kernels, warm the caches (phase tables, quadrature nodes)
         t0, c0 = time.perf_counter(), time.process_time()
-        plans = plan(timed, seps, exposure=exposure, refine=REFINE, progress=progress)
+        plans = plan(model, seps, exposure=exposure, refine=s.refine, rivals=s.rivals, progress=progress)
         cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     finally:
         set_threads(before)
-    cpu = (cpu - timed.cpu) * scale + timed.cpu
-    wall = (wall - timed.wall) * scale + timed.wall
-    return plans, cpu, wall, count["n"] - timed.n, timed.n
+    return plans, cpu, wall, count["n"]
 
 
 def run(args) -> dict:
-    fids, variants = _levels(args.fidelities), _variants(args.plan_orders)
+    fids, variants, searches = _levels(args.fidelities), _variants(args.plan_orders), _searches(args.searches)
     settings, n_sep, n_grid, refine = _settings(args)
-    seps = default_separations(n_sep)
-    scale = FULL_PLAN / n_sep
     paths = planner_e2e.scene_paths(args) if (args.scenes or args.scene) else \
         planner_e2e.scene_paths(argparse.Namespace(scenes=[DEFAULT_SCENE], scene=None))
     scenes = [(os.path.splitext(os.path.basename(p))[0], load_scene(p)) for p in paths]
-    levels = [(v, f) for v in variants for f in fids]
-    skipped = [(v, f) for v, f in levels if VARIANTS[v][0] == "error" and f == "reference"]
-    levels = [lv for lv in levels if lv not in skipped]
+    levels = [(v, f, s) for v in variants for f in fids for s in searches]
+    skipped = sorted({(v, f) for v, f, _ in levels if VARIANTS[v][0] == "error" and f == "reference"})
+    levels = [lv for lv in levels if lv[:2] not in skipped]
     if not levels:
         raise PolarstripeError("--fidelities: the error measure is not run at reference (whole frames with A "
                                "at every pixel: minutes per separation); name another level")
@@ -172,35 +148,33 @@ def run(args) -> dict:
     bar = None
     if not args.no_progress:
         from tqdm import tqdm
-        bar = tqdm(total=len(levels) * len(scenes) * 2 * n_sep, unit="eval", desc="plans", leave=False)
+        per_plan = {s: 2 * (n_sep or SEARCHES[s].separations) for s in searches}   # the grids; more come
+        bar = tqdm(total=len(scenes) * sum(per_plan[lv[2]] for lv in levels), unit="eval", desc="plans",
+                   leave=False)
 
     def tick():
         if bar is not None:
             bar.update(1)
 
-    out = {"separations": n_sep, "full_plan": FULL_PLAN, "time_scale": scale, "threads": 1,
+    out = {"separations": n_sep, "searches": {s: vars(SEARCHES[s]) for s in searches}, "threads": 1,
            "exposure": args.exposure, "settings": vars(settings), "grid_m": default_grid(n_grid).tolist(),
-           "refine": refine, "plan_refine": REFINE, "target_cpu_seconds": TARGET_CPU_S,
+           "refine": refine, "target_cpu_seconds": TARGET_CPU_S,
            "target_regret": planner_e2e.TARGET_REGRET,
            "skipped": [f"{v}/{f}" for v, f in skipped], "load_average_start": list(os.getloadavg()),
            "truth": {}, "levels": []}
-    rows = {lv: {"variant": lv[0], "fidelity": lv[1], "cpu": [], "wall": [], "evaluations": 0,
-                 "bisections": [], "picks_m": {}, "regret": {}} for lv in levels}
+    rows = {lv: {"variant": lv[0], "fidelity": lv[1], "search": lv[2], "cpu": {}, "wall": {},
+                 "evaluations": {}, "picks_m": {}, "regret": {}} for lv in levels}
     c_all = time.process_time()
     try:
         for name, scene in scenes:
             picks = {}
             for lv in levels:
                 if bar is not None:
-                    bar.set_description(f"plan {name} {lv[0]}/{lv[1]}")
-                plans, cpu, wall, evals, bisections = _timed_plan(scene, *lv, settings, seps, args.exposure,
-                                                                  tick, scale)
+                    bar.set_description(f"plan {name} {'/'.join(lv)}")
+                plans, cpu, wall, evals = _timed_plan(scene, *lv, settings, n_sep, args.exposure, tick)
                 r = rows[lv]
-                r["cpu"].append(cpu)
-                r["wall"].append(wall)
-                r["evaluations"] = evals
-                r["bisections"].append(bisections)
-                picks[f"{lv[0]}/{lv[1]}"] = picks_of(plans)
+                r["cpu"][name], r["wall"][name], r["evaluations"][name] = cpu, wall, evals
+                picks["/".join(lv)] = picks_of(plans)
             if bar is not None:
                 bar.set_description(f"truth {name}")
             res = validate(scene, out["grid_m"], settings, picks=picks, cache=cache, refine=refine,
@@ -224,10 +198,10 @@ def run(args) -> dict:
     for r in rows.values():
         regrets = [x for sc in r["regret"].values() for x in sc.values() if x is not None]
         out["levels"].append({
-            "variant": r["variant"], "fidelity": r["fidelity"],
-            "cpu_seconds_per_plan": float(np.median(r["cpu"])),
-            "seconds_per_plan": float(np.median(r["wall"])),
-            "model_evaluations": r["evaluations"], "bisection_evaluations": r["bisections"],
+            "variant": r["variant"], "fidelity": r["fidelity"], "search": r["search"],
+            "cpu_seconds_per_plan": float(np.median(list(r["cpu"].values()))),
+            "seconds_per_plan": float(np.median(list(r["wall"].values()))),
+            "cpu_seconds": r["cpu"], "model_evaluations": r["evaluations"],
             "picks_m": r["picks_m"], "regret": r["regret"],
             "worst_regret": max(regrets) if regrets else None})
     out["cpu_seconds"] = time.process_time() - c_all
@@ -242,11 +216,12 @@ def _f(v, fmt: str) -> str:
 
 def print_ladder(res: dict) -> None:
     s = res["settings"]
-    timed = "" if res["time_scale"] == 1 else \
-        f" (timed on {res['separations']}, scaled ×{res['time_scale']:g})"
-    print(f"planner ladder: a full plan = {res['full_plan']} separations{timed} and the planner's "
-          f"{res['plan_refine']} bisection round(s) × (flood, stripes) × (with, without polarizer), one "
-          f"core, process CPU; rendered {s['width']} px wide, exposure {res['exposure']}")
+    searches = "; ".join(f"{k}: {v['separations'] if res['separations'] is None else res['separations']} "
+                         f"separations, {v['refine']} bisection round(s), rivals {v['rivals']:g}"
+                         for k, v in res["searches"].items())
+    print(f"planner ladder: a full plan = the search ({searches}) × (flood, stripes) × (with, without "
+          f"polarizer), one core, process CPU of every evaluation; rendered {s['width']} px wide, exposure "
+          f"{res['exposure']}")
     g = res["grid_m"]
     print(f"regret vs the end-to-end truth: {len(g)} separations {g[0] * 100:.0f}-{g[-1] * 100:.0f} cm "
           f"+ picks + {res['refine']} bisection(s), scans at {s['fidelity']}, {s['orders']} orders, "
@@ -256,15 +231,18 @@ def print_ladder(res: dict) -> None:
                          f"{'>' if b['at_grid_edge'] else ''}" for m, b in t["best"].items())
         print(f"  truth {name}: {t['scanned']} scans made, {t['cached']} from the cache; best {best}")
     head = "".join(f"{m.replace('polarized_', 'pol. '):>13}" for m in METHOD_NAMES)
-    print(f"\n{'planner':<8} {'level':<9} {'scene':<14} {'CPU s/plan':>10} {'wall s':>7}{head} {'worst':>7}")
-    print(f"{'':<51}regret (pick cm) per method")
+    print(f"\n{'planner':<8} {'level':<9} {'search':<11} {'scene':<14} {'CPU s':>7} {'evals':>5}{head} "
+          f"{'worst':>7}")
+    print(f"{'':<58}regret (pick cm) per method")
     for lv in res["levels"]:
         for name, reg in lv["regret"].items():
             picks = lv["picks_m"][name]
-            cells = "".join(f"{_f(reg.get(m), '7.3f')} ({picks[m] * 100:3.0f})" if reg.get(m) is not None
-                            else f"{'-':>13}" for m in METHOD_NAMES)
-            print(f"{lv['variant']:<8} {lv['fidelity']:<9} {name:<14} {lv['cpu_seconds_per_plan']:10.1f} "
-                  f"{lv['seconds_per_plan']:7.1f}{cells} {_f(lv['worst_regret'], '7.3f')}")
+            cells = "".join(f"{_f(reg.get(m), '7.3f')} ({picks[m] * 100:4.1f})"[:13].rjust(13)
+                            if reg.get(m) is not None else f"{'-':>13}" for m in METHOD_NAMES)
+            worst = max((x for x in reg.values() if x is not None), default=None)
+            print(f"{lv['variant']:<8} {lv['fidelity']:<9} {lv['search']:<11} {name:<14} "
+                  f"{lv['cpu_seconds'][name]:7.1f} {lv['model_evaluations'][name]:5d}{cells} "
+                  f"{_f(worst, '7.3f')}")
     for k in res["skipped"]:
         print(f"{k}: not run (whole frames with A at every pixel: minutes per separation)")
     print(f"\ntargets: ≤ {res['target_cpu_seconds']:g} s CPU per full plan at standard, regret ≤ "
@@ -272,8 +250,9 @@ def print_ladder(res: dict) -> None:
     for lv in res["levels"]:
         ok_t = lv["cpu_seconds_per_plan"] <= res["target_cpu_seconds"]
         w = lv["worst_regret"]
-        print(f"  {lv['variant']}/{lv['fidelity']}: {'meets' if ok_t else 'misses'} the time "
-              f"({lv['cpu_seconds_per_plan'] / res['target_cpu_seconds']:.0f}× the target), "
+        print(f"  {lv['variant']}/{lv['fidelity']}/{lv['search']}: {'meets' if ok_t else 'misses'} the time "
+              f"(median {lv['cpu_seconds_per_plan']:.1f} s, "
+              f"{lv['cpu_seconds_per_plan'] / res['target_cpu_seconds']:.0f}× the target), "
               f"{'meets' if w is not None and w <= res['target_regret'] else 'misses'} the regret")
     la, lb = res["load_average_start"], res["load_average_end"]
     print(f"{res['cpu_seconds']:.0f} s CPU in all; load average {la[0]:.1f} at the start, {lb[0]:.1f} at "

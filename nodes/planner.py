@@ -42,7 +42,7 @@ import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel, plan_fidelity
 from polarstripe.planning.medium_dop import with_measured_p
-from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
+from polarstripe.planning.planner import DEFAULT_SEARCH, SEARCHES, default_separations, plan, plan_model
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
@@ -71,10 +71,12 @@ class Planner(Node):
         analyzer: Literal["stage", "mosaic"] = "stage"  # polarized scans: two passes (stage) or one (mosaic)
         stripe_step: int = 3  # error measure: every n-th frame of a stripe scan (1: all; 3 costs a third)
         width: int = 0  # error measure: the renders' width [px]; 0 = the camera's, at most 10 px a stripe
-        separations: int = 24
+        search: Literal["coarse", "exhaustive"] = DEFAULT_SEARCH  # which separations (planning.md §8)
+        separations: int = 0  # the search's first, even grid; 0 = the search's
         d_min_m: float = 0.02
         d_max_m: float = 0.5
-        refine: int = REFINE  # rounds of bisection around the curve's best (docs/planning.md §8)
+        refine: int = -1  # bisection rounds around the curves' peaks; -1 = the search's
+        rivals: float = -1.0  # local maxima within this relative loss of the best's refined too; -1: search's
         exposure: Literal["scene", "auto"] = "scene"
         max_saturated_fraction: float = 1.0  # of a flood frame at the plan's separation; 1 = no check
         publish_on_start: bool = True
@@ -86,13 +88,15 @@ class Planner(Node):
 
         def validate(self):
             super().validate()
-            if self.separations < 2 or not 0 < self.d_min_m < self.d_max_m:
-                raise ValueError(f"need separations >= 2 and 0 < d_min_m < d_max_m, got {self.separations}, "
-                                 f"{self.d_min_m}, {self.d_max_m}")
+            if self.separations == 1 or self.separations < 0 or not 0 < self.d_min_m < self.d_max_m:
+                raise ValueError(f"need separations 0 (the search's) or >= 2 and 0 < d_min_m < d_max_m, got "
+                                 f"{self.separations}, {self.d_min_m}, {self.d_max_m}")
             if self.width and self.width < 8:
                 raise ValueError(f"width must be 0 (the camera's) or at least 8 pixels, got {self.width}")
-            if self.refine < 0:
-                raise ValueError(f"refine must be >= 0 rounds, got {self.refine}")
+            if self.refine < -1:
+                raise ValueError(f"refine must be >= 0 rounds (-1: the search's), got {self.refine}")
+            if self.rivals < 0 and self.rivals != -1:
+                raise ValueError(f"rivals must be >= 0 (-1: the search's), got {self.rivals}")
             if self.stripe_step < 1:
                 raise ValueError(f"stripe_step must be at least 1, got {self.stripe_step}")
             if not 0.0 <= self.max_saturated_fraction <= 1.0:
@@ -149,7 +153,9 @@ class Planner(Node):
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
 
         p = self.params
-        seps = default_separations(p.separations, p.d_min_m, p.d_max_m)
+        s = SEARCHES[p.search]
+        seps = default_separations(p.separations or s.separations, p.d_min_m, p.d_max_m)
+        refine, rivals = (s.refine if p.refine < 0 else p.refine), (s.rivals if p.rivals < 0 else p.rivals)
         passes = 2 if p.polarized and p.analyzer == "stage" else 1
         sheets = sheets_for_budget(p.stripes, p.max_frames, passes) if p.max_frames else 1
         allowed = feasible(sheet_limits(self.scene, p.stripes, seps), sheets) if sheets > 1 else \
@@ -160,7 +166,7 @@ class Planner(Node):
                              "separation: allow more frames or scan fewer stripes")
         model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
                            orders=p.orders, stripe_step=p.stripe_step, sheets=sheets, width=p.width or None)
-        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=p.refine)
+        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=refine, rivals=rivals)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
         if sheets > 1:          # the bisections' separations too (the grid's were checked above)

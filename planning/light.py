@@ -18,8 +18,10 @@ TIE = 0.005          # objectives (1 − expected error) this close: keep the li
 
 def compare_lights(scene: Scene, separations_m: np.ndarray, *, modalities=("flood", "stripes"),
                    fidelity: str | None = None, n_stripes: int = 30, orders: str = "all",
-                   stripe_step: int = 3, width: int | None = None, progress=None) -> dict:
-    """Plan the polarized modalities with each light (``width``: the renders', None: the camera's).
+                   stripe_step: int = 3, width: int | None = None, refine: int = 0, rivals: float = 0.0,
+                   progress=None) -> dict:
+    """Plan the polarized modalities with each light (``width``: the renders', None: the camera's;
+    ``refine`` and ``rivals``: the search's, as :func:`~polarstripe.planning.planner.plan`'s).
 
     Returns
     -------
@@ -33,7 +35,8 @@ def compare_lights(scene: Scene, separations_m: np.ndarray, *, modalities=("floo
         lit = with_light(scene, light)
         model = plan_model(lit, measure="error", fidelity=fidelity, n_stripes=n_stripes, orders=orders,
                            stripe_step=stripe_step, width=width)
-        plans = plan(model, separations_m, modalities=modalities, progress=progress)
+        plans = plan(model, separations_m, modalities=modalities, refine=refine, rivals=rivals,
+                     progress=progress)
         entry = {}
         for key, mp in plans.items():
             if not mp.polarized:

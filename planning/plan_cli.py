@@ -32,11 +32,13 @@ from polarstripe.planning.plan_plot import (
     scan_rows,
 )
 from polarstripe.planning.planner import (
+    DEFAULT_SEARCH,
     EDGES,
     MODALITIES,
-    REFINE,
     SCAN_TYPES,
+    SEARCHES,
     Curve,
+    Search,
     default_separations,
     plan,
     plan_model,
@@ -152,6 +154,10 @@ PLAN_SCHEMA = {
                        "properties": {"plan": {"enum": ["stripes", "stripes_polarized"]},
                                       "model": {"enum": ["plan", "reference"]},
                                       "winner": {"enum": list(SCAN_TYPES)}}}},
+                   "search": {"type": "object",
+                              "required": ["separations", "refine", "rivals", "evaluations"],
+                              "properties": {"evaluations": {"type": "object", "additionalProperties": {
+                                  "type": "integer", "minimum": 2}}}},
                    "figure": {"type": "object", "required": ["panels"]},
                    "sheets": {"type": "object", "required": ["sheets", "max_frames", "frames", "allowed"]},
                    "light": {"type": "object", "required": ["recommended", "lights", "tie"], "properties": {
@@ -181,13 +187,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="model fidelity: draft (the error measure's cheapest), preview, standard, "
                              "reference (default: preview for the error "
                              "measure, standard for the paper's)")
-    parser.add_argument("--separations", type=int, default=60,
-                        help="number of separations swept (default 60)")
+    parser.add_argument("--search", choices=list(SEARCHES), default=DEFAULT_SEARCH,
+                        help="which separations are evaluated (docs/planning.md §8, 'The search'): coarse "
+                        "(default: {c.separations} even, then {c.refine} rounds of bisection around each "
+                        "curve's best and its rivals), exhaustive ({e.separations} even, {e.refine} rounds "
+                        "around the best alone)".format(c=SEARCHES["coarse"], e=SEARCHES["exhaustive"]))
+    parser.add_argument("--separations", type=int, default=None,
+                        help="number of separations of the first, even grid (default: the search's)")
     parser.add_argument("--range", nargs=2, type=float, default=(0.01, 0.6), metavar=("MIN_M", "MAX_M"),
                         help="separation range in metres (default 0.01 0.6)")
-    parser.add_argument("--refine", type=int, default=REFINE, metavar="N",
-                        help=f"rounds of bisection around each curve's best (default {REFINE}; 0: the grid "
-                             "alone); the stripe composite's error ripples between the grid's points")
+    parser.add_argument("--refine", type=int, default=None, metavar="N",
+                        help="rounds of bisection around each curve's peaks, down to the grid's step / 2^N "
+                             "(default: the search's; 0: the grid alone); the stripe composite's error "
+                             "ripples between the grid's points")
+    parser.add_argument("--rivals", type=float, default=None, metavar="TOL",
+                        help="also bisect around local maxima whose expected error is within TOL "
+                             "(relative) of the best's (default: the search's; 0: the best alone)")
     parser.add_argument("--stripes", type=int, default=30, help="stripes per scan (default 30)")
     parser.add_argument("--width", type=int, default=None, metavar="W",
                         help="width [px] of the error measure's renders (default: the scene camera's, whose "
@@ -318,7 +333,11 @@ def main(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     if args.light in LIGHTS:
         scene = with_light(scene, args.light)
-    seps = default_separations(args.separations, args.range[0], args.range[1])
+    base = SEARCHES[args.search]
+    search = Search(base.separations if args.separations is None else args.separations,
+                    base.refine if args.refine is None else args.refine,
+                    base.rivals if args.rivals is None else args.rivals)
+    seps = default_separations(search.separations, args.range[0], args.range[1])
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans, doc = {}, {}
     sheets, allowed, sheet_seps = 1, None, seps
@@ -335,13 +354,16 @@ def main(args: argparse.Namespace) -> int:
         if role == "plan":
             plan_width = model.shape[1] if measure == "error" else args.width or scene.camera.resolution[0]
         plans[role] = plan(model, seps, modalities=modalities, k_detect=args.k_detect, exposure=args.exposure,
-                           refine=args.refine)
+                           refine=search.refine, rivals=search.rivals)
         if role == "plan" and args.max_frames:     # at the stripe curves' own separations (bisections too)
             sheet_seps = plans[role]["stripes"].curve.separations_m if "stripes" in plans[role] else seps
             allowed = feasible(sheet_limits(scene, args.stripes, sheet_seps), sheets)
             restrict(plans[role], allowed)
         if role == "plan":
-            doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders}}
+            doc = {**plan_to_json(plans[role]), "model": {"measure": measure, "orders": orders},
+                   "search": {"name": args.search, "separations": search.separations, "refine": search.refine,
+                              "rivals": search.rivals,
+                              "evaluations": {m: plans[role][m].evaluations for m in modalities}}}
             if measure == "error":
                 doc["model"]["width"] = plan_width     # the renders' width [px]
         else:
@@ -353,7 +375,8 @@ def main(args: argparse.Namespace) -> int:
                          "allowed": [bool(a) for a in allowed]}
     if args.light == "both":
         doc["light"] = compare_lights(scene, seps, modalities=modalities, fidelity=args.fidelity,
-                                      n_stripes=args.stripes, orders=args.orders, width=args.width)
+                                      n_stripes=args.stripes, orders=args.orders, width=args.width,
+                                      refine=search.refine, rivals=search.rivals)
     if args.validate:
         settings = ScanSettings(n_stripes=args.stripes, width=args.validate_width or plan_width,
                                 exposure=args.validate_exposure, p_rule=args.p_rule)
@@ -378,6 +401,10 @@ def main(args: argparse.Namespace) -> int:
         m = doc["model"]
         print(f"model: {m['measure']} measure, {m['orders']} orders"
               + (f", renders {m['width']} px wide" if "width" in m else ""))
+        sr = doc["search"]
+        print(f"search: {sr['name']}, {sr['separations']} separations, {sr['refine']} bisection round(s), "
+              f"rivals within {sr['rivals']:g}; model evaluations "
+              + ", ".join(f"{m} {n}" for m, n in sr["evaluations"].items()))
         _print_tables(doc)
         print_scan_rows(doc["scans"])
         if "light" in doc:

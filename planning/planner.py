@@ -31,18 +31,18 @@ from polarstripe.planning.objectives import (
     objective,
 )
 from polarstripe.planning.scene_model import SceneModel
+from polarstripe.planning.search import DEFAULT_SEARCH, SEARCHES, Search, midpoints
 from polarstripe.sim.scene import SceneError
 
-__all__ = ["EDGES", "IDEAL_SENSOR", "MODALITIES", "SCAN_TYPES", "Competitors", "Curve", "ImageModel",
-           "ModalityPlan", "Objective", "PlanModel", "Samples", "SceneModel", "SensorNoise",
-           "auto_exposure_scale", "compare_scans", "default_separations", "objective", "plan", "plan_model",
-           "recommend_reading"]
+__all__ = ["DEFAULT_SEARCH", "EDGES", "IDEAL_SENSOR", "MODALITIES", "SCAN_TYPES", "Competitors", "Curve",
+           "ImageModel", "ModalityPlan", "Objective", "PlanModel", "SEARCHES", "Samples", "SceneModel",
+           "Search", "SensorNoise", "auto_exposure_scale", "compare_scans", "default_separations",
+           "objective", "plan", "plan_model", "recommend_reading", "search_plan"]
 
 SCAN_TYPES = ("rotate", "translate", "both")
 POLARIZED_READINGS = {"paper": {"flood": ("E_b", "S_hat"), "stripes": ("E_b",)},
                       "error": {"flood": ("E_b", "S_hat"), "stripes": ("E_b", "S_hat")}}
 TIE = 0.02  # relative: E_b wins a tie with Ŝ (one frame, no post-processing)
-REFINE = 2  # bisection rounds around each curve's best (docs/planning.md §8, "Between the grid's points")
 
 
 class PlanModel(Protocol):
@@ -102,6 +102,7 @@ class ModalityPlan:
     exposure_scale: float = 1.0
     edge: str | None = None
     measure: str = "paper"
+    evaluations: int = 0                # model evaluations of the modality (its readings share them)
 
 
 def plan_model(scene, *, measure: str = "error", fidelity: str | None = None, n_stripes: int = 30,
@@ -253,31 +254,22 @@ def _score(scored: dict, p_mean: list, samples: Samples, noise, modality, edge, 
         ideal.append(objective(samples, IDEAL_SENSOR, memo=memo_ideal, **args))
 
 
-def _bisections(seps: list[float], scored: dict) -> list[float]:
-    """The midpoints between each curve's best separation and its neighbours among ``seps`` (in the order
-    they were evaluated) that are not evaluated yet; none toward a neighbour whose image loses more pixels
-    to saturation than the best's: there the error jumps within millimetres, and the prediction places that
-    cliff only to about half a centimetre (docs/planning.md §8), so a pick moved toward it is a gamble."""
+def _bisections(seps: list[float], scored: dict, *, rivals: float = 0.0, error: bool = True,
+                spread: float = 0.0, finest: float = 0.0) -> list[float]:
+    """One bisection round over the separations evaluated so far (in the order evaluated) and every
+    reading's curve on them (:func:`polarstripe.planning.search.midpoints`)."""
     order = np.argsort(seps)
     ordered = np.asarray(seps)[order]
-    done = {round(d, 9) for d in seps}
-    out = []
+    curves = []
     for objs, ideal in scored.values():
         c = _curve(ordered, [objs[k] for k in order], [ideal[k] for k in order])
-        lost = c.lost if c.lost is not None else c.saturated.astype(float)
-        i = int(np.argmax(c.objective))
-        for j in (i - 1, i + 1):
-            if 0 <= j < ordered.size and lost[j] <= lost[i]:
-                mid = round(0.5 * float(ordered[i] + ordered[j]), 9)
-                if mid not in done:
-                    done.add(mid)
-                    out.append(mid)
-    return out
+        curves.append((c.objective, c.lost if c.lost is not None else c.saturated.astype(float)))
+    return midpoints(ordered, curves, rivals=rivals, error=error, spread=spread, finest=finest)
 
 
 def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalities=MODALITIES,
          k_detect: float = 3.0, p_min: float = 0.05, exposure: str = "scene", refine: int = 0,
-         progress=None) -> dict[str, ModalityPlan]:
+         rivals: float = 0.0, progress=None) -> dict[str, ModalityPlan]:
     """Sweep the separations and build the plans keyed ``flood``, ``flood_polarized``, ``stripes``,
     ``stripes_polarized`` (only the requested modalities). One model evaluation per separation and
     modality serves every reading.
@@ -287,14 +279,18 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
     (:func:`recommend_reading`) and ``readings`` holds both. ``exposure="auto"`` sets one exposure per
     modality so that no observed point saturates anywhere in the sweep (:func:`auto_exposure_scale`);
     ``"scene"`` keeps the camera's exposure, and saturated points score 0. ``refine`` rounds of bisection
-    then evaluate the midpoints between each curve's best and its neighbours (the curves hold them too): a
-    stripe composite's error ripples by a few per cent between the grid's points, where the stripes' phase
-    on the pixel grid changes (docs/planning.md §8); ``progress`` is called once per evaluation, the grid's
-    first."""
+    then evaluate the midpoints between each curve's peaks and their neighbours, down to the grid's step /
+    2**refine (the curves hold them too; :mod:`polarstripe.planning.search`): the best, and with ``rivals``
+    > 0 the local maxima whose loss is within ``rivals`` of the best's. A stripe composite's error ripples by
+    a few per cent between the grid's points, where the stripes' phase on the pixel grid changes
+    (docs/planning.md §8). No separation is evaluated twice. ``progress`` is called once per evaluation,
+    the grid's first."""
     if exposure not in ("auto", "scene"):
         raise SceneError(f"exposure must be 'auto' or 'scene', got {exposure!r}")
     if isinstance(refine, bool) or int(refine) != refine or refine < 0:
         raise SceneError(f"refine must be a whole number of bisection rounds >= 0, got {refine!r}")
+    if not (math.isfinite(rivals) and rivals >= 0.0):
+        raise SceneError(f"rivals must be a relative loss >= 0, got {rivals!r}")
     seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
     if seps.ndim != 1 or seps.size < 2 or np.any(~np.isfinite(seps)) or np.any(seps <= 0) or \
             np.any(np.diff(seps) <= 0):
@@ -332,8 +328,10 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
                 if progress is not None:
                     progress()
         done = [float(d) for d in seps]
+        step = float(np.min(np.diff(seps)))
         for _ in range(int(refine)):
-            for d in _bisections(done, scored):
+            for d in _bisections(done, scored, rivals=rivals, error=measure == "error", spread=step,
+                                 finest=step / 2 ** int(refine)):
                 _score(scored, p_mean, evaluate(d), noise, **kw)
                 done.append(d)
                 if progress is not None:
@@ -353,7 +351,7 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
             mp = ModalityPlan(modality, polarized, curves[chosen], reading=chosen,
                               readings=curves if len(readings) > 1 else {}, recommendation=rec,
                               exposure_scale=scale, edge=edge if modality == "stripes" else None,
-                              measure=measure)
+                              measure=measure, evaluations=len(done))
             if modality == "stripes":
                 objs, ideal = scored[(polarized, chosen)]
                 pixels = np.asarray(model.observed_pixels())
@@ -363,3 +361,20 @@ def plan(model: PlanModel, separations_m: np.ndarray | None = None, *, modalitie
                 mp.scan = compare_scans(mseps, mp.location_curves, lateral)
             out[modality + ("_polarized" if polarized else "")] = mp
     return out
+
+
+def search_plan(model: PlanModel, search: str | Search = DEFAULT_SEARCH, d_min_m: float = 0.01,
+                d_max_m: float = 0.6, **kw) -> dict[str, ModalityPlan]:
+    """:func:`plan` with one of the tools' searches (:data:`SEARCHES` by name, or a :class:`Search`) over
+    [d_min_m, d_max_m]; ``kw`` as :func:`plan`'s."""
+    s = _search(search)
+    return plan(model, default_separations(s.separations, d_min_m, d_max_m), refine=s.refine, rivals=s.rivals,
+                **kw)
+
+
+def _search(search: str | Search) -> Search:
+    if isinstance(search, Search):
+        return search
+    if search not in SEARCHES:
+        raise SceneError(f"search must be one of {', '.join(SEARCHES)}, got {search!r}")
+    return SEARCHES[search]

@@ -22,7 +22,7 @@ import json
 import math
 
 import numpy as np
-from polarstripe.planning.planner import REFINE, default_separations, plan, plan_model
+from polarstripe.planning.planner import DEFAULT_SEARCH, SEARCHES, default_separations, plan, plan_model
 from polarstripe.planning.validate import METHODS, ScanSettings, scan_scene, score_scans
 from polarstripe.sim.scene import Scene, SceneError, scene_to_dict
 
@@ -53,20 +53,22 @@ VARIANTS = {"error": ("error", "all"), "all": ("paper", "all"), "single": ("pape
 
 def planner_picks(scene: Scene, *, orders: str, fidelity: str | None = None, n_stripes: int = 30,
                   separations_m=None, exposure: str = "scene", p_rule: str = "map",
-                  width: int | None = None, refine: int = REFINE) -> dict[str, dict]:
+                  width: int | None = None, search: str = DEFAULT_SEARCH) -> dict[str, dict]:
     """The planner's pick per planner curve key (``flood``, ``flood_polarized``, …): {"separation_m",
     "at_edge", "reading", "readings": {reading: separation_m}} with the planner's own defaults; ``orders``
     names the variant (:data:`VARIANTS`), ``p_rule`` eq. 6's p the error measure predicts with (the
     judge's), ``width`` its renders' width (the judge's camera: a 30-stripe composite at 3 px per stripe
-    aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8), ``refine`` the
-    planner's bisection rounds."""
-    seps = default_separations() if separations_m is None else np.asarray(separations_m, np.float64)
+    aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8), ``search`` the
+    planner's (:data:`~polarstripe.planning.planner.SEARCHES`; ``separations_m`` replaces its grid)."""
+    s = SEARCHES[search]
+    seps = default_separations(s.separations) if separations_m is None else \
+        np.asarray(separations_m, np.float64)
     if orders not in VARIANTS:
         raise SceneError(f"planner variant must be one of {', '.join(VARIANTS)}, got {orders!r}")
     measure, model_orders = VARIANTS[orders]
     model = plan_model(scene, measure=measure, fidelity=fidelity, n_stripes=n_stripes, orders=model_orders,
                        p_rule=p_rule, width=width if measure == "error" else None)
-    return picks_of(plan(model, seps, exposure=exposure, refine=refine))
+    return picks_of(plan(model, seps, exposure=exposure, refine=s.refine, rivals=s.rivals))
 
 
 def picks_of(plans: dict) -> dict[str, dict]:
@@ -95,8 +97,8 @@ def scan_key(scene: Scene, settings: ScanSettings, separation_m: float, method: 
 
 
 def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan_orders=("error",),
-             plan_fidelity: str | None = None, n_plan: int = 60, plan_range=(0.01, 0.6), progress=None,
-             on_total=None, cache=None, picks: dict | None = None, refine: int = 1) -> dict:
+             plan_fidelity: str | None = None, n_plan: int | None = None, plan_range=(0.01, 0.6),
+             progress=None, on_total=None, cache=None, picks: dict | None = None, refine: int = 1) -> dict:
     """The end-to-end table of one scene (module docstring).
 
     Parameters
@@ -105,7 +107,8 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     grid_m : separations [m] of the end-to-end curves.
     settings : how the scans are rendered and exposed (:class:`~polarstripe.planning.validate.ScanSettings`).
     plan_orders : the planner variants (:data:`VARIANTS`: ``error``, ``all``, ``single``).
-    plan_fidelity, n_plan, plan_range : the planner's fidelity and separation grid.
+    plan_fidelity, n_plan, plan_range : the planner's fidelity and the separations of its search's grid
+        (None: the default search's).
     progress : called once per separation scanned; ``on_total(n)`` first, with their number.
     cache : optional mapping-like store of scored rows by :func:`scan_key` (``get(key)``, ``put(key, row)``):
         a row found there is not scanned again.
@@ -126,7 +129,7 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     if not grid or any(not (math.isfinite(d) and d > 0) for d in grid):
         raise SceneError("grid: need positive separations [m]")
     if picks is None:
-        seps = default_separations(n_plan, *plan_range)
+        seps = default_separations(n_plan or SEARCHES[DEFAULT_SEARCH].separations, *plan_range)
         picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
                                   separations_m=seps, p_rule=settings.p_rule, width=settings.width)
                  for o in plan_orders}

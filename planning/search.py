@@ -1,0 +1,90 @@
+"""Which separations the planner evaluates: a coarse grid, then bisections around each curve's best and its
+rivals (docs/planning.md §8, "The search").
+
+A plan's cost is one model evaluation per separation and modality (every reading's curve shares it), so the
+planner evaluates an even grid of ``separations`` points, then ``refine`` rounds of bisection: in each round,
+the midpoints between each curve's peaks and their evaluated neighbours, down to the grid's step / 2**refine.
+The peaks are the curve's best and, with ``rivals`` > 0, up to :data:`PEAKS` − 1 other local maxima whose
+loss is within ``rivals`` (relative) of the best's, at least one grid step apart: a narrow second peak, or
+the other end of a flat top, is refined too, and may win. The loss is the expected error 1 − objective for
+the error measure, the objective itself (relative to the best's) for the paper's measures. No bisection goes
+toward a neighbour whose image loses more pixels to saturation than the peak's: there the error jumps within
+millimetres, and the prediction places that cliff only to about half a centimetre.
+
+:data:`SEARCHES` names the two searches the tools offer: ``coarse`` (the default) and ``exhaustive``, the
+planner's grid of 60 separations and two rounds around each best alone (the search before the coarse one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+PEAKS = 3            # most peaks refined per curve: the best and two rivals
+_DIGITS = 9          # separations are compared rounded to a nanometre
+
+
+@dataclass(frozen=True)
+class Search:
+    """How :func:`polarstripe.planning.planner.plan` chooses its separations: an even grid of
+    ``separations`` points, ``refine`` bisection rounds around each curve's peaks, ``rivals`` the
+    relative loss within which a local maximum other than the best is refined too (0: the best alone)."""
+
+    separations: int
+    refine: int
+    rivals: float
+
+
+SEARCHES = {"coarse": Search(separations=16, refine=4, rivals=0.05),
+            "exhaustive": Search(separations=60, refine=2, rivals=0.0)}
+DEFAULT_SEARCH = "coarse"
+
+
+def peaks(seps: np.ndarray, values: np.ndarray, *, rivals: float = 0.0, error: bool = True,
+          spread: float = 0.0) -> list[int]:
+    """Indices of the peaks to refine on one curve (``seps`` increasing): the best (the first maximum), then
+    local maxima (not below either neighbour) whose loss is within ``rivals`` of the best's,
+
+        v* − v ≤ rivals · (1 − v*)   (the error measure: v = 1 − e, so e ≤ e*(1 + rivals)),
+        v* − v ≤ rivals · |v*|       (the paper's measures),
+
+    the higher first, none within ``spread`` of a peak already taken, at most :data:`PEAKS`."""
+    v = np.asarray(values, np.float64)
+    best = int(np.argmax(v))
+    if rivals <= 0.0 or v.size < 3:
+        return [best]
+    slack = rivals * ((1.0 - v[best]) if error else abs(v[best]))
+    left = np.r_[-np.inf, v[:-1]]
+    right = np.r_[v[1:], -np.inf]
+    local = np.flatnonzero((v >= left) & (v >= right) & (v[best] - v <= slack))
+    out = [best]
+    for i in local[np.argsort(-v[local], kind="stable")]:
+        if len(out) == PEAKS:
+            break
+        if all(abs(seps[i] - seps[k]) > spread * (1 + 1e-6) for k in out):
+            out.append(int(i))
+    return out
+
+
+def midpoints(seps: np.ndarray, curves: list[tuple[np.ndarray, np.ndarray]], *, rivals: float = 0.0,
+              error: bool = True, spread: float = 0.0, finest: float = 0.0) -> list[float]:
+    """One bisection round: the separations to evaluate next, none evaluated yet, none repeated.
+
+    ``seps`` are the evaluated separations (increasing); ``curves`` one (objective, lost) pair per curve on
+    them, ``lost`` the fraction of the image lost to saturation. For each peak (:func:`peaks`), the midpoint
+    toward each neighbour that is more than ``finest`` away and loses no more pixels than the peak."""
+    seps = np.asarray(seps, np.float64)
+    done = {round(float(d), _DIGITS) for d in seps}
+    out = []
+    for values, lost in curves:
+        for i in peaks(seps, values, rivals=rivals, error=error, spread=spread):
+            for j in (i - 1, i + 1):
+                if not (0 <= j < seps.size) or lost[j] > lost[i] or \
+                        abs(seps[j] - seps[i]) <= finest * (1 + 1e-6):
+                    continue
+                mid = round(0.5 * float(seps[i] + seps[j]), _DIGITS)
+                if mid not in done:
+                    done.add(mid)
+                    out.append(mid)
+    return out

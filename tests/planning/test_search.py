@@ -1,0 +1,157 @@
+"""The planner's separation search (planning/search.py, planner.plan's refine and rivals): on a closed-form
+model, no renders. E's objective is eq. 8's CQM = S / (S + B) with S = 1, B = g(d) and an ideal sensor
+(W = 1), so each curve's global maximum is known by brute force on a 0.01-mm grid of the closed form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from polarstripe.planning.planner import (
+    IDEAL_SENSOR,
+    SEARCHES,
+    Samples,
+    default_separations,
+    plan,
+    search_plan,
+)
+from polarstripe.planning.search import midpoints, peaks
+from polarstripe.sim.scene import SceneError
+
+FINE = np.arange(0.01, 0.6 + 1e-9, 1e-5)      # the brute-force grid [m]
+
+
+class ClosedForm:
+    """A :class:`~polarstripe.planning.planner.PlanModel` with the backscatter g(d) per unit signal at one
+    observed point (DOP 0.5): E's objective is 1 / (1 + g(d)). Every evaluation is recorded."""
+
+    noise = IDEAL_SENSOR
+    edge = "margin"
+
+    def __init__(self, g):
+        self.g, self.calls = g, []
+
+    def observed_pixels(self):
+        return np.array([[0, 0]])
+
+    def lateral_positions_m(self):
+        return np.zeros(1)
+
+    def flood(self, d):
+        self.calls.append(d)
+        return Samples(np.ones(1), np.zeros(1), np.array([float(self.g(d))]), np.array([0.5]))
+
+    stripes = flood
+
+
+def bowl(d, at, depth, width):
+    return depth * np.exp(-0.5 * ((d - at) / width) ** 2)
+
+
+def second_peak(d):
+    """A broad minimum of B at 40 cm (0.30) and a narrow, deeper one at 12 cm (0.25, σ 1 cm) that the coarse
+    grid sees only on its flank."""
+    return 0.6 - bowl(d, 0.40, 0.30, 0.10) - bowl(d, 0.12, 0.35, 0.01)
+
+
+def flat_top(d):
+    """B flat at 0.3 from 15 to 45 cm within a ripple of ±0.003 (1.13-cm period): a plateau point is up to
+    1.6 % worse in 1 − v than the ripple's best."""
+    d = np.asarray(d, np.float64)
+    edge = np.maximum(0.0, np.maximum(0.15 - d, d - 0.45))
+    return 0.3 + 40.0 * edge ** 2 + 0.003 * np.cos(2 * np.pi * (d - 0.305) / 0.0113)
+
+
+def truth(g):
+    v = 1.0 / (1.0 + g(FINE))
+    return float(FINE[np.argmax(v)]), float(v.max())
+
+
+@pytest.mark.parametrize("g, bound", [(second_peak, 1.005), (flat_top, 1.001)],
+                         ids=["narrow second peak", "flat top"])
+def test_the_default_search_finds_the_global_maximum(g, bound):
+    """Against the brute-force maximum; the coarse grid alone reads 1.18 and 1.0055 of the least loss, the
+    best alone refined 1.18 on the second peak."""
+    d_true, v_true = truth(g)
+    model = ClosedForm(g)
+    plans = search_plan(model, modalities=("flood",))
+    c = plans["flood"].curve
+    s = SEARCHES["coarse"]
+    finest = (0.6 - 0.01) / (s.separations - 1) / 2 ** s.refine
+    v_pick = 1.0 / (1.0 + g(c.best_separation_m))
+    assert (1.0 - v_pick) <= (1.0 - v_true) * bound            # the loss 1 − v at the pick over the least
+    if g is second_peak:
+        assert abs(c.best_separation_m - d_true) <= finest
+    assert plans["flood"].evaluations == len(model.calls) < 60
+
+
+def test_the_best_alone_misses_the_narrow_peak():
+    """The test's curve is hard: refining only the coarse grid's best stays on the broad peak."""
+    d_true, _ = truth(second_peak)
+    plans = plan(ClosedForm(second_peak), default_separations(16), modalities=("flood",), refine=4,
+                 rivals=0.0)
+    assert abs(plans["flood"].curve.best_separation_m - 0.40) < 0.02 and abs(d_true - 0.12) < 0.005
+
+
+@pytest.mark.parametrize("search", list(SEARCHES))
+def test_no_separation_is_evaluated_twice(search):
+    model = ClosedForm(flat_top)
+    plans = search_plan(model, search, modalities=("flood",))
+    calls = np.round(model.calls, 9)
+    assert len(set(calls.tolist())) == calls.size == plans["flood"].evaluations
+    for mp in plans.values():                      # every reading's curve holds every evaluation
+        for c in (mp.readings or {"E": mp.curve}).values():
+            np.testing.assert_array_equal(np.round(c.separations_m, 9), np.sort(calls))
+
+
+def old_bisections(seps, values, rounds):
+    """The search before the coarse one, for one curve: the grid, then ``rounds`` rounds of the midpoints
+    between the best and its neighbours."""
+    seps = list(seps)
+    for _ in range(rounds):
+        order = np.argsort(seps)
+        d = np.asarray(seps)[order]
+        v = np.array([values(x) for x in d])
+        i = int(np.argmax(v))
+        seps += [0.5 * (d[i] + d[j]) for j in (i - 1, i + 1) if 0 <= j < d.size
+                 and round(0.5 * (d[i] + d[j]), 9) not in np.round(seps, 9)]
+    return np.sort(seps)
+
+
+def test_the_exhaustive_search_is_the_old_grid_and_bisections():
+    model = ClosedForm(second_peak)
+    plans = search_plan(model, "exhaustive", modalities=("flood",))
+    seps = plans["flood"].curve.separations_m
+    grid = np.linspace(0.01, 0.6, 60)                                  # 1 cm steps
+    assert np.isin(np.round(grid, 9), np.round(seps, 9)).all()
+    # the curves E, E_b, S_hat each refined around their own best (S_hat is 1 everywhere: its first point)
+    e = old_bisections(grid, lambda d: 1 / (1 + second_peak(d)), 2)
+    e_b = old_bisections(grid, lambda d: 1 / (1 + 0.5 * second_peak(d)), 2)
+    s_hat = old_bisections(grid, lambda d: 1.0, 2)
+    np.testing.assert_allclose(seps, np.unique(np.round(np.r_[e, e_b, s_hat], 9)), atol=1e-12)
+
+
+def test_peaks_take_rivals_within_the_tolerance_one_step_apart():
+    seps = np.arange(10) * 0.01
+    v = np.array([0.1, 0.5, 0.2, 0.79, 0.8, 0.3, 0.78, 0.2, 0.7, 0.1])   # local maxima at 1, 4, 6, 8
+    assert peaks(seps, v) == [4]
+    # the error measure: loss 1 − v; 0.78's is within 15 % of 0.2, 0.7's and 0.5's are not
+    assert peaks(seps, v, rivals=0.15, error=True, spread=0.01) == [4, 6]
+    assert peaks(seps, v, rivals=0.6, error=True, spread=0.01) == [4, 6, 8]       # at most three
+    assert peaks(seps, v, rivals=0.15, error=True, spread=0.02) == [4]             # 6 is within the spread
+    assert peaks(seps, v, rivals=0.05, error=False, spread=0.01) == [4, 6]        # |v*| the scale: 0.04
+
+
+def test_midpoints_stop_at_the_finest_step_and_skip_evaluated_ones():
+    seps = np.array([0.1, 0.2, 0.25, 0.4])
+    v = np.array([0.2, 0.9, 0.5, 0.3])
+    lost = np.zeros(4)
+    assert midpoints(seps, [(v, lost)]) == [0.15, 0.225]
+    assert midpoints(seps, [(v, lost)], finest=0.05) == [0.15]            # 0.05 to 0.25: fine enough
+    assert midpoints(seps, [(v, lost), (v, lost)]) == [0.15, 0.225]       # a second curve repeats none
+
+
+def test_bad_rivals_are_one_error():
+    with pytest.raises(SceneError, match="rivals"):
+        plan(ClosedForm(flat_top), default_separations(4), modalities=("flood",), rivals=-0.1)
+    with pytest.raises(SceneError, match="search must be"):
+        search_plan(ClosedForm(flat_top), "dense")
