@@ -44,7 +44,8 @@ DEFAULT_SEARCH = "coarse"
 def peaks(seps: np.ndarray, values: np.ndarray, *, rivals: float = 0.0, error: bool = True,
           spread: float = 0.0) -> list[int]:
     """Indices of the peaks to refine on one curve (``seps`` increasing): the best (the first maximum), then
-    local maxima (not below either neighbour) whose loss is within ``rivals`` of the best's,
+    local maxima (not below either neighbour, above one: no point inside a plateau, such as the zeros where
+    every pixel saturates) whose loss is within ``rivals`` of the best's,
 
         v* − v ≤ rivals · (1 − v*)   (the error measure: v = 1 − e, so e ≤ e*(1 + rivals)),
         v* − v ≤ rivals · |v*|       (the paper's measures),
@@ -55,9 +56,9 @@ def peaks(seps: np.ndarray, values: np.ndarray, *, rivals: float = 0.0, error: b
     if rivals <= 0.0 or v.size < 3:
         return [best]
     slack = rivals * ((1.0 - v[best]) if error else abs(v[best]))
-    left = np.r_[-np.inf, v[:-1]]
-    right = np.r_[v[1:], -np.inf]
-    local = np.flatnonzero((v >= left) & (v >= right) & (v[best] - v <= slack))
+    left, right = np.r_[-np.inf, v[:-1]], np.r_[v[1:], -np.inf]
+    above = (v > np.r_[np.inf, v[:-1]]) | (v > np.r_[v[1:], np.inf])      # an end: above its one neighbour
+    local = np.flatnonzero((v >= left) & (v >= right) & above & (v[best] - v <= slack))
     out = [best]
     for i in local[np.argsort(-v[local], kind="stable")]:
         if len(out) == PEAKS:

@@ -1,7 +1,7 @@
 """``polarstripe bench planner`` (bench/planner.py): the ladder's JSON has every fidelity level with its time
 per full plan and its regret per method against the end-to-end truth; the table names every level; bad levels
-are one error line. A tiny ladder (3 separations, 32 px, 4 stripes, a 2-separation truth at preview) so it
-takes seconds; what it measures is not checked against a clock."""
+are one error line. A tiny ladder (the default search on 3 separations, 32 px, 4 stripes, a 2-separation truth
+at preview) so it takes seconds; what it measures is not checked against a clock."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import math
 
 import pytest
 from polarstripe.bench.planner import METHOD_NAMES, print_ladder
+from polarstripe.planning.planner import SEARCHES
 from polarstripe.tools.cli import main
 
 TINY = ["--separations", "3", "--width", "32", "--stripes", "4", "--grid", "2", "--refine", "0",
@@ -28,15 +29,17 @@ def ladder():
 
 
 def test_every_level_has_its_time_and_regret(ladder):
-    assert [(lv["variant"], lv["fidelity"]) for lv in ladder["levels"]] == [
-        ("error", "draft"), ("error", "preview"), ("error", "standard")]
-    assert ladder["time_scale"] == 20 and ladder["full_plan"] == 60       # 3 separations timed, scaled to 60
+    assert [(lv["variant"], lv["fidelity"], lv["search"]) for lv in ladder["levels"]] == [
+        ("error", "draft", "coarse"), ("error", "preview", "coarse"), ("error", "standard", "coarse")]
+    assert ladder["separations"] == 3 and ladder["searches"] == {"coarse": vars(SEARCHES["coarse"])}
+    s = SEARCHES["coarse"]
     truth = ladder["truth"]["tank_sigma5"]["best"]                          # the default scene: σ_t 5
     assert set(truth) == set(METHOD_NAMES)
     for lv in ladder["levels"]:
         assert lv["cpu_seconds_per_plan"] > 0 and lv["seconds_per_plan"] > 0
-        assert lv["model_evaluations"] == 2 * 3                             # flood + stripes per separation
-        assert all(2 <= n <= 2 * 2 * 2 * 3 for n in lv["bisection_evaluations"])  # 2 rounds, ≤ 2 per best
+        assert lv["cpu_seconds_per_plan"] == lv["cpu_seconds"]["tank_sigma5"]   # every evaluation timed
+        # flood + stripes: the grid, then at most 2 midpoints per round, reading and peak
+        assert 2 * 3 < lv["model_evaluations"]["tank_sigma5"] <= 2 * (3 + s.refine * 3 * 3 * 2)
         regret, picks = lv["regret"]["tank_sigma5"], lv["picks_m"]["tank_sigma5"]
         assert set(regret) == set(METHOD_NAMES)
         for m in METHOD_NAMES:
@@ -51,15 +54,16 @@ def test_every_level_has_its_time_and_regret(ladder):
 def test_the_table_names_every_level(ladder, capsys):
     print_ladder(ladder)
     out = capsys.readouterr().out
-    assert "timed on 3, scaled ×20" in out
+    assert "coarse: 3 separations, 4 bisection round(s), rivals 0.05" in out
     for fid in ("draft", "preview", "standard"):
-        assert f"error    {fid:<9} tank_sigma5" in out
+        assert f"error    {fid:<9} coarse      tank_sigma5" in out
 
 
 @pytest.mark.parametrize("argv, needle", [
     (["--fidelities", "ultra"], "fidelity 'ultra' is not preview, standard, reference"),
     (["--fidelities", "reference"], "the error measure is not run at reference"),
     (["--plan-orders", "double"], "--plan-orders: comma-separated error, all, single, got 'double'"),
+    (["--searches", "dense"], "--searches: comma-separated coarse, exhaustive, got 'dense'"),
 ])
 def test_bad_levels_are_one_error_line(argv, needle, capsys):
     assert main(["bench", "planner", *argv]) == 2

@@ -8,7 +8,7 @@ import pytest
 from polarstripe.msgs import Empty, MediumEstimate
 from polarstripe.nodes.planner import Planner
 from polarstripe.planning.medium_dop import model_p
-from polarstripe.planning.planner import default_separations, plan_model
+from polarstripe.planning.planner import SEARCHES, default_separations, plan_model
 from polarstripe.planning.planner import plan as plan_separations
 from polarstripe.runtime.params import ParamError
 from polarstripe.runtime.testing import NodeHarness
@@ -30,10 +30,12 @@ def test_plan_is_served_and_published(harness):
     assert len(h.published("planner/plan")) == 1
     plan = h.call("planner/plan", Empty())
     assert plan.modality == "stripes"
-    seps = plan.curves["separation_m"]          # the grid and the bisections around the best (refine)
+    seps = plan.curves["separation_m"]   # the grid and the bisections around the peaks (the default search)
     grid = np.linspace(0.05, 0.45, 6)
+    assert h.node.params.search == "coarse"
+    search = SEARCHES["coarse"]
     assert np.all(np.diff(seps) > 0) and np.all(np.isin(np.round(grid, 9), np.round(seps, 9)))
-    assert 2 <= seps.size - grid.size <= 2 * 2 * 3
+    assert 2 <= seps.size - grid.size <= search.refine * 3 * 3 * 2   # rounds × readings × peaks × 2
     # the plan is the planner's on the node's scene: in the configured range, and within one grid step of
     # the best separation planning.planner.plan finds for the same scene, modality and polarization
     assert FAST["d_min_m"] <= plan.separation_m <= FAST["d_max_m"]
@@ -42,7 +44,7 @@ def test_plan_is_served_and_published(harness):
     model = plan_model(h.node.scene, measure="error", fidelity=FAST["fidelity"], width=160,
                        n_stripes=h.node.params.stripes, stripe_step=h.node.params.stripe_step)
     reference = plan_separations(model, default_separations(6, 0.05, 0.45), modalities=("stripes",),
-                                 refine=h.node.params.refine)
+                                 refine=search.refine, rivals=search.rivals)
     step = (FAST["d_max_m"] - FAST["d_min_m"]) / (FAST["separations"] - 1)
     best = reference["stripes_polarized"].curve
     assert abs(plan.separation_m - best.best_separation_m) <= step + 1e-12
@@ -84,7 +86,7 @@ def test_co_located_placements_score_nothing():
     The margin as derived, on the paper's single-scattering model (docs/planning.md §1)."""
     h = NodeHarness(Planner, name="planner", params={**FAST, "separations": 3, "d_min_m": 0.001,
                                                         "d_max_m": 0.3, "publish_on_start": False,
-                                                        "orders": "single"})
+                                                        "orders": "single", "refine": 2})
     objective = h.node.plan.curves["objective"]
     assert objective[0] == 0.0 and objective.max() > 0.3 and h.node.plan.separation_m > 0.1
 

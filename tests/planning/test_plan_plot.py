@@ -16,7 +16,7 @@ import pytest
 from polarstripe.planning.image_model import ImageModel
 from polarstripe.planning.plan_cli import PLAN_SCHEMA
 from polarstripe.planning.plan_plot import figure_data
-from polarstripe.planning.planner import REFINE, SceneModel, default_separations, plan
+from polarstripe.planning.planner import SEARCHES, SceneModel, default_separations, plan
 from polarstripe.sim.scene import load_scene
 from polarstripe.tools.cli import main
 
@@ -43,10 +43,11 @@ def drawn(tmp_path_factory):
 def independent():
     """The two plans made directly, not through the command (with its bisections around each best)."""
     scene, seps = load_scene(None), default_separations(*SEPS)
+    kw = dict(refine=SEARCHES["coarse"].refine, rivals=SEARCHES["coarse"].rivals)   # the command's search
     return {"plan": plan(ImageModel(scene, fidelity="preview", n_stripes=8, orders="all", width=WIDTH), seps,
-                         refine=REFINE),
+                         **kw),
             "reference": plan(SceneModel(scene, fidelity="preview", n_stripes=8, orders="single"), seps,
-                              refine=REFINE)}
+                              **kw)}
 
 
 def _panel(doc, key):

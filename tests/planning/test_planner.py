@@ -246,7 +246,10 @@ def test_plan_command_json_and_plot(tmp_path):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     jsonschema.validate(doc, PLAN_SCHEMA)
-    assert set(doc) == {"flood", "flood_polarized", "model", "reference", "scans", "figure"}
+    assert set(doc) == {"flood", "flood_polarized", "model", "search", "reference", "scans", "figure"}
+    # the evaluations the search made: each reading's curve holds them all
+    assert doc["search"]["evaluations"] == {"flood": len(doc["flood"]["separations"])} and \
+        doc["search"]["separations"] == 5 and len(doc["flood"]["separations"]) > 5
     assert set(doc["reference"]["plans"]) == {"flood", "flood_polarized"} and doc["scans"] == []
     assert png.stat().st_size > 10_000
 

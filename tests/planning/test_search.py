@@ -139,6 +139,9 @@ def test_peaks_take_rivals_within_the_tolerance_one_step_apart():
     assert peaks(seps, v, rivals=0.6, error=True, spread=0.01) == [4, 6, 8]       # at most three
     assert peaks(seps, v, rivals=0.15, error=True, spread=0.02) == [4]             # 6 is within the spread
     assert peaks(seps, v, rivals=0.05, error=False, spread=0.01) == [4, 6]        # |v*| the scale: 0.04
+    flat = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 0.2, 0.0, 0.0])     # inside a plateau is no rival, its edge is
+    assert peaks(seps[:8], flat, rivals=1.0, error=True) == [3, 4]
+    assert peaks(seps[:8], flat, rivals=1.0, error=True, spread=0.01) == [3]
 
 
 def test_midpoints_stop_at_the_finest_step_and_skip_evaluated_ones():
