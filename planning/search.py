@@ -7,9 +7,10 @@ the midpoints between each curve's peaks and their evaluated neighbours, down to
 The peaks are the curve's best and, with ``rivals`` > 0, up to :data:`PEAKS` − 1 other local maxima whose
 loss is within ``rivals`` (relative) of the best's, at least one grid step apart: a narrow second peak, or
 the other end of a flat top, is refined too, and may win. The loss is the expected error 1 − objective for
-the error measure, the objective itself (relative to the best's) for the paper's measures. No bisection goes
-toward a neighbour whose image loses more pixels to saturation than the peak's: there the error jumps within
-millimetres, and the prediction places that cliff only to about half a centimetre.
+the error measure, the objective itself (relative to the best's) for the paper's measures. Toward a
+neighbour whose image loses more pixels to saturation than the peak's, bisection stops once the gap is
+:data:`CLIFF_STEP` or less: there the error jumps within millimetres, and the prediction places that cliff
+only to about half a centimetre, so a pick is kept a step of the 1-cm grid from it, as that grid kept it.
 
 :data:`SEARCHES` names the two searches the tools offer: ``coarse`` (the default) and ``exhaustive``, the
 planner's grid of 60 separations and two rounds around each best alone (the search before the coarse one).
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 PEAKS = 3            # most peaks refined per curve: the best and two rivals
+CLIFF_STEP = 0.01    # [m] no bisection of a gap this small toward more saturation (docs/planning.md §8)
 _DIGITS = 9          # separations are compared rounded to a nanometre
 
 
@@ -74,15 +76,18 @@ def midpoints(seps: np.ndarray, curves: list[tuple[np.ndarray, np.ndarray]], *, 
 
     ``seps`` are the evaluated separations (increasing); ``curves`` one (objective, lost) pair per curve on
     them, ``lost`` the fraction of the image lost to saturation. For each peak (:func:`peaks`), the midpoint
-    toward each neighbour that is more than ``finest`` away and loses no more pixels than the peak."""
+    toward each neighbour that is more than ``finest`` away, and more than :data:`CLIFF_STEP` if it loses
+    more pixels than the peak."""
     seps = np.asarray(seps, np.float64)
     done = {round(float(d), _DIGITS) for d in seps}
     out = []
     for values, lost in curves:
         for i in peaks(seps, values, rivals=rivals, error=error, spread=spread):
             for j in (i - 1, i + 1):
-                if not (0 <= j < seps.size) or lost[j] > lost[i] or \
-                        abs(seps[j] - seps[i]) <= finest * (1 + 1e-6):
+                if not (0 <= j < seps.size):
+                    continue
+                gap = abs(seps[j] - seps[i])
+                if gap <= finest * (1 + 1e-6) or (lost[j] > lost[i] and gap <= CLIFF_STEP * (1 + 1e-6)):
                     continue
                 mid = round(0.5 * float(seps[i] + seps[j]), _DIGITS)
                 if mid not in done:

@@ -113,8 +113,9 @@ def test_bisection_rounds_refine_the_pick_between_the_grids_points(paper_geometr
 
 
 def test_no_bisection_toward_a_neighbour_that_saturates():
-    """The midpoints either side of the best, but none toward a neighbour whose image loses more pixels to
-    saturation than the best's (a cliff the prediction places only to ~0.5 cm, planning.md §8)."""
+    """The midpoints either side of the best, but none toward a neighbour 1 cm or less away whose image loses
+    more pixels to saturation than the best's (a cliff the prediction places only to ~0.5 cm, planning.md
+    §8); a wider gap toward it is bisected (the coarse search's first rounds)."""
     from polarstripe.planning.objectives import Objective
     from polarstripe.planning.planner import _bisections
 
@@ -123,11 +124,13 @@ def test_no_bisection_toward_a_neighbour_that_saturates():
                 for q, f in zip(quality, lost, strict=True)]
         return {("E",): (objs, objs)}
 
-    seps = [0.4, 0.1, 0.3, 0.2]                  # in the order evaluated: bisections come last
-    assert sorted(_bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0, 0, 0]))) == [0.25, 0.35]
-    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0.9, 0, 0.01])) == [0.35]
-    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0.2, 0, 0.1, 0.1])) == [0.25]
-    assert _bisections([0.1, 0.2, 0.15], curve([0.2, 0.9, 0.5], [0, 0, 0])) == [0.175]  # the nearest done
+    seps = [0.04, 0.01, 0.03, 0.02]              # in the order evaluated: bisections come last
+    assert sorted(_bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0, 0, 0]))) == [0.025, 0.035]
+    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0, 0.9, 0, 0.01])) == [0.035]
+    assert _bisections(seps, curve([0.6, 0.2, 0.9, 0.5], [0.2, 0, 0.1, 0.1])) == [0.025]
+    assert _bisections([0.01, 0.02, 0.015], curve([0.2, 0.9, 0.5], [0, 0, 0])) == [0.0175]  # the nearest done
+    wide = [0.4, 0.1, 0.3, 0.2]                  # 10 cm apart: far enough from the cliff to approach it
+    assert sorted(_bisections(wide, curve([0.6, 0.2, 0.9, 0.5], [0, 0.9, 0, 0.01]))) == [0.25, 0.35]
 
 
 def test_fig8_polarization_lies_above(fig8_flood):
