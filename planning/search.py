@@ -8,9 +8,13 @@ The peaks are the curve's best and, with ``rivals`` > 0, up to :data:`PEAKS` −
 loss is within ``rivals`` (relative) of the best's, at least one grid step apart: a narrow second peak, or
 the other end of a flat top, is refined too, and may win. The loss is the expected error 1 − objective for
 the error measure, the objective itself (relative to the best's) for the paper's measures. Toward a
-neighbour whose image loses more pixels to saturation than the peak's, bisection stops once the gap is
-:data:`CLIFF_STEP` or less: there the error jumps within millimetres, and the prediction places that cliff
-only to about half a centimetre, so a pick is kept a step of the 1-cm grid from it, as that grid kept it.
+neighbour whose image loses more pixels to saturation than the peak's there is no bisection (there the
+error jumps within millimetres, and the prediction places that cliff only to about half a centimetre),
+unless the neighbour's loss is within :data:`CLIFF_RIVALS` of the peak's and the gap over :data:`CLIFF_STEP`:
+then the optimum may sit at the cliff's edge between them, and the midpoints approach it to the 1-cm grid's
+step. (A neighbour that loses far more, such as a frame saturated near the camera, is a cliff the curve
+climbs toward; the prediction near it is the least sure, and approaching it moved a pick onto a ripple dip
+the truth does not share: docs/planning.md §8.)
 
 :data:`SEARCHES` names the two searches the tools offer: ``coarse`` (the default) and ``exhaustive``, the
 planner's grid of 60 separations and two rounds around each best alone (the search before the coarse one).
@@ -24,6 +28,7 @@ import numpy as np
 
 PEAKS = 3            # most peaks refined per curve: the best and two rivals
 CLIFF_STEP = 0.01    # [m] no bisection of a gap this small toward more saturation (docs/planning.md §8)
+CLIFF_RIVALS = 0.25  # toward more saturation only if the neighbour's loss is within this of the peak's
 _DIGITS = 9          # separations are compared rounded to a nanometre
 
 
@@ -43,6 +48,11 @@ SEARCHES = {"coarse": Search(separations=16, refine=4, rivals=0.05),
 DEFAULT_SEARCH = "coarse"
 
 
+def _slack(best: float, rivals: float, error: bool) -> float:
+    """How far below ``best`` an objective may lie and still be within ``rivals`` of its loss."""
+    return rivals * ((1.0 - best) if error else abs(best))
+
+
 def peaks(seps: np.ndarray, values: np.ndarray, *, rivals: float = 0.0, error: bool = True,
           spread: float = 0.0) -> list[int]:
     """Indices of the peaks to refine on one curve (``seps`` increasing): the best (the first maximum), then
@@ -57,7 +67,7 @@ def peaks(seps: np.ndarray, values: np.ndarray, *, rivals: float = 0.0, error: b
     best = int(np.argmax(v))
     if rivals <= 0.0 or v.size < 3:
         return [best]
-    slack = rivals * ((1.0 - v[best]) if error else abs(v[best]))
+    slack = _slack(v[best], rivals, error)
     left, right = np.r_[-np.inf, v[:-1]], np.r_[v[1:], -np.inf]
     above = (v > np.r_[np.inf, v[:-1]]) | (v > np.r_[v[1:], np.inf])      # an end: above its one neighbour
     local = np.flatnonzero((v >= left) & (v >= right) & above & (v[best] - v <= slack))
@@ -76,8 +86,9 @@ def midpoints(seps: np.ndarray, curves: list[tuple[np.ndarray, np.ndarray]], *, 
 
     ``seps`` are the evaluated separations (increasing); ``curves`` one (objective, lost) pair per curve on
     them, ``lost`` the fraction of the image lost to saturation. For each peak (:func:`peaks`), the midpoint
-    toward each neighbour that is more than ``finest`` away, and more than :data:`CLIFF_STEP` if it loses
-    more pixels than the peak."""
+    toward each neighbour that is more than ``finest`` away; toward one that loses more pixels than the
+    peak only if it is more than :data:`CLIFF_STEP` away and its loss within :data:`CLIFF_RIVALS` of the
+    peak's."""
     seps = np.asarray(seps, np.float64)
     done = {round(float(d), _DIGITS) for d in seps}
     out = []
@@ -87,7 +98,10 @@ def midpoints(seps: np.ndarray, curves: list[tuple[np.ndarray, np.ndarray]], *, 
                 if not (0 <= j < seps.size):
                     continue
                 gap = abs(seps[j] - seps[i])
-                if gap <= finest * (1 + 1e-6) or (lost[j] > lost[i] and gap <= CLIFF_STEP * (1 + 1e-6)):
+                if gap <= finest * (1 + 1e-6):
+                    continue
+                if lost[j] > lost[i] and (gap <= CLIFF_STEP * (1 + 1e-6) or
+                                          values[i] - values[j] > _slack(values[i], CLIFF_RIVALS, error)):
                     continue
                 mid = round(0.5 * float(seps[i] + seps[j]), _DIGITS)
                 if mid not in done:

@@ -153,22 +153,26 @@ def test_midpoints_stop_at_the_finest_step_and_skip_evaluated_ones():
     assert midpoints(seps, [(v, lost), (v, lost)]) == [0.15, 0.225]       # a second curve repeats none
 
 
-def test_toward_a_saturating_neighbour_bisection_stops_a_centimetre_from_it():
-    """The coarse grid's best beside a neighbour that loses pixels to saturation (below a cliff at 29 cm):
-    the midpoints approach the cliff until the gap is CLIFF_STEP (1 cm) or less, no nearer (planning.md §8).
-    Without the approach the pick would stay at the coarse point 3.5 cm from the cliff."""
+@pytest.mark.parametrize("drop, approached", [(0.03, True), (0.3, False)])
+def test_toward_a_saturating_neighbour_bisection_stops_a_centimetre_from_it(drop, approached):
+    """The coarse grid's best beside a neighbour that loses pixels to saturation (below a cliff at 29 cm,
+    where the best is): when the neighbour's loss is within CLIFF_RIVALS of the peak's, the midpoints
+    approach the cliff until the gap is CLIFF_STEP (1 cm) or less, no nearer; when it loses far more
+    (``drop``), not at all (planning.md §8)."""
     def curve(d):
         lost = np.where(d < 0.29, 0.05, 0.0)
-        return 0.66 - np.abs(d - 0.29) - 2 * lost, lost
+        return 0.66 - 0.5 * np.abs(d - 0.29) - drop * (d < 0.29), lost
 
     done = [0.2853, 0.3247]                                  # 3.94 cm apart, as the default grid
     for _ in range(6):
         d = np.sort(done)
         done += midpoints(d, [curve(d)])
     d = np.sort(done)
-    above = d[d > 0.2853]
-    assert above[0] == pytest.approx(0.2853 + 0.0394 / 4)   # 0.985 cm from the lost point: no nearer
-    assert d[np.argmax(curve(d)[0])] == pytest.approx(0.2853 + 0.0394 / 4)
+    nearest = d[d > 0.2853][0]
+    if approached:                                          # 0.985 cm from the lost point: no nearer
+        assert nearest == pytest.approx(0.2853 + 0.0394 / 4)
+    else:
+        assert nearest == pytest.approx(0.3247)
 
 
 def test_bad_rivals_are_one_error():
