@@ -43,7 +43,7 @@ class Search:
     rivals: float
 
 
-SEARCHES = {"coarse": Search(separations=16, refine=4, rivals=0.05),
+SEARCHES = {"coarse": Search(separations=20, refine=4, rivals=0.05),
             "exhaustive": Search(separations=60, refine=2, rivals=0.0)}
 DEFAULT_SEARCH = "coarse"
 

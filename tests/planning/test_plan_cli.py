@@ -147,7 +147,7 @@ def test_plot_has_one_panel_per_figure(doc, tmp_path):
     "argv, needle",
     [
         (["--separations", "1"], "separations: need n >= 2 and 0 < d_min < d_max, got n=1"),
-        (["--range", "0.5", "0.1"], "got n=16, d_min=0.5, d_max=0.1"),
+        (["--range", "0.5", "0.1"], "got n=20, d_min=0.5, d_max=0.1"),
         (["--range", "0", "0.5"], "d_min=0.0"),
         (["--fidelity", "bogus"], "fidelity 'bogus' is not preview, standard, reference"),
         (["/nonexistent/scene.toml"], "/nonexistent/scene.toml"),
