@@ -32,7 +32,7 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 from polarstripe.sim.grid_kernels import GridArgs
-from polarstripe.sim.threads import fft_workers
+from polarstripe.sim.threads import blas_one_thread, fft_workers
 from scipy import fft as sfft
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -211,13 +211,17 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray, rank_tol
     src = np.empty((m, 4) + n, np.float32)
     src[:, 0] = s0.reshape((m,) + n)
     src[:, 1:] = np.moveaxis(s1.reshape((m,) + n + (3,)), -1, 1)
-    basis, coef = _low_rank(src, rank_tol) if rank_tol > 0.0 and m > 2 else (src, None)
+    basis, coef = src, None
+    if rank_tol > 0.0 and m > 2:
+        with blas_one_thread():
+            basis, coef = _low_rank(src, rank_tol)
     res = np.empty(basis.shape, np.float32)
     step = max(1, _BATCH_BYTES // (32 * math.prod(shape[:2]) * (shape[2] // 2 + 1)))   # complex64, 4 inputs
     for a in range(0, len(basis), step):
         res[a:a + step] = _convolve(basis[a:a + step], n, shape, f0, f1, f2)
     if coef is not None:
-        res = np.tensordot(coef, res, 1).astype(np.float32)
+        with blas_one_thread():
+            res = np.tensordot(coef, res, 1).astype(np.float32)
     phi = np.maximum(res[:, 0], 0.0).astype(float).reshape(lead + n)
     return Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))
 

@@ -9,6 +9,9 @@ bit-identical whatever the count (``tests/sim/test_threads.py``):
   thread of a shared pool; the kernels release the GIL);
 * OpenCV's blurs and resizes (``cv2.setNumThreads``).
 
+numpy's BLAS is held to one thread where the model calls it (:func:`blas_one_thread`): its products there
+are small, and an idle OpenBLAS thread spins, burning the CPU the frame workers need.
+
 Whole frames in parallel (:func:`each_frame`, :func:`submit_frame`) scale better: a scan's frames are
 independent and the model's kernels, numpy's and OpenCV's passes release the GIL, so ``threads`` frames
 render at once on a pool of their own, each with one model thread (:func:`threads` is 1 inside a frame
@@ -24,8 +27,9 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
-_state = {"threads": None, "pool": None, "frames": None}
+_state = {"threads": None, "pool": None, "frames": None, "blas": None}
 _lock = threading.Lock()
 _local = threading.local()         # .threads: 1 inside a frame worker
 
@@ -68,6 +72,16 @@ def set_threads(count: int | None) -> int:
                 if old is not None:
                     old.shutdown(wait=False)
     return n
+
+
+def blas_one_thread():
+    """A context in which numpy's BLAS runs in the calling thread (threadpoolctl; the limit is the
+    process's, so a frame worker's exit may lift it early for another: only the speed depends on it)."""
+    with _lock:
+        if _state.get("blas") is None:
+            _state["blas"] = ThreadpoolController()
+        controller = _state["blas"]
+    return controller.limit(limits=1, user_api="blas")
 
 
 def fft_workers() -> int:
