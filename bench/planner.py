@@ -31,7 +31,7 @@ import numpy as np
 from polarstripe.bench import planner_e2e
 from polarstripe.errors import PolarstripeError
 from polarstripe.planning.image_model import plan_fidelity
-from polarstripe.planning.planner import SEARCHES, default_separations, plan, plan_model
+from polarstripe.planning.planner import SEARCHES, default_separations, plan, plan_model, resolve_search
 from polarstripe.planning.validate import ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
 from polarstripe.sim.scene import load_scene
@@ -108,8 +108,8 @@ def _timed_plan(scene, variant: str, fidelity: str, search: str, settings: ScanS
     """The plans, CPU s, wall s and model evaluations of one full plan with ``search`` on one model thread
     (``n_sep``: its first grid's separations instead of the search's)."""
     measure, orders = VARIANTS[variant]
-    s = SEARCHES[search]
-    seps = default_separations(n_sep or s.separations)
+    s = resolve_search(search, separations=n_sep)
+    seps = default_separations(s.separations)
     model = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders, n_stripes=settings.n_stripes,
                        p_rule=settings.p_rule, width=settings.width if measure == "error" else None)
     count = {"n": 0}

@@ -42,7 +42,7 @@ import numpy as np
 from polarstripe.msgs import Empty, MediumEstimate, Plan
 from polarstripe.planning.image_model import ImageModel, plan_fidelity
 from polarstripe.planning.medium_dop import with_measured_p
-from polarstripe.planning.planner import DEFAULT_SEARCH, SEARCHES, default_separations, plan, plan_model
+from polarstripe.planning.planner import DEFAULT_SEARCH, default_separations, plan, plan_model, resolve_search
 from polarstripe.planning.sheets import feasible, sheet_limits, sheets_for_budget
 from polarstripe.runtime.liveness import RunState
 from polarstripe.runtime.node import Node
@@ -153,9 +153,10 @@ class Planner(Node):
         """Sweep the separations on the current scene; remember the p and σ_t the plan assumed."""
 
         p = self.params
-        s = SEARCHES[p.search]
-        seps = default_separations(p.separations or s.separations, p.d_min_m, p.d_max_m)
-        refine, rivals = (s.refine if p.refine < 0 else p.refine), (s.rivals if p.rivals < 0 else p.rivals)
+        s = resolve_search(p.search, separations=p.separations or None,        # 0 and -1: the search's own
+                           refine=None if p.refine < 0 else p.refine,
+                           rivals=None if p.rivals < 0 else p.rivals)
+        seps = default_separations(s.separations, p.d_min_m, p.d_max_m)
         passes = 2 if p.polarized and p.analyzer == "stage" else 1
         sheets = sheets_for_budget(p.stripes, p.max_frames, passes) if p.max_frames else 1
         allowed = feasible(sheet_limits(self.scene, p.stripes, seps), sheets) if sheets > 1 else \
@@ -166,7 +167,8 @@ class Planner(Node):
                              "separation: allow more frames or scan fewer stripes")
         model = plan_model(self.scene, measure=p.measure, fidelity=p.fidelity, n_stripes=p.stripes,
                            orders=p.orders, stripe_step=p.stripe_step, sheets=sheets, width=p.width or None)
-        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=refine, rivals=rivals)
+        plans = plan(model, seps, modalities=(p.modality,), exposure=p.exposure, refine=s.refine,
+                     rivals=s.rivals)
         mp = plans[p.modality + ("_polarized" if p.polarized else "")]
         c = mp.curve
         if sheets > 1:          # the bisections' separations too (the grid's were checked above)

@@ -38,10 +38,10 @@ from polarstripe.planning.planner import (
     SCAN_TYPES,
     SEARCHES,
     Curve,
-    Search,
     default_separations,
     plan,
     plan_model,
+    resolve_search,
 )
 from polarstripe.planning.sheets import feasible, restrict, sheet_limits, sheets_for_budget
 from polarstripe.planning.validate import EXPOSURES, ScanSettings
@@ -333,10 +333,7 @@ def main(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     if args.light in LIGHTS:
         scene = with_light(scene, args.light)
-    base = SEARCHES[args.search]
-    search = Search(base.separations if args.separations is None else args.separations,
-                    base.refine if args.refine is None else args.refine,
-                    base.rivals if args.rivals is None else args.rivals)
+    search = resolve_search(args.search, separations=args.separations, refine=args.refine, rivals=args.rivals)
     seps = default_separations(search.separations, args.range[0], args.range[1])
     modalities = (args.modality,) if args.modality else ("flood", "stripes")
     plans, doc = {}, {}

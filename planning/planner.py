@@ -31,13 +31,13 @@ from polarstripe.planning.objectives import (
     objective,
 )
 from polarstripe.planning.scene_model import SceneModel
-from polarstripe.planning.search import DEFAULT_SEARCH, SEARCHES, Search, midpoints
+from polarstripe.planning.search import DEFAULT_SEARCH, SEARCHES, Search, midpoints, resolve_search
 from polarstripe.sim.scene import SceneError
 
 __all__ = ["DEFAULT_SEARCH", "EDGES", "IDEAL_SENSOR", "MODALITIES", "SCAN_TYPES", "Competitors", "Curve",
            "ImageModel", "ModalityPlan", "Objective", "PlanModel", "SEARCHES", "Samples", "SceneModel",
            "Search", "SensorNoise", "auto_exposure_scale", "compare_scans", "default_separations",
-           "objective", "plan", "plan_model", "recommend_reading", "search_plan"]
+           "objective", "plan", "plan_model", "recommend_reading", "resolve_search", "search_plan"]
 
 SCAN_TYPES = ("rotate", "translate", "both")
 POLARIZED_READINGS = {"paper": {"flood": ("E_b", "S_hat"), "stripes": ("E_b",)},
@@ -367,14 +367,6 @@ def search_plan(model: PlanModel, search: str | Search = DEFAULT_SEARCH, d_min_m
                 d_max_m: float = 0.6, **kw) -> dict[str, ModalityPlan]:
     """:func:`plan` with one of the tools' searches (:data:`SEARCHES` by name, or a :class:`Search`) over
     [d_min_m, d_max_m]; ``kw`` as :func:`plan`'s."""
-    s = _search(search)
+    s = resolve_search(search)
     return plan(model, default_separations(s.separations, d_min_m, d_max_m), refine=s.refine, rivals=s.rivals,
                 **kw)
-
-
-def _search(search: str | Search) -> Search:
-    if isinstance(search, Search):
-        return search
-    if search not in SEARCHES:
-        raise SceneError(f"search must be one of {', '.join(SEARCHES)}, got {search!r}")
-    return SEARCHES[search]

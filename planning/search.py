@@ -22,9 +22,11 @@ planner's grid of 60 separations and two rounds around each best alone (the sear
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from polarstripe.sim.scene import SceneError
 
 PEAKS = 3            # most peaks refined per curve: the best and two rivals
 CLIFF_STEP = 0.01    # [m] no bisection of a gap this small toward more saturation (docs/planning.md §8)
@@ -46,6 +48,24 @@ class Search:
 SEARCHES = {"coarse": Search(separations=20, refine=4, rivals=0.05),
             "exhaustive": Search(separations=60, refine=2, rivals=0.0)}
 DEFAULT_SEARCH = "coarse"
+
+
+def resolve_search(search: str | Search = DEFAULT_SEARCH, *, separations: int | None = None,
+                   refine: int | None = None, rivals: float | None = None) -> Search:
+    """The search named ``search`` (:data:`SEARCHES`; or a :class:`Search`) with the settings given here in
+    place of its own (None: the search's).
+
+    Raises
+    ------
+    SceneError
+        An unknown name (one line naming the searches).
+    """
+    if not isinstance(search, Search):
+        if search not in SEARCHES:
+            raise SceneError(f"search must be one of {', '.join(SEARCHES)}, got {search!r}")
+        search = SEARCHES[search]
+    given = {"separations": separations, "refine": refine, "rivals": rivals}
+    return dataclasses.replace(search, **{k: v for k, v in given.items() if v is not None})
 
 
 def _slack(best: float, rivals: float, error: bool) -> float:

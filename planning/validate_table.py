@@ -22,7 +22,7 @@ import json
 import math
 
 import numpy as np
-from polarstripe.planning.planner import DEFAULT_SEARCH, SEARCHES, default_separations, plan, plan_model
+from polarstripe.planning.planner import DEFAULT_SEARCH, default_separations, plan, plan_model, resolve_search
 from polarstripe.planning.validate import METHODS, ScanSettings, scan_scene, score_scans
 from polarstripe.sim.scene import Scene, SceneError, scene_to_dict
 
@@ -60,7 +60,7 @@ def planner_picks(scene: Scene, *, orders: str, fidelity: str | None = None, n_s
     judge's), ``width`` its renders' width (the judge's camera: a 30-stripe composite at 3 px per stripe
     aliases, and its error moves by up to 15 % between 90 and 96 px, docs/planning.md §8), ``search`` the
     planner's (:data:`~polarstripe.planning.planner.SEARCHES`; ``separations_m`` replaces its grid)."""
-    s = SEARCHES[search]
+    s = resolve_search(search)
     seps = default_separations(s.separations) if separations_m is None else \
         np.asarray(separations_m, np.float64)
     if orders not in VARIANTS:
@@ -129,7 +129,7 @@ def validate(scene: Scene, grid_m, settings: ScanSettings | None = None, *, plan
     if not grid or any(not (math.isfinite(d) and d > 0) for d in grid):
         raise SceneError("grid: need positive separations [m]")
     if picks is None:
-        seps = default_separations(n_plan or SEARCHES[DEFAULT_SEARCH].separations, *plan_range)
+        seps = default_separations(resolve_search(separations=n_plan).separations, *plan_range)
         picks = {o: planner_picks(scene, orders=o, fidelity=plan_fidelity, n_stripes=settings.n_stripes,
                                   separations_m=seps, p_rule=settings.p_rule, width=settings.width)
                  for o in plan_orders}

@@ -25,6 +25,7 @@ Isotropic scattering keeps exactly (g̃ = 0 the P1 form is exact for the emissio
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -211,16 +212,14 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray, rank_tol
     src = np.empty((m, 4) + n, np.float32)
     src[:, 0] = s0.reshape((m,) + n)
     src[:, 1:] = np.moveaxis(s1.reshape((m,) + n + (3,)), -1, 1)
-    basis, coef = src, None
-    if rank_tol > 0.0 and m > 2:
-        with blas_one_thread():
-            basis, coef = _low_rank(src, rank_tol)
-    res = np.empty(basis.shape, np.float32)
-    step = max(1, _BATCH_BYTES // (32 * math.prod(shape[:2]) * (shape[2] // 2 + 1)))   # complex64, 4 inputs
-    for a in range(0, len(basis), step):
-        res[a:a + step] = _convolve(basis[a:a + step], n, shape, f0, f1, f2)
-    if coef is not None:
-        with blas_one_thread():
+    low = rank_tol > 0.0 and m > 2
+    with blas_one_thread() if low else contextlib.nullcontext():
+        basis, coef = _low_rank(src, rank_tol) if low else (src, None)
+        res = np.empty(basis.shape, np.float32)
+        step = max(1, _BATCH_BYTES // (32 * math.prod(shape[:2]) * (shape[2] // 2 + 1)))   # complex64, 4 in
+        for a in range(0, len(basis), step):
+            res[a:a + step] = _convolve(basis[a:a + step], n, shape, f0, f1, f2)
+        if coef is not None:
             res = np.tensordot(coef, res, 1).astype(np.float32)
     phi = np.maximum(res[:, 0], 0.0).astype(float).reshape(lead + n)
     return Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))

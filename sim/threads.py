@@ -78,7 +78,7 @@ def blas_one_thread():
     """A context in which numpy's BLAS runs in the calling thread (threadpoolctl; the limit is the
     process's, so a frame worker's exit may lift it early for another: only the speed depends on it)."""
     with _lock:
-        if _state.get("blas") is None:
+        if _state["blas"] is None:
             _state["blas"] = ThreadpoolController()
         controller = _state["blas"]
     return controller.limit(limits=1, user_api="blas")
