@@ -50,6 +50,8 @@ MAP_FIDELITY = "preview"   # the compositor's p map is rendered at this level (n
 # a scan's grid solves in low rank (sim/multiple.py propagate): the orders' light within ~1e-4 of its peak of
 # the frame-by-frame solve, a fifth off a `standard` scan (docs/planning.md §8, "A scan rendered together")
 SCAN_RANK_TOL = 1e-3
+FLOOD_MAPS_KEPT = 64    # separations whose flood map is kept: a coarse plan's floods (~40); 1.6 MB each at
+                        # the default 300 × 225 px
 OWN_MAP = (MAP_FIDELITY, "draft")   # levels that divide by their own flood's DOP (draft: the map's preview
                                     # render would make it dearer than preview, 34-37 s against 19-25 a plan)
 
@@ -146,6 +148,7 @@ class ImageModel:
         self.noise = SensorNoise(1.0, cam.read_noise_e, cam.dark_current_e_s * cam.exposure_s,
                                  gain / np.sqrt(12.0),
                                  min(cam.full_well_e, ((1 << cam.bits) - 1 - cam.offset_dn) * gain))
+        self._flood_maps: dict[float, tuple] = {}    # separation → the flood's map a stripe scan divides by
 
     def observed_pixels(self) -> np.ndarray:
         return self.pixels
@@ -168,9 +171,29 @@ class ImageModel:
         keep = np.ones(parts[0].size, bool)
         truth = unscattered_object(sd)[0].reshape(-1)
         samples = self._samples(truth, parts, keep, np.zeros(keep.size, np.int64))
+        flood = self._flood_map(d_lc_m, sd, truth, parts)
         if self.fidelity.name in OWN_MAP:
             return samples                  # the map is the frame's own DOP
-        return dataclasses.replace(samples, flood_dop=self._map(sd, parts, truth))
+        return dataclasses.replace(samples, flood_dop=flood)
+
+    def _flood_map(self, d_lc_m: float, sd: Scene, truth, parts=None) -> tuple:
+        """(B_f, p_f, χ_f) a stripe scan at ``d_lc_m`` divides by: the flood frame's own (:data:`OWN_MAP`
+        levels) or the compositor's map of it (:meth:`_map`), from the flood's ``parts`` or a render of it.
+        Kept per separation (the last :data:`FLOOD_MAPS_KEPT`): a plan evaluates the flood, then the
+        stripes, at mostly the same separations."""
+        key = float(d_lc_m)
+        if key not in self._flood_maps:
+            if self.fidelity.name in OWN_MAP and parts is None:
+                c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
+                kept = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
+            elif self.fidelity.name in OWN_MAP:
+                kept = parts[2:]
+            else:
+                kept = self._map(sd, self._render(sd, "flood") if parts is None else parts, truth)
+            if len(self._flood_maps) >= FLOOD_MAPS_KEPT:
+                self._flood_maps.pop(next(iter(self._flood_maps)))          # the oldest
+            self._flood_maps[key] = kept
+        return self._flood_maps[key]
 
     def backscatter_dop(self, d_lc_m: float) -> float:
         """Σ p B / Σ B over a flood frame at ``d_lc_m`` (the mean DOP where B is 0 everywhere): the medium's p
@@ -214,11 +237,7 @@ class ImageModel:
         comps = render_scan(sd, [str(p) for p in frames], self.fidelity, orders=self.orders,
                             rank_tol=SCAN_RANK_TOL)                                          # together
         parts = [_parts(c) for c in comps]
-        if self.fidelity.name in OWN_MAP:
-            c = render_components(sd, "flood", self.fidelity, need=("B", "p"), orders=self.orders)
-            flood = (c.B.reshape(-1), c.p.reshape(-1), c.chi_rad.reshape(-1))
-        else:
-            flood = self._map(sd, self._render(sd, "flood"), truth)
+        flood = self._flood_map(d_lc_m, sd, truth)
         d, s, b, p, chi = (np.stack([x[j] for x in parts]) for j in range(5))
         group = self._columns
         if self.stripe_step > 1:      # pixels lit by a skipped stripe are not composed: left out (−1)

@@ -219,3 +219,22 @@ def test_at_standard_eq6_divides_by_the_compositors_preview_map():
     exact = signal_error(s * e, truth * e, fit_gain=True)    # Ŝ = S: the frame's own DOP as the map
     assert abs(want - exact) > 0.01                           # the map matters here
     assert got.frame_quality == pytest.approx(1 - want, abs=2e-3)
+
+
+@pytest.mark.parametrize("fidelity", ["draft", "standard"])
+def test_a_stripe_scan_divides_by_the_same_flood_map_after_the_flood(fidelity):
+    """A plan evaluates the flood, then the stripes at the same separations; the stripes reuse the flood's
+    map (planning/image_model.py ``_flood_map``). Their samples are the ones a fresh model gives, which
+    renders the flood again: at ``draft`` (its own frame's B, p, χ, from a render of B and p alone) and at
+    ``standard`` (the compositor's map at preview)."""
+    scene = load_scene(None)
+    fresh = ImageModel(scene, fidelity=fidelity, width=16, n_stripes=4).stripes(0.2)
+    model = ImageModel(scene, fidelity=fidelity, width=16, n_stripes=4)
+    model.flood(0.2)
+    reused = model.stripes(0.2)
+    assert len(model._flood_maps) == 1
+    for a, b in zip(fresh.flood_dop, reused.flood_dop, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(fresh.backscatter, reused.backscatter)
+    # another separation is another map
+    assert not np.array_equal(model.stripes(0.4).flood_dop[0], reused.flood_dop[0])
