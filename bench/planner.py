@@ -35,6 +35,7 @@ from polarstripe.planning.image_model import plan_fidelity
 from polarstripe.planning.planner import SEARCHES, default_separations, plan, plan_model, resolve_search
 from polarstripe.planning.validate import ScanSettings
 from polarstripe.planning.validate_table import VARIANTS, default_grid, picks_of, validate
+from polarstripe.sim import tally
 from polarstripe.sim.scene import load_scene
 from polarstripe.sim.threads import set_threads, threads
 
@@ -107,8 +108,9 @@ def _settings(args) -> tuple[ScanSettings, int | None, int, int]:
 def _timed_plan(scene, variant: str, fidelity: str, search: str, settings: ScanSettings, n_sep, exposure: str,
                 tick):
     """The plans, CPU s, wall s and model evaluations of one full plan with ``search`` on one model thread
-    (``n_sep``: its first grid's separations instead of the search's). A plan during which numba compiled a
-    kernel (on a cold cache, a path the warm-up did not take) is timed again: the time is the plan's alone."""
+    (``n_sep``: its first grid's separations instead of the search's), and the tally of its grid
+    propagations (sim/tally.py). A plan during which numba compiled a kernel (on a cold cache, a path the
+    warm-up did not take) is timed again: the time is the plan's alone."""
     measure, orders = VARIANTS[variant]
     s = resolve_search(search, separations=n_sep)
     seps = default_separations(s.separations)
@@ -129,7 +131,7 @@ def _timed_plan(scene, variant: str, fidelity: str, search: str, settings: ScanS
             model = plan_model(scene, measure=measure, fidelity=fidelity, orders=orders,
                                n_stripes=settings.n_stripes, p_rule=settings.p_rule,
                                width=settings.width if measure == "error" else None)
-            with event.install_recorder("numba:compile") as compiled:
+            with event.install_recorder("numba:compile") as compiled, tally.propagations() as prop:
                 t0, c0 = time.perf_counter(), time.process_time()
                 plans = plan(model, seps, exposure=exposure, refine=s.refine, rivals=s.rivals,
                              progress=progress)
@@ -138,7 +140,7 @@ def _timed_plan(scene, variant: str, fidelity: str, search: str, settings: ScanS
                 break
     finally:
         set_threads(before)
-    return plans, cpu, wall, count["n"]
+    return plans, cpu, wall, count["n"], prop
 
 
 def run(args) -> dict:
@@ -172,7 +174,7 @@ def run(args) -> dict:
            "skipped": [f"{v}/{f}" for v, f in skipped], "load_average_start": list(os.getloadavg()),
            "truth": {}, "levels": []}
     rows = {lv: {"variant": lv[0], "fidelity": lv[1], "search": lv[2], "cpu": {}, "wall": {},
-                 "evaluations": {}, "picks_m": {}, "regret": {}} for lv in levels}
+                 "evaluations": {}, "propagations": {}, "picks_m": {}, "regret": {}} for lv in levels}
     c_all = time.process_time()
     try:
         for name, scene in scenes:
@@ -180,9 +182,10 @@ def run(args) -> dict:
             for lv in levels:
                 if bar is not None:
                     bar.set_description(f"plan {name} {'/'.join(lv)}")
-                plans, cpu, wall, evals = _timed_plan(scene, *lv, settings, n_sep, args.exposure, tick)
+                plans, cpu, wall, evals, prop = _timed_plan(scene, *lv, settings, n_sep, args.exposure, tick)
                 r = rows[lv]
                 r["cpu"][name], r["wall"][name], r["evaluations"][name] = cpu, wall, evals
+                r["propagations"][name] = {"transforms": prop.transforms, "cpu_seconds": prop.cpu_s}
                 picks["/".join(lv)] = picks_of(plans)
             if bar is not None:
                 bar.set_description(f"truth {name}")
@@ -210,7 +213,7 @@ def run(args) -> dict:
             "variant": r["variant"], "fidelity": r["fidelity"], "search": r["search"],
             "cpu_seconds_per_plan": float(np.median(list(r["cpu"].values()))),
             "seconds_per_plan": float(np.median(list(r["wall"].values()))),
-            "cpu_seconds": r["cpu"], "model_evaluations": r["evaluations"],
+            "cpu_seconds": r["cpu"], "model_evaluations": r["evaluations"], "propagations": r["propagations"],
             "picks_m": r["picks_m"], "regret": r["regret"],
             "worst_regret": max(regrets) if regrets else None})
     out["cpu_seconds"] = time.process_time() - c_all
@@ -254,6 +257,14 @@ def print_ladder(res: dict) -> None:
                   f"{_f(worst, '7.3f')}")
     for k in res["skipped"]:
         print(f"{k}: not run (whole frames with A at every pixel: minutes per separation)")
+    print("\nthe grid's propagations (the orders carried on the grid, their polarized part, the glow; "
+          "sim/tally.py): a floor under the plan's time, the rest adds to it")
+    for lv in res["levels"]:
+        for name, p in lv["propagations"].items():
+            per = p["cpu_seconds"] / p["transforms"] * 1e3 if p["transforms"] else 0.0
+            print(f"  {lv['variant']}/{lv['fidelity']}/{lv['search']} {name}: {p['transforms']} transforms, "
+                  f"{p['cpu_seconds']:.1f} s CPU ({per:.2f} ms each), "
+                  f"{p['cpu_seconds'] / max(lv['cpu_seconds'][name], 1e-9):.0%} of the plan")
     print(f"\ntargets: ≤ {res['target_cpu_seconds']:g} s CPU per full plan at standard, regret ≤ "
           f"{res['target_regret']}")
     for lv in res["levels"]:

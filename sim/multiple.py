@@ -32,6 +32,7 @@ from functools import lru_cache
 
 import numpy as np
 from numba import njit
+from polarstripe.sim import tally
 from polarstripe.sim.grid_kernels import GridArgs
 from polarstripe.sim.threads import blas_one_thread, fft_workers
 from scipy import fft as sfft
@@ -205,6 +206,7 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray, rank_tol
     value decomposition X ≈ Σ_{i<r} u_i s_i v_iᵀ, keeping s_i > rank_tol·s_0; only the r basis sources v_i are
     transformed and each field is Σ u_i s_i P(v_i) (the map P is linear). The error of a field is at most
     the dropped part of its source (docs/physics.md §10.6, "A scan's solves in low rank")."""
+    since = tally.start()
     n = tuple(int(m) for m in grid.n)
     shape, f0, f1, f2 = _transforms32(n, tuple(float(x) for x in grid.h), float(sigma))
     lead = s0.shape[:-3]
@@ -222,7 +224,9 @@ def propagate(grid: Grid, sigma: float, s0: np.ndarray, s1: np.ndarray, rank_tol
         if coef is not None:
             res = np.tensordot(coef, res, 1).astype(np.float32)
     phi = np.maximum(res[:, 0], 0.0).astype(float).reshape(lead + n)
-    return Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))
+    out = Field(phi, np.moveaxis(res[:, 1:], 1, -1).astype(float).reshape(lead + n + (3,)))
+    tally.add(len(basis), since)                                   # for benches (sim/tally.py)
+    return out
 
 
 def _low_rank(src: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray | None]:

@@ -49,6 +49,9 @@ def test_every_level_has_its_time_and_regret(ladder):
             else:
                 assert regret[m] > 1.0
         assert lv["worst_regret"] == max(regret.values())
+        # the grid's propagations are part of the plan: some transforms, within the plan's CPU
+        prop = lv["propagations"]["tank_sigma5"]
+        assert prop["transforms"] > 0 and 0 < prop["cpu_seconds"] < lv["cpu_seconds_per_plan"]
 
 
 def test_the_table_names_every_level(ladder, capsys):
@@ -57,6 +60,7 @@ def test_the_table_names_every_level(ladder, capsys):
     assert "coarse: 3 separations, 4 bisection round(s), rivals 0.05" in out
     for fid in ("draft", "preview", "standard"):
         assert f"error    {fid:<9} coarse      tank_sigma5" in out
+        assert f"error/{fid}/coarse tank_sigma5: " in out and " transforms, " in out
 
 
 @pytest.mark.parametrize("argv, needle", [

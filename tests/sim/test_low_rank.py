@@ -5,6 +5,7 @@ tolerance stays within it of the frames solved one by one, and the tolerance doe
 from __future__ import annotations
 
 import numpy as np
+from polarstripe.sim import tally
 from polarstripe.sim.multiple import _low_rank, make_grid, propagate
 from polarstripe.sim.scan_render import render_scan
 from polarstripe.sim.scene import load_scene
@@ -24,8 +25,13 @@ def test_a_batch_of_rank_two_takes_two_transforms_and_gives_each_field():
     src = np.concatenate([s0[:, None], np.moveaxis(s1, -1, 1)], axis=1).astype(np.float32)
     basis, coef = _low_rank(src, 1e-4)
     assert basis.shape[0] == 2 and coef.shape == (6, 2)
-    exact = propagate(grid, 4.0, s0, s1)
-    low = propagate(grid, 4.0, s0, s1, rank_tol=1e-4)
+    with tally.propagations() as counted:
+        exact = propagate(grid, 4.0, s0, s1)
+        assert counted.transforms == 6
+        low = propagate(grid, 4.0, s0, s1, rank_tol=1e-4)
+        assert counted.transforms == 6 + 2 and counted.cpu_s > 0      # the batch's rank, not its size
+    propagate(grid, 4.0, s0, s1)
+    assert counted.transforms == 8                                     # nothing counted outside the block
     for m in range(6):
         peak = exact.phi[m].max()
         assert peak > 0
