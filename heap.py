@@ -16,7 +16,6 @@ clears its own).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 
 import numpy as np
 
@@ -26,7 +25,9 @@ MMAP_THRESHOLD_MAX = 32 << 20
 KEEP_BYTES = 256 << 20
 
 try:
-    _mallopt = ctypes.CDLL(ctypes.util.find_library("c") or None).mallopt
+    # the process's own symbols (libc's among them): ctypes.util.find_library would run /sbin/ldconfig in a
+    # child process at every node's import, one that a stop signal can leave behind (runtime/pgroups.py)
+    _mallopt = ctypes.CDLL(None).mallopt
     _mallopt.argtypes, _mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
 except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to tune
     _mallopt = None

@@ -4,9 +4,10 @@ The launcher checks the whole file first (:mod:`.launch_file`), makes the run di
 its endpoints, writes ``graph.json``, then starts each node as ``python -m polarstripe node …`` in its own
 session (output to ``logs/<node>.log``) and supervises: respawn with a delay up to ``max_respawns``; a
 ``required`` node's exit ends the launch. Ctrl-C/SIGTERM stop the children in reverse start order: SIGINT,
-then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart. Children also get SIGTERM if the launcher
-itself dies. At the end it prints one line per node (exit status or signal, whether the launcher stopped it,
-respawns) and writes them to ``exits.json`` in the run directory (:meth:`Launcher.exits`).
+then SIGTERM, then SIGKILL, ``shutdown_timeout`` seconds apart; what a node left in its process group is
+waited for, then killed (:mod:`.pgroups`). Children also get SIGTERM if the launcher itself dies. At the
+end it prints one line per node (exit status or signal, whether the launcher stopped it, respawns) and
+writes them to ``exits.json`` in the run directory (:meth:`Launcher.exits`).
 
 Recording: ``--record FILE`` adds a node ``recorder`` running
 ``polarstripe.nodes.recorder:Recorder`` with param ``path = FILE``, started first and stopped last
@@ -34,6 +35,7 @@ from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, l
 from polarstripe.runtime.launch_setup import _ipc_in_use, _with_recorder, build_graph
 from polarstripe.runtime.liveness import INCARNATION_ENV
 from polarstripe.runtime.params import parse_assignments
+from polarstripe.runtime.pgroups import reap_groups, set_subreaper
 
 HELP = "start a rig from a launch file"
 USER_ERROR = 2  # a node's exit status for a one-line PolarstripeError (a bad setting, a missing device)
@@ -100,6 +102,7 @@ class Launcher:
         self._ended = ""  # why the launch ended
         self._claims: list[int] = []  # lock files held for the exclusive args
         self._left: list[str] = []  # files the nodes left in ${run_sock} (a node killed, or not cleaning up)
+        self._groups: dict[int, str] = {}  # the process group of every process started (runtime/pgroups.py)
 
     def say(self, text: str) -> None:
         print(f"[launch {self.spec.name}] {text}", file=self.out, flush=True)
@@ -155,6 +158,7 @@ class Launcher:
                 proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=log,
                                         stderr=subprocess.STDOUT, env=env, start_new_session=True,
                                         preexec_fn=_die_with_parent)
+            self._groups[proc.pid] = f"prepare {step}"
             while proc.poll() is None:
                 if self._stop:
                     proc.terminate()
@@ -197,6 +201,7 @@ class Launcher:
             )
         finally:
             log.close()
+        self._groups[c.proc.pid] = n.name
         c.restart_at = None
         c.started_at = time.monotonic()
         self.graph["nodes"][n.name]["pid"] = c.proc.pid
@@ -224,6 +229,7 @@ class Launcher:
         sock_dir(self.run_dir).mkdir(parents=True, exist_ok=True, mode=0o700)  # ${run_sock}: ready for nodes
         write_graph(self.graph_file, self.graph)
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        subreaper = set_subreaper(True)  # what a node leaves in its group becomes ours to reap
         status = 1  # if something below raises
         try:
             self.say(f"run directory {self.run_dir}")
@@ -241,6 +247,8 @@ class Launcher:
             status = {"SIGINT": 130, "SIGTERM": 143}.get(self._stop, 2)
         finally:
             self._shutdown()
+            if subreaper is not None:
+                set_subreaper(subreaper)
             self._release()
             self._echo()
             for s, h in old.items():
@@ -357,7 +365,7 @@ class Launcher:
 
     def _shutdown(self) -> None:
         """SIGINT, then SIGTERM, then SIGKILL to every live child (reverse start order), each stage waiting up
-        to ``shutdown_timeout`` s; then reap everything."""
+        to ``shutdown_timeout`` s; then reap everything, and what they left in their process groups."""
         live = [c for c in reversed(self.children) if c.proc is not None and c.proc.poll() is None]
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             if not live:
@@ -379,6 +387,7 @@ class Launcher:
                 code = c.proc.wait()
                 if c.stopped_by is not None or c.exit_code is None:  # stopped here, or died unseen
                     c.exit_code = code
+        reap_groups(self._groups, self.spec.shutdown_timeout, self.say)
         sock = sock_dir(self.run_dir)
         if sock.is_dir():
             for p in sorted(sock.iterdir()):

@@ -172,3 +172,81 @@ def test_sigint_at_40_moments_spread_evenly(tmp_path):
     counts = dict.fromkeys(PHASES, 8)
     results = _run_moments(tmp_path, counts, seed=1212)
     assert len(results) == 40
+
+
+LEAVING_NODES = """
+import os, subprocess, sys
+from polarstripe.runtime.node import Node
+
+# a child in the node's process group that ignores the stop signals; it writes 'ready', and once its node is
+# gone it stays LINGER more seconds (then writes 'done' and exits)
+CHILD = '''
+import os, signal, sys, time
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+folder, linger, parent = sys.argv[1], float(sys.argv[2]), os.getppid()
+open(os.path.join(folder, 'ready'), 'w').close()
+while os.getppid() == parent:
+    time.sleep(0.01)
+time.sleep(linger)
+open(os.path.join(folder, 'done'), 'w').close()
+'''
+
+
+class Leaver(Node):
+    LINGER = 0.0
+
+    def setup(self):
+        folder = os.path.join(os.environ["PS_LEAVE_DIR"], self.name)
+        os.makedirs(folder)
+        subprocess.Popen([sys.executable, "-c", CHILD, folder, str(self.LINGER)])
+
+
+class Lingers(Leaver):
+    LINGER = 1.0
+
+
+class Stays(Leaver):
+    LINGER = 600.0
+"""
+
+
+def test_what_a_node_leaves_in_its_process_group_is_waited_for_then_killed(tmp_path):
+    """A child a node started (in its process group) that outlives it: one that ends 1 s after its node is
+    waited for, one that would stay is killed after shutdown_timeout; the launcher exits only then, so that
+    nothing is left (runtime/pgroups.py)."""
+    (tmp_path / "ps_leaving_nodes.py").write_text(LEAVING_NODES)
+    (tmp_path / "leave.toml").write_text(
+        '[launch]\nname = "leave"\nshutdown_timeout = 2.0\n'
+        '[[node]]\nname = "lingers"\nmodule = "ps_leaving_nodes:Lingers"\n'
+        '[[node]]\nname = "stays"\nmodule = "ps_leaving_nodes:Stays"\n'
+    )
+    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs"), "PS_LEAVE_DIR": str(tmp_path),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    console = tmp_path / "console.txt"
+    with open(console, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(tmp_path / "leave.toml")],
+                                cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not all((tmp_path / name / "ready").exists() for name in ("lingers", "stays")):
+            assert proc.poll() is None and time.monotonic() < deadline, _text(console)
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130, _text(console)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text = _text(console)
+    exits = json.loads(next((tmp_path / "runs").glob("*/exits.json")).read_text())
+    for name in ("lingers", "stays"):
+        e = exits["nodes"][name]
+        assert e["exit_code"] == 0 and e["stopped_by"] == "SIGINT", (name, e, text)
+        with pytest.raises(ProcessLookupError):
+            os.killpg(e["pid"], 0)  # the launcher reaped its child too
+    assert (tmp_path / "lingers" / "done").exists()  # waited for: it ended by itself
+    assert not (tmp_path / "stays" / "done").exists()
+    assert "stays left processes in its group after it exited: SIGKILL" in text, text
+    assert "lingers left" not in text, text
