@@ -8,7 +8,8 @@ the running argmax the depth needs is timed too, as the per-frame cost it adds).
 reported, with the load average: on a shared machine the wall time holds the waits for a core.
 
 Accuracy (``--accuracy``): a sphere in front of a tilted plane in the default tank, rendered by the model
-(:func:`polarstripe.sim.render.render_components`) at a small resolution for each ``--sigmas`` (2, 5, 8),
+(:func:`polarstripe.sim.render.render_each`: a scan's frames together, each as it renders alone) at a small
+resolution for each ``--sigmas`` (2, 5, 8),
 scanned with stripes (E, no analyzer) and polarized stripes read as E_b (the analyzer crossed to the
 backscatter) and as Ŝ (eq. 6 from E_b and E_w, p̂ measured on the frames), with all orders of scattering as
 the simulator renders them (``--orders single``: the paper's single-scattering model), delineated with each
@@ -37,7 +38,7 @@ from polarstripe.imaging.triangulation import (
 )
 from polarstripe.sim.depth_truth import depth_truth, rig_geometry
 from polarstripe.sim.polarization import analyzer, least_backscatter_angle
-from polarstripe.sim.render import render_components
+from polarstripe.sim.render import render_each
 from polarstripe.sim.scene import PlaneObject, Scene, SphereObject, load_scene
 from polarstripe.sim.sensor import dark_offset_dn, electrons_per_radiance, expose, full_scale_dn
 from scipy.ndimage import uniform_filter1d
@@ -85,8 +86,7 @@ def scan_votes(scene: Scene, stripes: int, angles=(None,), *, orders: str = "sin
     """Render a stripe scan of ``scene`` at each analyzer angle and fold it into a RunningArgmax; the exposure
     is set so the brightest stripe frame (no analyzer) peaks at 80 % of full scale. Returns
     ({angle: SheetVotes}, the scene as exposed)."""
-    comps = [render_components(scene, f"stripe:{k}/{stripes}", fidelity, orders=orders)
-             for k in range(stripes)]
+    comps = render_each(scene, [f"stripe:{k}/{stripes}" for k in range(stripes)], fidelity, orders=orders)
     scene = _exposed(scene, comps, None)
     w, h = scene.camera.resolution
     ra = RunningArgmax((h, w), np.uint16)
@@ -173,8 +173,8 @@ def accuracy(sigmas=(2.0, 5.0, 8.0), stripes: int = 30, width: int = 160, orders
     for sigma in sigmas:
         scene = depth_scene(sigma, width)
         truth = depth_truth(scene)
-        comps = [render_components(scene, f"stripe:{k}/{stripes}", "preview", orders=orders)
-                 for k in range(stripes)]
+        comps = render_each(scene, [f"stripe:{k}/{stripes}" for k in range(stripes)], "preview",
+                            orders=orders)
         geom = RigGeometry.from_dict(rig_geometry(scene))
         edges = stripe_edges(stripes, geom.proj_size[0])
         frames, p_hat = readings(scene, comps, truth)
@@ -284,7 +284,7 @@ def main(args: argparse.Namespace) -> int:
                                    args.orders, _floats(args.min_contrast, "--min-contrast"),
                                    _floats(args.k_sigma, "--k-sigma"), _rows(args.rows))
         what = "all orders of scattering" if args.orders == "all" else "single scattering"
-        out["accuracy_model"] = (f"{what} (render_components orders={args.orders!r}), preview fidelity, "
+        out["accuracy_model"] = (f"{what} (render_each orders={args.orders!r}), preview fidelity, "
                                  f"{args.accuracy_width} px wide")
     if args.json:
         print(json.dumps(out))
