@@ -38,8 +38,10 @@ cached.
 Speed: frames are made on worker threads, ``threads`` at once (nodes/simulator_pipeline.py); the loop
 never waits for one: a request whose frame is not made yet gets a deferred reply, which the ``deliver``
 timer sends once it is, in request order. Each pattern's components are kept per source pose (their
-analyzer basis, sim/polarization.py), so the second analyzer angle of a scan costs only the analyzer pass
-and the sensor, and the scan's next ``threads`` frames are made ahead (``render_ahead``). With
+analyzer basis, sim/polarization.py; the mosaic's Stokes only for ``render_mosaic``, whose first frame of
+a pattern kept without them renders it again), so the second analyzer angle of a scan costs only the
+analyzer pass and the sensor, and the scan's next ``threads`` × ``render_batch`` frames are made ahead
+(``render_ahead``), each worker rendering a batch's patterns together (sim/scan_render.py). With
 ``render_scale`` > 1 (``preview`` picks it so the model runs at ~160 pixels wide) the model renders at a
 lower resolution and the radiance is resized bilinearly to the camera's size before the sensor (noise,
 quantisation and clipping at full size); checker patterns (whose edges the high-frequency separation relies
@@ -128,7 +130,7 @@ class Simulator(Node):
         self.stats = {"frames": 0, "made_ahead": 0, "renders": 0, "cache_hits": 0, "model_s": 0.0,
                       "sensor_s": 0.0, "resize_s": 0.0, "busy_s": 0.0}
         self.sources = Sources(p.cache_size, self.fidelity)
-        self.frames = Frames(self.sources, self.threads, self.stats)
+        self.frames = Frames(self.sources, self.threads, self.stats, p.render_batch)
         self.motion = ScanMotion(p)
         self._truth: dict = {}
         self._e_map_base = electrons_per_radiance(cam)

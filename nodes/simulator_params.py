@@ -26,7 +26,8 @@ class SimulatorParams(NodeParams):
     auto_exposure: bool = True  # after each source move, shorten the exposure if the flood would clip
     seed: int | None = None  # None: the scene camera's seed
     cache_size: int = 80  # patterns' components kept (one set per pattern and source pose)
-    render_ahead: bool = True  # make the scan's next `threads` frames while this one travels
+    render_ahead: bool = True  # make the scan's next `threads` × `render_batch` frames while this one travels
+    render_batch: int = 3  # frames made ahead rendered together (sim/scan_render.py); 1 = one by one
     threads: int = 0  # frames made at once; 0 = the cores of the process's CPU affinity
     analyzer_deg: float = 0.0  # analyzer angle when no drive is hosted [deg]
     can_channel: str = ""  # python-can zmq channel of the simulated drive; "" = no drive
@@ -55,8 +56,10 @@ class SimulatorParams(NodeParams):
         resolve_fidelity(self.fidelity)
         if self.noise not in ("poisson", "gaussian", "auto"):
             raise ValueError(f"noise must be poisson, gaussian or auto, got {self.noise!r}")
-        if self.render_scale < 0 or self.cache_size < 1 or not self.counts_per_deg > 0:
-            raise ValueError("render_scale >= 0, cache_size >= 1 and counts_per_deg > 0 are needed")
+        if (self.render_scale < 0 or self.cache_size < 1 or self.render_batch < 1
+                or not self.counts_per_deg > 0):
+            raise ValueError("render_scale >= 0, cache_size >= 1, render_batch >= 1 and counts_per_deg > 0 "
+                             "are needed")
         if self.threads < 0:
             raise ValueError(f"threads must be >= 0 (0: the CPU affinity), got {self.threads}")
         check_medium(self.medium_sigma_t, self.medium_g)

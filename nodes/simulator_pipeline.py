@@ -13,6 +13,13 @@ same frame on any thread.
 node starts them at once, so that while one frame travels the next ones render on the other cores; a
 request whose job equals a predicted one takes that frame, which is the frame it would have got. A
 prediction that does not come true (the analyzer moved, the scan ended) is cancelled or dropped.
+
+**Together.** The frames made ahead go to the workers in batches of ``batch``: one worker renders the
+sources a batch lacks side by side (sim/scan_render.py ``render_scan``: the grid solves of the batch as
+one, the same components to the bit), then makes its frames in order, each Future set as its frame is
+made. :class:`Frames` keeps ``threads × batch`` frames ahead and starts a batch once that many are
+missing (fewer at a scan's end, or when the workers would run dry), so both cores render while the
+frames travel. A batch holds only frames of one model scene (one pose, one resolution).
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from polarstripe.nodes.simulator_frames import to_camera
 from polarstripe.sim.mosaic import MicroPolarizerArray, mosaic_radiance
 from polarstripe.sim.polarization import AnalyzerBasis, analyzer_basis, through_analyzer
 from polarstripe.sim.render import render_components
+from polarstripe.sim.scan_render import render_scan
 from polarstripe.sim.scene import Camera, Scene
 from polarstripe.sim.sensor import expose
 from polarstripe.sim.threads import submit_frame
@@ -39,20 +47,27 @@ from polarstripe.sim.threads import submit_frame
 @dataclasses.dataclass(frozen=True)
 class FrameSource:
     """What the frames of one pattern need of its components: the analyzer's angle-free part (``basis``:
-    D + A + B and the polarized light) and the linear Stokes (S1, S2) = (Bq + Sq, Bu + Su) for the mosaic,
-    at the model's resolution."""
+    D + A + B and the polarized light) and the linear Stokes (S1, S2) = (Bq + Sq, Bu + Su) for the mosaic
+    (None when made for analyzer frames only: two fewer frames of memory kept per pattern), at the model's
+    resolution."""
 
     basis: AnalyzerBasis
-    s1: np.ndarray
-    s2: np.ndarray
+    s1: np.ndarray | None
+    s2: np.ndarray | None
 
     def total(self) -> np.ndarray:
         """D + A + B, the radiance without analyzer."""
         return self.basis.total.reshape(self.basis.shape)
 
 
-def frame_source(scene: Scene, pattern: str, fidelity) -> FrameSource:
-    comp = render_components(scene, pattern, fidelity)
+def frame_source(scene: Scene, pattern: str, fidelity, stokes: bool = True) -> FrameSource:
+    """The :class:`FrameSource` of ``pattern``, with (S1, S2) if ``stokes``."""
+    return _source(render_components(scene, pattern, fidelity), stokes)
+
+
+def _source(comp, stokes: bool) -> FrameSource:
+    if not stokes:
+        return FrameSource(analyzer_basis(comp), None, None)
     return FrameSource(analyzer_basis(comp), _stokes(comp.Bq, comp.Sq), _stokes(comp.Bu, comp.Su))
 
 
@@ -73,15 +88,19 @@ class Sources:
         self.size, self.fidelity = size, fidelity
         self._kept: OrderedDict = OrderedDict()
         self._making: dict = {}
+        self._fresh: dict = {}         # key: its share of a batch's seconds, until its first frame takes it
         self._lock = threading.Lock()
+        self.together = 0              # sources rendered in batches (make_together)
 
-    def get(self, key: tuple, scene: Scene, pattern: str) -> tuple[FrameSource, float | None]:
-        """(the source, the seconds its render took here; None when it was kept or made elsewhere)."""
+    def get(self, key: tuple, scene: Scene, pattern: str, stokes: bool = False) -> tuple[FrameSource,
+                                                                                       float | None]:
+        """(the source, the seconds its render took; None when it was kept, or made for another frame); with
+        ``stokes``, one that holds (S1, S2) (a kept one without is rendered again)."""
         while True:
             with self._lock:
-                if key in self._kept:
+                if key in self._kept and (not stokes or self._kept[key].s1 is not None):
                     self._kept.move_to_end(key)
-                    return self._kept[key], None
+                    return self._kept[key], self._fresh.pop(key, None)
                 busy = self._making.get(key)
                 if busy is None:
                     busy = self._making[key] = threading.Event()
@@ -89,17 +108,45 @@ class Sources:
             busy.wait()
         try:
             t0 = time.perf_counter()
-            source = frame_source(scene, pattern, self.fidelity)
+            source = frame_source(scene, pattern, self.fidelity, stokes)
             seconds = time.perf_counter() - t0
-            with self._lock:
-                self._kept[key] = source
-                while len(self._kept) > self.size:
-                    self._kept.popitem(last=False)
+            self._keep({key: source}, {})
         finally:
-            with self._lock:
-                del self._making[key]
-            busy.set()
+            self._done({key: busy})
         return source, seconds
+
+    def make_together(self, scene: Scene, items: list[tuple[tuple, str]], stokes: bool = False) -> None:
+        """Render the sources of ``items`` ((key, pattern), one model ``scene``) that are neither kept (with
+        (S1, S2) if ``stokes``) nor being made, side by side (sim/scan_render.py ``render_scan``); each is
+        charged an equal share of the batch's seconds, reported by the :meth:`get` that first takes it."""
+        with self._lock:
+            todo = [(k, p) for k, p in dict(items).items() if k not in self._making and (
+                k not in self._kept or stokes and self._kept[k].s1 is None)]
+            events = {k: self._making.setdefault(k, threading.Event()) for k, _ in todo}
+        if not todo:
+            return
+        try:
+            t0 = time.perf_counter()
+            made = [_source(c, stokes) for c in render_scan(scene, [p for _, p in todo], self.fidelity)]
+            share = (time.perf_counter() - t0) / len(todo)
+            self.together += len(todo)
+            self._keep({k: m for (k, _), m in zip(todo, made, strict=True)}, dict.fromkeys(events, share))
+        finally:
+            self._done(events)
+
+    def _keep(self, sources: dict, fresh: dict) -> None:
+        with self._lock:
+            self._kept.update(sources)
+            self._fresh.update(fresh)
+            while len(self._kept) > self.size:
+                self._fresh.pop(self._kept.popitem(last=False)[0], None)
+
+    def _done(self, events: dict) -> None:
+        with self._lock:
+            for k in events:
+                del self._making[k]
+        for e in events.values():
+            e.set()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,7 +191,7 @@ def make_frame(job: FrameJob, sources: Sources) -> FrameDone:
     if job.model is None:
         radiance = np.zeros((res[1], res[0]))
     else:
-        source, model_s = sources.get((job.pattern, job.pose), job.model, job.pattern)
+        source, model_s = sources.get((job.pattern, job.pose), job.model, job.pattern, job.mosaic is not None)
         t0 = time.perf_counter()
         if job.mosaic is not None:
             radiance = mosaic_radiance(*(to_camera(x, res) for x in (source.total(), source.s1, source.s2)),
@@ -157,6 +204,39 @@ def make_frame(job: FrameJob, sources: Sources) -> FrameDone:
     image = expose(radiance, job.camera, np.random.default_rng(list(job.seed)), electrons=job.e_map,
                    gaussian=job.gaussian)
     return FrameDone(image, model_s, t1 - t0, time.perf_counter() - t1)
+
+
+def make_batch(batch: list[tuple[FrameJob, Future]], sources: Sources) -> None:
+    """Make the frames of ``batch`` (one model scene; module docstring, "Together"): the sources it lacks
+    rendered together, then each frame in order, its Future set as it is made (a cancelled one skipped)."""
+    live = [(j, f) for j, f in batch if not f.cancelled()]
+    if len(live) > 1 and live[0][0].model is not None:
+        try:
+            sources.make_together(live[0][0].model, [((j.pattern, j.pose), j.pattern) for j, _ in live],
+                                  live[0][0].mosaic is not None)
+        except Exception:  # noqa: BLE001 - each frame then renders its own source and gets its own error
+            pass
+    for job, future in live:
+        if future.set_running_or_notify_cancel():
+            try:
+                future.set_result(make_frame(job, sources))
+            except Exception as exc:  # noqa: BLE001 - the frame's request gets it (Simulator._answer)
+                future.set_exception(exc)
+
+
+def batches(jobs: list[FrameJob], size: int) -> list[list[FrameJob]]:
+    """``jobs`` in order, cut into runs of at most ``size`` that share a model scene (pose and resolution;
+    a dark frame alone) and the kind of frame (through the analyzer, or the mosaic)."""
+    out: list[list[FrameJob]] = []
+    for j in jobs:
+        last = out[-1][-1] if out else None
+        if (last is not None and len(out[-1]) < size and j.model is not None and last.model is not None
+                and last.pose == j.pose and last.model.camera.resolution == j.model.camera.resolution
+                and (last.mosaic is None) == (j.mosaic is None)):
+            out[-1].append(j)
+        else:
+            out.append([j])
+    return out
 
 
 def next_jobs(job: FrameJob, depth: int, where) -> list[FrameJob]:
@@ -192,25 +272,32 @@ class Owed:
 class Frames:
     """The frames in flight: those made ahead (by job key) and those owed, in request order; ``stats`` (the
     node's) counts frames taken from those made ahead, renders and their seconds, kept sources, the resize
-    and sensor seconds."""
+    and sensor seconds. ``threads`` workers, ``batch`` frames a batch (module docstring)."""
 
-    def __init__(self, sources: Sources, depth: int, stats: dict):
-        self.sources, self.depth, self.stats = sources, depth, stats
+    def __init__(self, sources: Sources, threads: int, stats: dict, batch: int = 1):
+        self.sources, self.threads, self.batch, self.stats = sources, threads, max(1, batch), stats
         self.ahead: dict = {}
         self.owed: deque[Owed] = deque()
 
     def start(self, job: FrameJob, where=None) -> Future:
-        """The Future of ``job``'s frame (made ahead, or started now); then, with ``where``, the next
-        :attr:`depth` frames started (:func:`next_jobs`) and the other frames made ahead dropped."""
+        """The Future of ``job``'s frame (made ahead, or started now); then, with ``where``, the frames of the
+        next ``threads × batch`` predicted (:func:`next_jobs`) that are missing started in batches, and the
+        other frames made ahead dropped."""
         future = self.ahead.pop(job.key, None)
         self.stats["made_ahead"] += future is not None
         future = future or submit_frame(make_frame, job, self.sources)
-        following_jobs = next_jobs(job, self.depth, where) if where is not None else []
+        depth = self.threads * self.batch
+        following_jobs = next_jobs(job, depth, where) if where is not None else []
         for stale in self.ahead.keys() - {j.key for j in following_jobs}:
             self.ahead.pop(stale).cancel()
-        for j in following_jobs:
-            if j.key not in self.ahead:
-                self.ahead[j.key] = submit_frame(make_frame, j, self.sources)
+        missing = [j for j in following_jobs if j.key not in self.ahead]
+        busy = sum(not f.done() for f in self.ahead.values())
+        if len(following_jobs) == depth and busy >= self.threads:     # only whole batches
+            missing = missing[:len(missing) // self.batch * self.batch]
+        for chunk in batches(missing, self.batch):
+            pairs = [(j, Future()) for j in chunk]
+            self.ahead.update((j.key, f) for j, f in pairs)
+            submit_frame(make_batch, pairs, self.sources)
         return future
 
     def count(self, done: FrameDone) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from polarstripe.heap import shared_zeros
 from polarstripe.sim.sensor_kernels import malus, malus_basis
 
 
@@ -95,11 +96,17 @@ def analyzer_basis(components, extinction_ratio: float | None = None) -> Analyze
             (components.D, components.A, components.B, *components.seen_stokes())]
     total, q, u = (np.empty(flat[0].size) for _ in range(3))
     malus_basis(*flat, total, q, u)          # one compiled pass (sim/sensor_kernels.py)
-    if np.any(components.Sq) or np.any(components.Su):      # the object's light polarized by a camera port
+    if _nonzero(components.Sq) or _nonzero(components.Su):  # the object's light polarized by a camera port
         sq, su = components.object_seen_stokes()
         q += np.ravel(sq)
         u += np.ravel(su)
     return AnalyzerBasis(total, q, u, float(k1), float(k2), tuple(np.shape(components.B)))
+
+
+def _nonzero(a: np.ndarray) -> bool:
+    """Whether ``a`` has a nonzero item; False at once for the shared zeros (polarstripe.heap), which a
+    render without a camera port gives for Sq and Su."""
+    return a is not shared_zeros(np.shape(a)) and bool(np.any(a))
 
 
 def through_analyzer(basis: AnalyzerBasis, angle_deg: float) -> np.ndarray:

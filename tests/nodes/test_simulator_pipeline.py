@@ -37,17 +37,39 @@ def scan(h):
     return out
 
 
-def test_frames_made_ahead_on_two_threads_are_the_frames_made_one_by_one():
+@pytest.mark.parametrize("batch", [1, 3])
+def test_frames_made_ahead_on_two_threads_are_the_frames_made_one_by_one(batch):
+    """Made ahead one by one (``render_batch`` 1) or in batches rendered together (3: stripes 1-3 at step
+    0, sim/scan_render.py), the frames are those of one thread without ahead, to the bit."""
     one = sim(threads=1, render_ahead=False)
     alone = scan(one)
-    two = sim(threads=2)
+    two = sim(threads=2, render_batch=batch)
     ahead = scan(two)
     assert two.node.threads == 2 and one.node.threads == 1
     assert len({a.tobytes() for a in alone}) == len(alone)          # every frame differs (pattern, noise)
     for a, b in zip(alone, ahead, strict=True):
         assert np.array_equal(a, b)
-    assert two.node.stats["renders"] == one.node.stats["renders"] == 5      # flood + 4 stripes, once each
+    # flood + 4 stripes once each, and the mosaic's stripe again: a source made for the analyzer's frames
+    # keeps no (S1, S2)
+    assert two.node.stats["renders"] == one.node.stats["renders"] == 6
     assert one.node.stats["made_ahead"] == 0 and two.node.stats["made_ahead"] == 4  # steps 1-3, 5
+    assert two.node.sources.together == (3 if batch == 3 else 0) and one.node.sources.together == 0
+
+
+def test_batches_share_a_model_scene_and_keep_the_order():
+    from polarstripe.nodes.simulator_pipeline import FrameJob, batches
+    from polarstripe.sim.scene import load_scene
+    scene = load_scene(None)
+    small = scene.replace(camera=scene.camera.resized((32, 24)))
+
+    def job(k, pose=0, model=scene):
+        return FrameJob(f"stripe:{k}/9", (pose,), model, 0.0, None, scene.camera, None, (0, 1, k, k), False)
+
+    jobs = [job(0), job(1), job(2), job(3), job(4, pose=1), job(5, pose=1), job(6, model=None), job(7),
+            job(8, model=small)]
+    cut = [[j.seed[2] for j in b] for b in batches(jobs, 3)]
+    assert cut == [[0, 1, 2], [3], [4, 5], [6], [7], [8]]
+    assert [[j.seed[2] for j in b] for b in batches(jobs[:4], 1)] == [[0], [1], [2], [3]]
 
 
 def test_the_loop_answers_other_services_while_a_frame_is_made_and_frames_come_in_order():
