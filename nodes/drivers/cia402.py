@@ -276,13 +276,13 @@ class Cia402Stage(Cia402Watch, RotationStage):
         except DriverError as exc:
             text = exc.args[0].removeprefix(f"{self.name}: ")
             raise StageFault(f"{self.name}: cannot reset, {text}") from exc
-        if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
+        if self._listening_clock() - self._hb_at > self.heartbeat_timeout_s:
             # give a recovering drive one heartbeat period to show up
             self._wait_pdo(
-                until=lambda: time.monotonic() - self._hb_at <= self.heartbeat_timeout_s,
+                until=lambda: self._listening_clock() - self._hb_at <= self.heartbeat_timeout_s,
                 timeout=2 * self.heartbeat_timeout_s,
             )
-        if time.monotonic() - self._hb_at > self.heartbeat_timeout_s:
+        if self._listening_clock() - self._hb_at > self.heartbeat_timeout_s:
             raise StageFault(f"{self.name}: cannot reset, the drive's heartbeat is still missing")
         if not self._wait_pdo():
             # the drive may have left OPERATIONAL without our seeing it yet (a reset by another master whose

@@ -12,6 +12,14 @@ records state; the stage's own thread acts on them (``reset_fault``). NMT, as Ci
   since our last NMT start: a heartbeat the drive sent before that start reached it is still on its way when
   the first TPDO arrives, and is not a state change. A drive that does not report OPERATIONAL within the
   heartbeat timeout after our NMT start is a fault.
+
+The consumer timeouts (heartbeat, NMT start, TPDO staleness) count *listening time*
+(:meth:`Cia402Watch._listening_clock`): time this process was not scheduled does not count. A watchdog that
+wakes later than twice its period was stalled with the rest of the process (a garbage collection holds the
+GIL for its whole length, seconds on a loaded machine; a starved CPU; a debugger), and frames the drive sent
+meanwhile wait unread in the socket. Judged on the wall clock, such a stall read as a lost heartbeat the drive
+never missed (docs/hardware.md, the measurements). A drive that does fall silent is still found: its timeout
+runs on as soon as the process runs again. The angle's freshness (``_pdo_at``) stays on the wall clock.
 """
 
 from __future__ import annotations
@@ -64,8 +72,10 @@ class Cia402Watch:
         self._lock = threading.RLock()
         self._sw: int | None = None
         self._pos: int | None = None
-        self._pdo_at = -math.inf
-        self._hb_at = time.monotonic()  # the consumer timeout counts from the start of supervision
+        self._pdo_at = -math.inf  # time.monotonic() of the last TPDO1: how fresh the angle is
+        self._blind_s = 0.0  # time the watchdog was not scheduled beyond its period (module docstring)
+        self._pdo_heard = -math.inf  # the last TPDO1 on the listening clock
+        self._hb_at = self._listening_clock()  # the consumer timeout counts from the start of supervision
         self._nmt_state: int | None = None
         self._nmt_start_at: float | None = None  # our last NMT start, until the drive reports OPERATIONAL
         self._needs_config = False
@@ -73,6 +83,10 @@ class Cia402Watch:
         self._acked = threading.Event()
         self._target_counts: int | None = None
         self._stop = threading.Event()
+
+    def _listening_clock(self) -> float:
+        """Seconds on a clock that stands still while this process did not run (the consumer timeouts)."""
+        return time.monotonic() - self._blind_s
 
     def _start_watch(self) -> None:
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
@@ -83,7 +97,7 @@ class Cia402Watch:
 
     def _nmt_start(self) -> None:
         """NMT start; a non-OPERATIONAL heartbeat is a state change again once OPERATIONAL is reported."""
-        self._nmt_start_at = time.monotonic()
+        self._nmt_start_at = self._listening_clock()
         self._send(lambda: self.node.nmt.send_command(0x01), "NMT start")
 
     # -- callbacks (canopen's notifier thread) ------------------------------------------------------------
@@ -91,7 +105,7 @@ class Cia402Watch:
         sw = pdo_map["Statusword"].raw
         with self._lock:
             self._sw, self._pos = sw, pdo_map["Position actual value"].raw
-            self._pdo_at = time.monotonic()
+            self._pdo_at, self._pdo_heard = time.monotonic(), self._listening_clock()
             if self._awaiting_ack and sw & cia.SW_SETPOINT_ACK:
                 self._acked.set()
         try:
@@ -108,7 +122,7 @@ class Cia402Watch:
             )
 
     def _on_heartbeat(self, nmt_state: int) -> None:
-        self._hb_at = time.monotonic()
+        self._hb_at = self._listening_clock()
         self._nmt_state = nmt_state
         if nmt_state == 0:  # boot-up
             self._needs_config, self._nmt_start_at = True, None
@@ -149,8 +163,11 @@ class Cia402Watch:
 
     def _watch(self) -> None:
         """Consumer heartbeat timeout, NMT start not taken, and TPDO staleness, checked every ``_watch_s``."""
+        last = time.monotonic()
         while not self._stop.wait(self._watch_s):
-            now = time.monotonic()
+            wall = time.monotonic()
+            self._blind_s += max(0.0, wall - last - 2 * self._watch_s)  # woken late: the process stalled
+            last, now = wall, self._listening_clock()
             if self._pos is None:
                 continue
             if now - self._hb_at > self.heartbeat_timeout_s:
@@ -165,5 +182,5 @@ class Cia402Watch:
                     f"drive did not enter NMT OPERATIONAL within {self.heartbeat_timeout_s:g} s of the NMT "
                     f"start (heartbeat reports {name})"
                 )
-            if now - self._pdo_at > self.pdo_timeout_s:
+            if now - self._pdo_heard > self.pdo_timeout_s:
                 self._latch_fault(f"no TPDO1 from node {self.node.id} for more than {self.pdo_timeout_s:g} s")

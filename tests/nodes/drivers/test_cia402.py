@@ -6,6 +6,7 @@ angle, and the drive's fault-reset sequence must bring the stage back.
 
 from __future__ import annotations
 
+import ctypes
 import struct
 import time
 
@@ -184,6 +185,35 @@ def test_heartbeat_loss_is_a_fault_and_recovers(stage, drive_process):
     time.sleep(0.1)
     stage.reset_fault()
     assert stage.fault is None and stage.angle == pytest.approx(5.0)
+
+
+def _hold_the_gil(seconds: float) -> None:
+    """Stall this whole process, as a long garbage collection does: a C sleep that keeps the GIL (ctypes'
+    PyDLL does not release it), so no other thread runs. The hub's forwarding (C, GIL released) goes on."""
+    ctypes.PyDLL(None).usleep(int(seconds * 1e6))
+
+
+def test_a_stall_of_this_process_is_not_a_lost_heartbeat(stage, drive_process):
+    """The drive's heartbeats and TPDOs wait in the socket while this process cannot run; the consumer
+    timeouts count only the time it listened (nodes/drivers/cia402_watch.py)."""
+    stage.move_to(5.0)
+    stage.wait_settled(2.0)
+    _hold_the_gil(3 * stage.heartbeat_timeout_s)
+    time.sleep(0.3)  # the notifier reads what waited
+    assert stage.fault is None and stage.angle == pytest.approx(5.0)
+
+
+def test_a_heartbeat_that_stops_during_a_stall_is_still_lost(stage, drive_process):
+    stage.move_to(5.0)
+    stage.wait_settled(2.0)
+    drive_process.cmd("heartbeat_stop")
+    _hold_the_gil(3 * stage.heartbeat_timeout_s)
+    start = time.monotonic()
+    assert "heartbeat of node 5 lost" in _wait_fault(stage, "heartbeat of node 5 lost")
+    assert time.monotonic() - start < stage.heartbeat_timeout_s + 0.3
+    drive_process.cmd("heartbeat_resume")
+    time.sleep(0.1)
+    stage.reset_fault()
 
 
 def test_bus_off_is_a_fault_sends_fail_and_reset_works_after_restart(stage, drive_process):
