@@ -14,7 +14,8 @@ angles), and splits that scan's wall time:
   same number of frames of this size, timed in this process (the compositor folds frames as they come, off
   the critical path);
 
-and the CPU seconds of each node process during the scan (``/proc/PID/stat``), as a share of the rig's total.
+and the CPU seconds of each node process during the scan (``/proc/PID/stat``), as a share of the rig's total,
+with the simulator's system seconds and minor page faults (fresh pages: the patterns' sources it keeps).
 ``--threads 1,2`` runs each config with the simulator at each thread count (its ``threads`` param: frames
 made at once) and gives the speedup of the scan (stage moves aside) against the first count.
 The physical limit is a 30 fps camera: 60 frames in 2 s (the target for ``preview`` at 640×480).
@@ -107,12 +108,14 @@ required = true
     return path
 
 
-def _cpu_s(pid: int) -> float | None:
+def _cpu_s(pid: int) -> np.ndarray | None:
+    """(CPU s, of it system s, minor page faults) of process ``pid`` so far (/proc/PID/stat)."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except (OSError, IndexError):
         return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+    tick = os.sysconf("SC_CLK_TCK")
+    return np.array([(int(fields[11]) + int(fields[12])) / tick, int(fields[12]) / tick, int(fields[7])])
 
 
 def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: list[str] = ()) -> dict:
@@ -126,8 +129,8 @@ def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: 
         env = {**os.environ, "POLARSTRIPE_RUNS": str(folder / "runs")}
         proc = subprocess.Popen([sys.executable, "-m", "polarstripe", "launch", str(toml), "--once"], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        start_cpu: dict[str, float] = {}
-        last_cpu: dict[str, float] = {}
+        start_cpu: dict[str, np.ndarray] = {}
+        last_cpu: dict[str, np.ndarray] = {}
         scan_id = 2
         deadline = time.monotonic() + timeout
         graph, emitter_log = None, None
@@ -165,13 +168,16 @@ def run_one(size: str, fidelity: str, stripes: int, timeout: float, sim_params: 
         scan_s, frames, analyzer_s, camera_s, wait_s = (float(g) for g in m.groups())
         sim_s = sum(float(t) for t in re.findall(rf"frame scan {scan_id} step \d+ \S+: ([\d.]+) s",
                                                    logs["simulator"]))
-        cpu = {n: max(0.0, last_cpu.get(n, start_cpu.get(n, 0.0)) - start_cpu.get(n, 0.0)) for n in start_cpu}
+        used = {n: np.maximum(0.0, last_cpu.get(n, start_cpu[n]) - start_cpu[n]) for n in start_cpu}
+        cpu = {n: float(u[0]) for n, u in used.items()}
+        sim_sys_s, sim_faults = (float(v) for v in used.get("simulator", np.zeros(3))[1:])
         w, h = (int(v) for v in size.split("x"))
         scale = re.search(r"model at 1/(\d+)", logs.get("simulator", ""))
         return {"size": size, "fidelity": fidelity, "frames": int(frames), "scan_s": scan_s,
                 "simulation_s": sim_s, "transport_s": max(0.0, camera_s + wait_s - sim_s),
                 "analyzer_s": analyzer_s, "compositing_s": _compositing_s(w, h, int(frames)),
-                "camera_only_s": scan_s - analyzer_s, "cpu_s": cpu,
+                "camera_only_s": scan_s - analyzer_s, "cpu_s": cpu, "simulator_system_s": sim_sys_s,
+                "simulator_minor_faults": int(sim_faults),
                 "render_scale": int(scale.group(1)) if scale else None,
                 "error_vs_truth": _error_vs_truth(folder / "out" / "metrics.json")}
     finally:
@@ -251,5 +257,6 @@ def main(args: argparse.Namespace) -> int:
         total = sum(r["cpu_s"].values()) or 1.0
         parts = ", ".join(f"{n} {s:.2f} ({100 * s / total:.0f}%)" for n, s in
                           sorted(r["cpu_s"].items(), key=lambda kv: -kv[1]))
-        print(f"  {r['size']} {r['fidelity']} threads {r['threads'] or 'auto'}: {parts}")
+        print(f"  {r['size']} {r['fidelity']} threads {r['threads'] or 'auto'}: {parts}; the simulator's "
+              f"system s {r['simulator_system_s']:.2f}, minor page faults {r['simulator_minor_faults']}")
     return 0
