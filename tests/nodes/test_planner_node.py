@@ -16,6 +16,8 @@ from polarstripe.runtime.testing import NodeHarness
 FAST = {"fidelity": "preview", "separations": 6, "d_min_m": 0.05, "d_max_m": 0.45, "resolution": "160x120",
         "refine": 2}     # the default search's rivals, two rounds of its four (a test's seconds)
 CHEAP = {**FAST, "width": 96}  # the error measure's renders narrower than the camera: a fifth less CPU
+# the tests of when the node re-plans (counters, the medium), not where it goes: 3 separations, no bisection
+REPLAN = {**CHEAP, "separations": 3, "refine": 0, "publish_on_start": False}
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +137,7 @@ def test_changed_p_replans_with_the_measured_medium():
 
 
 def test_changed_sigma_replans():
-    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
+    h = NodeHarness(Planner, params=REPLAN)
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=5.2))  # within 10 %
     assert h.node.counters["replans"] == 0
     h.deliver("medium/estimate", MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=9.0))
@@ -145,7 +147,7 @@ def test_changed_sigma_replans():
 
 
 def test_fitted_medium_replans_with_sigma_and_mean_cosine():
-    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
+    h = NodeHarness(Planner, params=REPLAN)
     cannot = MediumEstimate(p=h.node.p_assumed, sigma_t_per_m=None, reason="no visible sheet")
     h.deliver("medium/estimate", cannot)
     assert h.node.counters["replans"] == 0
@@ -167,7 +169,7 @@ def test_bad_params_are_rejected_before_start():
 def test_compositor_p_until_a_fit_gives_p_and_nan_p_is_no_p():
     """The compositor's p (compositor/medium_p) re-plans until the estimator's fit has given p; a fit without
     an analyzer pair (p NaN) changes σ_t and g only."""
-    h = NodeHarness(Planner, params={**CHEAP, "publish_on_start": False})
+    h = NodeHarness(Planner, params=REPLAN)
     h.deliver("compositor/medium_p", MediumEstimate(p=0.3, scan_id=2))
     first = h.node.scene.medium.dop.depolarization          # δ that gives p 0.3 (tank: 0.2 gives ~0.4)
     assert h.node.counters["replans"] == 1 and first > 0.2
