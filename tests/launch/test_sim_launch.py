@@ -140,17 +140,50 @@ def test_sim_launch_polarized_stripes_beat_flood(alone):
     assert_clean_exit(proc, logs, [*NODES, "compositor", "planner"])
 
 
-def test_two_sim_launches_at_once_do_not_meet(alone, tmp_path):
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """Two small sim launches at once, ``a`` naming its CAN segment on the command line (a runs folder each);
+    while ``a`` runs, a third launch in ``a``'s runs folder naming the same segment: the refusal, and how
+    long it took."""
+    tmp = tmp_path_factory.mktemp("pair")
+    segment = f"ps-test-shared-{os.getpid()}"
+    cmd = [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--once", *SMALL]
+    procs = {}
+    try:
+        for name, extra in (("a", [f"can={segment}"]), ("b", [])):
+            env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp / f"runs_{name}")}
+            with open(tmp / f"{name}.txt", "w") as console:  # a file, not a pipe nobody reads meanwhile
+                procs[name] = subprocess.Popen([*cmd, *extra, f"out={tmp / name}"], cwd=tmp, env=env,
+                                               text=True, stdout=console, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 120
+        while not list((tmp / "runs_a").glob("*/graph.json")):  # a claims the segment right after
+            assert time.monotonic() < deadline and procs["a"].poll() is None, (tmp / "a.txt").read_text()
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        refused = subprocess.run([*cmd, f"can={segment}", "plan=false", "calibrate=false",
+                                  f"out={tmp / 'c'}"],
+                                 cwd=tmp, env={**os.environ, "POLARSTRIPE_RUNS": str(tmp / "runs_a")},
+                                 text=True, capture_output=True, timeout=120)
+        took = time.monotonic() - t0
+        still_running = procs["a"].poll() is None  # the refusal came while a held the segment
+        for p in procs.values():
+            p.wait(timeout=240)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                p.wait(timeout=60)
+    outputs = {name: (tmp / f"{name}.txt").read_text() for name in procs}
+    return tmp, procs, outputs, segment, refused, took, still_running
+
+
+def test_two_sim_launches_at_once_do_not_meet(alone, pair):
     """Two demos at the same time (each its own CAN segment, sockets and out folder) give the numbers of one
-    alone; a CAN segment named on the command line while another launch uses it is refused at once."""
+    alone."""
     _, out_alone, proc, _ = alone
     assert proc.returncode == 0, proc.stderr
-    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
-    cmd = [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--once", *SMALL]
-    procs = [subprocess.Popen([*cmd, f"out={tmp_path / name}"], cwd=tmp_path, env=env, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for name in ("a", "b")]
-    outputs = [p.communicate(timeout=240)[0] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], outputs
+    tmp_path, procs, outputs, *_ = pair
+    assert [p.returncode for p in procs.values()] == [0, 0], outputs
     alone_m = json.loads((out_alone / "metrics.json").read_text())
     for name in ("a", "b"):
         m = json.loads((tmp_path / name / "metrics.json").read_text())
@@ -162,26 +195,14 @@ def test_two_sim_launches_at_once_do_not_meet(alone, tmp_path):
             assert m[method]["analyzer_deg"] == pytest.approx(alone_m[method]["analyzer_deg"], abs=1e-6)
 
 
-def test_a_named_can_segment_in_use_is_refused(tmp_path):
-    env = {**os.environ, "POLARSTRIPE_RUNS": str(tmp_path / "runs")}
-    cmd = [sys.executable, "-m", "polarstripe", "launch", str(ROOT / "launch" / "sim.toml"), "--once", *SMALL,
-           "can=ps-test-shared", "plan=false", "calibrate=false"]
-    first = subprocess.Popen([*cmd, f"out={tmp_path / 'a'}"], cwd=tmp_path, env=env, text=True,
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + 60
-        while not list((tmp_path / "runs").glob("*/graph.json")):
-            assert time.monotonic() < deadline and first.poll() is None
-            time.sleep(0.05)
-        t0 = time.monotonic()
-        second = subprocess.run([*cmd, f"out={tmp_path / 'b'}"], cwd=tmp_path, env=env, text=True,
-                                capture_output=True, timeout=60)
-        assert second.returncode == 2, second.stderr
-        assert "can='ps-test-shared' is in use by launch sim (pid " in second.stderr
-        assert "simulator started" not in second.stderr and time.monotonic() - t0 < 30
-    finally:
-        first.send_signal(signal.SIGINT)
-        first.communicate(timeout=60)
+def test_a_named_can_segment_in_use_is_refused(pair):
+    """A CAN segment named on the command line while another launch uses it is refused at once (the launch
+    ``a`` of :func:`pair` holds it: no launch of its own here)."""
+    *_, segment, refused, took, still_running = pair
+    assert still_running
+    assert refused.returncode == 2, refused.stderr
+    assert f"can='{segment}' is in use by launch sim (pid " in refused.stderr
+    assert "simulator started" not in refused.stderr and took < 30
 
 
 @pytest.mark.long
