@@ -4,7 +4,8 @@ from then on the command handles it (docs/architecture.md "Shutdown").
 
 A node process (``polarstripe node``) leaves without the interpreter's teardown: by then its loop has
 ended, ``teardown`` has run, its sockets are closed and its files removed, and unloading numba, scipy and
-matplotlib can take seconds on a loaded machine, while the launcher's next signal is on its way."""
+matplotlib can take seconds on a loaded machine, while the launcher's next signal is on its way. Its last
+half second (the sockets' linger) ignores the stop signals: one that came then raised a traceback."""
 
 import os
 import sys
@@ -16,6 +17,12 @@ try:
 except KeyboardInterrupt:
     status = 130
 if sys.argv[1:2] == ["node"]:
+    import signal
+
+    # the node has ended: a stop signal from now on (the launcher's next one) has nothing left to stop and
+    # must not raise KeyboardInterrupt into the teardown below (a traceback); SIGKILL still ends it
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     import logging
     import threading
 

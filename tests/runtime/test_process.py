@@ -236,3 +236,34 @@ def test_a_signal_swallowed_by_a_finalizer_during_the_import_is_one_plain_line(c
     finally:
         sys.unraisablehook = hook
         process._EARLY.clear()
+
+
+def test_a_stop_signal_during_a_nodes_last_half_second_is_no_traceback():
+    """``python -m polarstripe node``: after the node's loop has ended, __main__ gives the sockets' linger up
+    to 0.5 s, then leaves. A stop signal then (the launcher's next one) has nothing left to stop; it raised
+    KeyboardInterrupt there, a traceback in the node's log. Here main() returns at once and a SIGINT comes
+    0.1 s into a linger made 0.4 s long: the exit is the node's own status, with nothing on stderr."""
+    import subprocess
+    import sys
+
+    code = """
+import os, runpy, signal, sys, threading, time
+import zmq
+import polarstripe.tools.cli as cli
+
+class Slow:
+    def destroy(self, linger=None):
+        time.sleep(0.4)
+
+def main():
+    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+    return 3
+
+zmq.Context.instance = staticmethod(lambda: Slow())
+cli.main = main
+sys.argv = ["polarstripe", "node"]
+runpy.run_module("polarstripe", run_name="__main__")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, done.stderr
+    assert "Traceback" not in done.stderr and "KeyboardInterrupt" not in done.stderr, done.stderr
