@@ -32,35 +32,37 @@ def pytest_addoption(parser):
 
 
 # The files that take longest (tens of seconds to minutes: whole launches, the murk's renders), longest first
-# (measured: the CPU of each file's tests and of the processes they start, 2026-11-28 at 841a317, load 8-17).
-# They run first, so that the workers of ``-n auto --dist loadfile`` (pyproject.toml) share out the short
-# files at the end and finish together. pyproject.toml's ``--no-loadscope-reorder`` keeps this order: by
-# default xdist (>= 3.6) sorts the files by their number of tests, which sent these files of a few tests each
-# to the end, where one worker ran them alone.
+# (measured in a full run at c7f0ab8, load 4-9: the CPU of each file's tests and of the processes they start;
+# the whole suite's was ~1140 s). They run first, so that the workers of ``-n auto --dist loadfile``
+# (pyproject.toml) share out the short files at the end and finish together. pyproject.toml's
+# ``--no-loadscope-reorder`` keeps this order: by default xdist (>= 3.6) sorts the files by their number of
+# tests, which sent these files of a few tests each to the end, where one worker ran them alone.
 LONGEST_FIRST = (
-    "tests/launch/test_sim_launch.py",          # ~120 s CPU: six launches, three of the full demo
-    "tests/nodes/test_foxglove_bridge.py",      # ~80 s: the demo recorded, its export, import and replay
-    "tests/tools/test_calibrate.py",            # ~75 s: 8 poses rendered in clear water and at sigma_t = 2
-    "tests/launch/test_soak.py",                # the warm-up and 36 s of scanning, whatever the CPU
+    "tests/launch/test_sim_launch.py",          # ~155 s CPU: six launches, three of them the full demo
+    "tests/launch/test_soak.py",                # ~90 s: the warm-up and 36 s of scanning
+    "tests/tools/test_calibrate.py",            # ~65 s, most in one fixture: 8 poses rendered at sigma_t = 2
     "tests/launch/test_sigint.py",              # ~80 s: six launches
-    "tests/imaging/test_port_calibration.py",   # ~60 s
-    "tests/planning/test_sweep.py",             # ~50 s
-    "tests/nodes/test_simulator_pipeline.py",   # ~40 s
-    "tests/tools/test_replay.py",
+    "tests/nodes/test_foxglove_bridge.py",      # ~70 s: the demo recorded, its export, import and replay
+    "tests/planning/test_sweep.py",             # ~45 s
+    "tests/imaging/test_port_calibration.py",   # ~40 s
+    "tests/tools/test_replay.py",               # ~40 s
+    "tests/planning/test_medium_fit.py",
     "tests/launch/test_liveness_launch.py",
     "tests/runtime/test_launch.py",
-    "tests/sim/test_all_orders.py",
-    "tests/planning/test_medium_fit.py",
-    "tests/tools/test_render_cli.py",
+    "tests/sim/test_mitsuba_port.py",
     "tests/nodes/test_planner_node.py",
-    "tests/sim/test_transport.py",
+    "tests/tools/test_render_cli.py",
+    "tests/sim/test_port.py",
     "tests/launch/",
+    "tests/sim/test_all_orders.py",
+    "tests/sim/test_transport.py",
     "tests/sim/test_multiple.py",
     "tests/planning/test_planner.py",
-    "tests/planning/test_plan_plot.py",
     "tests/nodes/test_run_state.py",
+    "tests/planning/test_plan_plot.py",
     "tests/planning/test_validate.py",
-    "tests/planning/test_plan_cli.py",          # ~13 s; the others measured took under 11 s each
+    "tests/sim/test_render_orders_cli.py",
+    "tests/planning/test_plan_cli.py",          # ~11 s; every other file took under 11 s
 )
 
 
