@@ -32,6 +32,7 @@ from pathlib import Path
 import zmq
 import zmq.auth
 from polarstripe.errors import PolarstripeError
+from polarstripe.runtime.zero_copy import monitor_socket
 from zmq.auth.thread import ThreadAuthenticator
 
 KEYS_ENV = "POLARSTRIPE_CURVE_KEYS"  # this host's secret certificate (NAME.key_secret)
@@ -227,7 +228,7 @@ _HANDSHAKE_FAILED = zmq.EVENT_HANDSHAKE_FAILED_AUTH
 def watch_refusal(sock: zmq.Socket) -> zmq.Socket:
     """A monitor of ``sock`` (a CURVE client; call before it connects) that hears the server refuse our key
     (ZAP status 400), for :func:`refusal_note`. Close it with the socket (``sock.disable_monitor()``)."""
-    return sock.get_monitor_socket(_HANDSHAKE_FAILED)
+    return monitor_socket(sock, _HANDSHAKE_FAILED)
 
 
 def refusal_note(monitor: zmq.Socket | None, public: bytes) -> str:

@@ -232,14 +232,23 @@ class ServiceClient:
         sock = self._open()
         rid = next(_request_ids).to_bytes(8, "little")
         self.calls += 1
-        # copied: a request is sent once (zero-copy buys nothing), and a socket dropped after a timeout is
-        # not waited for (runtime/zero_copy.py)
-        sock.send_multipart([self._name_b, rid, *encode(request, topic=self.name, seq=self.calls - 1)])
+        out = [self._name_b, rid, *encode(request, topic=self.name, seq=self.calls - 1)]
         deadline = time.monotonic() + timeout_s
+        # a DEALER with no peer (a server that refused our key drops the connection) blocks its send: wait for
+        # room within the deadline; copied: a request is sent once (zero-copy buys nothing), and a socket
+        # dropped after a timeout is not waited for (runtime/zero_copy.py)
+        sent = False
         while True:
             left = deadline - time.monotonic()
             wait = left if check is None else min(left, CHECK_S)
-            if left <= 0 or not sock.poll(max(1, int(wait * 1000))):
+            if not sent and left > 0 and sock.poll(max(1, int(wait * 1000)), zmq.POLLOUT):
+                try:
+                    sock.send_multipart(out, flags=zmq.NOBLOCK)
+                    sent = True
+                except zmq.Again:   # the room went again: wait on
+                    pass
+                continue
+            if left <= 0 or not sent or not sock.poll(max(1, int(wait * 1000))):
                 if check is not None and left > 0 and time.monotonic() < deadline:  # ask, then wait on
                     try:
                         check()

@@ -21,13 +21,15 @@ as they are: nothing is added per message.
 from __future__ import annotations
 
 import atexit
+import itertools
 import logging
+import os
 import weakref
 
 import zmq
 import zmq.utils.garbage  # noqa: F401  (registers pyzmq's exit handler before ours: ours runs first)
 
-__all__ = ["GRACE_S", "ZeroCopyGuard"]
+__all__ = ["GRACE_S", "ZeroCopyGuard", "monitor_socket"]
 
 GRACE_S = 1.0
 """How long after a close's linger ZeroMQ gets to end the socket [s] (its reaper and I/O threads finish the
@@ -35,6 +37,15 @@ teardown: milliseconds, unless the machine is starved)."""
 
 log = logging.getLogger(__name__)
 _live: weakref.WeakSet[ZeroCopyGuard] = weakref.WeakSet()
+_monitors = itertools.count()
+
+
+def monitor_socket(socket: zmq.Socket, events: int) -> zmq.Socket:
+    """A monitor of ``socket`` for ``events`` on an inproc address of its own. pyzmq's default address names
+    the socket's file descriptor, which the OS gives again to a later socket while ZeroMQ's reaper may still
+    be ending the earlier one and its monitor: the later monitor then failed with "Address already in use"
+    (seen once in a full suite)."""
+    return socket.get_monitor_socket(events, addr=f"inproc://polarstripe-monitor-{os.getpid()}-{next(_monitors)}")
 
 
 class ZeroCopyGuard:
@@ -43,7 +54,7 @@ class ZeroCopyGuard:
 
     def __init__(self, socket: zmq.Socket):
         self.socket = socket
-        self._ended = socket.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED)
+        self._ended = monitor_socket(socket, zmq.EVENT_MONITOR_STOPPED)
         self._ended.linger = 0
         _live.add(self)
 

@@ -192,3 +192,21 @@ def test_a_deferred_reply_goes_out_when_the_node_gives_it_and_is_checked_like_an
     assert server.stats.errors == 2 and server.services["/t/slow"].errors == 2
     with pytest.raises(RuntimeError, match="already given"):
         later["ok"].reply(Ack(ok=True))
+
+
+def test_a_call_whose_request_cannot_be_sent_times_out(ipc):
+    """A DEALER with no peer blocks its send (a CURVE server that refused our key drops the connection; CI
+    once hung 180 s in tests/runtime/test_auth.py so). The call waits for room within its timeout and then
+    raises ServiceTimeout, as for a missing reply. Here the socket cannot send: ``immediate`` and nothing
+    listening."""
+    with ServiceClient(ipc("nobody.srv"), "/t/echo", Log, Log) as c:
+        c._drop()
+        s = zmq.Context.instance().socket(zmq.DEALER)
+        s.linger, s.immediate = 0, True
+        s.connect(ipc("nobody.srv"))
+        c.socket = s
+        t0 = time.monotonic()
+        with pytest.raises(ServiceTimeout, match="no reply within 0.3 s"):
+            c.call(Log(level="INFO", node="n", text="hi"), timeout_s=0.3)
+        assert time.monotonic() - t0 < 5.0
+        assert c.socket is None and s.closed        # dropped: nothing queued leaks into the next call

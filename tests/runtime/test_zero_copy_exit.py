@@ -199,3 +199,22 @@ def test_a_close_returns_once_zeromq_has_let_go_of_the_arrays_it_was_sending():
         assert [a() is None for a in arrays] == [True] * 6
     finally:
         sub.close()
+
+
+def test_a_guard_does_not_need_pyzmqs_default_monitor_address():
+    """pyzmq's default monitor address names the socket's file descriptor, which the OS gives again to a later
+    socket while ZeroMQ may still be ending the earlier one's monitor (a full suite once failed with "Address
+    already in use" making a service server). Here another socket's monitor holds that address first: the
+    guard still gets its own monitor and still sees its socket end."""
+    from polarstripe.runtime.zero_copy import ZeroCopyGuard
+
+    ctx = zmq.Context.instance()
+    other, sock = ctx.socket(zmq.PUB), ctx.socket(zmq.PUB)
+    held = other.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED, addr=f"inproc://monitor.s-{sock.FD}")
+    try:
+        guard = ZeroCopyGuard(sock)
+        assert guard.close(0.0)
+    finally:
+        other.disable_monitor()
+        held.close(0)
+        other.close(0)
