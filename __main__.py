@@ -5,10 +5,20 @@ from then on the command handles it (docs/architecture.md "Shutdown").
 A node process (``polarstripe node``) leaves without the interpreter's teardown: by then its loop has
 ended, ``teardown`` has run, its sockets are closed and its files removed, and unloading numba, scipy and
 matplotlib can take seconds on a loaded machine, while the launcher's next signal is on its way. Its last
-half second (the sockets' linger) ignores the stop signals: one that came then raised a traceback."""
+half second (the sockets' linger) ignores the stop signals: one that came then raised a traceback.
+
+From its first line a node process writes every thread's Python stack to its log on SIGUSR1 (``faulthandler``:
+it works while the interpreter is stuck in C code holding the GIL). The launcher sends it to a node still
+running after its SIGINT, before the SIGTERM, so the log says where the node was stuck."""
 
 import os
 import sys
+
+if sys.argv[1:2] == ["node"]:
+    import faulthandler
+    import signal
+
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 try:
     from polarstripe.tools.cli import main

@@ -35,7 +35,7 @@ from polarstripe.runtime.launch_file import LaunchError, LaunchSpec, NodeSpec, l
 from polarstripe.runtime.launch_setup import _ipc_in_use, _with_recorder, build_graph
 from polarstripe.runtime.liveness import INCARNATION_ENV
 from polarstripe.runtime.params import parse_assignments
-from polarstripe.runtime.pgroups import reap_groups, set_subreaper
+from polarstripe.runtime.pgroups import dump_stacks, reap_groups, set_subreaper
 
 HELP = "start a rig from a launch file"
 USER_ERROR = 2  # a node's exit status for a one-line PolarstripeError (a bad setting, a missing device)
@@ -381,7 +381,10 @@ class Launcher:
                 live = [c for c in live if c.proc.poll() is None]
                 time.sleep(0.02)
             if live and sig != signal.SIGKILL:
-                self.say(f"{', '.join(c.spec.name for c in live)} still running after {sig.name}")
+                self.say(f"{', '.join(c.spec.name for c in live)} still running after {sig.name}"
+                         + (": their stacks are in their logs" if sig == signal.SIGINT else ""))
+                if sig == signal.SIGINT:
+                    dump_stacks([c.proc.pid for c in live])
         for c in self.children:
             if c.proc is not None:
                 code = c.proc.wait()

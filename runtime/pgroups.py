@@ -81,3 +81,15 @@ def reap_groups(groups: dict[int, str], timeout_s: float, say: Callable[[str], N
                 killed.append(name)
             deadline = time.monotonic() + 1.0
         time.sleep(0.02)
+
+
+def dump_stacks(pids: list[int], settle_s: float = 0.3) -> None:
+    """SIGUSR1 to each node process of ``pids``: from its first line it writes every thread's Python stack to
+    its log on that signal (``faulthandler``, __main__.py), even while it is stuck in C code holding the GIL.
+    Then ``settle_s`` for the writes. Only the node's own process: a child it started may not handle it."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGUSR1)
+        except ProcessLookupError:
+            pass
+    time.sleep(settle_s)

@@ -33,10 +33,10 @@ def pytest_addoption(parser):
 
 # The files that take longest (tens of seconds to minutes: whole launches, the murk's renders), longest first
 # (measured in a full run at c7f0ab8, load 4-9: the CPU of each file's tests and of the processes they start;
-# the whole suite's was ~1140 s). They run first, so that the workers of ``-n auto --dist loadfile``
-# (pyproject.toml) share out the short files at the end and finish together. pyproject.toml's
-# ``--no-loadscope-reorder`` keeps this order: by default xdist (>= 3.6) sorts the files by their number of
-# tests, which sent these files of a few tests each to the end, where one worker ran them alone.
+# the whole suite's was ~1140 s). They run first, so that the workers share out the short files at the end and
+# finish together. pyproject.toml's ``--no-loadscope-reorder`` keeps this order: by default xdist (>= 3.6)
+# sorts the work by its number of tests, which sent these files of a few tests each to the end, where one
+# worker ran them alone.
 LONGEST_FIRST = (
     "tests/launch/test_sim_launch.py",          # ~155 s CPU: six launches, three of them the full demo
     "tests/launch/test_soak.py",                # ~90 s: the warm-up and 36 s of scanning
@@ -64,6 +64,32 @@ LONGEST_FIRST = (
     "tests/sim/test_render_orders_cli.py",
     "tests/planning/test_plan_cli.py",          # ~11 s; every other file took under 11 s
 )
+
+# The files whose tests run whole rigs (a launch: seven or more node processes scanning, each with its own
+# heartbeat deadline of 1 s): one unit of xdist's work, so that one worker runs them one after another while
+# the others run the single-process files. Two such launches at once on a 2-core machine (a chaos soak beside
+# two demos, CI at 18 min) starved nodes past their deadlines: a compositor silent for 9 s, a demo ending with
+# exit 1. (Not ``--dist loadgroup``: with pytest 9.2 its groups are silently ignored, pytest-xdist#1386.)
+LAUNCHES = (
+    "tests/launch/",
+    "tests/nodes/test_foxglove_bridge.py",
+    "tests/tools/test_replay.py",
+    "tests/nodes/test_run_state.py",
+)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` (pyproject.toml), except that the files of :data:`LAUNCHES` are one unit."""
+    if config.getvalue("dist") != "loadfile":
+        return None  # another --dist on the command line: xdist's own
+    from xdist.scheduler import LoadScopeScheduling
+
+    class LaunchesTogether(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return "launches" if path.startswith(LAUNCHES) else path
+
+    return LaunchesTogether(config, log)
 
 
 def _cost_rank(item) -> int:

@@ -40,10 +40,13 @@ def _node(drive, **params):
 
 def _run_until(h, predicate, timeout_s=3.0, step_s=0.01):
     """Advance the harness clock in step with real time until a newly published state satisfies
-    ``predicate``; return that state (or None after the timeout)."""
+    ``predicate``; return that state (or None once the clock has advanced ``timeout_s``). Each step sleeps
+    ``step_s`` first, so the drive (a real process on the real clock) has had at least as long as the node's
+    clock says: the budget is the node's time, which a loaded machine cannot shorten (a wall-clock budget
+    failed once in a full suite at load ~5); 20 times it in real time at the most."""
     seen = len(h.published("polarizer/state"))
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    end, wall_end = h.bus.clock + timeout_s, time.monotonic() + 20 * timeout_s
+    while h.bus.clock < end and time.monotonic() < wall_end:
         time.sleep(step_s)
         h.advance(step_s)
         states = h.published("polarizer/state")
@@ -160,11 +163,11 @@ def test_never_settling_stage_is_a_clear_fault_after_the_timeout(drive):
     h = _node(drive, auto_resets=0, settle_timeout_s=0.5)
     try:
         drive.cmd("never_settle on")
-        t0 = time.monotonic()
+        t0 = h.bus.clock
         h.deliver("polarizer/cmd", PolarizerCommand(target_deg=15.0))
         fault = _run_until(h, lambda s: "not reached within 0.5 s" in s.fault, 3.0)
         assert fault is not None and math.isnan(fault.angle_deg) and not fault.settled
-        assert time.monotonic() - t0 < 2.0
+        assert h.bus.clock - t0 < 2.0  # the node's clock: the fault came at its timeout, not later
         drive.cmd("never_settle off")
         assert h.call("polarizer/reset", Empty()).ok
         assert _run_until(h, _settled_at(15.0)) is not None
@@ -188,7 +191,7 @@ def test_absent_drive_is_a_fault_not_a_hang():
         t0 = time.monotonic()
         h = NodeHarness(Polarizer, params={"stage": "cia402", "stage_options": {"interface": "zmq",
                                            "channel": f"ipc://{folder}/bus"}, "connect_retry_s": 0.5})
-        assert time.monotonic() - t0 < 5.0
+        assert time.monotonic() - t0 < 15.0  # not a hang (a loaded machine may take seconds)
         state = h.published("polarizer/state")[-1]
         assert "not connected" in state.fault and math.isnan(state.angle_deg)
         reply = h.call("polarizer/calibrate", CalibrateRequest())
@@ -237,7 +240,7 @@ def test_calibrate_without_frames_fails_cleanly():
     t0 = time.monotonic()
     reply = h.call("polarizer/calibrate", CalibrateRequest(angles_deg=[0.0, 60.0, 120.0]))
     assert not reply.ok and "camera/frame" in reply.detail
-    assert time.monotonic() - t0 < 3.0
+    assert time.monotonic() - t0 < 10.0  # not a hang
     h.stop()
 
 

@@ -333,7 +333,11 @@ def test_bad_messages_service_timeout_and_shutdown_escalation(tmp_path):
         status = _stop(proc)
     assert status == 130
     out = _output(tmp_path)
-    assert "stubborn still running after SIGINT" in out and "stubborn still running after SIGTERM" in out
+    assert "stubborn still running after SIGINT: their stacks are in their logs" in out
+    assert "stubborn still running after SIGTERM" in out
+    # where it was when it ignored the SIGINT: every thread's stack (faulthandler, __main__.py), its loop's
+    stuck = (Path(g["run_dir"]) / "logs" / "stubborn.log").read_text()
+    assert "(most recent call first)" in stuck and "runner.py" in stuck, stuck
     n = json.loads((Path(g["run_dir"]) / "exits.json").read_text())["nodes"]
     assert (n["stubborn"]["signal"], n["stubborn"]["stopped_by"]) == ("SIGKILL", "SIGKILL")
     assert (n["camera"]["signal"], n["camera"]["stopped_by"]) == ("SIGKILL", None)  # the test killed it
