@@ -65,16 +65,19 @@ LONGEST_FIRST = (
     "tests/planning/test_plan_cli.py",          # ~11 s; every other file took under 11 s
 )
 
-# The files whose tests run whole rigs (a launch: seven or more node processes scanning, each with its own
-# heartbeat deadline of 1 s): one unit of xdist's work, so that one worker runs them one after another while
-# the others run the single-process files. Two such launches at once on a 2-core machine (a chaos soak beside
-# two demos, CI at 18 min) starved nodes past their deadlines: a compositor silent for 9 s, a demo ending with
-# exit 1. (Not ``--dist loadgroup``: with pytest 9.2 its groups are silently ignored, pytest-xdist#1386.)
+# The files whose tests run the whole sim rig (seven or more node processes scanning, each with its own
+# heartbeat deadline of 1 s; a chaos soak, two demos at once): one unit of xdist's work, so that one worker
+# runs them one after another while the others run the rest. Two of them at once on a 2-core machine (the
+# soak beside the two demos, CI at 18 min) starved nodes past their deadlines: a compositor silent for 9 s, a
+# demo ending with exit 1. The smaller launches (a half rig, dry runs, a respawned node) stay files of their
+# own: all of them in the unit made it the suite's longest path (7.5 of 10.7 min). (Not ``--dist loadgroup``:
+# with pytest 9.2 it silently ignores its groups, pytest-xdist#1386.)
 LAUNCHES = (
-    "tests/launch/",
+    "tests/launch/test_sim_launch.py",
+    "tests/launch/test_soak.py",
+    "tests/launch/test_sigint.py",
     "tests/nodes/test_foxglove_bridge.py",
     "tests/tools/test_replay.py",
-    "tests/nodes/test_run_state.py",
 )
 
 
