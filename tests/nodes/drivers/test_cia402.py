@@ -176,7 +176,7 @@ def test_heartbeat_loss_is_a_fault_and_recovers(stage, drive_process):
     drive_process.cmd("heartbeat_stop")
     start = time.monotonic()
     assert "heartbeat of node 5 lost" in _wait_fault(stage, "heartbeat of node 5 lost")
-    assert time.monotonic() - start < stage.heartbeat_timeout_s + 0.2
+    assert time.monotonic() - start < stage.heartbeat_timeout_s + 0.5  # a loaded machine wakes us late
     assert stage.angle is None
     with pytest.raises(StageFault, match="heartbeat"):
         stage.reset_fault()  # the cause persists: the fault stays

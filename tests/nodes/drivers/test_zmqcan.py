@@ -32,7 +32,7 @@ def test_frames_cross_processes_both_ways(can_channel):
         child = ctx.Process(target=_echo, args=(can_channel, ready, done))
         child.start()
         try:
-            assert ready.wait(10)
+            assert ready.wait(60)  # a spawned child imports python-can and numpy: seconds when loaded
             time.sleep(0.05)
             for payload in ([1, 2, 3], [0xFF] * 8, []):
                 bus.send(can.Message(arbitration_id=0x601, data=payload, is_extended_id=False))
