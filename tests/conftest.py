@@ -81,7 +81,7 @@ LAUNCHES = (
 )
 
 
-@pytest.hookimpl(optionalhook=True)  # xdist's hook: no error where xdist is off (-p no:xdist)
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest knows it only with xdist loaded
 def pytest_xdist_make_scheduler(config, log):
     """``--dist loadfile`` (pyproject.toml), except that the files of :data:`LAUNCHES` are one unit."""
     if config.getvalue("dist") != "loadfile":
