@@ -11,13 +11,13 @@ From its first line a node process writes every thread's Python stack to its log
 it works while the interpreter is stuck in C code holding the GIL). The launcher sends it to a node still
 running after its SIGINT, before the SIGTERM, so the log says where the node was stuck."""
 
+import faulthandler
 import os
+import signal
 import sys
 
-if sys.argv[1:2] == ["node"]:
-    import faulthandler
-    import signal
-
+NODE = sys.argv[1:2] == ["node"]
+if NODE:
     faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 try:
@@ -26,9 +26,7 @@ try:
     status = main()
 except KeyboardInterrupt:
     status = 130
-if sys.argv[1:2] == ["node"]:
-    import signal
-
+if NODE:
     # the node has ended: a stop signal from now on (the launcher's next one) has nothing left to stop and
     # must not raise KeyboardInterrupt into the teardown below (a traceback); SIGKILL still ends it
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -98,7 +98,7 @@ class Sources:
         ``stokes``, one that holds (S1, S2) (a kept one without is rendered again)."""
         while True:
             with self._lock:
-                if key in self._kept and (not stokes or self._kept[key].s1 is not None):
+                if self._has(key, stokes):
                     self._kept.move_to_end(key)
                     return self._kept[key], self._fresh.pop(key, None)
                 busy = self._making.get(key)
@@ -120,8 +120,8 @@ class Sources:
         (S1, S2) if ``stokes``) nor being made, side by side (sim/scan_render.py ``render_scan``); each is
         charged an equal share of the batch's seconds, reported by the :meth:`get` that first takes it."""
         with self._lock:
-            todo = [(k, p) for k, p in dict(items).items() if k not in self._making and (
-                k not in self._kept or stokes and self._kept[k].s1 is None)]
+            todo = [(k, p) for k, p in dict(items).items()
+                    if k not in self._making and not self._has(k, stokes)]
             events = {k: self._making.setdefault(k, threading.Event()) for k, _ in todo}
         if not todo:
             return
@@ -133,6 +133,10 @@ class Sources:
             self._keep({k: m for (k, _), m in zip(todo, made, strict=True)}, dict.fromkeys(events, share))
         finally:
             self._done(events)
+
+    def _has(self, key: tuple, stokes: bool) -> bool:
+        """Whether ``key``'s source is kept, with (S1, S2) if ``stokes`` (call with the lock held)."""
+        return key in self._kept and (not stokes or self._kept[key].s1 is not None)
 
     def _keep(self, sources: dict, fresh: dict) -> None:
         with self._lock:
